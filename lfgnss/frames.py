@@ -1,0 +1,63 @@
+"""Frames: ECEF <-> geodetic (WGS84), local ENU, azimuth and elevation."""
+from __future__ import annotations
+
+import numpy as np
+
+from .constants import WGS84_A_M, WGS84_F
+
+_E2 = WGS84_F * (2.0 - WGS84_F)
+
+
+def lla_to_ecef(lat_rad: np.ndarray, lon_rad: np.ndarray, h_m: np.ndarray) -> np.ndarray:
+    """ECEF [m], shape (..., 3), from geodetic latitude/longitude [rad] and ellipsoidal height [m]."""
+    lat, lon, h = np.broadcast_arrays(np.asarray(lat_rad, float), np.asarray(lon_rad, float), np.asarray(h_m, float))
+    n = WGS84_A_M / np.sqrt(1.0 - _E2 * np.sin(lat) ** 2)
+    return np.stack([(n + h) * np.cos(lat) * np.cos(lon),
+                     (n + h) * np.cos(lat) * np.sin(lon),
+                     (n * (1.0 - _E2) + h) * np.sin(lat)], axis=-1)
+
+
+def ecef_to_lla(ecef_m: np.ndarray) -> np.ndarray:
+    """Geodetic (lat [rad], lon [rad], h [m]), shape (..., 3), from ECEF [m] (Bowring, then 3 iterations)."""
+    x, y, z = np.moveaxis(np.asarray(ecef_m, dtype=float), -1, 0)
+    p = np.hypot(x, y)
+    lon = np.arctan2(y, x)
+    lat = np.arctan2(z, p * (1.0 - _E2))
+    for _ in range(4):
+        n = WGS84_A_M / np.sqrt(1.0 - _E2 * np.sin(lat) ** 2)
+        h = p / np.maximum(np.cos(lat), 1e-12) - n
+        lat = np.arctan2(z, p * (1.0 - _E2 * n / (n + h)))
+    n = WGS84_A_M / np.sqrt(1.0 - _E2 * np.sin(lat) ** 2)
+    h = p / np.maximum(np.cos(lat), 1e-12) - n
+    return np.stack([lat, lon, h], axis=-1)
+
+
+def enu_rotation(lat_rad: float, lon_rad: float) -> np.ndarray:
+    """Rotation matrix (3, 3) taking ECEF vectors to local east-north-up at (lat, lon) [rad]."""
+    sl, cl = np.sin(lat_rad), np.cos(lat_rad)
+    so, co = np.sin(lon_rad), np.cos(lon_rad)
+    return np.array([[-so, co, 0.0],
+                     [-sl * co, -sl * so, cl],
+                     [cl * co, cl * so, sl]])
+
+
+def ecef_to_enu(ecef_m: np.ndarray, ref_ecef_m: np.ndarray) -> np.ndarray:
+    """ENU [m], shape (..., 3), of ECEF points relative to the reference ECEF point [m]."""
+    lat, lon, _ = ecef_to_lla(np.asarray(ref_ecef_m, float))
+    return (np.asarray(ecef_m, float) - ref_ecef_m) @ enu_rotation(lat, lon).T
+
+
+def enu_to_ecef(enu_m: np.ndarray, ref_ecef_m: np.ndarray) -> np.ndarray:
+    """ECEF [m] of ENU offsets [m] from the reference ECEF point."""
+    lat, lon, _ = ecef_to_lla(np.asarray(ref_ecef_m, float))
+    return np.asarray(enu_m, float) @ enu_rotation(lat, lon) + ref_ecef_m
+
+
+def azimuth_elevation(rcv_ecef_m: np.ndarray, sat_ecef_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Azimuth and elevation [rad] of satellites (..., 3) seen from a receiver (3,) [m]."""
+    lat, lon, _ = ecef_to_lla(np.asarray(rcv_ecef_m, float))
+    los = np.asarray(sat_ecef_m, float) - rcv_ecef_m
+    enu = los @ enu_rotation(lat, lon).T
+    az = np.mod(np.arctan2(enu[..., 0], enu[..., 1]), 2.0 * np.pi)
+    el = np.arctan2(enu[..., 2], np.hypot(enu[..., 0], enu[..., 1]))
+    return az, el

@@ -1,0 +1,112 @@
+"""The padded per-epoch sequence that every estimator and the trainer consume."""
+from __future__ import annotations
+
+from dataclasses import dataclass, fields, replace
+
+import numpy as np
+
+#: Default LF-GNSS feature set, in packing order (see lfgnss.features).
+DEFAULT_FEATURES = ("cn0", "elevation", "azimuth", "residual", "dpc_gdop", "dpc_pdop", "dpc_hdop", "dpc_vdop")
+
+
+@dataclass(frozen=True)
+class Sequence:
+    """Consecutive epochs of one receiver, padded to ``N`` satellite slots.
+
+    Shapes: ``T`` epochs, ``N`` slots, ``C = len(systems)`` constellations, ``d`` features.
+    Padded or unusable slots have ``mask == False``; their numbers are finite (zeros) and must not
+    influence any result.
+
+    Attributes
+    ----------
+    name : str
+        Label, e.g. ``"hk-tst-2019/test"``.
+    systems : tuple of str
+        Constellation letters present; ``systems[0]`` owns the receiver clock, every further one an
+        inter-system bias (ISB).
+    time_gps_s : (T,) float
+        Epoch time, GPS seconds since 1980-01-06.
+    sv : (T, N) str
+        Satellite ids such as ``"G05"``; ``""`` in padded slots.
+    system_index : (T, N) int
+        Index into ``systems``; -1 in padded slots.
+    mask : (T, N) bool
+        True where the measurement passed coarse quality control.
+    pr_m : (T, N) float
+        Pseudorange corrected for satellite clock (with relativity and group delay), troposphere and
+        ionosphere [m]; the receiver clock and the Sagnac term are still in it.
+    sat_pos_ecef_m : (T, N, 3) float
+        Satellite position at signal transmission, ECEF frame of transmission time [m]; the range
+        model is ``lfgnss.corrections.geometric_range_m`` (Sagnac term included there).
+    cn0_dbhz, el_rad, az_rad : (T, N) float
+        Carrier-to-noise density [dB-Hz], elevation and azimuth [rad] from the coarse fix.
+    features : (T, N, d) float
+        Raw (un-normalised) features named by ``feature_names``.
+    coarse_ecef_m : (T, 3) float
+        Equal-weight least-squares fix [m]; NaN where the epoch had none.
+    coarse_clock_m : (T, C) float
+        Receiver clock of ``systems[0]`` then ISBs of the others from the coarse fix [m]; NaN if none.
+    truth_ecef_m : (T, 3) float
+        Ground truth [m]; NaN where the epoch has no label.
+    """
+
+    name: str
+    systems: tuple[str, ...]
+    time_gps_s: np.ndarray
+    sv: np.ndarray
+    system_index: np.ndarray
+    mask: np.ndarray
+    pr_m: np.ndarray
+    sat_pos_ecef_m: np.ndarray
+    cn0_dbhz: np.ndarray
+    el_rad: np.ndarray
+    az_rad: np.ndarray
+    features: np.ndarray
+    feature_names: tuple[str, ...]
+    coarse_ecef_m: np.ndarray
+    coarse_clock_m: np.ndarray
+    truth_ecef_m: np.ndarray
+
+    def __post_init__(self) -> None:
+        t, n = self.mask.shape
+        expect = {"time_gps_s": (t,), "sv": (t, n), "system_index": (t, n), "pr_m": (t, n),
+                  "sat_pos_ecef_m": (t, n, 3), "cn0_dbhz": (t, n), "el_rad": (t, n), "az_rad": (t, n),
+                  "features": (t, n, len(self.feature_names)), "coarse_ecef_m": (t, 3),
+                  "coarse_clock_m": (t, len(self.systems)), "truth_ecef_m": (t, 3)}
+        for key, shape in expect.items():
+            got = np.shape(getattr(self, key))
+            if got != shape:
+                raise ValueError(f"Sequence {self.name!r}: {key} has shape {got}, expected {shape}")
+
+    def __len__(self) -> int:
+        return int(self.mask.shape[0])
+
+    @property
+    def n_slots(self) -> int:
+        """Number of padded satellite slots N."""
+        return int(self.mask.shape[1])
+
+    def subset(self, index: slice | np.ndarray, name: str | None = None) -> "Sequence":
+        """Epochs selected by a slice, boolean mask or index array, as a new Sequence."""
+        per_epoch = {f.name: getattr(self, f.name)[index] for f in fields(self)
+                     if isinstance(getattr(self, f.name), np.ndarray)}
+        return replace(self, name=name or self.name, **per_epoch)
+
+    def pad_to(self, n_slots: int) -> "Sequence":
+        """The same sequence with ``n_slots`` satellite slots (>= current), new slots masked."""
+        extra = n_slots - self.n_slots
+        if extra < 0:
+            raise ValueError(f"cannot pad {self.n_slots} slots down to {n_slots}")
+        if extra == 0:
+            return self
+
+        def pad(a: np.ndarray, value) -> np.ndarray:
+            width = [(0, 0)] * a.ndim
+            width[1] = (0, extra)
+            return np.pad(a, width, constant_values=value)
+
+        return replace(self, sv=pad(self.sv, ""), system_index=pad(self.system_index, -1),
+                       mask=pad(self.mask, False), pr_m=pad(self.pr_m, 0.0),
+                       sat_pos_ecef_m=pad(self.sat_pos_ecef_m, 0.0), cn0_dbhz=pad(self.cn0_dbhz, 0.0),
+                       el_rad=pad(self.el_rad, 0.0), az_rad=pad(self.az_rad, 0.0),
+                       features=pad(self.features, 0.0))
