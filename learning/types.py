@@ -1,0 +1,29 @@
+"""Tensor containers shared by the torch EKF, the data loader and the trainer."""
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+import torch
+
+
+@dataclass
+class WindowBatch:
+    """B windows of T consecutive epochs with N padded satellite slots (float64 geometry).
+
+    Built by ``learning.data`` from ``lfgnss.sequence.Sequence`` objects; the field meanings are the
+    Sequence's. ``features`` are normalised; ``truth_ecef_m`` is NaN where unlabelled.
+    """
+
+    time_gps_s: torch.Tensor        # (B, T) float64
+    pr_m: torch.Tensor              # (B, T, N) float64
+    sat_pos_ecef_m: torch.Tensor    # (B, T, N, 3) float64
+    system_index: torch.Tensor      # (B, T, N) int64, -1 padded
+    mask: torch.Tensor              # (B, T, N) bool
+    features: torch.Tensor          # (B, T, N, d) float32, normalised
+    coarse_ecef_m: torch.Tensor     # (B, T, 3) float64, NaN where no coarse fix
+    coarse_clock_m: torch.Tensor    # (B, T, C) float64
+    truth_ecef_m: torch.Tensor      # (B, T, 3) float64
+
+    def to(self, device: torch.device | str) -> "WindowBatch":
+        """The same batch on another device."""
+        return WindowBatch(**{f.name: getattr(self, f.name).to(device) for f in fields(self)})
