@@ -26,7 +26,8 @@ def ecef_to_lla(ecef_m: np.ndarray) -> np.ndarray:
     for _ in range(4):
         n = WGS84_A_M / np.sqrt(1.0 - _E2 * np.sin(lat) ** 2)
         h = p / np.maximum(np.cos(lat), 1e-12) - n
-        lat = np.arctan2(z, p * (1.0 - _E2 * n / (n + h)))
+        nh = n + h
+        lat = np.arctan2(z, p * (1.0 - _E2 * n / np.where(np.abs(nh) > 1.0, nh, 1.0)))
     n = WGS84_A_M / np.sqrt(1.0 - _E2 * np.sin(lat) ** 2)
     h = p / np.maximum(np.cos(lat), 1e-12) - n
     return np.stack([lat, lon, h], axis=-1)

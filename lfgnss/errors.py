@@ -1,0 +1,26 @@
+"""Exceptions with one-line messages that name the file (and line) at fault."""
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class LfgnssError(Exception):
+    """Base class of every error lfgnss raises on bad input."""
+
+
+class RinexError(LfgnssError):
+    """A RINEX file that cannot be used: ``PATH:LINE: reason``."""
+
+    def __init__(self, path: str | Path, reason: str, line: int | None = None) -> None:
+        self.path, self.reason, self.line = str(path), reason, line
+        where = f"{self.path}:{line}" if line is not None else self.path
+        super().__init__(f"{where}: {reason}")
+
+
+class InputError(LfgnssError):
+    """Any other unusable input file (truth, model, configuration): ``PATH[:LINE]: reason``."""
+
+    def __init__(self, path: str | Path, reason: str, line: int | None = None) -> None:
+        self.path, self.reason, self.line = str(path), reason, line
+        where = f"{self.path}:{line}" if line is not None else self.path
+        super().__init__(f"{where}: {reason}")

@@ -1,0 +1,97 @@
+"""The feature packer shared by every estimator and the trainer (LF-GNSS step 2).
+
+Per satellite and epoch: C/N0, elevation, azimuth, coarse pseudorange residual and the DOP
+contribution (full minus leave-one-out GDOP, PDOP, HDOP, VDOP). Optional extras (constellation
+one-hot ``sys_G`` ...) are selected by name, so ablations are configuration only.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from .constants import SYSTEMS
+from .dop import dop_contribution
+from .errors import LfgnssError
+from .measurements import Measurements
+from .sequence import DEFAULT_FEATURES, Sequence
+from .spp import CoarseFix, SppConfig, _geometry
+from . import qc
+
+#: Every feature the packer knows, in a stable order.
+AVAILABLE_FEATURES = DEFAULT_FEATURES + tuple(f"sys_{s}" for s in SYSTEMS)
+
+
+def check_feature_names(names: tuple[str, ...] | list[str]) -> tuple[str, ...]:
+    """The names as a tuple, or a ValueError naming the unknown ones."""
+    unknown = [n for n in names if n not in AVAILABLE_FEATURES]
+    if unknown:
+        raise ValueError(f"unknown feature(s) {unknown}; available: {', '.join(AVAILABLE_FEATURES)}")
+    return tuple(names)
+
+
+def _reference_positions(fix: CoarseFix, approx_ecef_m: np.ndarray) -> np.ndarray:
+    """(T, 3) the coarse fix, or for epochs without one the fix nearest in time [m]."""
+    ok = np.flatnonzero(fix.ok)
+    if ok.size == 0:
+        if np.linalg.norm(approx_ecef_m) > 6e6:
+            return np.broadcast_to(approx_ecef_m, fix.pos_ecef_m.shape).copy()
+        raise LfgnssError("no epoch has a coarse fix and the file has no approximate position; "
+                          "nothing to build features from")
+    t = fix.time_gps_s
+    right = np.clip(np.searchsorted(t[ok], t), 0, ok.size - 1)
+    left = np.clip(right - 1, 0, ok.size - 1)
+    nearest = np.where(np.abs(t[ok][left] - t) <= np.abs(t[ok][right] - t), ok[left], ok[right])
+    return fix.pos_ecef_m[nearest]
+
+
+def pack_features(names: tuple[str, ...], *, cn0_dbhz, el_rad, az_rad, residual_m, dpc, system_index,
+                  systems: tuple[str, ...], mask) -> np.ndarray:
+    """(T, N, d) raw features by name; zeros in masked slots."""
+    columns = {"cn0": cn0_dbhz, "elevation": el_rad, "azimuth": az_rad, "residual": residual_m,
+               "dpc_gdop": dpc[..., 0], "dpc_pdop": dpc[..., 1], "dpc_hdop": dpc[..., 2], "dpc_vdop": dpc[..., 3]}
+    for letter in SYSTEMS:
+        idx = systems.index(letter) if letter in systems else -2
+        columns[f"sys_{letter}"] = (system_index == idx).astype(float)
+    out = np.stack([np.broadcast_to(columns[n], mask.shape) for n in check_feature_names(names)], axis=-1)
+    return np.where(mask[..., None], np.nan_to_num(out), 0.0)
+
+
+def build_sequence(meas: Measurements, fix: CoarseFix, *, feature_names: tuple[str, ...] = DEFAULT_FEATURES,
+                   name: str = "", truth_ecef_m: np.ndarray | None = None,
+                   spp_config: SppConfig = SppConfig()) -> Sequence:
+    """Pack measurements and their coarse fix into a Sequence (one slot per satellite of the file).
+
+    Epochs without a coarse fix keep their satellites: geometry comes from the nearest fix in time and
+    the residual from a per-constellation median clock, so the estimators can still use them.
+    """
+    n_t, n_s = meas.reason.shape
+    ref = _reference_positions(fix, meas.obs.approx_ecef_m)
+    rng, _, az, el, tropo, iono = _geometry(meas, ref)
+    pr_corr = np.nan_to_num(meas.satclock_corrected_pr_m()) - tropo - iono
+    sysi = np.broadcast_to(meas.system_index, (n_t, n_s))
+    mask = (meas.reason == qc.OK) & (el >= np.radians(spp_config.elevation_mask_deg)) & (sysi >= 0)
+    mask &= fix.reason != qc.GROSS_RESIDUAL
+
+    raw_res = np.where(mask, pr_corr - rng, np.nan)
+    clock = np.zeros((n_t, n_s))
+    for k in range(len(meas.systems)):
+        in_sys = mask & (sysi == k)
+        with np.errstate(all="ignore"):
+            med = np.nanmedian(np.where(in_sys, raw_res, np.nan), axis=1) if np.any(in_sys) else np.zeros(n_t)
+        clock = np.where(sysi == k, np.nan_to_num(med)[:, None], clock)
+    residual = np.where(fix.ok[:, None] & fix.used, fix.residual_m, raw_res - clock)
+    residual = np.where(mask, np.nan_to_num(residual), 0.0)
+    dpc = dop_contribution(el, az, np.where(mask, sysi, -1), mask, len(meas.systems))
+    cn0 = np.where(mask, np.nan_to_num(meas.cn0_dbhz), 0.0)
+    feats = pack_features(tuple(feature_names), cn0_dbhz=cn0, el_rad=el, az_rad=az, residual_m=residual, dpc=dpc,
+                          system_index=sysi, systems=meas.systems, mask=mask)
+    coarse_clock = pd.DataFrame(fix.clock_m).ffill().bfill().to_numpy()  # an ISB unseen in an epoch: nearest
+    coarse_clock = np.where(fix.ok[:, None], coarse_clock, np.nan)
+    truth = np.full((n_t, 3), np.nan) if truth_ecef_m is None else np.asarray(truth_ecef_m, float)
+    return Sequence(
+        name=name or meas.obs.path, systems=meas.systems, time_gps_s=meas.time_gps_s.copy(),
+        sv=np.broadcast_to(meas.sv, (n_t, n_s)).copy(), system_index=np.where(mask, sysi, -1), mask=mask,
+        pr_m=np.where(mask, pr_corr, 0.0), sat_pos_ecef_m=np.where(mask[..., None], meas.sat_pos_ecef_m, 0.0),
+        cn0_dbhz=cn0, el_rad=np.where(mask, el, 0.0), az_rad=np.where(mask, az, 0.0), features=feats,
+        feature_names=tuple(feature_names), coarse_ecef_m=fix.pos_ecef_m.copy(), coarse_clock_m=coarse_clock,
+        truth_ecef_m=truth)

@@ -1,0 +1,68 @@
+"""Observation containers: per-epoch x per-satellite arrays read from one RINEX observation file."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Observations:
+    """Single-frequency code observations of one receiver, (T epochs, S satellites).
+
+    Missing values are NaN here (inside the library only); nothing downstream writes them out.
+
+    Attributes
+    ----------
+    path : str
+        The observation file.
+    version : float
+        RINEX version of the file.
+    time_gps_s : (T,) float
+        Epoch time tags, GPS seconds since 1980-01-06, strictly increasing.
+    sv : (S,) str
+        Satellite ids, e.g. ``"G05"``, sorted.
+    pr_m, cn0_dbhz, doppler_hz : (T, S) float
+        Pseudorange [m], carrier-to-noise density [dB-Hz] and Doppler [Hz] of the chosen code.
+    codes : dict
+        Constellation letter -> chosen RINEX observation code (``{"G": "C1C", "C": "C2I"}``).
+    approx_ecef_m : (3,) float
+        Header APPROX POSITION XYZ [m] (zeros when absent).
+    warnings : tuple of str
+        One line per skipped record or epoch, ``PATH:LINE: reason``.
+    """
+
+    path: str
+    version: float
+    time_gps_s: np.ndarray
+    sv: np.ndarray
+    pr_m: np.ndarray
+    cn0_dbhz: np.ndarray
+    doppler_hz: np.ndarray
+    codes: dict
+    approx_ecef_m: np.ndarray
+    warnings: tuple[str, ...] = field(default=())
+
+    def __len__(self) -> int:
+        return int(self.time_gps_s.size)
+
+    @property
+    def systems(self) -> tuple[str, ...]:
+        """Constellation letters present, in lfgnss order (GPS first)."""
+        from .constants import SYSTEMS
+
+        present = {s[0] for s in self.sv}
+        return tuple(s for s in SYSTEMS if s in present)
+
+    def select_systems(self, systems: tuple[str, ...] | list[str]) -> "Observations":
+        """Only the satellites of the given constellations."""
+        keep = np.isin(np.array([s[0] for s in self.sv]), list(systems))
+        return Observations(self.path, self.version, self.time_gps_s, self.sv[keep], self.pr_m[:, keep],
+                            self.cn0_dbhz[:, keep], self.doppler_hz[:, keep],
+                            {k: v for k, v in self.codes.items() if k in systems}, self.approx_ecef_m, self.warnings)
+
+    def select_epochs(self, index: slice | np.ndarray) -> "Observations":
+        """Only the epochs selected by a slice, boolean mask or index array."""
+        return Observations(self.path, self.version, self.time_gps_s[index], self.sv, self.pr_m[index],
+                            self.cn0_dbhz[index], self.doppler_hz[index], self.codes, self.approx_ecef_m,
+                            self.warnings)
