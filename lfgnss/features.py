@@ -6,6 +6,8 @@ one-hot ``sys_G`` ...) are selected by name, so ablations are configuration only
 """
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pandas as pd
 
@@ -76,7 +78,8 @@ def build_sequence(meas: Measurements, fix: CoarseFix, *, feature_names: tuple[s
     clock = np.zeros((n_t, n_s))
     for k in range(len(meas.systems)):
         in_sys = mask & (sysi == k)
-        with np.errstate(all="ignore"):
+        with warnings.catch_warnings():  # epochs without a satellite of this system: all-NaN rows
+            warnings.simplefilter("ignore", RuntimeWarning)
             med = np.nanmedian(np.where(in_sys, raw_res, np.nan), axis=1) if np.any(in_sys) else np.zeros(n_t)
         clock = np.where(sysi == k, np.nan_to_num(med)[:, None], clock)
     residual = np.where(fix.ok[:, None] & fix.used, fix.residual_m, raw_res - clock)

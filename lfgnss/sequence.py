@@ -110,3 +110,18 @@ class Sequence:
                        sat_pos_ecef_m=pad(self.sat_pos_ecef_m, 0.0), cn0_dbhz=pad(self.cn0_dbhz, 0.0),
                        el_rad=pad(self.el_rad, 0.0), az_rad=pad(self.az_rad, 0.0),
                        features=pad(self.features, 0.0))
+
+
+def save_sequence(path, seq: Sequence) -> None:
+    """Write a Sequence to an ``.npz`` file."""
+    arrays = {f.name: getattr(seq, f.name) for f in fields(seq) if isinstance(getattr(seq, f.name), np.ndarray)}
+    np.savez_compressed(path, _name=np.array(seq.name), _systems=np.array(seq.systems),
+                        _feature_names=np.array(seq.feature_names), **arrays)
+
+
+def load_sequence(path) -> Sequence:
+    """Read a Sequence written by ``save_sequence``."""
+    with np.load(path, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files if not k.startswith("_")}
+        return Sequence(name=str(z["_name"]), systems=tuple(str(s) for s in z["_systems"]),
+                        feature_names=tuple(str(s) for s in z["_feature_names"]), **arrays)

@@ -1,0 +1,321 @@
+"""Benchmark datasets: files, ground truth, time alignment and splits, built into cached Sequences.
+
+The three datasets of ``shared/BENCHMARK.md`` are registered by id; users add their own with a TOML
+file (``register_toml``)::
+
+    id = "my-drive"
+    obs = ["rover.obs"]               # paths relative to this file
+    nav = ["brdc.nav"]
+    systems = ["G", "C"]              # optional
+    [truth]
+    file = "truth.csv"
+    format = "urbannav"               # urbannav | smartloc | static | ecef-csv
+    [splits]                          # [start, stop) on the split axis
+    axis = "tow"                      # tow | relative_s | epoch
+    train = [46701, 46941]
+    val = [46941, 47001]
+    test = [47001, 47186]
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputError
+from .frames import lla_to_ecef
+from .paths import cache_dir, shared_data_dir
+from .sequence import DEFAULT_FEATURES, Sequence, load_sequence, save_sequence
+from .time import gps_s_to_week_tow, week_tow_to_gps_s
+
+_BUILD_VERSION = 4
+SPLITS = ("train", "val", "test")
+
+
+@dataclass(frozen=True)
+class DatasetSpec:
+    """Where a dataset's files are and how its truth and splits line up in time."""
+
+    id: str
+    obs: tuple[Path, ...]
+    nav: tuple[Path, ...]
+    truth: Path
+    truth_format: str
+    splits: dict = field(default_factory=dict)   # name -> (start, stop) on split_axis, stop exclusive
+    split_axis: str = "tow"                       # tow | relative_s | epoch
+    systems: tuple[str, ...] | None = None
+    match_tolerance_s: float = 0.05
+    time_origin_gps_s: float = 0.0                # smartLoc truth time stamps and relative_s splits start here
+    description: str = ""
+
+    def files(self) -> list[Path]:
+        """Every input file of the dataset."""
+        return [*self.obs, *self.nav, self.truth]
+
+    def missing(self) -> list[Path]:
+        """Input files that do not exist."""
+        return [p for p in self.files() if not p.exists()]
+
+
+def _shared(folder: str, *names: str) -> tuple[Path, ...]:
+    return tuple(shared_data_dir() / folder / n for n in names)
+
+
+def _builtin() -> dict[str, DatasetSpec]:
+    hk, bpp, st = "urbannav-hk-tst-20190428", "smartloc-berlin-potsdamer-platz-rinex", "hk-tst-static-20200603"
+    return {
+        "hk-tst-2019": DatasetSpec(
+            "hk-tst-2019", _shared(hk, "COM3_190428_124409.obs"), _shared(hk, "hksc1180.19n", "hksc1180.19b"),
+            _shared(hk, "groundTruth_TST.csv")[0], "urbannav",
+            {"train": (46701, 46941), "val": (46941, 47001), "test": (47001, 47186)}, "tow", ("G", "C"), 0.5,
+            description="UrbanNav HK TST 2019-04-28, u-blox GPS+BDS, 1 Hz deep urban drive"),
+        "berlin-pp": DatasetSpec(
+            "berlin-pp", _shared(bpp, "Berlin_Potsdamer_Platz.obs"), _shared(bpp, "brdc1580.16n", "brdc1580.16g"),
+            _shared(bpp, "Berlin_Potsdamer_Platz_GT.txt")[0], "smartloc",
+            {"train": (0.0, 150.0), "val": (150.0, 180.0), "test": (180.0, 1e9)}, "relative_s", ("G", "R"), 0.05,
+            week_tow_to_gps_s(1900, 126641.7), "smartLoc Berlin Potsdamer Platz, u-blox GPS+GLONASS, ~5 Hz drive"),
+        "hk-tst-static-2020": DatasetSpec(
+            "hk-tst-static-2020", _shared(st, "2020_06_03_TST_03.obs"),
+            tuple(shared_data_dir() / st / f"hksc155{h}.20{x}" for h in "cd" for x in "nglb"),
+            _shared(st, "groundTruth_TST.csv")[0], "static",
+            {"train": (0, 500), "val": (500, 600), "test": (600, 10**9)}, "epoch", ("G", "R", "E", "J", "C"), 0.5,
+            description="HK TST static 2020-06-03, u-blox F9P G/R/E/J/C, one true point"),
+    }
+
+
+_REGISTRY: dict[str, DatasetSpec] = {}
+
+
+def registered() -> dict[str, DatasetSpec]:
+    """Every known dataset by id (built-in benchmark sets and user registrations)."""
+    return {**_builtin(), **_REGISTRY}
+
+
+def register(spec: DatasetSpec) -> DatasetSpec:
+    """Make a dataset available by its id."""
+    _REGISTRY[spec.id] = spec
+    return spec
+
+
+def register_toml(path: str | Path) -> DatasetSpec:
+    """Register a user dataset described by a TOML file (see the module docstring)."""
+    path = Path(path)
+    try:
+        cfg = tomllib.loads(path.read_text())
+    except (OSError, tomllib.TOMLDecodeError) as err:
+        raise InputError(path, f"unreadable dataset config ({err})") from None
+    base = path.parent
+    try:
+        truth = cfg["truth"]
+        splits = {k: tuple(v) for k, v in cfg.get("splits", {}).items() if k in SPLITS}
+        spec = DatasetSpec(
+            id=str(cfg["id"]), obs=tuple(base / p for p in cfg["obs"]), nav=tuple(base / p for p in cfg["nav"]),
+            truth=base / truth["file"], truth_format=str(truth.get("format", "urbannav")), splits=splits,
+            split_axis=str(cfg.get("splits", {}).get("axis", "tow")),
+            systems=tuple(cfg["systems"]) if "systems" in cfg else None,
+            match_tolerance_s=float(truth.get("match_tolerance_s", 0.05)),
+            time_origin_gps_s=float(truth.get("time_origin_gps_s", 0.0)), description=str(cfg.get("description", "")))
+    except (KeyError, TypeError, ValueError) as err:
+        raise InputError(path, f"dataset config lacks or misuses {err}") from None
+    if spec.truth_format not in TRUTH_READERS:
+        raise InputError(path, f"unknown truth format {spec.truth_format!r}; use one of {', '.join(TRUTH_READERS)}")
+    return register(spec)
+
+
+def get(dataset_id: str) -> DatasetSpec:
+    """The spec of a dataset id, or a KeyError listing the known ones."""
+    specs = registered()
+    if dataset_id not in specs:
+        raise KeyError(f"unknown dataset {dataset_id!r}; known: {', '.join(sorted(specs))}")
+    return specs[dataset_id]
+
+
+# -- ground truth -------------------------------------------------------------------------------------------
+
+def _numeric_rows(path: Path, n_cols: int, sep: str, skip_prefix: str | None = None) -> tuple[np.ndarray, list[str]]:
+    """Rows of at least n_cols numbers; bad lines are reported as 'PATH:LINE: reason' and skipped."""
+    rows, bad = [], []
+    try:
+        lines = path.read_text(errors="replace").splitlines()
+    except OSError as err:
+        raise InputError(path, f"cannot read truth file ({err.strerror})") from None
+    for i, line in enumerate(lines, 1):
+        if not line.strip():
+            continue
+        parts = line.replace(",", " ").split() if sep == "any" else line.split(sep)
+        if skip_prefix is not None:
+            if not parts or parts[0] != skip_prefix:
+                continue
+            parts = parts[1:]
+        try:
+            values = [float(p) for p in parts[:n_cols]]
+            if len(values) < n_cols or not np.all(np.isfinite(values)):
+                raise ValueError
+        except ValueError:
+            bad.append(f"{path}:{i}: unreadable truth line, skipped")
+            continue
+        rows.append(values)
+    if not rows:
+        raise InputError(path, "no readable ground-truth line")
+    return np.array(rows), bad
+
+
+def read_urbannav(path: Path, spec: DatasetSpec) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """UrbanNav CSV: GPS week, TOW [s], latitude, longitude [deg], height [m]."""
+    rows, bad = _numeric_rows(path, 5, "any")
+    return week_tow_to_gps_s(rows[:, 0], rows[:, 1]), lla_to_ecef(np.radians(rows[:, 2]), np.radians(rows[:, 3]), rows[:, 4]), bad
+
+
+def read_smartloc(path: Path, spec: DatasetSpec) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """libRSF ``point3`` rows: t [s since the first epoch], ECEF X Y Z [m]."""
+    rows, bad = _numeric_rows(path, 4, "any", skip_prefix="point3")
+    return spec.time_origin_gps_s + rows[:, 0], rows[:, 1:4], bad
+
+
+def read_static(path: Path, spec: DatasetSpec) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """One static point: rows of TOW, TOW, latitude, longitude [deg], height [m]; labels every epoch."""
+    rows, bad = _numeric_rows(path, 5, "any")
+    point = lla_to_ecef(np.radians(rows[0, 2]), np.radians(rows[0, 3]), rows[0, 4])
+    return np.array([-np.inf]), point[None, :], bad
+
+
+def read_ecef_csv(path: Path, spec: DatasetSpec) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """CSV of GPS seconds since 1980-01-06, ECEF X, Y, Z [m]."""
+    rows, bad = _numeric_rows(path, 4, "any")
+    return rows[:, 0], rows[:, 1:4], bad
+
+
+TRUTH_READERS = {"urbannav": read_urbannav, "smartloc": read_smartloc, "static": read_static, "ecef-csv": read_ecef_csv}
+
+
+def align_truth(time_gps_s: np.ndarray, spec: DatasetSpec) -> tuple[np.ndarray, list[str]]:
+    """(T, 3) ground truth for epoch times [s] (NaN where none within the tolerance) and reader notes."""
+    t_truth, xyz, bad = TRUTH_READERS[spec.truth_format](spec.truth, spec)
+    if spec.truth_format == "static":
+        return np.broadcast_to(xyz[0], (time_gps_s.size, 3)).copy(), bad
+    order = np.argsort(t_truth)
+    t_truth, xyz = t_truth[order], xyz[order]
+    right = np.clip(np.searchsorted(t_truth, time_gps_s), 0, t_truth.size - 1)
+    left = np.clip(right - 1, 0, t_truth.size - 1)
+    nearest = np.where(np.abs(t_truth[left] - time_gps_s) <= np.abs(t_truth[right] - time_gps_s), left, right)
+    ok = np.abs(t_truth[nearest] - time_gps_s) <= spec.match_tolerance_s
+    return np.where(ok[:, None], xyz[nearest], np.nan), bad
+
+
+# -- building and splitting ---------------------------------------------------------------------------------
+
+def _fingerprint(spec: DatasetSpec, feature_names: tuple[str, ...]) -> str:
+    h = hashlib.sha256()
+    for p in spec.files():
+        h.update(p.read_bytes())
+    h.update(json.dumps([_BUILD_VERSION, spec.id, list(feature_names), spec.systems, spec.truth_format,
+                         spec.match_tolerance_s, spec.time_origin_gps_s]).encode())
+    return h.hexdigest()[:24]
+
+
+def build(dataset_id: str, *, feature_names: tuple[str, ...] = DEFAULT_FEATURES, cache: bool = True) -> Sequence:
+    """The whole dataset as one Sequence with aligned truth, built once and cached by content."""
+    from .features import build_sequence, check_feature_names
+    from .measurements import load
+    from .spp import spp
+
+    spec = get(dataset_id)
+    missing = spec.missing()
+    if missing:
+        raise FileNotFoundError(f"dataset {dataset_id}: missing {', '.join(map(str, missing))}")
+    feature_names = check_feature_names(feature_names)
+    target = cache_dir() / "sequences" / f"{dataset_id}-{_fingerprint(spec, feature_names)}.npz"
+    if cache and target.exists():
+        try:
+            return load_sequence(target)
+        except Exception:
+            target.unlink(missing_ok=True)
+    meas = load(spec.obs[0], spec.nav, systems=spec.systems)
+    fix = spp(meas)
+    truth, _ = align_truth(meas.time_gps_s, spec)
+    seq = build_sequence(meas, fix, feature_names=feature_names, name=dataset_id, truth_ecef_m=truth)
+    if cache:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        save_sequence(target, seq)
+    return seq
+
+
+def split_index(seq: Sequence, spec: DatasetSpec, split: str) -> np.ndarray:
+    """(T,) bool: epochs of ``seq`` in the split (only labelled epochs count for 'epoch' axes)."""
+    if split not in spec.splits:
+        raise KeyError(f"dataset {spec.id} has no split {split!r}; it has {', '.join(spec.splits)}")
+    start, stop = spec.splits[split]
+    labelled = np.all(np.isfinite(seq.truth_ecef_m), axis=1)
+    if spec.split_axis == "tow":
+        axis = gps_s_to_week_tow(seq.time_gps_s)[1]
+        axis = np.round(axis, 1)
+    elif spec.split_axis == "relative_s":
+        axis = np.round(seq.time_gps_s - spec.time_origin_gps_s, 1)
+    elif spec.split_axis == "epoch":
+        axis = np.where(labelled, np.cumsum(labelled) - 1, -1)
+    else:
+        raise ValueError(f"dataset {spec.id}: unknown split axis {spec.split_axis!r}")
+    return labelled & (axis >= start) & (axis < stop)
+
+
+def load_split(dataset_id: str, split: str, *, feature_names: tuple[str, ...] = DEFAULT_FEATURES,
+               cache: bool = True) -> list[Sequence]:
+    """The split's contiguous epochs as Sequences (one per unbroken run of epochs)."""
+    spec = get(dataset_id)
+    seq = build(dataset_id, feature_names=feature_names, cache=cache)
+    index = np.flatnonzero(split_index(seq, spec, split))
+    if index.size == 0:
+        return []
+    runs = np.split(index, np.flatnonzero(np.diff(index) > 1) + 1)
+    return [seq.subset(slice(r[0], r[-1] + 1), name=f"{dataset_id}/{split}" + (f"#{k}" if len(runs) > 1 else ""))
+            for k, r in enumerate(runs)]
+
+
+__all__ = ["DatasetSpec", "SPLITS", "align_truth", "build", "get", "load_split", "register", "register_toml",
+           "registered", "split_index"]
+
+
+def alignment_report(dataset_ids: list[str] | None = None) -> str:
+    """Matched epochs per split and the coarse-fix error distribution, as plain text."""
+    from .metrics import accuracy_table
+
+    lines = []
+    for dataset_id in dataset_ids or sorted(_builtin()):
+        spec = get(dataset_id)
+        if spec.missing():
+            lines.append(f"{dataset_id}: skipped, missing {spec.missing()[0]}")
+            continue
+        seq = build(dataset_id)
+        labelled = np.all(np.isfinite(seq.truth_ecef_m), axis=1)
+        lines.append(f"{dataset_id}: {len(seq)} epochs, {int(labelled.sum())} with truth; systems "
+                     f"{''.join(seq.systems)}; {spec.description}")
+        for split in spec.splits:
+            idx = split_index(seq, spec, split)
+            has_fix = np.all(np.isfinite(seq.coarse_ecef_m), axis=1)
+            row = accuracy_table(seq.coarse_ecef_m[idx], seq.truth_ecef_m[idx], has_fix[idx])
+            lines.append(f"  {split:5s} {int(idx.sum()):5d} matched epochs, coarse fix for {row['availability']:.1%}: "
+                         f"3D RMSE {row['rmse_3d_m']:.1f} m, 2D RMSE {row['rmse_2d_m']:.1f} m, "
+                         f"3D p50 {row['p50_3d_m']:.1f} m, p95 {row['p95_3d_m']:.1f} m")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m lfgnss.datasets [ID ...]``: build datasets and print the alignment report."""
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="python -m lfgnss.datasets", description=main.__doc__)
+    parser.add_argument("ids", nargs="*", help=f"dataset ids (default: {', '.join(sorted(_builtin()))})")
+    parser.add_argument("--register", action="append", default=[], metavar="TOML", help="user dataset config")
+    args = parser.parse_args(argv)
+    for path in args.register:
+        args.ids.append(register_toml(path).id)
+    print(alignment_report(args.ids or None))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
