@@ -1,0 +1,155 @@
+"""``python -m lfgnss.solve``: position a receiver from RINEX with an LF-GNSS estimator.
+
+With no arguments it runs the EKF with the bundled model on the bundled Berlin sample and prints the
+accuracy against its ground truth. Errors in the input end the run with one line naming the file and
+a non-zero exit code; every output already written stays.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputError, LfgnssError
+from .paths import bundled_data_dir
+
+SAMPLE_DIR = bundled_data_dir() / "berlin-potsdamer-platz"
+SAMPLE_OBS = SAMPLE_DIR / "Berlin_Potsdamer_Platz.obs.gz"
+SAMPLE_NAV = (SAMPLE_DIR / "brdc1580.16n.gz", SAMPLE_DIR / "brdc1580.16g.gz")
+SAMPLE_TRUTH = SAMPLE_DIR / "Berlin_Potsdamer_Platz_GT.txt"
+DEFAULT_MODEL = bundled_data_dir() / "model" / "lfgnss-default.npz"
+LEARNED_BACKENDS = ("ekf", "fgo")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command-line interface of ``python -m lfgnss.solve``."""
+    import estimators
+
+    p = argparse.ArgumentParser(prog="python -m lfgnss.solve", description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("--backend", default="ekf", choices=estimators.available(), help="estimator plug-in")
+    p.add_argument("--obs", type=Path, help="RINEX observation file (default: bundled Berlin sample)")
+    p.add_argument("--nav", type=Path, nargs="+", help="RINEX navigation file(s)")
+    p.add_argument("--model", type=Path, help="LF-GNSS model file (default: the bundled model)")
+    p.add_argument("--no-model", action="store_true", help="use the hand-set C/N0 noise model instead")
+    p.add_argument("--systems", default=None, help="constellations to use, e.g. GC (default: all present)")
+    p.add_argument("--truth", type=Path, help="ground-truth file, for an accuracy table and error plots")
+    p.add_argument("--truth-format", default="urbannav", help="urbannav | smartloc | static | ecef-csv")
+    p.add_argument("--truth-origin", type=float, default=None,
+                   help="GPS seconds of t=0 for smartloc truth (default: first epoch)")
+    p.add_argument("--mode", default="batch", choices=("batch", "fixed-lag"), help="fgo mode")
+    p.add_argument("--out", type=Path, default=Path("lfgnss-out"), help="output folder")
+    p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    p.add_argument("--quiet", action="store_true", help="print only the accuracy table")
+    return p
+
+
+def _noise(args):
+    """The noise model for the backend: the model file, or the heuristic one (with the reason)."""
+    from estimators.noise import HeuristicNoise
+
+    if args.no_model or args.backend not in LEARNED_BACKENDS:
+        return None, "hand-set C/N0 noise"
+    path = args.model or DEFAULT_MODEL
+    if args.model is None and not path.exists():
+        return HeuristicNoise(), "hand-set C/N0 noise (no bundled model found)"
+    from learning.export import load_model
+
+    return load_model(path), f"model {path}"
+
+
+def run(args) -> int:
+    """Solve, write outputs, print the summary; returns the exit code."""
+    import estimators
+    from . import datasets
+    from .features import build_sequence
+    from .measurements import load
+    from .metrics import accuracy_table, format_text
+    from .outputs import plot_solution, write_csv, write_geojson, write_kml, write_pos
+    from .spp import spp
+
+    sample = args.obs is None
+    obs = SAMPLE_OBS if sample else args.obs
+    nav = list(SAMPLE_NAV) if sample else (args.nav or [])
+    if not nav:
+        raise InputError(obs, "no navigation file given (--nav)")
+    truth_path = SAMPLE_TRUTH if (sample and args.truth is None) else args.truth
+    truth_format = "smartloc" if (sample and args.truth is None) else args.truth_format
+
+    noise, noise_text = _noise(args)
+    feature_names = tuple(noise.feature_names) if hasattr(noise, "feature_names") else None
+    meas = load(obs, nav, systems=tuple(args.systems) if args.systems else None)
+    fix = spp(meas)
+    truth = None
+    if truth_path is not None:
+        if truth_format not in datasets.TRUTH_READERS:
+            raise InputError(truth_path, f"unknown truth format {truth_format!r}")
+        origin = args.truth_origin if args.truth_origin is not None else float(meas.time_gps_s[0])
+        spec = datasets.DatasetSpec("cli", (Path(obs),), tuple(Path(n) for n in nav), Path(truth_path),
+                                    truth_format, match_tolerance_s=0.05 if truth_format == "smartloc" else 0.5,
+                                    time_origin_gps_s=origin)
+        truth, bad = datasets.align_truth(meas.time_gps_s, spec)
+        for line in bad[:5]:
+            print(f"warning: {line}", file=sys.stderr)
+    from .sequence import DEFAULT_FEATURES
+
+    seq = build_sequence(meas, fix, feature_names=feature_names or DEFAULT_FEATURES, name=Path(obs).name,
+                         truth_ecef_m=truth)
+    options = {"noise": noise} if noise is not None else {}
+    if args.backend == "fgo":
+        options["mode"] = args.mode
+    estimator = estimators.create(args.backend, **options)
+    solution = estimator.solve(seq)
+
+    args.out.mkdir(parents=True, exist_ok=True)
+    stem = args.out / Path(obs).name.split(".")[0]
+    written = [write_pos(f"{stem}.pos", solution), write_csv(f"{stem}.csv", solution, truth),
+               write_geojson(f"{stem}.geojson", solution), write_kml(f"{stem}.kml", solution)]
+    if truth is not None and not args.no_plots:
+        written += plot_solution(args.out, solution, truth, extra_solutions={"least squares": _coarse(seq)})
+
+    if not args.quiet:
+        summary = fix.summary()
+        print(f"{obs}: {summary['epochs']} epochs, systems {''.join(meas.systems)}, backend {args.backend} "
+              f"({noise_text})")
+        print(f"coarse fix: {summary['epoch_status']}; observations: {summary['observations']}")
+        for note in meas.warnings[:5]:
+            print(f"warning: {note}")
+        print(f"outputs: {', '.join(str(p) for p in written[:4])}" + (f" and {len(written) - 4} plots" if len(written) > 4 else ""))
+    if truth is not None:
+        rows = [accuracy_table(fix.pos_ecef_m, truth, fix.ok, method="least squares (coarse)"),
+                accuracy_table(solution.pos_ecef_m, truth, solution.available, method=args.backend)]
+        print(format_text(rows))
+    return 0
+
+
+def _coarse(seq):
+    from estimators.base import STATUS_NONE, STATUS_UPDATED, Solution
+
+    ok = np.all(np.isfinite(seq.coarse_ecef_m), axis=1)
+    return Solution("least squares", seq.time_gps_s, seq.coarse_ecef_m, np.zeros((len(seq), 3, 3)),
+                    seq.coarse_clock_m[:, 0], seq.mask.sum(1), np.where(ok, STATUS_UPDATED, STATUS_NONE))
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point: parse arguments, run, turn input errors into one line on stderr."""
+    args = build_parser().parse_args(argv)
+    warnings.simplefilter("ignore", FutureWarning)
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", UserWarning)
+            code = run(args)
+        for w in caught[:10]:
+            print(f"warning: {w.message}", file=sys.stderr)
+        return code
+    except (LfgnssError, FileNotFoundError, KeyError, ValueError) as err:
+        message = str(err).strip("'\"") or type(err).__name__
+        print(f"error: {message}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
