@@ -1,0 +1,30 @@
+"""The README's library example runs as documented, and the main job runs on the bundled data."""
+import re
+from pathlib import Path
+
+import numpy as np
+
+from lfgnss.solve import main
+
+README = Path(__file__).resolve().parents[1] / "README.md"
+
+
+def test_readme_library_example_runs(capsys):
+    blocks = re.findall(r"```python\n(.*?)```", README.read_text(), flags=re.S)
+    assert blocks, "README has no python example"
+    namespace: dict = {}
+    exec(compile(blocks[0], str(README), "exec"), namespace)
+    out = capsys.readouterr().out
+    assert "rmse_3d_m" in out
+    solution, seq = namespace["solution"], namespace["seq"]
+    assert solution.available.all() and np.all(np.isfinite(solution.pos_ecef_m))
+    assert len(solution.time_gps_s) == len(seq)
+
+
+def test_default_solve_runs_on_bundled_data(tmp_path, capsys):
+    assert main(["--out", str(tmp_path), "--no-plots"]) == 0
+    out = capsys.readouterr().out
+    assert "least squares (coarse)" in out and "ekf" in out
+    csv = (tmp_path / "Berlin_Potsdamer_Platz.csv").read_text()
+    assert "nan" not in csv.lower() and "inf" not in csv.lower()
+    assert len(csv.splitlines()) == 1376
