@@ -91,6 +91,18 @@ def carrier_frequency_hz(sv: np.ndarray, nav: Navigation) -> np.ndarray:
     return freq
 
 
+def _coverage(navigation: Navigation, observations: Observations) -> str:
+    """'; ephemerides of ... to ..., observations ...' when the navigation does not cover the epochs."""
+    from .time import gps_s_to_datetime64
+
+    toe = np.concatenate([navigation.kepler.toe_gps_s, navigation.glonass.toe_gps_s])
+    t = observations.time_gps_s
+    if toe.size == 0 or t.size == 0 or (toe.min() <= t[-1] and toe.max() >= t[0]):
+        return ""
+    day = [str(gps_s_to_datetime64(v).astype("datetime64[s]")).replace("T", " ") for v in (toe.min(), toe.max(), t[0], t[-1])]
+    return f"; its ephemerides span {day[0]} to {day[1]} GPST, the observations {day[2]} to {day[3]}"
+
+
 def load(obs: str | Path | Observations, nav: str | Path | Iterable[str | Path] | Navigation, *,
          systems: Iterable[str] | None = None, qc_config: qc.QcConfig = qc.QcConfig(),
          cache: bool = True) -> Measurements:
@@ -108,7 +120,9 @@ def load(obs: str | Path | Observations, nav: str | Path | Iterable[str | Path] 
     if observations.sv.size == 0:
         raise RinexError(observations.path, f"no observations of the requested constellations {''.join(wanted)}")
 
+    # C/N0 of 0 (written by converters for "not recorded"), negative or absurd (damaged field): missing
     cn0 = observations.cn0_dbhz.copy()
+    cn0[~((cn0 > 0.0) & (cn0 <= qc_config.cn0_max_dbhz))] = np.nan
     letters = np.array([s[0] for s in observations.sv])
     for system in sorted(set(letters)):
         cols = letters == system
@@ -141,7 +155,7 @@ def load(obs: str | Path | Observations, nav: str | Path | Iterable[str | Path] 
     if not usable_systems:
         counts = qc.count_reasons(reason)
         raise RinexError(observations.path, "no usable observation: " + ", ".join(f"{k}: {v}" for k, v in counts.items())
-                         + f" (navigation: {', '.join(navigation.sources)})")
+                         + f" (navigation: {', '.join(navigation.sources)}{_coverage(navigation, observations)})")
     for system in sorted(set(letters) - set(usable_systems)):
         notes.append(f"{observations.path}: no usable {system} observation "
                      f"({', '.join(f'{k}: {v}' for k, v in qc.count_reasons(reason[:, letters == system]).items())})")

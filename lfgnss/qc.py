@@ -29,6 +29,7 @@ class QcConfig:
     """Thresholds of the coarse quality control (LF-GNSS step 1)."""
 
     cn0_min_dbhz: float = 20.0
+    cn0_max_dbhz: float = 100.0    # above: not a C/N0 (damaged field), treated as missing
     elevation_mask_deg: float = 10.0
     pr_min_m: float = 1.5e7
     pr_max_m: float = 4.5e7
@@ -49,7 +50,7 @@ def observation_reasons(pr_m: np.ndarray, cn0_dbhz: np.ndarray, eph_code: np.nda
     checks = [
         (eph_code != OK, eph_code),
         (~((pr_m >= config.pr_min_m) & (pr_m <= config.pr_max_m)), PR_OUT_OF_RANGE),
-        (~np.isfinite(cn0_dbhz), NO_CN0),
+        (~(np.isfinite(cn0_dbhz) & (cn0_dbhz <= config.cn0_max_dbhz)), NO_CN0),
         (cn0_dbhz < config.cn0_min_dbhz, LOW_CN0),
     ]
     for failed, code in checks:

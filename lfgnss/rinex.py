@@ -16,6 +16,7 @@ import io
 import json
 import re
 import warnings
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -27,7 +28,7 @@ from .observations import Observations
 from .paths import cache_dir
 from .time import glonass_to_gps_s
 
-_PARSER_VERSION = 3
+_PARSER_VERSION = 4
 _GPS_EPOCH = dt.datetime(1980, 1, 6)
 _SV_RE = re.compile(r"^[GRECJSI][ 0-9][0-9]$")
 _V2_EPOCH_RE = re.compile(r"^ [ \d]\d [ \d]\d [ \d]\d [ \d]\d [ \d]\d [ \d]\d\.\d+ +[0-6][ \d]{3}")
@@ -58,19 +59,20 @@ def load_obs(path: str | Path, *, systems: tuple[str, ...] | None = None, cache:
     raw = _read_bytes(path)
     key = hashlib.sha256(raw).hexdigest()[:24] + f"-v{_PARSER_VERSION}-{engine}"
     cached = cache_dir() / "obs" / f"{key}.npz"
+    obs = None
     if cache and cached.exists():
         try:
             obs = _from_npz(cached, path)
-            return obs.select_systems(systems) if systems else obs
         except Exception:  # a damaged cache entry is rebuilt, never trusted
             cached.unlink(missing_ok=True)
-    text = _decode(raw, path)
-    obs = _parse(text, path, engine)
-    if obs.warnings:
-        warnings.warn(f"{path}: skipped {len(obs.warnings)} record(s); first: {obs.warnings[0]}", RinexWarning,
-                      stacklevel=2)
-    if cache:
-        _to_npz(cached, obs)
+    if obs is None:
+        text, notes = _decode(raw, path)
+        obs = _parse(text, path, engine, notes)
+        if cache:
+            _to_npz(cached, obs)
+    if obs.warnings:  # also on a cache hit: the same file always gives the same warning
+        warnings.warn(f"{path}: {len(obs.warnings)} problem(s), damaged records or epochs skipped; "
+                      f"first: {obs.warnings[0]}", RinexWarning, stacklevel=2)
     return obs.select_systems(systems) if systems else obs
 
 
@@ -84,18 +86,52 @@ def _read_bytes(path: Path) -> bytes:
     return raw
 
 
-def _decode(raw: bytes, path: Path) -> str:
-    """Text of the file, decompressed (gzip, .Z, Hatanaka), CRLF normalised, non-ASCII bytes replaced."""
-    compressed = raw[:2] in (b"\x1f\x8b", b"\x1f\x9d") or b"COMPACT RINEX" in raw[:200]
-    if compressed:
+def _decode(raw: bytes, path: Path) -> tuple[str, list[str]]:
+    """Text of the file, decompressed (gzip, .Z, Hatanaka), CRLF normalised, non-ASCII bytes replaced.
+
+    A gzip stream that ends early or is damaged part-way (interrupted download) keeps what could be
+    decompressed, with a note; the epoch cut in the middle is then dropped like any truncated epoch.
+    """
+    notes: list[str] = []
+    if raw[:2] == b"\x1f\x8b":
+        raw = _gunzip(raw, path, notes)
+    if raw[:2] == b"\x1f\x9d" or b"COMPACT RINEX" in raw[:200]:
         import hatanaka
 
         try:
             raw = hatanaka.decompress(raw)
         except Exception as err:  # hatanaka raises assorted errors for damaged archives
-            raise RinexError(path, f"cannot decompress ({err})") from None
+            raise RinexError(path, f"cannot decompress ({type(err).__name__}: {err})") from None
     text = raw.decode("ascii", errors="replace")
-    return text.replace("\r\n", "\n").replace("\r", "\n")
+    return text.replace("\r\n", "\n").replace("\r", "\n"), notes
+
+
+def _gunzip(raw: bytes, path: Path, notes: list[str]) -> bytes:
+    """Decompress every gzip member; keep the data before a truncation or damage (with a note)."""
+    out: list[bytes] = []
+    rest = raw
+    while rest:
+        d = zlib.decompressobj(wbits=31)
+        try:
+            for k in range(0, len(rest), 1 << 16):  # chunks: data before a damaged block is kept
+                out.append(d.decompress(rest[k: k + (1 << 16)]))
+                if d.eof:
+                    break
+            out.append(d.flush())
+        except zlib.error as err:
+            reason = f"damaged ({err})"
+        else:
+            if d.eof:
+                rest = d.unused_data.lstrip(b"\0")  # next member; trailing zero padding is allowed
+                continue
+            reason = "truncated"
+        size = sum(map(len, out))
+        if size == 0:
+            raise RinexError(path, f"cannot decompress: gzip data {reason}") from None
+        notes.append(f"{path}: compressed data end early (gzip data {reason}): {size} bytes recovered, "
+                     f"the rest of the file is lost")
+        break
+    return b"".join(out)
 
 
 def _split_header(text: str, path: Path) -> tuple[str, list[str], int]:
@@ -133,7 +169,9 @@ def _header_info(header: str, path: Path) -> dict:
 
             hdr = obsheader3(io.StringIO(header))
     except Exception as err:
-        raise RinexError(path, f"unreadable observation-type header ({type(err).__name__}: {err})") from None
+        label = "# / TYPES OF OBSERV" if version < 3 else "SYS / # / OBS TYPES"
+        where = next((i + 1 for i, ln in enumerate(header.split("\n")) if label in ln), None)
+        raise RinexError(path, f"unreadable '{label}' header ({type(err).__name__}: {err})", line=where) from None
     if not hdr.get("fields"):
         raise RinexError(path, "header lists no observation types")
     time_system = header[header.find("TIME OF FIRST OBS") - 12: header.find("TIME OF FIRST OBS")].strip() \
@@ -183,16 +221,16 @@ def _to_gps_s(year: int, month: int, day: int, hour: int, minute: int, sec: floa
     return t
 
 
-def _parse(text: str, path: Path, engine: str) -> Observations:
+def _parse(text: str, path: Path, engine: str, notes: list[str] | None = None) -> Observations:
     header, body, n_header = _split_header(text, path)
     info = _header_info(header, path)
-    problems: list[str] = []
+    problems: list[str] = list(notes or [])
     codes = _choose_codes(info["fields"], info["version"], path, problems)
     if engine == "georinex":
         return _parse_georinex(text, path, info, codes, problems)
     cut = _cut_v2 if info["version"] < 3 else _cut_v3
-    epoch_times, rec_epoch, rec_sv, rec_text, rec_line = cut(body, n_header, path, info, problems)
-    return _assemble(path, info, codes, epoch_times, rec_epoch, rec_sv, rec_text, rec_line, problems)
+    epoch_times, epoch_lines, rec_epoch, rec_sv, rec_text, rec_line = cut(body, n_header, path, info, problems)
+    return _assemble(path, info, codes, epoch_times, epoch_lines, rec_epoch, rec_sv, rec_text, rec_line, problems)
 
 
 def _epoch_fields(ln: str, v3: bool) -> tuple[int, int, int, int, int, float, int, int]:
@@ -205,8 +243,8 @@ def _epoch_fields(ln: str, v3: bool) -> tuple[int, int, int, int, int, float, in
 
 
 def _cut_v3(body, n_header, path, info, problems):
-    """Epoch times and the raw record lines of every complete epoch (RINEX 3)."""
-    times, rec_epoch, rec_sv, rec_text, rec_line = [], [], [], [], []
+    """Epoch times and lines, and the raw record lines of every complete epoch (RINEX 3)."""
+    times, epoch_lines, rec_epoch, rec_sv, rec_text, rec_line = [], [], [], [], [], []
     i, n = 0, len(body)
     while i < n:
         ln = body[i]
@@ -236,20 +274,21 @@ def _cut_v3(body, n_header, path, info, problems):
             continue
         ep = len(times)
         times.append(t)
+        epoch_lines.append(lineno)
         for k, r in enumerate(recs):
             rec_epoch.append(ep)
             rec_sv.append(r[:3])
             rec_text.append(r[3:])
             rec_line.append(lineno + 1 + k)
         i += 1 + nsat
-    return times, rec_epoch, rec_sv, rec_text, rec_line
+    return times, epoch_lines, rec_epoch, rec_sv, rec_text, rec_line
 
 
 def _cut_v2(body, n_header, path, info, problems):
-    """Epoch times and per-satellite record strings of every complete epoch (RINEX 2)."""
+    """Epoch times and lines, and per-satellite record strings of every complete epoch (RINEX 2)."""
     n_types = len(info["fields"])
     lines_per_sat = (n_types + 4) // 5
-    times, rec_epoch, rec_sv, rec_text, rec_line = [], [], [], [], []
+    times, epoch_lines, rec_epoch, rec_sv, rec_text, rec_line = [], [], [], [], [], []
     i, n = 0, len(body)
     while i < n:
         ln = body[i]
@@ -285,6 +324,7 @@ def _cut_v2(body, n_header, path, info, problems):
             continue
         ep = len(times)
         times.append(t)
+        epoch_lines.append(lineno)
         for k, sv in enumerate(svs):
             chunk = recs[k * lines_per_sat:(k + 1) * lines_per_sat]
             rec_epoch.append(ep)
@@ -292,7 +332,7 @@ def _cut_v2(body, n_header, path, info, problems):
             rec_text.append("".join(c[:80].ljust(80) for c in chunk))
             rec_line.append(first + 1 + n_header + k * lines_per_sat)
         i = first + nsat * lines_per_sat
-    return times, rec_epoch, rec_sv, rec_text, rec_line
+    return times, epoch_lines, rec_epoch, rec_sv, rec_text, rec_line
 
 
 def _numbers(texts: pd.Series) -> tuple[np.ndarray, np.ndarray]:
@@ -303,15 +343,21 @@ def _numbers(texts: pd.Series) -> tuple[np.ndarray, np.ndarray]:
     return values, garbage
 
 
-def _assemble(path, info, codes, epoch_times, rec_epoch, rec_sv, rec_text, rec_line, problems) -> Observations:
+def _gpst_text(t: float) -> str:
+    return (_GPS_EPOCH + dt.timedelta(seconds=float(t))).isoformat(" ", "milliseconds") + " GPST"
+
+
+def _assemble(path, info, codes, epoch_times, epoch_lines, rec_epoch, rec_sv, rec_text, rec_line,
+              problems) -> Observations:
     times = np.asarray(epoch_times, dtype=float)
     keep_epoch = np.ones(times.size, bool)
     last = -np.inf
     for k, t in enumerate(times):  # time must increase: duplicates and backward steps are dropped
         if t <= last + 1e-6:
             keep_epoch[k] = False
-            problems.append(f"{path}: epoch at GPS {t:.3f} s is not after the previous one "
-                            f"(duplicate or time going backwards), skipped")
+            what = "repeats" if abs(t - last) <= 1e-6 else "is before"
+            problems.append(f"{path}:{epoch_lines[k]}: epoch {_gpst_text(t)} {what} the previous epoch "
+                            f"{_gpst_text(last)} (duplicate or time going backwards), skipped")
         else:
             last = t
     sv = pd.Series(rec_sv, dtype=object).str.replace(" ", "0")
@@ -327,6 +373,12 @@ def _assemble(path, info, codes, epoch_times, rec_epoch, rec_sv, rec_text, rec_l
     bad = ~valid_sv
     for k in np.flatnonzero(~valid_sv):
         problems.append(f"{path}:{line[k]}: unreadable satellite id {rec_sv[k]!r}, record skipped")
+    if info["version"] >= 3 and n_rec:
+        for letter in SYSTEMS:  # supported constellation observed but absent from the header
+            rows = np.flatnonzero((system == letter).to_numpy() & valid_sv & keep_epoch[epoch])
+            if rows.size and letter not in info["fields"]:
+                problems.append(f"{path}:{line[rows[0]]}: {rows.size} {letter} record(s) but no SYS / # / OBS TYPES "
+                                f"header line for {letter}: skipped")
     for sys_letter, (i_pr, i_cn0, i_dop, _) in codes.items():
         rows = np.flatnonzero((system == sys_letter).to_numpy() & valid_sv)
         if rows.size == 0:
@@ -397,7 +449,8 @@ def _parse_georinex(text, path, info, codes, problems) -> Observations:
 
 def _to_npz(target: Path, obs: Observations) -> None:
     target.parent.mkdir(parents=True, exist_ok=True)
-    meta = json.dumps({"version": obs.version, "codes": obs.codes, "warnings": list(obs.warnings)})
+    meta = json.dumps({"version": obs.version, "codes": obs.codes, "warnings": list(obs.warnings),
+                       "path": str(obs.path)})
     tmp = target.with_suffix(".tmp.npz")
     np.savez(tmp, time_gps_s=obs.time_gps_s, sv=obs.sv, pr_m=obs.pr_m, cn0_dbhz=obs.cn0_dbhz,
              doppler_hz=obs.doppler_hz, approx_ecef_m=obs.approx_ecef_m, meta=np.array(meta))
@@ -407,5 +460,7 @@ def _to_npz(target: Path, obs: Observations) -> None:
 def _from_npz(source: Path, path: Path) -> Observations:
     with np.load(source, allow_pickle=False) as z:
         meta = json.loads(str(z["meta"]))
+        old = meta["path"]  # the same content may have been parsed under another name: name this file
+        notes = tuple(str(path) + w[len(old):] if w.startswith(old) else w for w in meta["warnings"])
         return Observations(str(path), meta["version"], z["time_gps_s"], z["sv"], z["pr_m"], z["cn0_dbhz"],
-                            z["doppler_hz"], meta["codes"], z["approx_ecef_m"], tuple(meta["warnings"]))
+                            z["doppler_hz"], meta["codes"], z["approx_ecef_m"], notes)

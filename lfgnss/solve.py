@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError, LfgnssError
+from .errors import InputError, LfgnssError, RinexError
 from .paths import bundled_data_dir
 
 SAMPLE_DIR = bundled_data_dir() / "berlin-potsdamer-platz"
@@ -58,7 +58,14 @@ def _noise(args):
         return HeuristicNoise(), "hand-set C/N0 noise (no bundled model found)"
     from learning.export import load_model
 
-    return load_model(path), f"model {path}"
+    from .features import AVAILABLE_FEATURES
+
+    model = load_model(path)
+    unknown = [n for n in model.feature_names if n not in AVAILABLE_FEATURES]
+    if unknown:
+        raise InputError(path, f"the model needs feature(s) {', '.join(unknown)} that this lfgnss cannot compute "
+                               f"(it computes {', '.join(AVAILABLE_FEATURES)})")
+    return model, f"model {path}"
 
 
 def run(args) -> int:
@@ -94,10 +101,17 @@ def run(args) -> int:
         truth, bad = datasets.align_truth(meas.time_gps_s, spec)
         for line in bad[:5]:
             print(f"warning: {line}", file=sys.stderr)
+        if len(bad) > 5:
+            print(f"warning: {truth_path}: {len(bad)} unreadable truth lines skipped in all", file=sys.stderr)
     from .sequence import DEFAULT_FEATURES
 
-    seq = build_sequence(meas, fix, feature_names=feature_names or DEFAULT_FEATURES, name=Path(obs).name,
-                         truth_ecef_m=truth)
+    try:
+        seq = build_sequence(meas, fix, feature_names=feature_names or DEFAULT_FEATURES, name=Path(obs).name,
+                             truth_ecef_m=truth)
+    except LfgnssError as err:  # an error about the data that names no file: it is about the observations
+        if isinstance(err, (InputError, RinexError)):
+            raise
+        raise InputError(obs, str(err)) from None
     options = {"noise": noise} if noise is not None else {}
     if args.backend == "fgo":
         options["mode"] = args.mode
@@ -116,6 +130,9 @@ def run(args) -> int:
         print(f"{obs}: {summary['epochs']} epochs, systems {''.join(meas.systems)}, backend {args.backend} "
               f"({noise_text})")
         print(f"coarse fix: {summary['epoch_status']}; observations: {summary['observations']}")
+        if meas.warnings:
+            print(f"input problems: {len(meas.warnings)} (damaged records or epochs skipped, constellations "
+                  f"dropped){'; the first 5:' if len(meas.warnings) > 5 else ':'}")
         for note in meas.warnings[:5]:
             print(f"warning: {note}")
         print(f"outputs: {', '.join(str(p) for p in written[:4])}" + (f" and {len(written) - 4} plots" if len(written) > 4 else ""))
@@ -146,9 +163,14 @@ def main(argv: list[str] | None = None) -> int:
             print(f"warning: {w.message}", file=sys.stderr)
         return code
     except (LfgnssError, FileNotFoundError, KeyError, ValueError) as err:
-        message = str(err).strip("'\"") or type(err).__name__
+        message = " ".join(str(err).strip("'\"").split()) or type(err).__name__
         print(f"error: {message}", file=sys.stderr)
         return 2
+    except Exception as err:  # a bug, not bad input: still one line, no traceback, a distinct exit code
+        message = " ".join(str(err).split())
+        print(f"error: internal error while solving {args.obs or SAMPLE_OBS} ({type(err).__name__}: {message}); "
+              f"please report it", file=sys.stderr)
+        return 3
 
 
 if __name__ == "__main__":

@@ -1,0 +1,203 @@
+"""LF-GNSS extended Kalman filter as an estimator plug-in, on filterpy's ``ExtendedKalmanFilter``.
+
+Per epoch ``k`` (models in ``estimators.models``)::
+
+    predict:  x^- = F(dt) x,  P^- = F P F^T + Q(dt)
+    measure:  z_i = pr_i + vc_i              (v^c enters here, ``compensated_pseudorange``)
+              v_i = z_i - h_i(x^-),  S = H P^- H^T + R,  R = diag(r_i)
+    gate:     keep satellite i if |v_i| <= gate_sigma * sqrt(S_ii)
+    update:   K = P^- H^T S^-1,  x = x^- + K v,  P = (I - K H) P^- (I - K H)^T + K R K^T   (Joseph)
+
+so ``x = x^- + K (pr - h + vc)`` as in the paper. Initialisation and resets take the coarse fix
+(``Sequence.coarse_ecef_m`` / ``coarse_clock_m``) with covariance P0 and then update with the
+epoch's satellites. Resets happen when the filter has no state yet, after a gap longer than
+``max_gap_s``, when most usable satellites fail the gate (``reset_gated_fraction``; not in the epoch
+right after a reset), or when the
+updated position is farther than ``reset_distance_m`` from the coarse fix. ``learning.torch_ekf``
+implements exactly this logic, batched and differentiable.
+"""
+from __future__ import annotations
+
+import numpy as np
+from filterpy.kalman import ExtendedKalmanFilter
+
+from lfgnss.sequence import Sequence
+
+from . import models
+from .base import STATUS_COASTED, STATUS_NONE, STATUS_RESET, STATUS_UPDATED, Solution, register
+from .models import EkfConfig
+from .noise import HeuristicNoise, NoiseModel
+
+
+def compensated_pseudorange(pr_m: np.ndarray, vc_m: np.ndarray) -> np.ndarray:
+    """The one place the innovation compensation enters: ``z = pr + v^c`` [m], so ``v + v^c = z - h``."""
+    return pr_m + vc_m
+
+
+def usable_measurements(sequence: Sequence) -> np.ndarray:
+    """(T, N) bool: masked-in slots with finite pseudorange and satellite position and a known system."""
+    c = len(sequence.systems)
+    return (sequence.mask & np.isfinite(sequence.pr_m) & np.isfinite(sequence.sat_pos_ecef_m).all(-1)
+            & (sequence.system_index >= 0) & (sequence.system_index < c))
+
+
+def coarse_available(sequence: Sequence) -> np.ndarray:
+    """(T,) bool: epochs whose coarse fix can (re-)initialise the filter (position and clock finite)."""
+    return np.isfinite(sequence.coarse_ecef_m).all(-1) & np.isfinite(sequence.coarse_clock_m[:, 0])
+
+
+def _given(_x: np.ndarray, value: np.ndarray) -> np.ndarray:
+    """HJacobian/Hx for filterpy: H and h already evaluated at the prior state filterpy passes in."""
+    return value
+
+
+@register("ekf")
+class LfgnssEkf:
+    """EKF with per-satellite noise ``R`` and innovation compensation ``v^c`` from a noise model.
+
+    Parameters
+    ----------
+    noise : NoiseModel
+        ``noise(sequence) -> (r_m2, vc_m)``, each (T, N); a learned model or ``HeuristicNoise``.
+    config : EkfConfig
+        Process noise, initial covariance, gate and reset settings.
+    name : str
+        Backend label written into the Solution.
+    use_compensation : bool
+        Add ``v^c`` to the innovation (False: ignore the model's ``v^c``).
+    """
+
+    def __init__(self, noise: NoiseModel | None = None, config: EkfConfig | None = None, name: str = "ekf",
+                 use_compensation: bool = True) -> None:
+        self.noise = HeuristicNoise() if noise is None else noise
+        self.config = EkfConfig() if config is None else config
+        self.name = name
+        self.use_compensation = use_compensation
+
+    def noise_arrays(self, sequence: Sequence, usable: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(r_m2, vc_m), each (T, N), from the noise model, checked on the usable slots."""
+        r, vc = self.noise(sequence)
+        r = np.asarray(r, float)
+        vc = np.asarray(vc, float)
+        if r.shape != usable.shape or vc.shape != usable.shape:
+            raise ValueError(f"estimators/ekf.py: noise model gave shapes {r.shape}, {vc.shape} for sequence "
+                             f"{sequence.name!r}, expected {usable.shape}")
+        if not (np.isfinite(r[usable]).all() and (r[usable] > 0).all()):
+            raise ValueError(f"estimators/ekf.py: noise model gave non-positive or non-finite R on usable "
+                             f"satellites of {sequence.name!r}")
+        if not self.use_compensation:
+            vc = np.zeros_like(r)
+        elif not np.isfinite(vc[usable]).all():
+            raise ValueError(f"estimators/ekf.py: noise model gave non-finite v^c on usable satellites of "
+                             f"{sequence.name!r}")
+        return r, vc
+
+    def solve(self, sequence: Sequence) -> Solution:
+        """Filter every epoch of ``sequence``; one Solution row per epoch."""
+        cfg = self.config
+        n_sys = len(sequence.systems)
+        t_len, _ = sequence.mask.shape
+        n = models.n_states(n_sys)
+        time = np.asarray(sequence.time_gps_s, float)
+        dt_all = np.diff(time)
+        if np.any(~(dt_all > 0)):
+            k = int(np.nonzero(~(dt_all > 0))[0][0]) + 1
+            raise ValueError(f"estimators/ekf.py: epoch times of {sequence.name!r} do not increase at epoch {k}")
+
+        usable = usable_measurements(sequence)
+        r_all, vc_all = self.noise_arrays(sequence, usable)
+        z_all = compensated_pseudorange(np.where(usable, sequence.pr_m, 0.0), np.where(usable, vc_all, 0.0))
+        r_all = np.where(usable, r_all, 1.0)
+        sat_all = sequence.sat_pos_ecef_m
+        sys_all = sequence.system_index
+        coarse_ok = coarse_available(sequence)
+        p0 = models.initial_covariance(n_sys, cfg)
+        q1, q2, q3 = models.process_noise_coefficients(n_sys, cfg)
+        a = models.transition_generator(n_sys)
+        eye = np.eye(n)
+        cache: dict[float, tuple[np.ndarray, np.ndarray]] = {}
+
+        ekf = ExtendedKalmanFilter(dim_x=n, dim_z=1)
+        state = np.full((t_len, n), np.nan)
+        cov = np.full((t_len, n, n), np.nan)
+        status = np.full(t_len, STATUS_NONE, dtype=np.int8)
+        n_used = np.zeros(t_len, dtype=np.int32)
+        n_gated = np.zeros(t_len, dtype=np.int32)
+        gate_sigma = cfg.gate_sigma
+        started = False
+
+        def gate(k: int, idx: np.ndarray) -> tuple:
+            """h, H, z, r of the usable satellites ``idx`` at the current prior, and the gate's keep mask."""
+            h, H = models.measurement(ekf.x, sat_all[k, idx], sys_all[k, idx])
+            z = z_all[k, idx]
+            r = r_all[k, idx]
+            if gate_sigma > 0:
+                s_diag = np.einsum("ij,jk,ik->i", H, ekf.P, H) + r           # diag(H P^- H^T + R)
+                keep = np.abs(z - h) <= gate_sigma * np.sqrt(s_diag)
+            else:
+                keep = np.ones(idx.size, bool)
+            return h, H, z, r, keep
+
+        def update(k: int, gated: tuple) -> None:
+            """Joseph-form update with the kept satellites; records n_used and n_gated of epoch k."""
+            h, H, z, r, keep = gated
+            used = int(keep.sum())
+            n_gated[k] = keep.size - used
+            if used < cfg.min_sats_for_update:
+                n_used[k] = 0
+                return
+            if used < keep.size:
+                h, H, z, r = h[keep], H[keep], z[keep], r[keep]
+            ekf.update(z, _given, _given, R=np.diag(r), args=(H,), hx_args=(h,))
+            n_used[k] = used
+
+        def reset(k: int, idx: np.ndarray) -> None:
+            ekf.x = models.initial_state(sequence.coarse_ecef_m[k], sequence.coarse_clock_m[k])
+            ekf.P = p0.copy()
+            update(k, gate(k, idx))
+            status[k] = STATUS_RESET
+
+        for k in range(t_len):
+            dt = dt_all[k - 1] if k > 0 else 0.0
+            idx = np.flatnonzero(usable[k])
+            if not started or (dt > cfg.max_gap_s and coarse_ok[k]):
+                if not coarse_ok[k]:
+                    continue
+                reset(k, idx)
+                started = True
+            else:
+                if dt not in cache:
+                    cache[dt] = (eye + dt * a, q1 * dt + q2 * dt ** 2 + q3 * dt ** 3)
+                ekf.F, ekf.Q = cache[dt]
+                ekf.predict()
+                gated = gate(k, idx)
+                n_rejected = idx.size - int(gated[-1].sum())
+                if (gate_sigma > 0 and coarse_ok[k] and idx.size >= cfg.reset_min_sats
+                        and status[k - 1] != STATUS_RESET and n_rejected > cfg.reset_gated_fraction * idx.size):
+                    reset(k, idx)      # most satellites disagree with the state (e.g. receiver clock jump)
+                else:
+                    update(k, gated)
+                    status[k] = STATUS_UPDATED if n_used[k] else STATUS_COASTED
+                    if coarse_ok[k] and np.linalg.norm(ekf.x[:3] - sequence.coarse_ecef_m[k]) > cfg.reset_distance_m:
+                        reset(k, idx)  # diverged from the coarse fix
+            state[k] = ekf.x
+            cov[k] = ekf.P
+
+        return Solution(backend=self.name, time_gps_s=time, pos_ecef_m=state[:, models.POS].copy(),
+                        cov_ecef_m2=cov[:, models.POS, models.POS].copy(), clock_m=state[:, models.CLOCK].copy(),
+                        n_used=n_used, status=status, vel_ecef_m_s=state[:, models.VEL].copy(),
+                        info={"state": state, "cov": cov, "n_gated": n_gated, "n_usable": usable.sum(1),
+                              "config": cfg})
+
+
+@register("plain-ekf")
+class PlainEkf(LfgnssEkf):
+    """The baseline: the same EKF, gate and resets with hand-set ``HeuristicNoise`` R and no v^c."""
+
+    def __init__(self, noise: HeuristicNoise | None = None, config: EkfConfig | None = None,
+                 name: str = "plain-ekf") -> None:
+        super().__init__(noise=HeuristicNoise() if noise is None else noise, config=config, name=name,
+                         use_compensation=False)
+
+
+__all__ = ["LfgnssEkf", "PlainEkf", "compensated_pseudorange", "usable_measurements", "coarse_available"]

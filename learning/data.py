@@ -1,0 +1,117 @@
+"""Windows of consecutive epochs cut from Sequences and collated into ``WindowBatch`` tensors.
+
+Sources of Sequences are pluggable (see ``learning.train.load_sequences``); this module only needs
+a list of ``lfgnss.sequence.Sequence``. Features are chosen by NAME (``feature_names``), so an
+ablation such as "w/o DPC" is the default list minus the four ``dpc_*`` names - configuration only.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Iterable, Sequence as Seq
+
+import numpy as np
+import torch
+
+from lfgnss.sequence import DEFAULT_FEATURES, Sequence
+
+from .normalise import Normaliser, select_features
+from .types import WindowBatch
+
+#: The DOP-contribution features dropped by the "w/o DPC" ablation.
+DPC_FEATURES = ("dpc_gdop", "dpc_pdop", "dpc_hdop", "dpc_vdop")
+
+
+def resolve_feature_names(names: Iterable[str] | None = None, drop: Iterable[str] = ()) -> tuple[str, ...]:
+    """Feature list from configuration: ``names`` (default ``DEFAULT_FEATURES``) minus ``drop``.
+
+    ``drop`` may contain the word ``"dpc"`` as shorthand for the four ``dpc_*`` features.
+    """
+    base = tuple(names) if names is not None else DEFAULT_FEATURES
+    drop_set: set[str] = set()
+    for d in drop:
+        drop_set.update(DPC_FEATURES if d == "dpc" else (d,))
+    out = tuple(n for n in base if n not in drop_set)
+    if not out:
+        raise ValueError(f"no features left after dropping {sorted(drop_set)} from {list(base)}")
+    if len(set(out)) != len(out):
+        raise ValueError(f"duplicate feature names in {list(out)}")
+    return out
+
+
+@dataclass(frozen=True)
+class Window:
+    """Epochs ``start:start + length`` of ``sequences[seq_index]``."""
+
+    seq_index: int
+    start: int
+    length: int
+
+
+def make_windows(sequences: Seq[Sequence], length: int, stride: int) -> list[Window]:
+    """All windows of ``length`` epochs every ``stride`` epochs that contain at least one label.
+
+    A sequence shorter than ``length`` gives no window. Raises ValueError if no window results.
+    """
+    if length < 1 or stride < 1:
+        raise ValueError(f"window length and stride must be >= 1, got {length}, {stride}")
+    out = []
+    for i, seq in enumerate(sequences):
+        labelled = np.all(np.isfinite(seq.truth_ecef_m), axis=-1)
+        for start in range(0, len(seq) - length + 1, stride):
+            if labelled[start:start + length].any():
+                out.append(Window(i, start, length))
+    if not out:
+        raise ValueError(f"no labelled window of {length} epochs in {[s.name for s in sequences]}")
+    return out
+
+
+def collate(sequences: Seq[Sequence], windows: Seq[Window], normaliser: Normaliser, *,
+            n_slots: int | None = None, n_systems: int | None = None) -> WindowBatch:
+    """Stack ``windows`` (equal lengths) into one WindowBatch.
+
+    Satellite slots are padded to ``n_slots`` (default: the largest among the windows' sequences)
+    and the clock columns to ``n_systems`` (default: the most constellations); padding is masked
+    (slots) or zero (clock columns). Features are selected by ``normaliser.feature_names`` and
+    normalised. Geometry is float64, features float32.
+    """
+    if not windows:
+        raise ValueError("collate: no window given")
+    lengths = {w.length for w in windows}
+    if len(lengths) != 1:
+        raise ValueError(f"collate: windows of different lengths {sorted(lengths)}")
+    used = [sequences[w.seq_index] for w in windows]
+    n = max(s.n_slots for s in used) if n_slots is None else n_slots
+    c = max(len(s.systems) for s in used) if n_systems is None else n_systems
+    parts: dict[str, list[np.ndarray]] = {k: [] for k in ("time_gps_s", "pr_m", "sat_pos_ecef_m", "system_index",
+                                                          "mask", "features", "coarse_ecef_m", "coarse_clock_m",
+                                                          "truth_ecef_m")}
+    for w in windows:
+        seq = sequences[w.seq_index].subset(slice(w.start, w.start + w.length)).pad_to(n)
+        clock = np.zeros((len(seq), c))
+        clock[:, :len(seq.systems)] = seq.coarse_clock_m
+        parts["time_gps_s"].append(seq.time_gps_s)
+        parts["pr_m"].append(seq.pr_m)
+        parts["sat_pos_ecef_m"].append(seq.sat_pos_ecef_m)
+        parts["system_index"].append(seq.system_index)
+        parts["mask"].append(seq.mask)
+        parts["features"].append(normaliser.apply(select_features(seq, normaliser.feature_names), seq.mask))
+        parts["coarse_ecef_m"].append(seq.coarse_ecef_m)
+        parts["coarse_clock_m"].append(clock)
+        parts["truth_ecef_m"].append(seq.truth_ecef_m)
+    dtypes = {"system_index": torch.int64, "mask": torch.bool, "features": torch.float32}
+    return WindowBatch(**{k: torch.as_tensor(np.stack(v), dtype=dtypes.get(k, torch.float64))
+                          for k, v in parts.items()})
+
+
+def sequence_batch(sequence: Sequence, normaliser: Normaliser, *, n_systems: int | None = None) -> WindowBatch:
+    """The whole sequence as a batch of one window (B = 1, T = len(sequence))."""
+    return collate([sequence], [Window(0, 0, len(sequence))], normaliser, n_systems=n_systems)
+
+
+def batches(sequences: Seq[Sequence], windows: Seq[Window], normaliser: Normaliser, batch_size: int,
+            order: np.ndarray | None = None, *, n_slots: int | None = None, n_systems: int | None = None):
+    """Yield WindowBatch objects of up to ``batch_size`` windows, in ``order`` (indices into windows)."""
+    order = np.arange(len(windows)) if order is None else np.asarray(order)
+    for k in range(0, len(order), batch_size):
+        chosen = [windows[i] for i in order[k:k + batch_size]]
+        yield collate(sequences, chosen, normaliser, n_slots=n_slots, n_systems=n_systems)

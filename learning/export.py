@@ -1,0 +1,268 @@
+"""The LF-GNSS model file: one ``.npz`` that numpy alone can run (no torch at inference).
+
+Format (``FORMAT_NAME`` version ``FORMAT_VERSION``), arrays in one uncompressed ``.npz``:
+
+    metadata            0-d unicode array: JSON with format, format_version, feature_names,
+                        model (hyper-parameters), layer_norm_eps, parameters (names, shapes),
+                        normaliser, training config, ekf_config, n_systems, data_fingerprints
+                        (per sequence: dataset, split, name, epochs, content sha256), source_files
+                        (dataset -> file name -> sha256 of the input files), epoch,
+                        val_rmse_3d_m, versions (lfgnss, torch, numpy), created_utc
+    normaliser_mean     (d,) float64   per-feature mean of the training split (valid slots)
+    normaliser_std      (d,) float64   per-feature std
+    param/<name>        float32        every tensor of ``LfgnssNet.state_dict()``
+
+``load_model`` checks the file and returns an ``LfgnssModel`` whose ``predict`` re-implements the
+network's forward pass in numpy (float64), and whose ``__call__(sequence)`` makes it an
+``estimators.noise.NoiseModel``.
+"""
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import zipfile
+from pathlib import Path
+from typing import Iterable
+
+import numpy as np
+
+from lfgnss.errors import InputError
+from lfgnss.sequence import Sequence
+
+from .normalise import Normaliser, select_features
+
+FORMAT_NAME = "lfgnss-noise-model"
+FORMAT_VERSION = 1
+#: Variance of padded slots (same as ``learning.network.PAD_R_M2``, repeated to stay torch-free).
+PAD_R_M2 = 1.0
+
+
+class ModelFileError(InputError, ValueError):
+    """A model file that cannot be used: ``PATH: reason`` on one line."""
+
+
+# --------------------------------------------------------------------------- writing
+
+def export_model(checkpoint_path: str | Path, out_path: str | Path, *, extra_metadata: dict | None = None) -> Path:
+    """Write the model of a training checkpoint (``learning.train``) as one ``.npz`` model file.
+
+    Parameters
+    ----------
+    checkpoint_path : path of ``best.pt`` / ``last.pt``
+    out_path : destination (``.npz`` is appended by numpy when missing, so give it)
+    extra_metadata : merged into the JSON metadata (e.g. source file hashes)
+
+    Returns
+    -------
+    Path of the written file.
+    """
+    import torch
+
+    import lfgnss
+
+    try:
+        ckpt = torch.load(checkpoint_path, map_location="cpu", weights_only=False)
+        state = ckpt["model"]
+        hparams = ckpt["model_hparams"]
+        normaliser = Normaliser.from_dict(ckpt["normaliser"])
+    except (OSError, RuntimeError, KeyError, ValueError, EOFError) as exc:
+        raise ModelFileError(checkpoint_path, f"not a usable training checkpoint ({type(exc).__name__}: {exc})") from exc
+    params = {name: t.detach().cpu().numpy().astype(np.float32) for name, t in state.items()}
+    history = ckpt.get("history") or []
+    row = next((h for h in history if h.get("epoch") == ckpt.get("epoch")), {})
+    meta = {
+        "format": FORMAT_NAME,
+        "format_version": FORMAT_VERSION,
+        "feature_names": list(normaliser.feature_names),
+        "model": hparams,
+        "layer_norm_eps": 1e-5,
+        "parameters": {k: list(v.shape) for k, v in params.items()},
+        "normaliser": normaliser.to_dict(),
+        "config": ckpt.get("config"),
+        "ekf_config": ckpt.get("ekf_config"),
+        "n_systems": ckpt.get("n_systems"),
+        "data_fingerprints": ckpt.get("data_fingerprints", []),
+        "source_files": ckpt.get("source_files", {}),
+        "epoch": ckpt.get("epoch"),
+        "val_rmse_3d_m": row.get("val_rmse_3d_m"),
+        "versions": {"lfgnss": lfgnss.__version__, "torch": torch.__version__, "numpy": np.__version__},
+        "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+    }
+    meta.update(extra_metadata or {})
+    arrays = {f"param/{k}": v for k, v in params.items()}
+    arrays["normaliser_mean"] = normaliser.mean.astype(np.float64)
+    arrays["normaliser_std"] = normaliser.std.astype(np.float64)
+    arrays["metadata"] = np.array(json.dumps(meta, default=_json_default))
+    out = Path(out_path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with open(out, "wb") as fh:
+        np.savez(fh, **arrays)
+    return out
+
+
+def _json_default(obj):
+    if isinstance(obj, (np.floating, np.integer)):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    return str(obj)
+
+
+# --------------------------------------------------------------------------- reading / inference
+
+def _softplus(x: np.ndarray) -> np.ndarray:
+    return np.logaddexp(0.0, x)
+
+
+def _linear(x: np.ndarray, p: dict, name: str) -> np.ndarray:
+    return x @ p[f"{name}.weight"].T + p[f"{name}.bias"]
+
+
+class LfgnssModel:
+    """A loaded model file: numpy forward pass of ``learning.network.LfgnssNet`` plus its normaliser.
+
+    Attributes
+    ----------
+    path : str
+    feature_names : tuple of str
+    metadata : dict
+    normaliser : Normaliser
+    """
+
+    def __init__(self, path: str, params: dict[str, np.ndarray], normaliser: Normaliser, metadata: dict) -> None:
+        self.path = path
+        self.params = {k: v.astype(np.float64) for k, v in params.items()}
+        self.normaliser = normaliser
+        self.metadata = metadata
+        self.feature_names = tuple(normaliser.feature_names)
+        m = metadata["model"]
+        self.n_heads = int(m["n_heads"])
+        self.d_model = int(m["d_model"])
+        self.n_hidden = len(m["hidden"])
+        self.r_floor_m2 = float(m["r_floor_m2"])
+        self.r_scale_m2 = float(m.get("r_scale_m2", 1.0))
+        self.eps = float(metadata.get("layer_norm_eps", 1e-5))
+
+    def __repr__(self) -> str:
+        return f"LfgnssModel({self.path!r}, features={list(self.feature_names)})"
+
+    def predict(self, features: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Noise for raw (un-normalised) features.
+
+        Parameters
+        ----------
+        features : (..., N, d) raw features in ``feature_names`` order
+        mask : (..., N) bool, True for valid satellites
+
+        Returns
+        -------
+        r_m2, vc_m : (..., N) float64; ``PAD_R_M2`` and 0 in padded slots.
+        """
+        features = np.asarray(features, dtype=np.float64)
+        mask = np.asarray(mask, bool)
+        d = len(self.feature_names)
+        if features.shape[:-1] != mask.shape or features.shape[-1] != d:
+            raise ValueError(f"{self.path}: features {features.shape} / mask {mask.shape} do not match (..., N, {d})")
+        lead, n = mask.shape[:-1], mask.shape[-1]
+        x = self.normaliser.apply(features, mask).reshape(-1, n, d)
+        m = mask.reshape(-1, n)
+        p = self.params
+        # h0 = x W_e^T + b_e
+        h0 = _linear(x, p, "embed")
+        # multi-head self-attention, keys of padded slots masked (all slots if the epoch has none)
+        empty = ~m.any(axis=-1, keepdims=True)
+        key_ok = m | empty                                             # (M, N)
+        qkv = h0 @ p["attention.in_proj_weight"].T + p["attention.in_proj_bias"]
+        q, k, v = np.split(qkv, 3, axis=-1)
+        hd = self.d_model // self.n_heads
+
+        def heads(a: np.ndarray) -> np.ndarray:                       # (M, N, D) -> (M, H, N, hd)
+            return a.reshape(a.shape[0], n, self.n_heads, hd).transpose(0, 2, 1, 3)
+
+        scores = heads(q) @ heads(k).transpose(0, 1, 3, 2) / np.sqrt(hd)     # (M, H, N, N)
+        scores = np.where(key_ok[:, None, None, :], scores, -np.inf)
+        scores = scores - scores.max(axis=-1, keepdims=True)
+        weights = np.exp(scores)
+        weights /= weights.sum(axis=-1, keepdims=True)
+        attn = (weights @ heads(v)).transpose(0, 2, 1, 3).reshape(-1, n, self.d_model)
+        attn = _linear(attn, p, "attention.out_proj")
+        # h1 = LayerNorm(h0 + attn)
+        h = h0 + attn
+        mu = h.mean(axis=-1, keepdims=True)
+        var = h.var(axis=-1, keepdims=True)
+        h = (h - mu) / np.sqrt(var + self.eps) * p["norm.weight"] + p["norm.bias"]
+        # MLP with ReLU, then head [o_R, o_v]
+        for i in range(self.n_hidden):
+            h = np.maximum(_linear(h, p, f"mlp.{2 * i}"), 0.0)
+        o = _linear(h, p, "head")
+        r = self.r_scale_m2 * _softplus(o[..., 0]) + self.r_floor_m2
+        vc = o[..., 1]
+        r = np.where(m, r, PAD_R_M2).reshape(*lead, n)
+        vc = np.where(m, vc, 0.0).reshape(*lead, n)
+        return r, vc
+
+    def __call__(self, sequence: Sequence) -> tuple[np.ndarray, np.ndarray]:
+        """(r_m2, vc_m), each (T, N), for ``sequence`` (features picked by name): a NoiseModel."""
+        try:
+            feats = select_features(sequence, self.feature_names)
+        except ValueError as exc:
+            raise ValueError(f"{self.path}: {exc}") from exc
+        return self.predict(feats, sequence.mask)
+
+
+_REQUIRED_META = ("format", "format_version", "feature_names", "model", "parameters", "normaliser")
+
+
+def load_model(path: str | Path, expected_features: Iterable[str] | None = None) -> LfgnssModel:
+    """Read and check a model file written by ``export_model``.
+
+    Raises
+    ------
+    ModelFileError
+        (a ``ValueError``) naming the file and the reason: unreadable / truncated / corrupt file,
+        another format or version, missing or mis-shaped arrays, or features other than
+        ``expected_features`` (names and order).
+    """
+    path = str(path)
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            arrays = {k: np.asarray(z[k]) for k in z.files}
+    except FileNotFoundError as exc:
+        raise ModelFileError(path, "no such model file") from exc
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as exc:
+        raise ModelFileError(path, f"truncated or corrupt model file ({type(exc).__name__}: {exc})") from exc
+    if "metadata" not in arrays:
+        raise ModelFileError(path, "not an lfgnss model file (no metadata)")
+    try:
+        meta = json.loads(str(arrays["metadata"]))
+    except (ValueError, TypeError) as exc:
+        raise ModelFileError(path, f"metadata is not valid JSON ({exc})") from exc
+    missing = [k for k in _REQUIRED_META if k not in meta]
+    if missing or meta.get("format") != FORMAT_NAME:
+        raise ModelFileError(path, f"not an {FORMAT_NAME} file (format {meta.get('format')!r}, missing {missing})")
+    if meta["format_version"] != FORMAT_VERSION:
+        raise ModelFileError(path, f"format version {meta['format_version']!r} is not supported "
+                                   f"(this lfgnss reads version {FORMAT_VERSION})")
+    params = {}
+    for name, shape in meta["parameters"].items():
+        arr = arrays.get(f"param/{name}")
+        if arr is None or list(arr.shape) != list(shape) or not np.all(np.isfinite(arr)):
+            raise ModelFileError(path, f"parameter {name!r} missing, mis-shaped or not finite")
+        params[name] = arr
+    try:
+        normaliser = Normaliser(tuple(meta["feature_names"]), arrays["normaliser_mean"], arrays["normaliser_std"])
+    except (KeyError, ValueError) as exc:
+        raise ModelFileError(path, f"bad normaliser ({exc})") from exc
+    n_hidden = len(meta["model"].get("hidden", []))
+    needed = ["embed.weight", "attention.in_proj_weight", "attention.out_proj.weight", "norm.weight", "head.weight"]
+    needed += [f"mlp.{2 * i}.weight" for i in range(n_hidden)]
+    absent = [k for k in needed if k not in params]
+    if absent:
+        raise ModelFileError(path, f"parameters {absent} missing")
+    if params["embed.weight"].shape[1] != len(normaliser.feature_names):
+        raise ModelFileError(path, f"embedding takes {params['embed.weight'].shape[1]} features but "
+                                   f"{len(normaliser.feature_names)} are named")
+    if expected_features is not None and tuple(expected_features) != tuple(normaliser.feature_names):
+        raise ModelFileError(path, f"model features {list(normaliser.feature_names)} do not match the expected "
+                                   f"{list(expected_features)}")
+    return LfgnssModel(path, params, normaliser, meta)

@@ -1,0 +1,111 @@
+"""LF-GNSS noise network: per-satellite features -> pseudorange variance R and compensation v^c.
+
+The network never sees the filter; it maps normalised features ``(..., N, d)`` and a padding mask
+``(..., N)`` to ``r_m2`` and ``vc_m`` of shape ``(..., N)`` (LF-GNSS notes, step 3):
+
+    h0 = x W_e^T + b_e                               (embedding, d -> d_model)
+    h1 = LayerNorm(h0 + MHA(h0, h0, h0; mask))       (self-attention over satellites, residual)
+    h2 = MLP(h1)                                     (hidden 64-128-64, ReLU after each layer)
+    [o_R, o_v] = h2 W_o^T + b_o
+    r = r_scale_m2 * softplus(o_R) + r_floor_m2,     vc = o_v
+
+Padded slots are ignored as attention keys and their outputs are inert: ``r = PAD_R_M2``,
+``vc = 0``. An epoch with no valid satellite yields inert outputs only (no NaN).
+"""
+from __future__ import annotations
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+#: Variance written into padded slots [m^2] (finite and positive so no filter can divide by zero).
+PAD_R_M2 = 1.0
+
+
+class LfgnssNet(nn.Module):
+    """Attention network over the satellites of one epoch.
+
+    Parameters
+    ----------
+    n_features : int
+        Feature dimension ``d``.
+    d_model : int
+        Embedding width (64 in the paper).
+    n_heads : int
+        Attention heads (4).
+    hidden : tuple of int
+        MLP widths after attention (64, 128, 64), each followed by ReLU.
+    r_floor_m2 : float
+        Floor added to the variance [m^2].
+    r_scale_m2 : float
+        Constant unit scale of the softplus output [m^2] (1.0 = the paper's ``softplus(o_R)``).
+    r_init_m2 : float or None
+        If given, the R output bias is initialised so an all-zero input gives about this variance.
+    """
+
+    def __init__(self, n_features: int, *, d_model: int = 64, n_heads: int = 4,
+                 hidden: tuple[int, ...] = (64, 128, 64), r_floor_m2: float = 0.01,
+                 r_scale_m2: float = 1.0, r_init_m2: float | None = None) -> None:
+        super().__init__()
+        if n_features < 1 or d_model % n_heads != 0:
+            raise ValueError(f"need n_features >= 1 and d_model % n_heads == 0, got {n_features}, {d_model}, {n_heads}")
+        self.n_features = int(n_features)
+        self.d_model = int(d_model)
+        self.n_heads = int(n_heads)
+        self.hidden = tuple(int(h) for h in hidden)
+        self.r_floor_m2 = float(r_floor_m2)
+        self.r_scale_m2 = float(r_scale_m2)
+        self.embed = nn.Linear(self.n_features, self.d_model)
+        self.attention = nn.MultiheadAttention(self.d_model, self.n_heads, batch_first=True)
+        self.norm = nn.LayerNorm(self.d_model)
+        layers: list[nn.Module] = []
+        width = self.d_model
+        for h in self.hidden:
+            layers += [nn.Linear(width, h), nn.ReLU()]
+            width = h
+        self.mlp = nn.Sequential(*layers)
+        self.head = nn.Linear(width, 2)
+        if r_init_m2 is not None:
+            # softplus^-1((r_init - floor) / scale) = log(expm1(y))
+            y = torch.tensor(max(float(r_init_m2) - self.r_floor_m2, 1e-3) / self.r_scale_m2, dtype=torch.float64)
+            with torch.no_grad():
+                self.head.bias[0] = float(y + torch.log(-torch.expm1(-y)))
+
+    def hyperparameters(self) -> dict:
+        """Constructor keyword arguments (for export / rebuild)."""
+        return {"n_features": self.n_features, "d_model": self.d_model, "n_heads": self.n_heads,
+                "hidden": list(self.hidden), "r_floor_m2": self.r_floor_m2, "r_scale_m2": self.r_scale_m2}
+
+    def forward(self, features: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Noise for every slot.
+
+        Parameters
+        ----------
+        features : (B, N, d) or (B, T, N, d) float tensor, normalised
+        mask : (B, N) or (B, T, N) bool, True for valid satellites
+
+        Returns
+        -------
+        r_m2, vc_m : (B, N) or (B, T, N), dtype of ``features``; inert in padded slots.
+        """
+        if features.shape[:-1] != mask.shape or features.shape[-1] != self.n_features:
+            raise ValueError(f"features {tuple(features.shape)} and mask {tuple(mask.shape)} do not match "
+                             f"(..., N, {self.n_features}) / (..., N)")
+        lead = mask.shape[:-1]
+        n = mask.shape[-1]
+        x = features.reshape(-1, n, self.n_features)
+        m = mask.reshape(-1, n).bool()
+        # An epoch with no valid satellite would make every attention row -inf -> NaN; let such rows
+        # attend to all (finite) slots; their outputs are overwritten below.
+        empty = ~m.any(dim=-1, keepdim=True)
+        key_padding = ~(m | empty)
+        x = torch.where(m[..., None], x, torch.zeros((), dtype=x.dtype))
+        h0 = self.embed(x)
+        attn, _ = self.attention(h0, h0, h0, key_padding_mask=key_padding, need_weights=False)
+        h1 = self.norm(h0 + attn)
+        out = self.head(self.mlp(h1))
+        r = self.r_scale_m2 * F.softplus(out[..., 0]) + self.r_floor_m2
+        vc = out[..., 1]
+        r = torch.where(m, r, torch.full((), PAD_R_M2, dtype=r.dtype))
+        vc = torch.where(m, vc, torch.zeros((), dtype=vc.dtype))
+        return r.reshape(*lead, n), vc.reshape(*lead, n)

@@ -1,0 +1,250 @@
+"""Batched, differentiable EKF mirroring ``estimators.ekf.LfgnssEkf`` (same models, gate and resets).
+
+Gradients flow from every output epoch back to the ``R`` and ``v^c`` of all earlier epochs of the
+window (no truncation). Matrices come from ``estimators.models`` (``F = I + dt A``,
+``Q = Q1 dt + Q2 dt^2 + Q3 dt^3``, P0), so this filter and the filterpy plug-in share one model.
+
+Padded or unusable slots are neutralised rather than removed: their ``H`` rows and innovations are
+exactly zero and their ``R`` is 1, so ``S`` is block diagonal and their Kalman-gain columns are exactly
+zero: they cannot change the state, the covariance or any gradient.
+
+Per epoch, both possible priors are gated and updated in one batched call of size 2B:
+
+* the normal prior ``F x, F P F^T + Q``;
+* the reset prior ``x0(coarse), P0``.
+
+The reset result is taken at the first epoch with a coarse fix, after gaps > ``max_gap_s``, when more
+than ``reset_gated_fraction`` of the usable satellites fail the gate (not right after a reset), and
+when the normal update ends farther than ``reset_distance_m`` from the coarse fix. The gate decision
+(a hard mask) and the reset choice carry no gradient; everything else does.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from estimators import models
+from estimators.base import STATUS_COASTED, STATUS_NONE, STATUS_RESET, STATUS_UPDATED
+from estimators.models import EkfConfig
+from lfgnss.constants import OMEGA_EARTH_RAD_S, SPEED_OF_LIGHT_M_S
+
+from .types import WindowBatch
+
+#: Stand-in position for unusable satellite slots (far from any receiver; the rows are zeroed anyway).
+_FAR_SAT_ECEF_M = (0.0, 0.0, 2.6e7)
+
+
+@dataclass
+class EkfOutput:
+    """Filter output for B windows of T epochs, n = ``models.n_states(n_systems)``.
+
+    Attributes
+    ----------
+    pos_ecef_m : (B, T, 3) float64
+        Filtered position [m]; NaN where ``status == STATUS_NONE`` (no coarse fix yet).
+    state : (B, T, n) float64
+        Posterior state (zeros before the first fix).
+    cov : (B, T, n, n) float64
+        Posterior covariance (P0 before the first fix).
+    n_used : (B, T) int64
+        Satellites used in the update.
+    status : (B, T) int64
+        ``estimators.base.STATUS_*`` codes, as in the plug-in's Solution.
+    n_gated : (B, T) int64
+        Usable satellites rejected by the gate.
+    """
+
+    pos_ecef_m: torch.Tensor
+    state: torch.Tensor
+    cov: torch.Tensor
+    n_used: torch.Tensor
+    status: torch.Tensor
+    n_gated: torch.Tensor
+
+
+def geometric_range_m(sat_ecef_m: torch.Tensor, rcv_ecef_m: torch.Tensor) -> torch.Tensor:
+    """Torch twin of ``lfgnss.corrections.geometric_range_m``: |s - r| + omega_e / c (x_s y_r - y_s x_r) [m].
+
+    ``sat_ecef_m`` (..., 3), ``rcv_ecef_m`` broadcastable (..., 3); returns (...).
+    """
+    d = sat_ecef_m - rcv_ecef_m
+    sagnac = OMEGA_EARTH_RAD_S / SPEED_OF_LIGHT_M_S * (sat_ecef_m[..., 0] * rcv_ecef_m[..., 1]
+                                                       - sat_ecef_m[..., 1] * rcv_ecef_m[..., 0])
+    return torch.linalg.norm(d, dim=-1) + sagnac
+
+
+def _clock_rows(system_index: torch.Tensor, usable: torch.Tensor, n: int) -> torch.Tensor:
+    """(..., N, n) float64: the clock/ISB part of H (1 at the clock column and at the ISB column)."""
+    cols = torch.where(system_index >= 1, models.ISB0 + system_index - 1, torch.full_like(system_index, models.CLOCK))
+    rows = torch.nn.functional.one_hot(torch.where(usable, cols, 0), n).to(torch.float64)
+    rows[..., models.CLOCK] = 1.0
+    return rows * usable[..., None]
+
+
+def _measurement(x: torch.Tensor, sat: torch.Tensor, clock_rows: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """h (M, N) and H (M, N, n) at states ``x`` (M, n); mirrors ``estimators.models.measurement``."""
+    p = x[:, None, :3]
+    d = sat - p
+    los = d / torch.linalg.norm(d, dim=-1, keepdim=True)
+    h = geometric_range_m(sat, p) + (clock_rows @ x[:, :, None])[..., 0]
+    H = torch.cat([-los, clock_rows[..., 3:]], dim=-1)
+    return h, H
+
+
+def _gate_and_update(x: torch.Tensor, P: torch.Tensor, sat: torch.Tensor, clock_rows: torch.Tensor,
+                     z: torch.Tensor, r: torch.Tensor, usable: torch.Tensor, allowed: torch.Tensor,
+                     config: EkfConfig) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Gate then Joseph-update priors (x (M, n), P (M, n, n)) with the usable slots (M, N).
+
+    Returns (x, P, n_used (M,), n_rejected (M,), n_usable (M,)); rows with ``allowed == False`` are
+    returned unchanged (their numbers are never selected by the caller).
+    """
+    h, H = _measurement(x, sat, clock_rows)
+    v = z - h
+    HP = H @ P
+    with torch.no_grad():
+        usable = usable & allowed[:, None]
+        if config.gate_sigma > 0:
+            s_diag = (HP * H).sum(-1) + r
+            keep = usable & (v.abs() <= config.gate_sigma * torch.sqrt(s_diag))
+        else:
+            keep = usable
+        n_keep = keep.sum(-1)
+        used = keep & (n_keep >= config.min_sats_for_update)[:, None]
+        n_usable = usable.sum(-1)
+    usedf = used.to(torch.float64)
+    Hm = H * usedf[..., None]
+    vm = torch.where(used, v, torch.zeros_like(v))
+    Rm = torch.where(used, r, torch.ones_like(r))
+    PHt = (Hm @ P).transpose(-1, -2)                       # (M, n, N) = P H^T (P symmetric)
+    S = Hm @ PHt + torch.diag_embed(Rm)                     # S = H P H^T + R
+    L = torch.linalg.cholesky(S)
+    K = torch.cholesky_solve(PHt.transpose(-1, -2), L).transpose(-1, -2)   # K = P H^T S^-1
+    x_new = x + (K @ vm[..., None])[..., 0]                 # x = x^- + K (v + v^c)
+    eye = torch.eye(x.shape[-1], dtype=x.dtype, device=x.device)
+    IKH = eye - K @ Hm
+    P_new = IKH @ P @ IKH.transpose(-1, -2) + (K * Rm[:, None, :]) @ K.transpose(-1, -2)   # Joseph
+    return x_new, P_new, used.sum(-1), n_usable - n_keep, n_usable
+
+
+def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor, vc_m: torch.Tensor, *, n_systems: int,
+              config: EkfConfig) -> EkfOutput:
+    """Run the EKF over B windows of T epochs, differentiably in ``r_m2`` and ``vc_m``.
+
+    Each window starts un-initialised at its epoch 0 and initialises from its first coarse fix, as
+    ``estimators.ekf.LfgnssEkf.solve`` does at the start of a sequence.
+
+    Parameters
+    ----------
+    batch : WindowBatch
+        Geometry, pseudoranges, masks, times and coarse fixes (float64).
+    r_m2 : (B, T, N)
+        Pseudorange variances R [m^2], > 0 on usable slots (any value elsewhere).
+    vc_m : (B, T, N)
+        Innovation compensations v^c [m] (any finite value on unusable slots).
+    n_systems : int
+        Constellations C in the state (clock + C - 1 ISBs).
+    config : EkfConfig
+        The same settings the plug-in takes.
+    """
+    b_len, t_len, n_slots = batch.mask.shape
+    if r_m2.shape != (b_len, t_len, n_slots) or vc_m.shape != (b_len, t_len, n_slots):
+        raise ValueError(f"learning/torch_ekf.py: r_m2 {tuple(r_m2.shape)} and vc_m {tuple(vc_m.shape)} must be "
+                         f"{(b_len, t_len, n_slots)}")
+    if batch.coarse_clock_m.shape[-1] < n_systems:
+        raise ValueError(f"learning/torch_ekf.py: coarse_clock_m has {batch.coarse_clock_m.shape[-1]} systems, "
+                         f"n_systems is {n_systems}")
+    dev = batch.pr_m.device
+    f64 = torch.float64
+    n = models.n_states(n_systems)
+    r_m2 = r_m2.to(f64)
+    vc_m = vc_m.to(f64)
+
+    time = batch.time_gps_s.to(f64)
+    dt_all = torch.zeros_like(time)
+    dt_all[:, 1:] = time[:, 1:] - time[:, :-1]
+    if t_len > 1 and not bool((dt_all[:, 1:] > 0).all()):
+        raise ValueError("learning/torch_ekf.py: epoch times must increase within every window")
+
+    # Inputs made harmless where unusable (finite, no influence, no NaN gradients).
+    sat_ok = torch.isfinite(batch.sat_pos_ecef_m).all(-1)
+    usable_all = (batch.mask & torch.isfinite(batch.pr_m) & sat_ok & (batch.system_index >= 0)
+                  & (batch.system_index < n_systems))
+    far = torch.tensor(_FAR_SAT_ECEF_M, dtype=f64, device=dev)
+    sat_all = torch.where(usable_all[..., None], batch.sat_pos_ecef_m.to(f64), far)
+    pr = torch.where(usable_all, batch.pr_m.to(f64), torch.zeros((), dtype=f64, device=dev))
+    vc = torch.where(usable_all, vc_m, torch.zeros((), dtype=f64, device=dev))
+    z_all = pr + vc                                  # z = pr + v^c: the one place v^c enters
+    r_all = torch.where(usable_all, r_m2, torch.ones((), dtype=f64, device=dev))
+    clock_rows_all = _clock_rows(batch.system_index.long(), usable_all, n)
+
+    coarse_ok_all = torch.isfinite(batch.coarse_ecef_m).all(-1) & torch.isfinite(batch.coarse_clock_m[..., 0])
+    coarse_pos_all = torch.where(coarse_ok_all[..., None], batch.coarse_ecef_m.to(f64), torch.zeros((), dtype=f64))
+    clk = torch.nan_to_num(batch.coarse_clock_m[..., :n_systems].to(f64), nan=0.0)
+    x0_all = torch.zeros(b_len, t_len, n, dtype=f64, device=dev)
+    x0_all[..., :3] = coarse_pos_all
+    x0_all[..., models.CLOCK] = torch.where(coarse_ok_all, clk[..., 0], torch.zeros((), dtype=f64))
+    x0_all[..., models.ISB0:] = clk[..., 1:]
+
+    P0 = torch.as_tensor(models.initial_covariance(n_systems, config), dtype=f64, device=dev)
+    A = torch.as_tensor(models.transition_generator(n_systems), dtype=f64, device=dev)
+    q1, q2, q3 = (torch.as_tensor(q, dtype=f64, device=dev) for q in models.process_noise_coefficients(n_systems, config))
+    eye = torch.eye(n, dtype=f64, device=dev)
+
+    x = torch.zeros(b_len, n, dtype=f64, device=dev)
+    P = P0.expand(b_len, n, n)
+    started = torch.zeros(b_len, dtype=torch.bool, device=dev)
+    prev_status = torch.full((b_len,), STATUS_NONE, dtype=torch.int64, device=dev)
+    xs, Ps, used_out, gated_out, status_out = [], [], [], [], []
+    for k in range(t_len):
+        dt = dt_all[:, k, None, None]
+        F = eye + dt * A
+        x_pred = (F @ x[..., None])[..., 0]
+        P_pred = F @ P @ F.transpose(-1, -2) + q1 * dt + q2 * dt ** 2 + q3 * dt ** 3
+        coarse_ok = coarse_ok_all[:, k]
+        init_needed = ~started | ((dt_all[:, k] > config.max_gap_s) & coarse_ok)
+        reset_a = init_needed & coarse_ok
+        normal = started & ~reset_a
+
+        # Both branches in one batched call: rows [0, B) normal prior, [B, 2B) reset prior.
+        two = lambda a: torch.cat([a, a], 0)  # noqa: E731
+        xu, Pu, n_used2, n_rej2, n_usable2 = _gate_and_update(
+            torch.cat([x_pred, x0_all[:, k]], 0), torch.cat([P_pred, P0.expand(b_len, n, n)], 0),
+            two(sat_all[:, k]), two(clock_rows_all[:, k]), two(z_all[:, k]), two(r_all[:, k]),
+            two(usable_all[:, k]), torch.cat([normal, coarse_ok], 0), config)
+        x_n, x_r = xu[:b_len], xu[b_len:]
+        P_n, P_r = Pu[:b_len], Pu[b_len:]
+
+        with torch.no_grad():
+            n_usable = n_usable2[:b_len]
+            reset_g = (normal & coarse_ok & (prev_status != STATUS_RESET) & (n_usable >= config.reset_min_sats)
+                       & (n_rej2[:b_len].to(f64) > config.reset_gated_fraction * n_usable.to(f64)))
+            if not config.gate_sigma > 0:
+                reset_g = torch.zeros_like(reset_g)
+            far_off = torch.linalg.norm(x_n[:, :3] - coarse_pos_all[:, k], dim=-1) > config.reset_distance_m
+            reset_d = normal & ~reset_g & coarse_ok & far_off
+            reset = reset_a | reset_g | reset_d
+            keep_n = normal & ~reset
+            status = torch.where(reset, STATUS_RESET,
+                                 torch.where(keep_n, torch.where(n_used2[:b_len] > 0, STATUS_UPDATED, STATUS_COASTED),
+                                             STATUS_NONE))
+        x = torch.where(reset[:, None], x_r, torch.where(keep_n[:, None], x_n, x))
+        P = torch.where(reset[:, None, None], P_r, torch.where(keep_n[:, None, None], P_n, P))
+        started = started | reset
+        prev_status = status
+        xs.append(x)
+        Ps.append(P)
+        status_out.append(status)
+        used_out.append(torch.where(reset, n_used2[b_len:], torch.where(keep_n, n_used2[:b_len], 0)))
+        gated_out.append(torch.where(reset, n_rej2[b_len:], torch.where(keep_n, n_rej2[:b_len], 0)))
+
+    state = torch.stack(xs, 1)
+    status = torch.stack(status_out, 1)
+    pos = torch.where((status == STATUS_NONE)[..., None], torch.full((), float("nan"), dtype=f64, device=dev),
+                      state[..., :3])
+    return EkfOutput(pos_ecef_m=pos, state=state, cov=torch.stack(Ps, 1), n_used=torch.stack(used_out, 1),
+                     status=status, n_gated=torch.stack(gated_out, 1))
+
+
+__all__ = ["EkfOutput", "batch_ekf", "geometric_range_m"]

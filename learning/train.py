@@ -1,0 +1,475 @@
+"""Train the LF-GNSS noise network end to end through the differentiable EKF.
+
+    python -m learning.train --config learning/configs/default.toml [--set key=value ...]
+                             [--out runs/NAME] [--resume] [--no-progress]
+
+Each epoch: shuffled windows of consecutive epochs -> network -> ``learning.torch_ekf.batch_ekf``
+-> HEM (or RMSE) loss on the filtered positions -> Adam; then the torch EKF runs over each whole
+validation sequence (no gradient) for the validation 3D RMSE. Every epoch writes ``last.pt``
+(model, optimiser, scheduler, epoch, RNG states, normaliser, config); the best validation epoch
+is kept as ``best.pt`` and exported to ``model.npz``; ``log.csv`` and ``curves.png`` record the run.
+The test split is never loaded here: asking for it raises.
+
+Sequences come from one pluggable function, ``load_sequences(dataset_id, split, config)``:
+dataset ``"synthetic"`` uses ``lfgnss.simulate.simulate_sequence``, any other id goes to
+``lfgnss.datasets.load_split``.
+"""
+from __future__ import annotations
+
+import argparse
+import copy
+import csv
+import dataclasses
+import hashlib
+import math
+import random
+import sys
+import time
+import tomllib
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from lfgnss.sequence import DEFAULT_FEATURES, Sequence
+
+from .data import Window, make_windows, collate, resolve_feature_names, sequence_batch
+from .loss import error_norm_m, make_loss
+from .network import LfgnssNet
+from .normalise import Normaliser
+from .types import WindowBatch
+
+#: Every configuration key with its default; a TOML file overrides any subset.
+DEFAULT_CONFIG: dict[str, Any] = {
+    "seed": 0,
+    "threads": 1,
+    "data": {
+        "datasets": ["hk-tst-2019"],
+        "train_split": "train",
+        "val_split": "val",
+        "features": list(DEFAULT_FEATURES),
+        "drop_features": [],
+        "window": 40,
+        "stride": 5,
+        "synthetic": {"n_epochs": 300, "sats_per_system": 7, "systems": ["G", "C"], "nlos_fraction": 0.2,
+                      "train_seeds": [1, 2], "val_seeds": [101]},
+    },
+    "model": {"d_model": 64, "n_heads": 4, "hidden": [64, 128, 64], "r_floor_m2": 0.01, "r_scale_m2": 1.0,
+              "r_init_m2": None},
+    "train": {"epochs": 200, "batch_size": 16, "lr": 1.0e-3, "t_max": 50, "eta_min": 1.0e-4, "grad_clip": 0.0},
+    "loss": {"kind": "hem", "alpha": 0.75, "gamma": 1.5, "lambda": 1.0},
+    "ekf": {},
+}
+
+_FORBIDDEN_SPLITS = ("test",)
+
+
+# --------------------------------------------------------------------------- configuration
+
+def _merge(base: dict, update: dict, where: str = "") -> dict:
+    out = copy.deepcopy(base)
+    for key, value in update.items():
+        if key not in out and where != "ekf." and not where.startswith("ekf."):
+            raise ValueError(f"unknown configuration key {where + key!r}")
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _merge(out[key], value, where + key + ".")
+        else:
+            out[key] = copy.deepcopy(value)
+    return out
+
+
+def _parse_value(text: str) -> Any:
+    """A TOML literal (number, bool, string, array); a bare word falls back to a string."""
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
+def apply_overrides(config: dict, assignments: list[str]) -> dict:
+    """``["train.epochs=5", "loss.kind=rmse"]`` applied to ``config`` (dotted keys, TOML values)."""
+    out = copy.deepcopy(config)
+    for item in assignments:
+        if "=" not in item:
+            raise ValueError(f"--set expects key=value, got {item!r}")
+        key, text = item.split("=", 1)
+        *parents, leaf = key.strip().split(".")
+        nested: dict = {}
+        cursor = nested
+        for p in parents:
+            cursor = cursor.setdefault(p, {})
+        cursor[leaf] = _parse_value(text.strip())
+        out = _merge(out, nested)
+    return out
+
+
+def load_config(path: str | Path | None = None, overrides: list[str] = ()) -> dict:
+    """DEFAULT_CONFIG updated by the TOML file at ``path`` and then by ``overrides``."""
+    config = copy.deepcopy(DEFAULT_CONFIG)
+    if path is not None:
+        config = _merge(config, _read_toml(Path(path)))
+    return apply_overrides(config, list(overrides))
+
+
+def _read_toml(path: Path, depth: int = 0) -> dict:
+    """A TOML file; a top-level ``base = "other.toml"`` (relative to it) is read first and updated."""
+    try:
+        with open(path, "rb") as fh:
+            data = tomllib.load(fh)
+    except (OSError, tomllib.TOMLDecodeError) as exc:
+        raise ValueError(f"{path}: cannot read configuration: {exc}") from exc
+    base = data.pop("base", None)
+    if base is None:
+        return data
+    if depth > 8:
+        raise ValueError(f"{path}: 'base' chain too deep")
+    return _merge_free(_read_toml(path.parent / base, depth + 1), data)
+
+
+def _merge_free(base: dict, update: dict) -> dict:
+    out = copy.deepcopy(base)
+    for key, value in update.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _merge_free(out[key], value)
+        else:
+            out[key] = copy.deepcopy(value)
+    return out
+
+
+def ekf_config(config: dict):
+    """``estimators.models.EkfConfig`` with the ``[ekf]`` overrides applied."""
+    from estimators.models import EkfConfig
+
+    known = {f.name for f in dataclasses.fields(EkfConfig)}
+    unknown = sorted(set(config["ekf"]) - known)
+    if unknown:
+        raise ValueError(f"unknown [ekf] keys {unknown}; EkfConfig has {sorted(known)}")
+    return EkfConfig(**config["ekf"])
+
+
+# --------------------------------------------------------------------------- data source
+
+def load_sequences(dataset_id: str, split: str, config: dict) -> list[Sequence]:
+    """The one place Sequences come from: synthetic, or ``lfgnss.datasets.load_split``.
+
+    Raises ValueError for the test split (training must never see it).
+    """
+    if split in _FORBIDDEN_SPLITS:
+        raise ValueError(f"training asked for split {split!r} of {dataset_id!r}; the test split is never used here")
+    if dataset_id == "synthetic":
+        from lfgnss.simulate import simulate_sequence
+
+        syn = config["data"]["synthetic"]
+        seeds = syn.get(f"{split}_seeds")
+        if seeds is None:
+            raise ValueError(f"synthetic data has no seeds for split {split!r} (data.synthetic.{split}_seeds)")
+        return [simulate_sequence(int(syn["n_epochs"]), systems=tuple(syn["systems"]),
+                                  sats_per_system=int(syn["sats_per_system"]),
+                                  nlos_fraction=float(syn["nlos_fraction"]), seed=int(s),
+                                  name=f"synthetic/{split}/{s}") for s in seeds]
+    from lfgnss.datasets import load_split
+
+    return list(load_split(dataset_id, split, feature_names=tuple(config["data"]["features"])))
+
+
+def source_file_hashes(dataset_id: str) -> dict[str, str]:
+    """sha256 (16 hex digits) of each input file of a benchmark dataset; {} for synthetic data."""
+    if dataset_id == "synthetic":
+        return {}
+    from lfgnss.datasets import get
+
+    out = {}
+    for path in get(dataset_id).files():
+        h = hashlib.sha256()
+        with open(path, "rb") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                h.update(block)
+        out[Path(path).name] = h.hexdigest()[:16]
+    return out
+
+
+def fingerprint(sequence: Sequence) -> str:
+    """sha256 (16 hex digits) of a sequence's measurements, features and truth."""
+    h = hashlib.sha256()
+    for arr in (sequence.time_gps_s, sequence.mask, sequence.pr_m, sequence.features, sequence.truth_ecef_m):
+        h.update(np.ascontiguousarray(arr).tobytes())
+    return h.hexdigest()[:16]
+
+
+# --------------------------------------------------------------------------- model / evaluation
+
+def build_model(config: dict, n_features: int) -> LfgnssNet:
+    """LfgnssNet from the ``[model]`` table."""
+    m = config["model"]
+    return LfgnssNet(n_features, d_model=int(m["d_model"]), n_heads=int(m["n_heads"]), hidden=tuple(m["hidden"]),
+                     r_floor_m2=float(m["r_floor_m2"]), r_scale_m2=float(m["r_scale_m2"]),
+                     r_init_m2=None if m.get("r_init_m2") is None else float(m["r_init_m2"]))
+
+
+def run_filter(model: LfgnssNet, batch: WindowBatch, *, n_systems: int, ekf_cfg) -> torch.Tensor:
+    """Filtered positions (B, T, 3) [m] with the network's R and v^c."""
+    from .torch_ekf import batch_ekf
+
+    r, vc = model(batch.features, batch.mask)
+    out = batch_ekf(batch, r.to(torch.float64), vc.to(torch.float64), n_systems=n_systems, config=ekf_cfg)
+    return out.pos_ecef_m
+
+
+@torch.no_grad()
+def evaluate(model: LfgnssNet, batches: list[WindowBatch], *, n_systems: int, ekf_cfg) -> tuple[float, float]:
+    """(3D RMSE [m], availability) over the labelled epochs of whole-sequence batches."""
+    was_training = model.training
+    model.eval()
+    try:
+        sq, n_ok, n_lab = 0.0, 0, 0
+        for batch in batches:
+            pos = run_filter(model, batch, n_systems=n_systems, ekf_cfg=ekf_cfg)
+            n_lab += int(torch.isfinite(batch.truth_ecef_m).all(dim=-1).sum())
+            L, _ = error_norm_m(pos, batch.truth_ecef_m)
+            sq += float((L.double() ** 2).sum())
+            n_ok += int(L.numel())
+    finally:
+        model.train(was_training)
+    rmse = math.sqrt(sq / n_ok) if n_ok else float("nan")
+    return rmse, (n_ok / n_lab if n_lab else float("nan"))
+
+
+def _index_batch(full: WindowBatch, index: np.ndarray) -> WindowBatch:
+    idx = torch.as_tensor(index, dtype=torch.long)
+    return WindowBatch(**{f.name: getattr(full, f.name)[idx] for f in dataclasses.fields(full)})
+
+
+def _rng_state() -> dict:
+    return {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()}
+
+
+def _set_rng_state(state: dict) -> None:
+    torch.set_rng_state(state["torch"])
+    np.random.set_state(state["numpy"])
+    random.setstate(state["python"])
+
+
+# --------------------------------------------------------------------------- training
+
+@dataclasses.dataclass
+class Prepared:
+    """Everything data-dependent a run needs (built once; never from the test split)."""
+
+    feature_names: tuple[str, ...]
+    normaliser: Normaliser
+    windows: list[Window]
+    train_batch: WindowBatch
+    val_batches: list[WindowBatch]
+    n_systems: int
+    fingerprints: list[dict]
+    source_files: dict[str, dict[str, str]]
+
+
+def prepare(config: dict) -> Prepared:
+    """Load train/val Sequences, fit the normaliser on train, cut and collate windows."""
+    data = config["data"]
+    for key in ("train_split", "val_split"):
+        if data[key] in _FORBIDDEN_SPLITS:
+            raise ValueError(f"data.{key} = {data[key]!r}: the test split may not be used for training or selection")
+    train_seqs, val_seqs, prints = [], [], []
+    for ds in data["datasets"]:
+        for split, bucket in ((data["train_split"], train_seqs), (data["val_split"], val_seqs)):
+            seqs = load_sequences(ds, split, config)
+            if not seqs:
+                raise ValueError(f"dataset {ds!r} split {split!r} gave no sequence")
+            bucket.extend(seqs)
+            prints.extend({"dataset": ds, "split": split, "sequence": s.name, "epochs": len(s),
+                           "sha256_16": fingerprint(s)} for s in seqs)
+    names = resolve_feature_names(data["features"], data["drop_features"])
+    normaliser = Normaliser.fit(train_seqs, names)
+    n_systems = max(len(s.systems) for s in train_seqs + val_seqs)
+    windows = make_windows(train_seqs, int(data["window"]), int(data["stride"]))
+    n_slots = max(s.n_slots for s in train_seqs)
+    train_batch = collate(train_seqs, windows, normaliser, n_slots=n_slots, n_systems=n_systems)
+    val_batches = [sequence_batch(s, normaliser, n_systems=n_systems) for s in val_seqs]
+    files = {ds: source_file_hashes(ds) for ds in data["datasets"]}
+    return Prepared(names, normaliser, windows, train_batch, val_batches, n_systems, prints, files)
+
+
+def _write_log(path: Path, history: list[dict]) -> None:
+    with open(path, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=["epoch", "train_loss", "val_rmse_3d_m", "val_availability", "lr", "seconds"])
+        w.writeheader()
+        w.writerows(history)
+
+
+def _plot(path: Path, history: list[dict]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ep = [h["epoch"] for h in history]
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 4))
+    a1.plot(ep[1:], [h["train_loss"] for h in history[1:]], "o-")
+    a1.set_xlabel("epoch"), a1.set_ylabel("train loss [m]"), a1.set_title("training loss")
+    a2.plot(ep, [h["val_rmse_3d_m"] for h in history], "o-", color="C1")
+    a2.set_xlabel("epoch"), a2.set_ylabel("3D RMSE [m]"), a2.set_title("validation (whole sequences)")
+    for a in (a1, a2):
+        a.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def train(config: dict, out_dir: str | Path, *, resume: bool = False, overrides: list[str] = (),
+          progress: bool = True, prepared: Prepared | None = None, export: bool = True) -> list[dict]:
+    """Run (or resume) training; returns the history rows (epoch 0 = untrained model).
+
+    Parameters
+    ----------
+    config : dict
+        Full configuration (``load_config``).
+    out_dir : path
+        Run folder for ``last.pt``, ``best.pt``, ``log.csv``, ``curves.png``, ``model.npz``.
+    resume : bool
+        Continue from ``out_dir/last.pt`` exactly (same shuffles, optimiser and scheduler state). The
+        checkpoint's configuration is used, updated by ``overrides`` (e.g. ``["train.epochs=300"]``);
+        ``config`` is then ignored.
+    prepared : Prepared, optional
+        Pre-built data (tests reuse it across runs); built from ``config`` otherwise.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    last_path, best_path = out / "last.pt", out / "best.pt"
+    checkpoint = None
+    if resume:
+        if not last_path.exists():
+            raise ValueError(f"{last_path}: no checkpoint to resume from")
+        checkpoint = torch.load(last_path, map_location="cpu", weights_only=False)
+        config = apply_overrides(checkpoint["config"], list(overrides))
+    elif last_path.exists():
+        raise ValueError(f"{last_path}: a run already exists here; pass --resume or choose another --out")
+
+    threads, deterministic = torch.get_num_threads(), torch.are_deterministic_algorithms_enabled()
+    torch.set_num_threads(int(config["threads"]))
+    torch.use_deterministic_algorithms(True, warn_only=True)
+    try:
+        return _train(config, out, checkpoint, progress=progress, prepared=prepared, export=export)
+    finally:
+        torch.set_num_threads(threads)
+        torch.use_deterministic_algorithms(deterministic)
+
+
+def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, prepared: Prepared | None,
+           export: bool) -> list[dict]:
+    last_path, best_path = out / "last.pt", out / "best.pt"
+    seed = int(config["seed"])
+    torch.manual_seed(seed)
+    np.random.seed(seed)
+    random.seed(seed)
+
+    prep = prepared or prepare(config)
+    ekf_cfg = ekf_config(config)
+    tr = config["train"]
+    model = build_model(config, len(prep.feature_names))
+    optimiser = torch.optim.Adam(model.parameters(), lr=float(tr["lr"]))
+    scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, T_max=int(tr["t_max"]),
+                                                           eta_min=float(tr["eta_min"]))
+    lc = config["loss"]
+    loss_fn = make_loss(lc["kind"], alpha=float(lc["alpha"]), gamma=float(lc["gamma"]), lam=float(lc["lambda"]))
+    history: list[dict] = []
+    best = float("inf")
+    start_epoch = 1
+
+    def save(path: Path, epoch: int) -> None:
+        torch.save({"model": model.state_dict(), "model_hparams": model.hyperparameters(),
+                    "optimiser": optimiser.state_dict(), "scheduler": scheduler.state_dict(), "epoch": epoch,
+                    "history": history, "best_val_rmse_3d_m": best, "rng": _rng_state(),
+                    "normaliser": prep.normaliser.to_dict(), "feature_names": list(prep.feature_names),
+                    "n_systems": prep.n_systems, "config": config, "ekf_config": dataclasses.asdict(ekf_cfg),
+                    "data_fingerprints": prep.fingerprints, "source_files": prep.source_files}, path)
+
+    if checkpoint is not None:
+        model.load_state_dict(checkpoint["model"])
+        optimiser.load_state_dict(checkpoint["optimiser"])
+        scheduler.load_state_dict(checkpoint["scheduler"])
+        history = list(checkpoint["history"])
+        best = float(checkpoint["best_val_rmse_3d_m"])
+        start_epoch = int(checkpoint["epoch"]) + 1
+        _set_rng_state(checkpoint["rng"])
+    else:
+        t0 = time.perf_counter()
+        val, avail = evaluate(model, prep.val_batches, n_systems=prep.n_systems, ekf_cfg=ekf_cfg)
+        history.append({"epoch": 0, "train_loss": float("nan"), "val_rmse_3d_m": val, "val_availability": avail,
+                        "lr": optimiser.param_groups[0]["lr"], "seconds": time.perf_counter() - t0})
+        best = val
+        save(best_path, 0)
+        save(last_path, 0)
+
+    n_windows = len(prep.windows)
+    batch_size = int(tr["batch_size"])
+    for epoch in range(start_epoch, int(tr["epochs"]) + 1):
+        t0 = time.perf_counter()
+        model.train()
+        order = np.random.default_rng([seed, epoch]).permutation(n_windows)
+        chunks = [order[k:k + batch_size] for k in range(0, n_windows, batch_size)]
+        lr = optimiser.param_groups[0]["lr"]
+        total, count = 0.0, 0
+        if progress:
+            from tqdm import tqdm
+
+            chunks = tqdm(chunks, desc=f"epoch {epoch}/{tr['epochs']}", leave=False, file=sys.stderr)
+        for idx in chunks:
+            batch = _index_batch(prep.train_batch, idx)
+            pos = run_filter(model, batch, n_systems=prep.n_systems, ekf_cfg=ekf_cfg)
+            loss = loss_fn(pos, batch.truth_ecef_m)
+            if not torch.isfinite(loss):
+                raise FloatingPointError(f"epoch {epoch}: non-finite training loss {float(loss)}")
+            optimiser.zero_grad(set_to_none=True)
+            loss.backward()
+            if float(tr["grad_clip"]) > 0:
+                torch.nn.utils.clip_grad_norm_(model.parameters(), float(tr["grad_clip"]))
+            optimiser.step()
+            total += float(loss.detach()) * len(idx)
+            count += len(idx)
+            if progress:
+                chunks.set_postfix(loss=f"{float(loss.detach()):.3f}")
+        scheduler.step()
+        val, avail = evaluate(model, prep.val_batches, n_systems=prep.n_systems, ekf_cfg=ekf_cfg)
+        history.append({"epoch": epoch, "train_loss": total / count, "val_rmse_3d_m": val, "val_availability": avail,
+                        "lr": lr, "seconds": time.perf_counter() - t0})
+        if val < best:
+            best = val
+            save(best_path, epoch)
+        save(last_path, epoch)
+        _write_log(out / "log.csv", history)
+        if progress:
+            print(f"epoch {epoch}: train loss {total / count:.3f} m, val 3D RMSE {val:.3f} m "
+                  f"({history[-1]['seconds']:.1f} s)", file=sys.stderr)
+    _write_log(out / "log.csv", history)
+    _plot(out / "curves.png", history)
+    if export:
+        from .export import export_model
+
+        export_model(best_path, out / "model.npz")
+    return history
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Command-line entry point."""
+    p = argparse.ArgumentParser(prog="python -m learning.train", description=__doc__.split("\n")[0])
+    p.add_argument("--config", help="TOML configuration (default: built-in defaults)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a configuration key, e.g. --set train.epochs=5 (repeatable)")
+    p.add_argument("--out", help="run folder (default: runs/<config name>)")
+    p.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    args = p.parse_args(argv)
+    config = load_config(args.config, args.overrides)
+    out = args.out or str(Path("runs") / (Path(args.config).stem if args.config else "default"))
+    history = train(config, out, resume=args.resume, overrides=args.overrides, progress=not args.no_progress)
+    best = min(history, key=lambda h: h["val_rmse_3d_m"])
+    print(f"{out}: best validation 3D RMSE {best['val_rmse_3d_m']:.3f} m at epoch {best['epoch']}; "
+          f"model {Path(out) / 'model.npz'}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,390 @@
+"""Broadcast navigation messages: RINEX 2/3 navigation files -> frozen records of numpy arrays.
+
+georinex reads the files (plain, ``.gz``; RINEX 2 GPS ``.n``, RINEX 2 GLONASS ``.g``, RINEX 3 per
+constellation and mixed); everything is converted here, at the boundary, into
+:class:`KeplerEphemerides` (GPS, Galileo, QZSS, BeiDou), :class:`GlonassEphemerides` and the
+Klobuchar coefficients of the headers, all bundled in :class:`Navigation`.
+
+Times are GPS seconds since 1980-01-06 (``lfgnss.time``) whatever the scale written in the file:
+BeiDou epochs/toe are BDT (GPST = BDT + 14 s), Galileo weeks are GST weeks aligned with GPS weeks,
+GLONASS epochs are UTC (GPST = UTC + leap seconds), as RTKLIB ``decode_eph``/``decode_geph`` do.
+"""
+from __future__ import annotations
+
+import io
+import re
+import warnings
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Iterable
+
+import numpy as np
+import pandas as pd
+
+from .errors import RinexError
+from .time import BDT_MINUS_GPST_S, SECONDS_PER_WEEK, datetime64_to_gps_s, utc_to_gps_s
+
+KEPLER_SYSTEMS = ("G", "E", "J", "C")
+
+# georinex variable name of the fields that differ between systems
+_IODE_NAME = {"G": "IODE", "J": "IODE", "E": "IODnav", "C": "AODE"}
+_HEALTH_NAME = {"G": "health", "J": "health", "E": "health", "C": "SatH1"}
+# Galileo data source bits (RINEX 3 "Data sources"): 0 I/NAV E1-B, 1 F/NAV E5a-I, 2 I/NAV E5b-I
+_GAL_INAV_BITS = 0b101
+_GAL_FNAV_BIT = 0b010
+
+
+@dataclass(frozen=True, eq=False)
+class KeplerEphemerides:
+    """Keplerian broadcast ephemerides (GPS, Galileo, QZSS, BeiDou), one row per record, K rows.
+
+    Sorted by (sv, toe, ttr). Angles in rad, angle rates in rad/s; ``toe``/``toc``/``ttr`` in GPS
+    seconds since 1980-01-06 (BeiDou BDT already shifted by +14 s). ``tgd_s`` is the group delay of
+    the single-frequency code the clock must be corrected for: GPS/QZSS TGD (L1 C/A), BeiDou TGD1
+    (B1I), Galileo BGD(E1, E5b) for I/NAV records (BGD(E1, E5a) for a satellite that only has F/NAV).
+    """
+
+    sv: np.ndarray              #: (K,) '<U3', e.g. 'G05'
+    system: np.ndarray          #: (K,) '<U1', 'G' | 'E' | 'J' | 'C'
+    toe_gps_s: np.ndarray       #: (K,) time of ephemeris
+    toc_gps_s: np.ndarray       #: (K,) time of clock
+    ttr_gps_s: np.ndarray       #: (K,) transmission time of the message (NaN if absent)
+    sqrt_a_sqrt_m: np.ndarray   #: (K,) square root of the semi-major axis [m^0.5]
+    e: np.ndarray               #: (K,) eccentricity [-]
+    i0_rad: np.ndarray
+    omega0_rad: np.ndarray      #: longitude of ascending node at weekly epoch
+    omega_rad: np.ndarray       #: argument of perigee
+    m0_rad: np.ndarray
+    delta_n_rad_s: np.ndarray
+    omega_dot_rad_s: np.ndarray
+    idot_rad_s: np.ndarray
+    cuc_rad: np.ndarray
+    cus_rad: np.ndarray
+    crc_m: np.ndarray
+    crs_m: np.ndarray
+    cic_rad: np.ndarray
+    cis_rad: np.ndarray
+    af0_s: np.ndarray
+    af1_s_s: np.ndarray
+    af2_s_s2: np.ndarray
+    tgd_s: np.ndarray
+    health: np.ndarray          #: (K,) int, 0 = healthy
+    iode: np.ndarray            #: (K,) int (Galileo IODnav, BeiDou AODE)
+
+    def __len__(self) -> int:
+        return len(self.sv)
+
+
+@dataclass(frozen=True, eq=False)
+class GlonassEphemerides:
+    """GLONASS broadcast ephemerides, one row per record, K rows, sorted by (sv, toe, tof).
+
+    State at ``toe`` in PZ-90 ECEF. Clock: dts(t) = -tau_n + gamma_n (t - toe) (RINEX stores -tau_n).
+    """
+
+    sv: np.ndarray              #: (K,) '<U3', e.g. 'R07'
+    toe_gps_s: np.ndarray       #: (K,) epoch of the ephemeris (UTC in the file) as GPS seconds
+    tof_s: np.ndarray           #: (K,) message frame time as written (s of UTC day/week; NaN if absent), tie-break only
+    pos_ecef_m: np.ndarray      #: (K, 3)
+    vel_ecef_m_s: np.ndarray    #: (K, 3)
+    acc_ecef_m_s2: np.ndarray   #: (K, 3) luni-solar acceleration
+    tau_n_s: np.ndarray         #: (K,) clock offset, ICD sign (satellite time minus GLONASS time is -tau_n)
+    gamma_n: np.ndarray         #: (K,) relative frequency offset [-]
+    k: np.ndarray               #: (K,) int frequency channel number
+    health: np.ndarray          #: (K,) int, 0 = healthy
+
+    def __len__(self) -> int:
+        return len(self.sv)
+
+
+@dataclass(frozen=True, eq=False)
+class Navigation:
+    """Everything :func:`load_nav` read: ephemerides, Klobuchar coefficients and the file names.
+
+    ``iono`` maps 'GPS' and/or 'BDS' to 8 Klobuchar coefficients (alpha0..3 [s, s/sc, s/sc^2, s/sc^3],
+    beta0..3 [s, ...]) when a header had them (RINEX 2 ION ALPHA/BETA, RINEX 3 GPSA/GPSB, BDSA/BDSB).
+    """
+
+    kepler: KeplerEphemerides
+    glonass: GlonassEphemerides
+    iono: dict[str, np.ndarray]
+    sources: tuple[str, ...]
+
+
+def load_nav(paths: str | Path | Iterable[str | Path]) -> Navigation:
+    """Read one or several RINEX navigation files into a :class:`Navigation`.
+
+    Parameters
+    ----------
+    paths : path or iterable of paths
+        RINEX 2 (``.n``, ``.g``) or RINEX 3 (single-system or mixed) navigation files, optionally
+        gzip-compressed. Records from several files are concatenated; exact duplicates are dropped.
+
+    Raises
+    ------
+    RinexError
+        A file is missing, empty, unreadable, not a navigation file or has no GPS/Galileo/QZSS/
+        BeiDou/GLONASS record: one line ``PATH: reason``.
+    """
+    if isinstance(paths, (str, Path)):
+        paths = [paths]
+    paths = [Path(p) for p in paths]
+    if not paths:
+        raise ValueError("load_nav needs at least one file")
+    kep_frames, glo_frames, iono = [], [], {}
+    for path in paths:
+        datasets = _read(path)
+        raw = pd.concat([_flat(ds) for ds in datasets], ignore_index=True)
+        kep, glo = _kepler_frame(raw), _glonass_frame(raw)
+        if kep.empty and glo.empty:
+            raise RinexError(path, "no GPS/Galileo/QZSS/BeiDou/GLONASS ephemeris records")
+        kep_frames.append(kep)
+        glo_frames.append(glo)
+        for key, name in (("GPS", "ionospheric_corr_GPS"), ("BDS", "ionospheric_corr_BDS")):
+            coef = np.asarray(datasets[0].attrs.get(name, []), dtype=float).ravel()
+            if key not in iono and coef.size == 8 and np.all(np.isfinite(coef)):
+                iono[key] = coef
+    kepler = _kepler_records(pd.concat(kep_frames, ignore_index=True))
+    glonass = _glonass_records(pd.concat(glo_frames, ignore_index=True))
+    return Navigation(kepler=kepler, glonass=glonass, iono=iono, sources=tuple(str(p) for p in paths))
+
+
+# --------------------------------------------------------------------------------------------------
+def _read(path: Path) -> list:
+    """georinex.load on a cleaned copy of the file; every failure becomes a one-line RinexError.
+
+    Returns one xarray Dataset per chunk of records (see :func:`_clean_layers`).
+    """
+    import georinex
+    from georinex.rio import opener
+
+    if not path.is_file():
+        raise RinexError(path, "file not found")
+    if path.stat().st_size == 0:
+        raise RinexError(path, "empty file")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            with opener(path) as f:   # georinex's reader: plain, gzip, bzip2, zip, Hatanaka
+                text = f.read()
+            if isinstance(text, bytes):
+                text = text.decode("ascii", errors="replace")
+            layers = _clean_layers(text, path)
+            datasets = [georinex.load(io.StringIO(layer)) for layer in layers]
+    except RinexError:
+        raise
+    except Exception as exc:  # georinex raises ValueError, KeyError, IndexError, OSError, ...
+        reason = " ".join(str(exc).split()) or type(exc).__name__
+        raise RinexError(path, f"not a readable RINEX navigation file ({reason})") from exc
+    for ds in datasets:
+        if ds is None or not hasattr(ds, "attrs") or not hasattr(ds, "data_vars"):
+            raise RinexError(path, "not a readable RINEX navigation file")
+        if ds.attrs.get("rinextype") != "nav":
+            raise RinexError(path, f"not a RINEX navigation file (type {ds.attrs.get('rinextype')!r})")
+    return datasets
+
+
+_RECORD_START = {2: re.compile(r"^[ 0-9][0-9] [ 0-9][0-9] [ 0-9][0-9] [ 0-9][0-9] "),
+                 3: re.compile(r"^[GRECJSI][ 0-9][0-9] [0-9]{4} ")}
+_FIELD_W = 19
+_ZERO_FIELD = " 0.000000000000E+00"
+
+
+def _clean_layers(text: str, path: Path) -> list[str]:
+    """Work around three georinex 1.16 defects without reading any value ourselves.
+
+    1. A blank field inside a record (BeiDou/Galileo "spare" fields) makes ``float('   ')`` fail and
+       georinex silently turns the whole record into NaN (nav3) or crashes (nav2): interior blank
+       fields are written as zeros, as RTKLIB reads them.
+    2. Lines shorter than 80 columns shift every later field of the record: lines are padded.
+    3. RINEX 2: two records of one satellite with the same epoch make georinex drop the satellite
+       ("duplicate times detected, skipping SV"): exact duplicates are removed, and records that
+       still share (sv, epoch) go to separate layers, each loaded on its own.
+
+    Also, georinex's RINEX 3 reader merges satellites one by one into a growing xarray Dataset
+    (seconds for a daily mixed file): there each satellite of each layer becomes its own small text.
+    Returns the file as one or more RINEX texts (header + records).
+    """
+    lines = text.splitlines()
+    end = next((i for i, ln in enumerate(lines) if "END OF HEADER" in ln), None)
+    if end is None:
+        raise RinexError(path, "no END OF HEADER line: not a RINEX file")
+    try:
+        version = int(float(lines[0][:9]))
+    except ValueError:
+        raise RinexError(path, "first line has no RINEX version", line=1) from None
+    if version not in (2, 3) or not (lines[0][20:21] in ("N", "G", "E") or "NAV" in lines[0][20:40]):
+        raise RinexError(path, f"not a RINEX 2/3 navigation file ({lines[0][:60].strip()!r})", line=1)
+    start = _RECORD_START[version]
+    first_col = 23 if version == 3 else 22
+    cont_col = 4 if version == 3 else 3
+    records: list[list[str]] = []
+    for ln in lines[end + 1:]:
+        if start.match(ln):
+            records.append([ln])
+        elif records and ln.strip():
+            records[-1].append(ln)
+    seen: set[tuple[str, ...]] = set()
+    count: dict[str, int] = {}
+    chunks: dict[tuple[int, str], list[str]] = {}
+    for rec in records:
+        rec = [ln.ljust(80)[:80] for ln in rec]
+        slots = [(0, first_col + k * _FIELD_W) for k in range(3)]
+        slots += [(j, cont_col + k * _FIELD_W) for j in range(1, len(rec)) for k in range(4)]
+        filled = [i for i, (j, c) in enumerate(slots) if rec[j][c:c + _FIELD_W].strip()]
+        last = filled[-1] if filled else -1
+        for i, (j, c) in enumerate(slots[:last]):
+            if not rec[j][c:c + _FIELD_W].strip():
+                rec[j] = rec[j][:c] + _ZERO_FIELD + rec[j][c + _FIELD_W:]
+        key = tuple(rec)
+        if key in seen:
+            continue
+        seen.add(key)
+        ident = rec[0][:first_col]
+        n = count.get(ident, 0)
+        count[ident] = n + 1
+        chunks.setdefault((n, rec[0][:3] if version == 3 else ""), []).extend(rec)
+    if not chunks:
+        raise RinexError(path, "no ephemeris records")
+    head = lines[: end + 1]
+    return ["\n".join(head + chunk) + "\n" for chunk in chunks.values()]
+
+
+def _adjweek(sow_s: np.ndarray, ref_s: np.ndarray) -> np.ndarray:
+    """Seconds of week -> seconds since 1980-01-06 in the week nearest ``ref_s`` (RTKLIB ``adjweek``)."""
+    t = np.floor(ref_s / SECONDS_PER_WEEK) * SECONDS_PER_WEEK + sow_s
+    t = np.where(t - ref_s < -SECONDS_PER_WEEK / 2, t + SECONDS_PER_WEEK, t)
+    return np.where(t - ref_s > SECONDS_PER_WEEK / 2, t - SECONDS_PER_WEEK, t)
+
+
+def _flat(ds) -> pd.DataFrame:
+    """One row per (time, sv) cell of a georinex Dataset that holds a record (cheaper than to_dataframe)."""
+    if "sv" not in ds.dims or "time" not in ds.dims or ds.sizes["time"] == 0 or ds.sizes["sv"] == 0:
+        return pd.DataFrame()
+    names = [n for n in ds.data_vars if ds[n].dims == ("time", "sv")]
+    nt, ns = ds.sizes["time"], ds.sizes["sv"]
+    cols = {n: ds[n].values.reshape(-1) for n in names}
+    has = np.zeros(nt * ns, bool)
+    for key in ("sqrtA", "X"):
+        if key in cols:
+            has |= np.isfinite(cols[key])
+    out = {"time": np.repeat(ds["time"].values, ns)[has],
+           # georinex renames duplicate records of one satellite 'G05_1'; the suffix carries no information
+           "sv": np.tile(np.asarray(ds["sv"].values).astype("<U3"), nt)[has]}
+    out.update({n: v[has] for n, v in cols.items()})
+    return pd.DataFrame(out)
+
+
+def _frame(raw: pd.DataFrame, prefixes: tuple[str, ...], required: str) -> pd.DataFrame:
+    """Rows of the satellites whose id starts with one of ``prefixes`` and have ``required``."""
+    if raw.empty or required not in raw:
+        return pd.DataFrame()
+    keep = raw["sv"].str[0].isin(prefixes).to_numpy() & np.isfinite(raw[required].to_numpy(dtype=float))
+    return raw[keep].reset_index(drop=True)
+
+
+def _col(df: pd.DataFrame, name: str) -> np.ndarray:
+    return df[name].to_numpy(dtype=float) if name in df else np.full(len(df), np.nan)
+
+
+def _kepler_frame(raw: pd.DataFrame) -> pd.DataFrame:
+    df = _frame(raw, KEPLER_SYSTEMS, "sqrtA")
+    if df.empty:
+        return df
+    system = df["sv"].str[0].to_numpy()
+    is_c = system == "C"
+    toc_sys = datetime64_to_gps_s(df["time"].to_numpy())       # stamp in the system's own scale
+    toe_sys = _adjweek(_col(df, "Toe"), toc_sys)
+    ttr_sys = _adjweek(_col(df, "TransTime"), toc_sys)
+    shift = np.where(is_c, -BDT_MINUS_GPST_S, 0.0)              # BDT -> GPST: +14 s
+    tgd = _col(df, "TGD")
+    tgd = np.where(is_c, _col(df, "TGD1"), tgd)
+    src = np.nan_to_num(_col(df, "DataSrc")).astype(np.int64)
+    is_e = system == "E"
+    fnav_only = is_e & ((src & _GAL_INAV_BITS) == 0) & ((src & _GAL_FNAV_BIT) != 0)
+    tgd = np.where(is_e, np.where(fnav_only, _col(df, "BGDe5a"), _col(df, "BGDe5b")), tgd)
+    iode = np.full(len(df), np.nan)
+    health = np.full(len(df), np.nan)
+    for s in KEPLER_SYSTEMS:
+        m = system == s
+        iode[m] = _col(df, _IODE_NAME[s])[m]
+        health[m] = _col(df, _HEALTH_NAME[s])[m]
+    out = pd.DataFrame({
+        "sv": df["sv"].to_numpy(), "system": system,
+        "toe_gps_s": toe_sys + shift, "toc_gps_s": toc_sys + shift, "ttr_gps_s": ttr_sys + shift,
+        "sqrt_a_sqrt_m": _col(df, "sqrtA"), "e": _col(df, "Eccentricity"), "i0_rad": _col(df, "Io"),
+        "omega0_rad": _col(df, "Omega0"), "omega_rad": _col(df, "omega"), "m0_rad": _col(df, "M0"),
+        "delta_n_rad_s": _col(df, "DeltaN"), "omega_dot_rad_s": _col(df, "OmegaDot"),
+        "idot_rad_s": _col(df, "IDOT"), "cuc_rad": _col(df, "Cuc"), "cus_rad": _col(df, "Cus"),
+        "crc_m": _col(df, "Crc"), "crs_m": _col(df, "Crs"), "cic_rad": _col(df, "Cic"),
+        "cis_rad": _col(df, "Cis"), "af0_s": _col(df, "SVclockBias"), "af1_s_s": _col(df, "SVclockDrift"),
+        "af2_s_s2": _col(df, "SVclockDriftRate"), "tgd_s": np.nan_to_num(tgd),
+        "health": np.nan_to_num(health), "iode": np.nan_to_num(iode),
+        "_fnav_only": fnav_only,
+    })
+    core = ["toe_gps_s", "toc_gps_s", "sqrt_a_sqrt_m", "e", "m0_rad", "af0_s"]
+    bad = ~np.isfinite(out[core].to_numpy(dtype=float)).all(axis=1)
+    return out[~bad].fillna({c: 0.0 for c in out.columns if c not in ("sv", "system", "ttr_gps_s")})
+
+
+def _glonass_frame(raw: pd.DataFrame) -> pd.DataFrame:
+    df = _frame(raw, ("R",), "X")
+    if df.empty:
+        return df
+    toe = utc_to_gps_s(datetime64_to_gps_s(df["time"].to_numpy()))  # GLONASS epochs are UTC
+    pos = np.column_stack([_col(df, c) for c in ("X", "Y", "Z")])
+    vel = np.column_stack([_col(df, c) for c in ("dX", "dY", "dZ")])
+    acc = np.column_stack([_col(df, c) for c in ("dX2", "dY2", "dZ2")])
+    radius = np.linalg.norm(pos, axis=1)
+    if np.nanmedian(radius) < 1e5:  # georinex 1.16 converts km to m; guard against a version that doesn't
+        pos, vel, acc = pos * 1e3, vel * 1e3, acc * 1e3
+    tof = _col(df, "MessageFrameTime")
+    out = pd.DataFrame({
+        "sv": df["sv"].to_numpy(), "toe_gps_s": toe, "tof_s": tof,
+        "x": pos[:, 0], "y": pos[:, 1], "z": pos[:, 2], "vx": vel[:, 0], "vy": vel[:, 1], "vz": vel[:, 2],
+        "ax": np.nan_to_num(acc[:, 0]), "ay": np.nan_to_num(acc[:, 1]), "az": np.nan_to_num(acc[:, 2]),
+        "tau_n_s": -_col(df, "SVclockBias"), "gamma_n": np.nan_to_num(_col(df, "SVrelFreqBias")),
+        "k": np.nan_to_num(_col(df, "FreqNum")), "health": np.nan_to_num(_col(df, "health")),
+    })
+    core = ["toe_gps_s", "x", "y", "z", "vx", "vy", "vz", "tau_n_s"]
+    return out[np.isfinite(out[core].to_numpy(dtype=float)).all(axis=1)]
+
+
+def _kepler_records(df: pd.DataFrame) -> KeplerEphemerides:
+    names = [f.name for f in fields(KeplerEphemerides)]
+    if df.empty:
+        return KeplerEphemerides(**{n: np.zeros(0, dtype="<U3" if n == "sv" else "<U1" if n == "system"
+                                                 else int if n in ("health", "iode") else float)
+                                    for n in names})
+    df = df.drop_duplicates(subset=[c for c in df.columns if c != "ttr_gps_s"])
+    # Galileo: drop F/NAV records of satellites that also have I/NAV (E1 users want E1/E5b clocks)
+    has_inav = set(df.loc[(df["system"] == "E") & ~df["_fnav_only"], "sv"])
+    df = df[~(df["_fnav_only"] & df["sv"].isin(has_inav))]
+    df = df.sort_values(["sv", "toe_gps_s", "ttr_gps_s"], kind="stable", na_position="first")
+    cols = {n: df[n].to_numpy() for n in names}
+    cols["sv"] = cols["sv"].astype("<U3")
+    cols["system"] = cols["system"].astype("<U1")
+    cols["health"] = cols["health"].astype(int)
+    cols["iode"] = cols["iode"].astype(int)
+    for n in names:
+        if n not in ("sv", "system", "health", "iode"):
+            cols[n] = cols[n].astype(float)
+    return KeplerEphemerides(**cols)
+
+
+def _glonass_records(df: pd.DataFrame) -> GlonassEphemerides:
+    if df.empty:
+        z = np.zeros(0)
+        return GlonassEphemerides(sv=np.zeros(0, "<U3"), toe_gps_s=z, tof_s=z, pos_ecef_m=np.zeros((0, 3)),
+                                  vel_ecef_m_s=np.zeros((0, 3)), acc_ecef_m_s2=np.zeros((0, 3)), tau_n_s=z,
+                                  gamma_n=z, k=np.zeros(0, int), health=np.zeros(0, int))
+    df = df.drop_duplicates(subset=[c for c in df.columns if c != "tof_s"])
+    df = df.sort_values(["sv", "toe_gps_s", "tof_s"], kind="stable", na_position="first")
+    return GlonassEphemerides(
+        sv=df["sv"].to_numpy().astype("<U3"), toe_gps_s=df["toe_gps_s"].to_numpy(float),
+        tof_s=df["tof_s"].to_numpy(float),
+        pos_ecef_m=df[["x", "y", "z"]].to_numpy(float), vel_ecef_m_s=df[["vx", "vy", "vz"]].to_numpy(float),
+        acc_ecef_m_s2=df[["ax", "ay", "az"]].to_numpy(float), tau_n_s=df["tau_n_s"].to_numpy(float),
+        gamma_n=df["gamma_n"].to_numpy(float), k=df["k"].to_numpy().astype(int),
+        health=df["health"].to_numpy().astype(int),
+    )

@@ -1,0 +1,520 @@
+"""Solution writers (RTKLIB ``.pos``, CSV, GeoJSON, KML), a ``.pos`` reader, and plots.
+
+No file ever contains NaN or inf: an epoch *has a position* when its status is not
+``STATUS_NONE`` and its ECEF position is finite. Epochs without one are left out of ``.pos``,
+GeoJSON and KML, and written with empty fields and status ``none`` in CSV.
+
+RTKLIB ``.pos`` (``rnx2rtkp`` 2.4.3, ``outsolheads``/``outpos`` in ``solution.c``)
+-----------------------------------------------------------------------------------
+Byte layout as ``rnx2rtkp -p 0 [-t]`` writes it: ``%`` header lines (the first block ending in
+``\\n``, the two column-header lines and the data lines in ``\\r\\n``, as RTKLIB does), then per epoch
+GPST (``yyyy/mm/dd hh:mm:ss.sss`` or ``week tow``), latitude, longitude [deg] (``%14.9f``), ellipsoidal
+height [m] (``%10.4f``), Q, ns (``%3d``), sdn sde sdu sdne sdeu sdun [m] (``%8.4f``; the cross terms are
+signed square roots of the ENU covariances, RTKLIB ``sqvar``), age [s] (``%6.2f``), ratio (``%6.1f``).
+
+Q codes written: ``5`` (single) for ``updated`` and ``reset`` epochs, ``7`` for ``coasted`` ones
+(RTKLIB ``SOLQ_DR``, "dead reckoning": a prediction with no measurement update; ``rtkplot`` shows
+it as DR). Pass ``coasted_q=5`` to mark them single. :func:`read_pos` maps 7 back to ``coasted``
+and every other Q to ``updated``, and keeps the raw codes in ``info["q"]``.
+"""
+from __future__ import annotations
+
+import csv
+import json
+import re
+from pathlib import Path
+from typing import Mapping, Sequence
+from xml.sax.saxutils import escape
+
+import numpy as np
+
+from estimators.base import (STATUS_COASTED, STATUS_NAMES, STATUS_NONE, STATUS_UPDATED,
+                             Solution)
+
+from . import __version__
+from .frames import ecef_to_lla, lla_to_ecef
+from .metrics import enu_errors, enu_rotations
+from .time import GPS_EPOCH, SECONDS_PER_WEEK, gps_s_to_week_tow, utc_to_gps_s
+
+#: RTKLIB solution quality codes (rtklib.h).
+Q_SINGLE = 5
+Q_DR = 7
+_MS_PER_WEEK = int(SECONDS_PER_WEEK * 1000)
+_POS_QLINE = "% (lat/lon/height=WGS84/ellipsoidal,Q=1:fix,2:float,3:sbas,4:dgps,5:single,6:ppp,ns=# of satellites)"
+_POS_COLS = ("latitude(deg)", "longitude(deg)", "height(m)", "Q", "ns", "sdn(m)", "sde(m)", "sdu(m)",
+             "sdne(m)", "sdeu(m)", "sdun(m)", "age(s)", "ratio")
+_POS_WIDTHS = (14, 14, 10, 3, 3, 8, 8, 8, 8, 8, 8, 6, 6)
+
+
+# ---------------------------------------------------------------- helpers
+def _has_position(solution: Solution) -> np.ndarray:
+    """(T,) bool: status is not none and the ECEF position is finite."""
+    return (np.asarray(solution.status) != STATUS_NONE) & np.isfinite(solution.pos_ecef_m).all(axis=1)
+
+
+def _enu_cov(solution: Solution) -> np.ndarray:
+    """Position covariance in the local ENU frame of each estimate (T, 3, 3) [m^2]; 0 where unknown.
+
+    ``C_enu = R C_ecef R^T`` (RTKLIB ``covenu``); rows with a non-finite covariance or position get 0.
+    """
+    pos = np.asarray(solution.pos_ecef_m, dtype=float)
+    cov = np.asarray(solution.cov_ecef_m2, dtype=float)
+    ok = np.isfinite(cov).all(axis=(1, 2)) & np.isfinite(pos).all(axis=1)
+    out = np.zeros((len(pos), 3, 3))
+    rot = enu_rotations(pos[ok]).reshape(-1, 3, 3)
+    out[ok] = np.einsum("tij,tjk,tlk->til", rot, cov[ok], rot)
+    return out
+
+
+def _sqvar(c: np.ndarray) -> np.ndarray:
+    """Signed square root of a covariance (RTKLIB ``sqvar``)."""
+    return np.sign(c) * np.sqrt(np.abs(c))
+
+
+def _gpst_ms(time_gps_s: np.ndarray) -> np.ndarray:
+    """GPS time rounded to integer milliseconds (int64)."""
+    return np.round(np.asarray(time_gps_s, dtype=float) * 1000.0).astype(np.int64)
+
+
+def _calendar(ms: np.ndarray, decimals: int = 3) -> list[str]:
+    """``yyyy/mm/dd hh:mm:ss.sss`` strings (``decimals`` 0..3) from GPS milliseconds, rounded first.
+
+    Rounding the integer milliseconds before formatting avoids RTKLIB's ``11:10:60`` display slip.
+    """
+    step = 10 ** (3 - decimals)
+    ms = (np.round(np.asarray(ms, dtype=np.int64) / step) * step).astype(np.int64)
+    stamps = GPS_EPOCH.astype("datetime64[ms]") + ms.astype("timedelta64[ms]")
+    width = 19 + (decimals + 1 if decimals else 0)
+    return [s.replace("-", "/").replace("T", " ")[:width]
+            for s in np.atleast_1d(np.datetime_as_string(stamps, unit="ms"))]
+
+
+def _fmt(value: float, digits: int) -> str:
+    """Fixed-point text of a finite value, '' otherwise (CSV never holds NaN or inf)."""
+    return f"{value:.{digits}f}" if np.isfinite(value) else ""
+
+
+# ---------------------------------------------------------------- RTKLIB .pos
+def write_pos(path: str | Path, solution: Solution, *, time_format: str = "calendar",
+              coasted_q: int = Q_DR) -> Path:
+    """Write a Solution as an RTKLIB ``.pos`` file in latitude/longitude/height (``rnx2rtkp -p 0``).
+
+    Parameters
+    ----------
+    path : str or Path
+        Output file.
+    solution : Solution
+        Estimator output; epochs without a position are left out.
+    time_format : {"calendar", "tow"}
+        ``yyyy/mm/dd hh:mm:ss.sss`` GPST (``rnx2rtkp -t``) or ``week tow`` (RTKLIB default).
+    coasted_q : int
+        Q code for coasted epochs (default 7, RTKLIB ``SOLQ_DR``); updated/reset epochs get 5.
+
+    Returns
+    -------
+    Path
+        The file written.
+    """
+    if time_format not in ("calendar", "tow"):
+        raise ValueError(f"write_pos {path}: time_format must be 'calendar' or 'tow', got {time_format!r}")
+    path = Path(path)
+    ok = _has_position(solution)
+    ms_all = _gpst_ms(solution.time_gps_s)
+    ms = ms_all[ok]
+    llh = ecef_to_lla(solution.pos_ecef_m[ok])
+    cov = _enu_cov(solution)[ok]
+    status = np.asarray(solution.status)[ok]
+    q = np.where(status == STATUS_COASTED, coasted_q, Q_SINGLE)
+    ns = np.asarray(solution.n_used)[ok].astype(int)
+    sd = np.stack([np.sqrt(np.maximum(cov[:, 1, 1], 0)), np.sqrt(np.maximum(cov[:, 0, 0], 0)),
+                   np.sqrt(np.maximum(cov[:, 2, 2], 0)), _sqvar(cov[:, 1, 0]), _sqvar(cov[:, 0, 2]),
+                   _sqvar(cov[:, 2, 1])], axis=1)
+    if time_format == "calendar":
+        times = _calendar(ms)
+        time_width = 16 + 3 + 1
+    else:
+        times = [f"{m // _MS_PER_WEEK:4d} {(m % _MS_PER_WEEK) / 1000.0:10.3f}" for m in ms]
+        time_width = 8 + 3 + 1
+    lines = [f"% program   : lfgnss ver.{__version__} backend {solution.backend}\n"]
+    if len(ms_all):
+        for label, m in (("obs start", ms_all.min()), ("obs end  ", ms_all.max())):
+            week, tow = divmod(int(m), _MS_PER_WEEK)
+            lines.append(f"% {label} : {_calendar(np.array([m]), 1)[0]} GPST (week{week:04d} {tow / 1000.0:8.1f}s)\n")
+    lines.append("%\n")
+    lines.append(_POS_QLINE + "\r\n")
+    lines.append("%  " + "GPST".ljust(time_width) + " "
+                 + " ".join(c.rjust(w) for c, w in zip(_POS_COLS, _POS_WIDTHS)) + "\r\n")
+    for k, tstr in enumerate(times):
+        lat, lon = np.degrees(llh[k, :2])
+        lines.append(f"{tstr} {lat:14.9f} {lon:14.9f} {llh[k, 2]:10.4f} {q[k]:3d} {ns[k]:3d} "
+                     + " ".join(f"{v:8.4f}" for v in sd[k]) + f" {0.0:6.2f} {0.0:6.1f}\r\n")
+    with open(path, "w", newline="") as fh:
+        fh.writelines(lines)
+    return path
+
+
+_CAL_RE = re.compile(r"^\d{4}/\d{1,2}/\d{1,2}$")
+
+
+def _parse_pos_time(fields: list[str], scale: str) -> float:
+    """GPS seconds from the time fields of a ``.pos`` line (calendar or week/tow)."""
+    if _CAL_RE.match(fields[0]):
+        date = fields[0].replace("/", "-")
+        hms, _, frac = fields[1].partition(".")
+        h, m, s = (int(x) for x in hms.split(":"))
+        day = np.datetime64(date, "D")
+        secs = ((day - GPS_EPOCH.astype("datetime64[D]")).astype(np.int64) * 86400
+                + h * 3600 + m * 60 + s + (float("0." + frac) if frac else 0.0))
+        if scale == "UTC":
+            secs = float(utc_to_gps_s(secs))
+        return float(secs)
+    return int(fields[0]) * SECONDS_PER_WEEK + float(fields[1])
+
+
+def read_pos(path: str | Path, backend: str | None = None) -> Solution:
+    """Read an RTKLIB ``.pos`` solution file (RTKLIB's own or :func:`write_pos`'s) into a Solution.
+
+    Handles time as calendar or week/tow, GPST or UTC (converted to GPST), positions as
+    latitude/longitude/height in decimal degrees or as ECEF x/y/z, with ``\\n`` or ``\\r\\n`` line ends.
+
+    Parameters
+    ----------
+    path : str or Path
+        ``.pos`` file.
+    backend : str, optional
+        Name for ``Solution.backend``; default ``"rtklib"`` for rnx2rtkp files, the name stored by
+        :func:`write_pos`, else the file stem.
+
+    Returns
+    -------
+    Solution
+        One row per line. ``status``: ``coasted`` for Q = 7, ``updated`` otherwise; ``cov_ecef_m2``
+        rebuilt from the six standard deviations; ``clock_m`` NaN (not in the file);
+        ``info`` holds ``q``, ``age_s``, ``ratio`` (T,) and ``source`` (the path).
+    """
+    path = Path(path)
+    scale, posf, program = "GPST", None, None
+    times, pos, sds, qs, ns, ages, ratios = [], [], [], [], [], [], []
+    with open(path, "r", newline=None) as fh:
+        for lineno, raw in enumerate(fh, 1):
+            line = raw.strip()
+            if not line:
+                continue
+            if line.startswith("%"):
+                body = line[1:].strip()
+                if body.startswith("program"):
+                    program = body.split(":", 1)[1].strip()
+                elif body.startswith(("GPST", "UTC", "JST")):
+                    scale = body.split()[0]
+                    if scale == "JST":
+                        raise ValueError(f"read_pos {path}:{lineno}: JST time is not supported")
+                    if "latitude(deg)" in body:
+                        posf = "llh"
+                    elif "x-ecef(m)" in body:
+                        posf = "xyz"
+                    else:
+                        raise ValueError(f"read_pos {path}:{lineno}: unsupported position columns "
+                                         f"(need lat/lon/height in degrees or x/y/z-ecef): {body!r}")
+                continue
+            fields = line.split()
+            if len(fields) < 15:
+                raise ValueError(f"read_pos {path}:{lineno}: expected at least 15 fields, got {len(fields)}")
+            try:
+                times.append(_parse_pos_time(fields[:2], scale))
+                vals = [float(v) for v in fields[2:15]]
+            except ValueError as exc:
+                raise ValueError(f"read_pos {path}:{lineno}: cannot parse {line!r}: {exc}") from None
+            pos.append(vals[0:3])
+            qs.append(int(vals[3]))
+            ns.append(int(vals[4]))
+            sds.append(vals[5:11])
+            ages.append(vals[11] if len(vals) > 11 else 0.0)
+            ratios.append(vals[12] if len(vals) > 12 else 0.0)
+    n = len(times)
+    pos = np.asarray(pos, dtype=float).reshape(n, 3)
+    sds = np.asarray(sds, dtype=float).reshape(n, 6)
+    if posf is None:  # no column header: ECEF coordinates are millions of metres
+        posf = "xyz" if n and np.abs(pos[:, 0]).max() > 1e4 else "llh"
+    if posf == "llh":
+        ecef = lla_to_ecef(np.radians(pos[:, 0]), np.radians(pos[:, 1]), pos[:, 2]).reshape(n, 3)
+        # sdn sde sdu sdne sdeu sdun -> ENU covariance -> ECEF: C_ecef = R^T C_enu R
+        sn, se, su, sne, seu, sun = (sds[:, k] for k in range(6))
+        sq = lambda x: np.sign(x) * x * x
+        c = np.empty((n, 3, 3))
+        c[:, 0, 0], c[:, 1, 1], c[:, 2, 2] = se ** 2, sn ** 2, su ** 2
+        c[:, 0, 1] = c[:, 1, 0] = sq(sne)
+        c[:, 0, 2] = c[:, 2, 0] = sq(seu)
+        c[:, 1, 2] = c[:, 2, 1] = sq(sun)
+        rot = enu_rotations(ecef)
+        cov = np.einsum("tji,tjk,tkl->til", rot, c, rot)
+    else:
+        ecef = pos
+        sx, sy, sz, sxy, syz, szx = (sds[:, k] for k in range(6))
+        sq = lambda x: np.sign(x) * x * x
+        cov = np.empty((n, 3, 3))
+        cov[:, 0, 0], cov[:, 1, 1], cov[:, 2, 2] = sx ** 2, sy ** 2, sz ** 2
+        cov[:, 0, 1] = cov[:, 1, 0] = sq(sxy)
+        cov[:, 1, 2] = cov[:, 2, 1] = sq(syz)
+        cov[:, 2, 0] = cov[:, 0, 2] = sq(szx)
+    q = np.asarray(qs, dtype=int)
+    if backend is None:
+        m = re.match(r"lfgnss ver\.\S+ backend (\S+)", program or "")
+        backend = m.group(1) if m else ("rtklib" if (program or "").startswith("rnx2rtkp") else path.stem)
+    return Solution(backend=backend, time_gps_s=np.asarray(times, dtype=float), pos_ecef_m=ecef,
+                    cov_ecef_m2=cov, clock_m=np.full(n, np.nan), n_used=np.asarray(ns, dtype=int),
+                    status=np.where(q == Q_DR, STATUS_COASTED, STATUS_UPDATED),
+                    info={"q": q, "age_s": np.asarray(ages, float), "ratio": np.asarray(ratios, float),
+                          "source": str(path)})
+
+
+# ---------------------------------------------------------------- CSV
+CSV_COLUMNS = ("time_gpst", "time_gps_s", "week", "tow_s", "x_m", "y_m", "z_m", "lat_deg", "lon_deg", "h_m",
+               "sd_e_m", "sd_n_m", "sd_u_m", "n_used", "status")
+CSV_TRUTH_COLUMNS = ("err_e_m", "err_n_m", "err_u_m", "err_2d_m", "err_3d_m")
+
+
+def write_csv(path: str | Path, solution: Solution, truth_ecef_m: np.ndarray | None = None) -> Path:
+    """One CSV row per epoch: time, ECEF, geodetic, ENU standard deviations, n_used, status.
+
+    Columns :data:`CSV_COLUMNS` (``time_gpst`` as ``yyyy/mm/dd hh:mm:ss.sss`` GPST; ``sd_*`` from the
+    position covariance rotated to the local ENU frame), plus :data:`CSV_TRUTH_COLUMNS` [m] when
+    ``truth_ecef_m`` (T, 3) is given (empty where the epoch is unlabelled). Epochs without a position
+    have empty numeric fields and status ``none``.
+    """
+    path = Path(path)
+    t = len(solution.time_gps_s)
+    ok = _has_position(solution)
+    week, tow = gps_s_to_week_tow(solution.time_gps_s)
+    times = _calendar(_gpst_ms(solution.time_gps_s))
+    pos = np.where(ok[:, None], solution.pos_ecef_m, np.nan)
+    llh = np.full((t, 3), np.nan)
+    llh[ok] = ecef_to_lla(pos[ok]).reshape(-1, 3)
+    cov = _enu_cov(solution)
+    cov_ok = np.isfinite(np.asarray(solution.cov_ecef_m2, float)).all(axis=(1, 2)) & ok
+    sd = np.where(cov_ok[:, None], np.sqrt(np.maximum(np.diagonal(cov, axis1=1, axis2=2), 0.0)), np.nan)
+    cols = list(CSV_COLUMNS)
+    err = None
+    if truth_ecef_m is not None:
+        truth = np.asarray(truth_ecef_m, dtype=float)
+        if truth.shape != (t, 3):
+            raise ValueError(f"write_csv {path}: truth_ecef_m has shape {truth.shape}, expected ({t}, 3)")
+        e = enu_errors(pos, truth)
+        err = np.column_stack([e, np.hypot(e[:, 0], e[:, 1]), np.linalg.norm(e, axis=1)])
+        cols += CSV_TRUTH_COLUMNS
+    status = np.asarray(solution.status)
+    with open(path, "w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(cols)
+        for k in range(t):
+            name = STATUS_NAMES.get(int(status[k]), str(int(status[k]))) if ok[k] else STATUS_NAMES[STATUS_NONE]
+            row = [times[k], f"{solution.time_gps_s[k]:.3f}", str(int(week[k])), f"{tow[k]:.3f}"]
+            if ok[k]:
+                row += [_fmt(v, 4) for v in pos[k]]
+                row += [_fmt(np.degrees(llh[k, 0]), 9), _fmt(np.degrees(llh[k, 1]), 9), _fmt(llh[k, 2], 4)]
+            else:
+                row += [""] * 6
+            row += [_fmt(v, 4) for v in sd[k]]
+            row += [str(int(solution.n_used[k])) if ok[k] else "", name]
+            if err is not None:
+                row += [_fmt(v, 4) for v in err[k]]
+            writer.writerow(row)
+    return path
+
+
+# ---------------------------------------------------------------- GeoJSON / KML
+def _track(solution: Solution) -> tuple[np.ndarray, np.ndarray]:
+    """Indices of epochs with a position and their (lon [deg], lat [deg], h [m]) rows."""
+    idx = np.flatnonzero(_has_position(solution))
+    llh = ecef_to_lla(solution.pos_ecef_m[idx]).reshape(-1, 3)
+    return idx, np.column_stack([np.degrees(llh[:, 1]), np.degrees(llh[:, 0]), llh[:, 2]])
+
+
+def write_geojson(path: str | Path, solution: Solution, *, points: bool = False) -> Path:
+    """GeoJSON FeatureCollection (RFC 7946: WGS84 ``[lon, lat, h]``) of the epochs with a position.
+
+    A ``LineString`` feature of the track (when at least two positions), and with ``points=True``
+    one ``Point`` feature per epoch with ``time_gps_s``, ``status`` and ``n_used`` properties.
+    """
+    path = Path(path)
+    idx, lonlath = _track(solution)
+    coords = [[round(float(a), 9), round(float(b), 9), round(float(c), 4)] for a, b, c in lonlath]
+    features = []
+    if len(coords) >= 2:
+        features.append({"type": "Feature", "geometry": {"type": "LineString", "coordinates": coords},
+                         "properties": {"backend": solution.backend, "n_epochs": len(coords)}})
+    if points:
+        status = np.asarray(solution.status)
+        for k, c in zip(idx, coords):
+            features.append({"type": "Feature", "geometry": {"type": "Point", "coordinates": c},
+                             "properties": {"time_gps_s": round(float(solution.time_gps_s[k]), 3),
+                                            "status": STATUS_NAMES.get(int(status[k]), str(int(status[k]))),
+                                            "n_used": int(solution.n_used[k])}})
+    doc = {"type": "FeatureCollection", "features": features}
+    with open(path, "w") as fh:
+        json.dump(doc, fh, allow_nan=False)
+    return path
+
+
+def write_kml(path: str | Path, solution: Solution, *, points: bool = False) -> Path:
+    """KML track of the epochs with a position (``lon,lat,h``), clamped to the ground.
+
+    Heights are ellipsoidal while KML altitudes are above mean sea level, so the track uses
+    ``altitudeMode clampToGround``. With ``points=True`` one Placemark per epoch as well.
+    """
+    path = Path(path)
+    idx, lonlath = _track(solution)
+    coord_text = " ".join(f"{a:.9f},{b:.9f},{c:.4f}" for a, b, c in lonlath)
+    name = escape(str(solution.backend))
+    parts = ['<?xml version="1.0" encoding="UTF-8"?>',
+             '<kml xmlns="http://www.opengis.net/kml/2.2">', "<Document>", f"<name>{name}</name>",
+             '<Style id="track"><LineStyle><color>ff0000ff</color><width>2</width></LineStyle></Style>']
+    if len(idx) >= 2:
+        parts += [f"<Placemark><name>{name} track</name><styleUrl>#track</styleUrl><LineString>",
+                  "<tessellate>1</tessellate><altitudeMode>clampToGround</altitudeMode>",
+                  f"<coordinates>{coord_text}</coordinates>", "</LineString></Placemark>"]
+    if points:
+        status = np.asarray(solution.status)
+        for k, (a, b, c) in zip(idx, lonlath):
+            st = STATUS_NAMES.get(int(status[k]), str(int(status[k])))
+            parts.append(f"<Placemark><name>{solution.time_gps_s[k]:.3f}</name>"
+                         f"<description>{escape(st)}, {int(solution.n_used[k])} satellites</description>"
+                         f"<Point><coordinates>{a:.9f},{b:.9f},{c:.4f}</coordinates></Point></Placemark>")
+    parts += ["</Document>", "</kml>"]
+    with open(path, "w") as fh:
+        fh.write("\n".join(parts) + "\n")
+    return path
+
+
+# ---------------------------------------------------------------- plots
+def align_to(time_gps_s: np.ndarray, other: Solution) -> np.ndarray:
+    """Positions (T, 3) of ``other`` at the epochs ``time_gps_s``, matched by GPS time rounded to 0.1 s.
+
+    NaN where ``other`` has no position at that epoch (benchmark rule for matching epochs).
+    """
+    key = np.round(np.asarray(time_gps_s, dtype=float) * 10.0).astype(np.int64)
+    okey = np.round(np.asarray(other.time_gps_s, dtype=float) * 10.0).astype(np.int64)
+    opos = np.where(_has_position(other)[:, None], other.pos_ecef_m, np.nan)
+    order = np.argsort(okey, kind="stable")
+    sk = okey[order]
+    j = np.clip(np.searchsorted(sk, key), 0, max(len(sk) - 1, 0))
+    out = np.full((len(key), 3), np.nan)
+    if len(sk):
+        hit = sk[j] == key
+        out[hit] = opos[order[j[hit]]]
+    return out
+
+
+def _legend(ax) -> None:
+    """Legend only when something is labelled (no matplotlib warning on empty plots)."""
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(loc="best")
+
+
+def _named(extra: Mapping[str, Solution] | Sequence[Solution] | None) -> list[tuple[str, Solution]]:
+    if extra is None:
+        return []
+    if isinstance(extra, Mapping):
+        return list(extra.items())
+    return [(s.backend, s) for s in extra]
+
+
+def plot_solution(out_dir: str | Path, solution: Solution, truth_ecef_m: np.ndarray | None = None,
+                  extra_solutions: Mapping[str, Solution] | Sequence[Solution] | None = None,
+                  prefix: str = "") -> list[Path]:
+    """PNG figures of a solution (matplotlib Agg canvas; pyplot's global state is untouched).
+
+    * ``{prefix}track.png``: horizontal track in ENU [m] about the first truth point (else the first
+      position), with the truth and any extra solutions;
+    * with ``truth_ecef_m`` (T, 3): ``{prefix}errors.png``, 2D and vertical error against time, and
+      ``{prefix}cdf.png``, the CDF of 2D and 3D errors of every solution on one plot.
+
+    Extra solutions (a name -> Solution mapping, or Solutions named by their backend) are matched to
+    ``solution``'s epochs by GPS time rounded to 0.1 s.
+
+    Returns
+    -------
+    list of Path
+        The files written, in the order above.
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    from matplotlib.ticker import NullFormatter, ScalarFormatter
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    t = np.asarray(solution.time_gps_s, dtype=float)
+    runs = [(solution.backend, np.where(_has_position(solution)[:, None], solution.pos_ecef_m, np.nan))]
+    runs += [(name, align_to(t, s)) for name, s in _named(extra_solutions)]
+    truth = None
+    if truth_ecef_m is not None:
+        truth = np.asarray(truth_ecef_m, dtype=float)
+        if truth.shape != (len(t), 3):
+            raise ValueError(f"plot_solution: truth_ecef_m has shape {truth.shape}, expected ({len(t)}, 3)")
+    candidates = [truth] if truth is not None else []
+    candidates += [p for _, p in runs]
+    ref = next((c[np.isfinite(c).all(axis=1)][0] for c in candidates if np.isfinite(c).all(axis=1).any()), None)
+    written: list[Path] = []
+
+    def save(fig: Figure, name: str) -> None:
+        FigureCanvasAgg(fig)
+        p = out_dir / f"{prefix}{name}"
+        fig.savefig(p, dpi=120)
+        written.append(p)
+
+    fig = Figure(figsize=(7, 7), layout="constrained")
+    ax = fig.add_subplot()
+    if ref is not None:
+        rot = enu_rotations(ref[None])[0]
+        if truth is not None:
+            enu = (truth - ref) @ rot.T
+            ax.plot(enu[:, 0], enu[:, 1], "k-", lw=2, label="truth")
+        for name, p in runs:
+            enu = (p[np.isfinite(p).all(axis=1)] - ref) @ rot.T  # join across epochs without position
+            ax.plot(enu[:, 0], enu[:, 1], ".-", ms=2, lw=0.8, label=name)
+        _legend(ax)
+    else:
+        ax.text(0.5, 0.5, "no position", ha="center", va="center", transform=ax.transAxes)
+    ax.set_xlabel("east [m]")
+    ax.set_ylabel("north [m]")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.grid(True, alpha=0.3)
+    ax.set_title(f"track ({solution.backend})")
+    save(fig, "track.png")
+
+    if truth is None:
+        return written
+    t_rel = t - t[0] if len(t) else t
+    errors = [(name, enu_errors(p, truth)) for name, p in runs]
+    fig = Figure(figsize=(10, 6), layout="constrained")
+    ax2, axu = fig.subplots(2, 1, sharex=True)
+    for name, e in errors:
+        ax2.plot(t_rel, np.hypot(e[:, 0], e[:, 1]), ".-", ms=3, lw=0.8, label=name)  # dots: isolated epochs
+        axu.plot(t_rel, e[:, 2], ".-", ms=3, lw=0.8, label=name)
+    ax2.set_ylabel("2D error [m]")
+    axu.set_ylabel("up error [m]")
+    axu.set_xlabel("time since first epoch [s]")
+    for a in (ax2, axu):
+        a.grid(True, alpha=0.3)
+    _legend(ax2)
+    save(fig, "errors.png")
+
+    fig = Figure(figsize=(10, 5), layout="constrained")
+    ax_h, ax_3 = fig.subplots(1, 2, sharey=True)
+    labelled = np.isfinite(truth).all(axis=1)
+    for name, e in errors:
+        for a, v in ((ax_h, np.hypot(e[:, 0], e[:, 1])), (ax_3, np.linalg.norm(e, axis=1))):
+            v = np.sort(v[np.isfinite(v)])
+            if v.size:
+                # CDF over labelled epochs: unsolved epochs count as missing, so curves end at availability.
+                a.step(v, np.arange(1, v.size + 1) / max(labelled.sum(), 1), where="post", label=name)
+    for a, title in ((ax_h, "2D error [m]"), (ax_3, "3D error [m]")):
+        a.set_xlabel(title)
+        a.set_xscale("log")
+        a.xaxis.set_major_formatter(ScalarFormatter())
+        a.xaxis.set_minor_formatter(NullFormatter())
+        a.grid(True, which="both", alpha=0.3)
+    ax_h.set_ylabel("share of labelled epochs")
+    ax_h.set_ylim(0, 1.0)
+    _legend(ax_h)
+    save(fig, "cdf.png")
+    return written

@@ -1,0 +1,201 @@
+"""EKF plug-in (estimators.ekf) and the shared models (estimators.models) on synthetic sequences."""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+import estimators
+from estimators import models
+from estimators.base import STATUS_COASTED, STATUS_NONE, STATUS_RESET, STATUS_UPDATED, Estimator, create
+from estimators.ekf import LfgnssEkf, PlainEkf
+from estimators.models import EkfConfig
+from estimators.noise import FixedNoise, HeuristicNoise
+from lfgnss.constants import SPEED_OF_LIGHT_M_S
+from lfgnss.corrections import geometric_range_m
+from lfgnss.simulate import simulate_sequence
+
+
+def _err(sol, seq) -> np.ndarray:
+    return np.linalg.norm(sol.pos_ecef_m - seq.truth_ecef_m, axis=1)
+
+
+def _rms(e: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(e ** 2)))
+
+
+@pytest.fixture(scope="module")
+def seq():
+    return simulate_sequence(300, seed=3, n_slots=18)
+
+
+#: Epochs after the first fix that the filter needs to settle (its first update is a weighted LS fix).
+SETTLE = 10
+
+
+@pytest.fixture(scope="module")
+def clean_error(seq):
+    """Plain-EKF error [m] after it settled (epochs SETTLE:)."""
+    return _err(create("plain-ekf").solve(seq), seq)[SETTLE:]
+
+
+# --------------------------------------------------------------------------- models
+
+def test_measurement_matches_range_model_and_numerical_jacobian():
+    seq = simulate_sequence(2, seed=1, systems=("G", "C", "E"), sats_per_system=3)
+    x = models.initial_state(seq.truth_ecef_m[0], np.array([1.0e4, 20.0, -30.0]))
+    x[models.VEL] = [1.0, 2.0, 3.0]
+    sat, sys_idx = seq.sat_pos_ecef_m[0], seq.system_index[0]
+    h, H = models.measurement(x, sat, sys_idx)
+    isb = np.array([0.0, 20.0, -30.0])[sys_idx]
+    np.testing.assert_allclose(h, geometric_range_m(sat, x[:3]) + 1.0e4 + isb, rtol=0, atol=1e-9)
+    num = np.empty_like(H)
+    for j in range(x.size):
+        dx = np.zeros_like(x)
+        dx[j] = 1e-3
+        num[:, j] = (models.measurement(x + dx, sat, sys_idx)[0] - models.measurement(x - dx, sat, sys_idx)[0]) / 2e-3
+    np.testing.assert_allclose(H, num, atol=1e-4)   # Sagnac derivative (~2e-5) neglected in H
+    assert H.shape == (9, models.n_states(3)) and models.n_states(3) == 10
+
+
+def test_transition_and_process_noise():
+    cfg = EkfConfig()
+    F = models.transition(2.0, 2)
+    x = np.arange(9.0)
+    y = F @ x
+    np.testing.assert_allclose(y[:3], x[:3] + 2.0 * x[3:6])
+    assert y[models.CLOCK] == x[models.CLOCK] + 2.0 * x[models.DRIFT]
+    Q = models.process_noise(2.0, 2, cfg)
+    np.testing.assert_allclose(Q, Q.T)
+    assert np.linalg.eigvalsh(Q).min() > 0
+    assert Q[3, 3] == pytest.approx(cfg.q_vel_m2_s3 * 2.0)
+    assert Q[0, 3] == pytest.approx(cfg.q_vel_m2_s3 * 2.0)           # q dt^2 / 2
+    np.testing.assert_array_equal(models.process_noise(0.0, 2, cfg), 0.0)
+
+
+def test_config_rejects_bad_values():
+    with pytest.raises(ValueError, match="q_vel_m2_s3"):
+        EkfConfig(q_vel_m2_s3=-1.0)
+    with pytest.raises(ValueError, match="min_sats_for_update"):
+        EkfConfig(min_sats_for_update=0)
+
+
+# --------------------------------------------------------------------------- registry / contract
+
+def test_registry_creates_both_filters():
+    assert {"ekf", "plain-ekf"} <= set(estimators.available())
+    ekf = create("ekf", config=EkfConfig(gate_sigma=4.0))
+    assert isinstance(ekf, LfgnssEkf) and isinstance(ekf, Estimator) and ekf.config.gate_sigma == 4.0
+    assert isinstance(create("plain-ekf"), PlainEkf)
+
+
+def test_solution_contract(seq):
+    late = replace(seq, coarse_ecef_m=seq.coarse_ecef_m.copy())
+    late.coarse_ecef_m[:3] = np.nan
+    sol = create("ekf").solve(late)
+    assert sol.backend == "ekf" and sol.pos_ecef_m.shape == (len(seq), 3)
+    assert (sol.status[:3] == STATUS_NONE).all() and np.isnan(sol.pos_ecef_m[:3]).all()
+    assert sol.status[3] == STATUS_RESET
+    for a in (sol.pos_ecef_m, sol.cov_ecef_m2, sol.clock_m, sol.vel_ecef_m_s):
+        assert np.isfinite(a[3:]).all()
+    assert sol.available.sum() == len(seq) - 3
+    np.testing.assert_allclose(sol.cov_ecef_m2[5], sol.cov_ecef_m2[5].T)
+
+
+def test_bad_input_raises(seq):
+    with pytest.raises(ValueError, match="do not increase"):
+        create("ekf").solve(replace(seq, time_gps_s=np.r_[seq.time_gps_s[:10], seq.time_gps_s[:-10]]))
+    with pytest.raises(ValueError, match="shapes"):
+        LfgnssEkf(noise=lambda s: (np.ones(3), np.zeros(3))).solve(seq)
+    with pytest.raises(ValueError, match="non-positive"):
+        LfgnssEkf(noise=FixedNoise(np.zeros(seq.mask.shape), np.zeros(seq.mask.shape))).solve(seq)
+
+
+# --------------------------------------------------------------------------- accuracy and robustness
+
+def test_plain_ekf_beats_coarse_fix(seq, clean_error):
+    coarse = _rms(np.linalg.norm(seq.coarse_ecef_m - seq.truth_ecef_m, axis=1))
+    assert _rms(clean_error) < 0.4 * coarse, (_rms(clean_error), coarse)
+    whole = _err(create("plain-ekf").solve(seq), seq)
+    assert _rms(whole) < 0.6 * coarse
+
+
+def test_gate_rejects_300m_outlier(seq, clean_error):
+    pr = seq.pr_m.copy()
+    k = np.arange(5, len(seq), 10)
+    slot = 0
+    pr[k, slot] += np.where(seq.mask[k, slot], 300.0, 0.0)
+    sol = create("plain-ekf").solve(replace(seq, pr_m=pr))
+    err = _err(sol, seq)
+    hit = k[seq.mask[k, slot]]
+    assert (sol.info["n_gated"][hit] >= 1).all()
+    assert err[SETTLE:].max() < 15.0 and _rms(err[SETTLE:]) < _rms(clean_error) + 0.5
+    ungated = create("plain-ekf", config=EkfConfig(gate_sigma=0.0)).solve(replace(seq, pr_m=pr))
+    assert _rms(_err(ungated, seq)[SETTLE:]) > _rms(err[SETTLE:]) + 1.0   # the gate matters
+
+
+def test_outage_coasts_then_recovers(seq, clean_error):
+    mask = seq.mask.copy()
+    coarse = seq.coarse_ecef_m.copy()
+    mask[100:160] = False
+    coarse[100:160] = np.nan
+    out = replace(seq, mask=mask, pr_m=np.where(mask, seq.pr_m, 0.0), coarse_ecef_m=coarse)
+    sol = create("plain-ekf").solve(out)
+    err = _err(sol, seq)
+    assert (sol.status[100:160] == STATUS_COASTED).all() and (sol.n_used[100:160] == 0).all()
+    assert np.isfinite(sol.pos_ecef_m).all()
+    assert err[165:].max() < 3 * clean_error.max() + 5.0
+    assert np.linalg.norm(sol.pos_ecef_m[-1] - seq.coarse_ecef_m[-1]) < 100.0
+
+
+def test_receiver_clock_jump_recovers(seq, clean_error):
+    jump = 1e-3 * SPEED_OF_LIGHT_M_S
+    pr = seq.pr_m.copy()
+    pr[150:] += np.where(seq.mask[150:], jump, 0.0)
+    clock = seq.coarse_clock_m.copy()
+    clock[150:, 0] += jump
+    sol = create("plain-ekf").solve(replace(seq, pr_m=pr, coarse_clock_m=clock))
+    err = _err(sol, seq)
+    assert sol.status[150] == STATUS_RESET
+    assert err[153:].max() < 3 * clean_error.max() + 5.0
+    assert abs(sol.clock_m[-1] - clock[-1, 0]) < 50.0
+
+
+def test_big_time_gap_reinitialises(seq):
+    time = seq.time_gps_s.copy()
+    time[200:] += 100.0
+    sol = create("plain-ekf").solve(replace(seq, time_gps_s=time))
+    assert sol.status[200] == STATUS_RESET and (sol.status[201:] == STATUS_UPDATED).all()
+
+
+def test_few_satellites_keep_a_position(seq, clean_error):
+    mask = seq.mask.copy()
+    mask[120:150, 3:] = False
+    sol = create("plain-ekf").solve(replace(seq, mask=mask, pr_m=np.where(mask, seq.pr_m, 0.0)))
+    err = _err(sol, seq)
+    assert np.isfinite(sol.pos_ecef_m).all()
+    assert (sol.n_used[120:150] <= 3).all()
+    assert np.isin(sol.status[120:150], [STATUS_UPDATED, STATUS_COASTED]).all()
+    assert err[120:150].max() < 50.0
+    assert err[160:].max() < 3 * clean_error.max() + 5.0
+
+
+def test_compensation_enters_the_innovation(seq, clean_error):
+    # Simulated feature 3 is the true pseudorange error; v^c = -error removes it.
+    error = seq.features[..., 3]
+    r, _ = HeuristicNoise()(seq)
+    perfect = LfgnssEkf(noise=FixedNoise(np.full_like(r, 1.0), -error)).solve(seq)
+    assert _rms(_err(perfect, seq)) < 0.1 * _rms(clean_error)
+    ignored = PlainEkf(noise=HeuristicNoise()).solve(seq)
+    np.testing.assert_array_equal(ignored.pos_ecef_m, create("ekf").solve(seq).pos_ecef_m)
+    wrong_sign = LfgnssEkf(noise=FixedNoise(np.full_like(r, 1.0), error)).solve(seq)
+    assert _rms(_err(wrong_sign, seq)) > _rms(clean_error)
+
+
+def test_multi_constellation_and_dt():
+    s = simulate_sequence(150, dt_s=0.2, systems=("G", "R", "E"), sats_per_system=5, seed=5, n_slots=16)
+    sol = create("plain-ekf").solve(s)
+    coarse = _rms(np.linalg.norm(s.coarse_ecef_m - s.truth_ecef_m, axis=1))
+    assert sol.info["state"].shape == (150, 10)
+    assert _rms(_err(sol, s)[20:]) < 0.5 * coarse

@@ -1,0 +1,123 @@
+"""Model file: numpy forward == torch forward, round trip, corrupt files, feature checks."""
+import json
+import zipfile
+
+import numpy as np
+import pytest
+import torch
+
+from learning.export import FORMAT_VERSION, LfgnssModel, ModelFileError, export_model, load_model
+from learning.network import LfgnssNet
+from learning.normalise import Normaliser, select_features
+from lfgnss.sequence import DEFAULT_FEATURES
+from lfgnss.simulate import simulate_sequence
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory):
+    """A randomly initialised network saved as a checkpoint and exported."""
+    tmp = tmp_path_factory.mktemp("export")
+    seq = simulate_sequence(30, seed=3, n_slots=16)
+    norm = Normaliser.fit([seq], DEFAULT_FEATURES)
+    torch.manual_seed(1)
+    net = LfgnssNet(len(DEFAULT_FEATURES), r_floor_m2=0.02, r_scale_m2=3.0, r_init_m2=20.0)
+    with torch.no_grad():                       # make v^c and R vary visibly
+        for p in net.parameters():
+            p.add_(0.1 * torch.randn_like(p))
+    ckpt = tmp / "best.pt"
+    torch.save({"model": net.state_dict(), "model_hparams": net.hyperparameters(), "normaliser": norm.to_dict(),
+                "config": {"seed": 0}, "epoch": 3, "history": [{"epoch": 3, "val_rmse_3d_m": 4.2}],
+                "data_fingerprints": [{"dataset": "synthetic", "sha256_16": "abc"}]}, ckpt)
+    path = export_model(ckpt, tmp / "model.npz")
+    return path, net, norm, seq
+
+
+def test_numpy_predict_matches_torch(exported):
+    path, net, norm, seq = exported
+    model = load_model(path)
+    raw = select_features(seq, model.feature_names)
+    mask = seq.mask.copy()
+    mask[5] = False                              # an epoch with no satellite
+    r_np, vc_np = model.predict(raw, mask)
+    x = torch.as_tensor(norm.apply(raw, mask))
+    net64 = LfgnssNet(**net.hyperparameters()).double().eval()
+    net64.load_state_dict(net.state_dict())
+    # weights are stored as float32; compare with the float32 weights run in float64
+    with torch.no_grad():
+        r_t, vc_t = net64(x, torch.as_tensor(mask))
+        r32, vc32 = net.eval()(x.float(), torch.as_tensor(mask))
+    np.testing.assert_allclose(r_np, r_t.numpy(), rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(vc_np, vc_t.numpy(), rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(r_np, r32.numpy(), rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(vc_np, vc32.numpy(), rtol=1e-5, atol=1e-5)
+    assert np.all(np.isfinite(r_np)) and np.all(r_np[5] == 1.0) and np.all(vc_np[5] == 0.0)
+
+
+def test_round_trip_metadata_and_noise_model_call(exported):
+    path, net, norm, seq = exported
+    model = load_model(path, expected_features=DEFAULT_FEATURES)
+    assert isinstance(model, LfgnssModel)
+    assert model.feature_names == DEFAULT_FEATURES
+    np.testing.assert_array_equal(model.normaliser.mean, norm.mean)
+    meta = model.metadata
+    assert meta["format_version"] == FORMAT_VERSION and meta["epoch"] == 3 and meta["val_rmse_3d_m"] == 4.2
+    assert meta["data_fingerprints"][0]["dataset"] == "synthetic" and "torch" in meta["versions"]
+    r, vc = model(seq)                           # estimators NoiseModel protocol
+    assert r.shape == seq.mask.shape and vc.shape == seq.mask.shape
+    # features are picked by NAME: a sequence with extra / reordered columns gives the same result
+    from dataclasses import replace
+    names = ("extra",) + tuple(reversed(seq.feature_names))
+    feats = np.concatenate([np.ones(seq.features.shape[:2] + (1,)), seq.features[..., ::-1]], axis=-1)
+    r2, vc2 = model(replace(seq, features=feats, feature_names=names))
+    np.testing.assert_array_equal(r, r2)
+    np.testing.assert_array_equal(vc, vc2)
+
+
+def test_truncated_and_garbage_files_fail_clearly(exported, tmp_path):
+    path = exported[0]
+    data = path.read_bytes()
+    bad = tmp_path / "truncated.npz"
+    bad.write_bytes(data[: len(data) // 2])
+    with pytest.raises(ModelFileError, match="truncated.npz") as info:
+        load_model(bad)
+    assert "\n" not in str(info.value)
+    junk = tmp_path / "junk.npz"
+    junk.write_bytes(b"not a model at all")
+    with pytest.raises(ValueError, match="junk.npz"):
+        load_model(junk)
+    with pytest.raises(ModelFileError, match="no such"):
+        load_model(tmp_path / "missing.npz")
+
+
+def _rewrite_metadata(src, dst, change):
+    with np.load(src, allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files}
+    meta = json.loads(str(arrays["metadata"]))
+    change(meta)
+    arrays["metadata"] = np.array(json.dumps(meta))
+    np.savez(dst, **arrays)
+
+
+def test_wrong_format_version(exported, tmp_path):
+    dst = tmp_path / "v99.npz"
+    _rewrite_metadata(exported[0], dst, lambda m: m.update(format_version=99))
+    with pytest.raises(ModelFileError, match="format version 99"):
+        load_model(dst)
+
+
+def test_mismatched_features(exported, tmp_path):
+    path, _, _, seq = exported
+    no_dpc = DEFAULT_FEATURES[:4]
+    with pytest.raises(ModelFileError, match="do not match"):
+        load_model(path, expected_features=no_dpc)
+    from dataclasses import replace
+    model = load_model(path)
+    with pytest.raises(ValueError, match="dpc_gdop"):
+        model(replace(seq, features=seq.features[..., :4], feature_names=no_dpc))
+
+
+def test_file_is_a_single_npz_without_pickles(exported):
+    with zipfile.ZipFile(exported[0]) as z:
+        names = z.namelist()
+    assert "metadata.npy" in names and any(n.startswith("param/") for n in names)
+    np.load(exported[0], allow_pickle=False)["metadata"]

@@ -1,0 +1,213 @@
+"""gtsam factor-graph back end on synthetic sequences: accuracy, robustness, availability, conventions."""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+gtsam = pytest.importorskip("gtsam")
+
+from gtsam.symbol_shorthand import B, V, X  # noqa: E402
+from gtsam.utils.numerical_derivative import (numericalDerivative41, numericalDerivative42,  # noqa: E402
+                                              numericalDerivative43, numericalDerivative44)
+
+from estimators.base import STATUS_COASTED, STATUS_NONE, STATUS_UPDATED, create  # noqa: E402
+from estimators.fgo import DEFAULT_KERNEL, LfgnssFgo, cv_motion_factor, cv_process_covariance  # noqa: E402
+from lfgnss.constants import SPEED_OF_LIGHT_M_S  # noqa: E402
+from lfgnss.corrections import geometric_range_m  # noqa: E402
+from lfgnss.simulate import simulate_sequence  # noqa: E402
+
+
+def _rmse_3d(sol, seq, index=slice(None)) -> float:
+    e = np.linalg.norm(sol.pos_ecef_m[index] - seq.truth_ecef_m[index], axis=1)
+    return float(np.sqrt(np.mean(e ** 2)))
+
+
+def _err(sol, seq) -> np.ndarray:
+    return np.linalg.norm(sol.pos_ecef_m - seq.truth_ecef_m, axis=1)
+
+
+@pytest.fixture(scope="module")
+def seq():
+    return simulate_sequence(300, seed=3)
+
+
+@pytest.fixture(scope="module")
+def batch(seq):
+    return LfgnssFgo().solve(seq)
+
+
+@pytest.fixture(scope="module")
+def fixed_lag(seq):
+    return LfgnssFgo(mode="fixed-lag", lag_s=10.0).solve(seq)
+
+
+# ---------------------------------------------------------------- conventions and the custom part
+def test_pseudorange_factor_convention():
+    """gtsam error = geometric_range_m (Sagnac incl.) + c * clock - pr: Sagnac applied once, clock in s."""
+    sat = np.array([[15_600e3, 7_540e3, 20_140e3], [18_760e3, 2_750e3, 18_610e3], [-4_000e3, 22_000e3, 14_000e3]])
+    rcv = np.array([-2_418_000.0, 5_385_000.0, 2_405_000.0])
+    clock_s = 1.234e-4
+    pr = np.array([21_000_000.0, 22_500_000.0, 23_000_000.0])
+    values = gtsam.Values()
+    values.insertPoint3(X(0), rcv)
+    values.insert(B(0), c=clock_s)
+    model = gtsam.noiseModel.Isotropic.Sigma(1, 1.0)
+    sagnac = geometric_range_m(sat, rcv) - np.linalg.norm(sat - rcv, axis=1)
+    assert np.all(np.abs(sagnac) > 1.0)                     # the check can tell once from never/twice
+    for s, p, rho in zip(sat, pr, geometric_range_m(sat, rcv)):
+        factor = gtsam.PseudorangeFactor(X(0), B(0), p, s, 0.0, model)
+        got = factor.unwhitenedError(values)[0]
+        assert -got == pytest.approx(p - rho - SPEED_OF_LIGHT_M_S * clock_s, abs=1e-6)
+
+
+def test_cv_factor_error_and_jacobians():
+    """Whitened error matches r^T Q^-1 r of the CV model; linearised Jacobians match numerical ones."""
+    rng = np.random.default_rng(0)
+    dt = 0.7
+    qa = np.diag([1.0, 0.5, 0.1]) + 0.05
+    factor = cv_motion_factor(0, 1, dt, qa)
+    x0 = np.array([-2.418e6, 5.385e6, 2.405e6]) + rng.normal(0, 10, 3)
+    v0 = rng.normal(0, 5, 3)
+    x1 = x0 + dt * v0 + rng.normal(0, 1, 3)
+    v1 = v0 + rng.normal(0, 1, 3)
+
+    def values_of(a, b, c, d):
+        v = gtsam.Values()
+        for key, val in ((X(0), a), (V(0), b), (X(1), c), (V(1), d)):
+            v.insertPoint3(key, np.asarray(val, float))
+        return v
+
+    def whitened(a, b, c, d):
+        lin = gtsam.JacobianFactor(factor.linearize(values_of(a, b, c, d)))
+        return -lin.jacobian()[1]
+
+    r = np.concatenate([x1 - x0 - dt * v0, v1 - v0])
+    q = cv_process_covariance(dt, qa)
+    e = whitened(x0, v0, x1, v1)
+    assert e @ e == pytest.approx(r @ np.linalg.solve(q, r), rel=1e-6)
+    assert 2.0 * factor.error(values_of(x0, v0, x1, v1)) == pytest.approx(r @ np.linalg.solve(q, r), rel=1e-6)
+
+    lin = gtsam.JacobianFactor(factor.linearize(values_of(x0, v0, x1, v1)))
+    a_mat = lin.jacobian()[0]
+    blocks = {key: a_mat[:, 3 * i:3 * i + 3] for i, key in enumerate(lin.keys())}
+    numeric = {X(0): numericalDerivative41(whitened, x0, v0, x1, v1, delta=1e-2),
+               V(0): numericalDerivative42(whitened, x0, v0, x1, v1, delta=1e-2),
+               X(1): numericalDerivative43(whitened, x0, v0, x1, v1, delta=1e-2),
+               V(1): numericalDerivative44(whitened, x0, v0, x1, v1, delta=1e-2)}
+    for key, num in numeric.items():
+        np.testing.assert_allclose(blocks[key], num, rtol=1e-5, atol=1e-5 * np.abs(num).max())
+
+
+# ---------------------------------------------------------------- accuracy
+def test_batch_beats_coarse(seq, batch):
+    coarse = float(np.sqrt(np.mean(np.sum((seq.coarse_ecef_m - seq.truth_ecef_m) ** 2, axis=1))))
+    assert _rmse_3d(batch, seq) < 0.5 * coarse
+    assert np.all(batch.status == STATUS_UPDATED)
+    assert np.isfinite(batch.cov_ecef_m2).all() and np.isfinite(batch.vel_ecef_m_s).all()
+    assert np.all(np.linalg.eigvalsh(batch.cov_ecef_m2) > 0)
+    true_vel = np.gradient(seq.truth_ecef_m, seq.time_gps_s, axis=0)
+    assert np.sqrt(np.mean(np.sum((batch.vel_ecef_m_s - true_vel) ** 2, axis=1))) < 2.0
+
+
+def test_huber_beats_no_kernel_with_nlos():
+    seq = simulate_sequence(200, seed=5, nlos_fraction=0.3)
+    huber = LfgnssFgo(robust="huber").solve(seq)
+    plain = LfgnssFgo(robust=None).solve(seq)
+    cauchy = LfgnssFgo(robust="cauchy").solve(seq)
+    assert _rmse_3d(huber, seq) < 0.7 * _rmse_3d(plain, seq)
+    assert _rmse_3d(cauchy, seq) < 0.7 * _rmse_3d(plain, seq)
+
+
+def test_fixed_lag_close_to_batch(seq, fixed_lag):
+    assert np.all(fixed_lag.status == STATUS_UPDATED)
+    assert np.isfinite(fixed_lag.pos_ecef_m).all()
+    kernel, k = DEFAULT_KERNEL["fixed-lag"]           # like for like: the same robust kernel in both modes
+    batch = LfgnssFgo(robust=kernel, robust_k=k).solve(seq)
+    rb, rf = _rmse_3d(batch, seq), _rmse_3d(fixed_lag, seq)
+    assert rf < 1.5 * rb + 1.0, (rb, rf)
+
+
+def test_marginal_covariances_optional():
+    seq = simulate_sequence(40, seed=2)
+    for mode in ("batch", "fixed-lag"):
+        sol = LfgnssFgo(mode=mode, covariances=True).solve(seq)
+        cov = sol.cov_ecef_m2
+        assert cov.shape == (40, 3, 3) and np.isfinite(cov).all()
+        assert np.all(np.linalg.eigvalsh(cov) > 0)
+        assert np.all(np.sqrt(np.trace(cov, axis1=1, axis2=2)) < 20.0)
+
+
+# ---------------------------------------------------------------- availability and robustness
+@pytest.mark.parametrize("mode", ["batch", "fixed-lag"])
+def test_full_availability_with_empty_epochs(mode):
+    seq = simulate_sequence(120, seed=4)
+    mask = seq.mask.copy()
+    empty = np.r_[10, 30:35, 119]
+    mask[empty] = False
+    seq = replace(seq, mask=mask)
+    sol = LfgnssFgo(mode=mode).solve(seq)
+    assert np.all(sol.available)
+    assert np.isfinite(sol.pos_ecef_m).all() and np.isfinite(sol.cov_ecef_m2).all()
+    assert np.all(sol.status[empty] == STATUS_COASTED) and np.all(sol.n_used[empty] == 0)
+    assert np.all(_err(sol, seq)[empty] < 15.0)
+
+
+@pytest.mark.parametrize("mode", ["batch", "fixed-lag"])
+def test_outlier_every_ten_epochs(mode):
+    seq = simulate_sequence(200, seed=6)
+    pr = seq.pr_m.copy()
+    rows = np.arange(0, 200, 10)
+    cols = np.array([np.flatnonzero(seq.mask[k])[k % 5] for k in rows])
+    pr[rows, cols] += 300.0
+    bad = replace(seq, pr_m=pr)
+    clean_sol = LfgnssFgo(mode=mode).solve(seq)
+    bad_sol = LfgnssFgo(mode=mode).solve(bad)
+    # the causal fixed-lag smoother takes one step per epoch and keeps a transient of the outlier epoch
+    bound = 4.0 if mode == "batch" else 5.0
+    assert np.max(np.abs(_err(bad_sol, bad) - _err(clean_sol, seq))) < bound
+    assert _rmse_3d(bad_sol, bad) < _rmse_3d(clean_sol, seq) + 0.75
+
+
+@pytest.mark.parametrize("mode", ["batch", "fixed-lag"])
+def test_sixty_second_outage_and_recovery(mode):
+    seq = simulate_sequence(240, seed=7)
+    mask = seq.mask.copy()
+    mask[100:160] = False
+    seq = replace(seq, mask=mask)
+    sol = LfgnssFgo(mode=mode).solve(seq)
+    assert np.all(sol.available) and np.isfinite(sol.pos_ecef_m).all()
+    assert np.all(sol.status[100:160] == STATUS_COASTED)
+    assert np.all(sol.status[160:] == STATUS_UPDATED)
+    err = _err(sol, seq)
+    assert np.all(err[100:160] < 50.0)                       # CV coasting (fixed-lag: 17.5 m max)
+    assert np.sqrt(np.mean(err[170:] ** 2)) < 8.0            # recovered within 10 s
+
+
+def test_epochs_before_first_coarse_fix_are_none():
+    seq = simulate_sequence(60, seed=8)
+    coarse = seq.coarse_ecef_m.copy()
+    coarse[:5] = np.nan
+    coarse[20:25] = np.nan                                   # later gaps are interpolated, not NONE
+    seq = replace(seq, coarse_ecef_m=coarse)
+    for mode in ("batch", "fixed-lag"):
+        sol = LfgnssFgo(mode=mode).solve(seq)
+        assert np.all(sol.status[:5] == STATUS_NONE) and np.isnan(sol.pos_ecef_m[:5]).all()
+        assert np.all(sol.status[5:] == STATUS_UPDATED) and np.isfinite(sol.pos_ecef_m[5:]).all()
+    none = LfgnssFgo().solve(replace(seq, coarse_ecef_m=np.full_like(coarse, np.nan)))
+    assert np.all(none.status == STATUS_NONE)
+
+
+# ---------------------------------------------------------------- interface
+def test_registry_and_arguments():
+    est = create("fgo", mode="fixed-lag")
+    assert isinstance(est, LfgnssFgo) and est.mode == "fixed-lag" and est.name == "fgo"
+    sol = est.solve(simulate_sequence(20, seed=9))
+    assert sol.backend == "fgo" and sol.pos_ecef_m.shape == (20, 3)
+    for bad in ({"mode": "smoother"}, {"robust": "tukey"}, {"lag_s": 0.0}, {"accel_psd_enu_m2_s3": (1.0, -1.0, 1.0)}):
+        with pytest.raises(ValueError):
+            LfgnssFgo(**bad)
+    seq = simulate_sequence(10, seed=9)
+    with pytest.raises(ValueError, match="time not increasing"):
+        LfgnssFgo().solve(replace(seq, time_gps_s=np.r_[seq.time_gps_s[:5], seq.time_gps_s[:5]]))

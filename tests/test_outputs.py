@@ -1,0 +1,234 @@
+"""Writers, .pos reader (our files and RTKLIB's) and plots."""
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+import subprocess
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from estimators.base import STATUS_COASTED, STATUS_NONE, STATUS_RESET, STATUS_UPDATED, Solution
+from lfgnss.frames import lla_to_ecef
+from lfgnss.metrics import enu_errors
+from lfgnss.outputs import (CSV_COLUMNS, CSV_TRUTH_COLUMNS, align_to, plot_solution, read_pos, write_csv,
+                            write_geojson, write_kml, write_pos)
+from lfgnss.paths import shared_data_dir
+from lfgnss.time import week_tow_to_gps_s
+
+# First lines of `rnx2rtkp -p 0 -t` (RTKLIB 2.4.3 b34) on the smartLoc Berlin Potsdamer Platz drive
+# (TU Chemnitz, CC BY-SA 4.0), plus two lines with negative cross terms. Line ends as RTKLIB writes.
+RTKLIB_SNIPPET = (
+    "% program   : rnx2rtkp ver.2.4.3 b34\n"
+    "% inp file  : Berlin_Potsdamer_Platz.obs\n"
+    "% inp file  : brdc1580.16n\n"
+    "% obs start : 2016/06/06 11:10:41.7 GPST (week1900 126641.7s)\n"
+    "% obs end   : 2016/06/06 11:15:25.1 GPST (week1900 126925.1s)\n"
+    "%\n"
+    "% (lat/lon/height=WGS84/ellipsoidal,Q=1:fix,2:float,3:sbas,4:dgps,5:single,6:ppp,ns=# of satellites)\r\n"
+    "%  GPST                  latitude(deg) longitude(deg)  height(m)   Q  ns   sdn(m)   sde(m)   sdu(m)"
+    "  sdne(m)  sdeu(m)  sdun(m) age(s)  ratio\r\n"
+    "2016/06/06 11:10:45.200   52.504773959   13.375066262   240.6051   5   8   6.4497   3.9873  13.6992"
+    "   3.1139   4.8902   5.0387   0.00    0.0\r\n"
+    "2016/06/06 11:10:45.500   52.504800705   13.375125938   239.5618   5   8   6.4497   3.9873  13.6998"
+    "   3.1138   4.8904   5.0391   0.00    0.0\r\n"
+    "2016/06/06 11:11:17.300   52.505395952   13.373216587   198.2142   5   4  22.7836  14.0986  14.9724"
+    "  17.1134  -1.9625  -6.8263   0.00    0.0\r\n"
+    "2016/06/06 11:11:21.400   52.505933294   13.373573716   147.8625   5   4  21.3398  16.5709  31.6838"
+    "  17.4577 -19.1100 -18.7662   0.00    0.0\r\n"
+)
+
+
+def _solution(t: int = 12, seed: int = 0) -> tuple[Solution, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    time = week_tow_to_gps_s(1900, 126659.6 + 0.2 * np.arange(t))
+    time[2] -= 0.0004  # 126659.9996 must print as 11:11:00.000, not 11:10:60.000
+    truth = lla_to_ecef(np.radians(52.5048 + 1e-5 * np.arange(t)), np.radians(13.375 + 1e-5 * np.arange(t)),
+                        np.full(t, 40.0))
+    pos = truth + rng.normal(0, 5, (t, 3))
+    a = rng.normal(0, 3, (t, 3, 3))
+    cov = a @ np.swapaxes(a, 1, 2) + 0.5 * np.eye(3)
+    status = np.full(t, STATUS_UPDATED)
+    status[0] = STATUS_NONE
+    status[1] = STATUS_RESET
+    status[5:7] = STATUS_COASTED
+    status[9] = STATUS_NONE
+    pos[status == STATUS_NONE] = np.nan
+    cov[status == STATUS_NONE] = np.nan
+    cov[8] = np.nan  # position but no covariance
+    n_used = rng.integers(4, 12, t)
+    n_used[status == STATUS_COASTED] = 0
+    truth[10] = np.nan
+    sol = Solution(backend="ekf", time_gps_s=time, pos_ecef_m=pos, cov_ecef_m2=cov, clock_m=np.zeros(t),
+                   n_used=n_used, status=status)
+    return sol, truth
+
+
+def _no_nan_text(path: Path) -> str:
+    text = Path(path).read_text()
+    low = text.lower()
+    assert "nan" not in low and "inf" not in low, path
+    return text
+
+
+# ---------------------------------------------------------------- .pos
+@pytest.mark.parametrize("time_format", ["calendar", "tow"])
+def test_pos_round_trip(tmp_path, time_format):
+    sol, _ = _solution()
+    path = write_pos(tmp_path / "a.pos", sol, time_format=time_format)
+    _no_nan_text(path)
+    back = read_pos(path)
+    keep = sol.status != STATUS_NONE
+    assert back.backend == "ekf"
+    assert len(back.time_gps_s) == keep.sum()
+    np.testing.assert_allclose(back.time_gps_s, np.round(sol.time_gps_s[keep], 3), atol=1e-6)
+    np.testing.assert_allclose(back.pos_ecef_m, sol.pos_ecef_m[keep], atol=2e-4)
+    np.testing.assert_array_equal(back.n_used, sol.n_used[keep])
+    np.testing.assert_array_equal(back.info["q"], np.where(sol.status[keep] == STATUS_COASTED, 7, 5))
+    np.testing.assert_array_equal(back.status == STATUS_COASTED, sol.status[keep] == STATUS_COASTED)
+    cov_ok = np.isfinite(sol.cov_ecef_m2[keep]).all(axis=(1, 2))
+    np.testing.assert_allclose(back.cov_ecef_m2[cov_ok], sol.cov_ecef_m2[keep][cov_ok], rtol=1e-3, atol=1e-3)
+    assert np.all(back.cov_ecef_m2[~cov_ok] == 0.0)
+    assert np.isnan(back.clock_m).all()
+
+
+def test_pos_layout_matches_rtklib(tmp_path):
+    """Our writer reproduces RTKLIB's column header and data lines byte for byte."""
+    src = tmp_path / "rtk.pos"
+    src.write_bytes(RTKLIB_SNIPPET.encode())
+    sol = read_pos(src)
+    assert sol.backend == "rtklib" and len(sol.time_gps_s) == 4
+    np.testing.assert_allclose(sol.time_gps_s[0], week_tow_to_gps_s(1900, 126645.2), atol=1e-6)
+    np.testing.assert_array_equal(sol.n_used, [8, 8, 4, 4])
+    assert np.all(sol.status == STATUS_UPDATED)
+    out = write_pos(tmp_path / "ours.pos", sol)
+    theirs = src.read_bytes().split(b"\n")
+    ours = out.read_bytes().split(b"\n")
+    assert ours[4:] == theirs[6:]
+    assert ours[0].startswith(b"% program   : lfgnss")
+    assert ours[1] == b"% obs start : 2016/06/06 11:10:45.2 GPST (week1900 126645.2s)"
+
+
+def test_read_pos_ecef_and_week_tow(tmp_path):
+    sol, _ = _solution()
+    p = write_pos(tmp_path / "w.pos", sol, time_format="tow")
+    text = p.read_text()
+    assert "\n1900 126659.800 " in text.replace("\r", "")
+    # An ECEF (rnx2rtkp -e) line without header: detected by magnitude.
+    q = tmp_path / "e.pos"
+    q.write_text("1900 126645.200   3785166.0232    900013.2237   5037378.8574   5   8   8.0715   4.6848  12.5726"
+                 "   4.3097   6.2448   7.5152   0.00    0.0\r\n")
+    e = read_pos(q)
+    np.testing.assert_allclose(e.pos_ecef_m[0], [3785166.0232, 900013.2237, 5037378.8574])
+    np.testing.assert_allclose(e.cov_ecef_m2[0, 0, 1], 4.3097 ** 2)
+    bad = tmp_path / "bad.pos"
+    bad.write_text("2016/06/06 11:10:45.200 52.5 13.3\n")
+    with pytest.raises(ValueError, match="bad.pos:1"):
+        read_pos(bad)
+
+
+@pytest.mark.shared_data
+@pytest.mark.skipif(shutil.which("rnx2rtkp") is None, reason="RTKLIB rnx2rtkp not installed")
+@pytest.mark.parametrize("opts", [["-t"], [], ["-t", "-u"], ["-e"]], ids=["gpst", "tow", "utc", "ecef"])
+def test_read_pos_parses_real_rtklib_output(tmp_path, opts):
+    d = shared_data_dir() / "smartloc-berlin-potsdamer-platz-rinex"
+    obs, nav = d / "Berlin_Potsdamer_Platz.obs", d / "brdc1580.16n"
+    if not (obs.exists() and nav.exists()):
+        pytest.skip(f"shared data not found in {d}")
+    out = tmp_path / "rtk.pos"
+    subprocess.run(["rnx2rtkp", "-p", "0", *opts, "-o", str(out), str(obs), str(nav)], check=True,
+                   capture_output=True, timeout=120)
+    sol = read_pos(out)
+    n_lines = sum(1 for line in out.read_text().splitlines() if line and not line.startswith("%"))
+    assert len(sol.time_gps_s) == n_lines > 100
+    assert np.isfinite(sol.pos_ecef_m).all() and np.isfinite(sol.cov_ecef_m2).all()
+    np.testing.assert_allclose(sol.time_gps_s[0], week_tow_to_gps_s(1900, 126645.2), atol=1e-6)
+    assert np.all(np.diff(sol.time_gps_s) > 0)
+    assert np.linalg.norm(sol.pos_ecef_m - sol.pos_ecef_m[0], axis=1).max() < 5e3  # one city block drive
+    if opts in (["-t"], []):
+        ours = write_pos(tmp_path / "ours.pos", sol, time_format="calendar" if opts else "tow")
+        assert ours.read_bytes().split(b"\n")[4:] == out.read_bytes().split(b"\n")[6:]
+
+
+# ---------------------------------------------------------------- CSV / GeoJSON / KML
+def test_csv(tmp_path):
+    sol, truth = _solution()
+    p = write_csv(tmp_path / "a.csv", sol, truth)
+    _no_nan_text(p)
+    with open(p, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert list(rows[0]) == list(CSV_COLUMNS + CSV_TRUTH_COLUMNS)
+    assert len(rows) == len(sol.time_gps_s)
+    for k, r in enumerate(rows):
+        if sol.status[k] == STATUS_NONE:
+            assert r["status"] == "none" and r["x_m"] == "" and r["lat_deg"] == "" and r["err_3d_m"] == ""
+        else:
+            assert r["status"] in ("updated", "coasted", "reset")
+            np.testing.assert_allclose([float(r[c]) for c in ("x_m", "y_m", "z_m")], sol.pos_ecef_m[k], atol=1e-4)
+    assert rows[2]["time_gpst"] == "2016/06/06 11:11:00.000"
+    assert rows[2]["tow_s"] == "126660.000" and rows[2]["week"] == "1900"
+    assert rows[8]["sd_e_m"] == "" and rows[8]["x_m"] != ""
+    assert rows[10]["err_e_m"] == ""  # unlabelled
+    e = enu_errors(sol.pos_ecef_m, truth)
+    np.testing.assert_allclose(float(rows[2]["err_u_m"]), e[2, 2], atol=1e-4)
+    assert rows[5]["status"] == "coasted" and rows[1]["status"] == "reset"
+    p2 = write_csv(tmp_path / "b.csv", sol)
+    assert p2.read_text().splitlines()[0].split(",") == list(CSV_COLUMNS)
+
+
+def test_geojson_and_kml(tmp_path):
+    sol, _ = _solution()
+    n_pos = int((sol.status != STATUS_NONE).sum())
+    g = write_geojson(tmp_path / "a.geojson", sol, points=True)
+    _no_nan_text(g)
+    doc = json.loads(g.read_text())
+    line = doc["features"][0]
+    assert line["geometry"]["type"] == "LineString" and len(line["geometry"]["coordinates"]) == n_pos
+    lon, lat, h = line["geometry"]["coordinates"][0]
+    assert 13 < lon < 14 and 52 < lat < 53
+    assert sum(f["geometry"]["type"] == "Point" for f in doc["features"]) == n_pos
+    k = write_kml(tmp_path / "a.kml", sol, points=True)
+    _no_nan_text(k)
+    root = ET.parse(k).getroot()
+    ns = {"k": "http://www.opengis.net/kml/2.2"}
+    coords = root.find(".//k:LineString/k:coordinates", ns).text.split()
+    assert len(coords) == n_pos
+    assert len(root.findall(".//k:Point", ns)) == n_pos
+
+
+def test_writers_with_no_position(tmp_path):
+    sol, truth = _solution(12)
+    empty = Solution(backend="x", time_gps_s=sol.time_gps_s, pos_ecef_m=np.full((12, 3), np.nan),
+                     cov_ecef_m2=np.full((12, 3, 3), np.nan), clock_m=np.full(12, np.nan),
+                     n_used=np.zeros(12, int), status=np.full(12, STATUS_NONE))
+    for writer in (write_pos, write_geojson, write_kml):
+        _no_nan_text(writer(tmp_path / f"e.{writer.__name__}", empty))
+    _no_nan_text(write_csv(tmp_path / "e.csv", empty, truth))
+    assert len(read_pos(tmp_path / "e.write_pos").time_gps_s) == 0
+    assert plot_solution(tmp_path / "p", empty, truth)[0].exists()
+
+
+# ---------------------------------------------------------------- plots
+def test_align_to_matches_on_tenth_of_second():
+    sol, _ = _solution()
+    sub = Solution(backend="rtk", time_gps_s=sol.time_gps_s[[2, 4, 7]] + 0.02, pos_ecef_m=sol.pos_ecef_m[[2, 4, 7]],
+                   cov_ecef_m2=sol.cov_ecef_m2[[2, 4, 7]], clock_m=np.zeros(3), n_used=np.ones(3, int),
+                   status=np.full(3, STATUS_UPDATED))
+    al = align_to(sol.time_gps_s, sub)
+    assert np.isfinite(al).all(axis=1).sum() == 3
+    np.testing.assert_array_equal(al[[2, 4, 7]], sol.pos_ecef_m[[2, 4, 7]])
+
+
+def test_plot_solution(tmp_path):
+    pytest.importorskip("matplotlib")
+    sol, truth = _solution(40)
+    rtk = read_pos(write_pos(tmp_path / "r.pos", sol))
+    files = plot_solution(tmp_path / "figs", sol, truth, extra_solutions={"rtklib": rtk})
+    assert [f.name for f in files] == ["track.png", "errors.png", "cdf.png"]
+    for f in files:
+        assert f.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and f.stat().st_size > 5000
+    only_track = plot_solution(tmp_path / "figs2", sol, prefix="ekf_")
+    assert [f.name for f in only_track] == ["ekf_track.png"]

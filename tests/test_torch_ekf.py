@@ -1,0 +1,154 @@
+"""Batched torch EKF (learning.torch_ekf) against the filterpy plug-in, padding and gradients."""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from estimators.base import STATUS_NONE, STATUS_RESET  # noqa: E402
+from estimators.ekf import LfgnssEkf  # noqa: E402
+from estimators.models import EkfConfig  # noqa: E402
+from estimators.noise import FixedNoise  # noqa: E402
+from learning.torch_ekf import batch_ekf, geometric_range_m  # noqa: E402
+from learning.types import WindowBatch  # noqa: E402
+from lfgnss.constants import SPEED_OF_LIGHT_M_S  # noqa: E402
+from lfgnss.corrections import geometric_range_m as geometric_range_np  # noqa: E402
+from lfgnss.simulate import simulate_sequence  # noqa: E402
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    """Tiny batched matrices: intra-op threads only add overhead (and fight over shared CPUs)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def to_batch(seqs) -> WindowBatch:
+    """Sequences of equal length and slot count as one WindowBatch (whole sequences as windows)."""
+    def stack(name, dtype=torch.float64):
+        return torch.as_tensor(np.stack([getattr(s, name) for s in seqs]), dtype=dtype)
+
+    return WindowBatch(time_gps_s=stack("time_gps_s"), pr_m=stack("pr_m"), sat_pos_ecef_m=stack("sat_pos_ecef_m"),
+                       system_index=stack("system_index", torch.int64), mask=stack("mask", torch.bool),
+                       features=stack("features", torch.float32), coarse_ecef_m=stack("coarse_ecef_m"),
+                       coarse_clock_m=stack("coarse_clock_m"), truth_ecef_m=stack("truth_ecef_m"))
+
+
+@pytest.fixture(scope="module")
+def cases():
+    """Three 120-epoch sequences, 20 slots (6 padded), with outliers, a late start, a clock jump, resets."""
+    rng = np.random.default_rng(7)
+    seqs, rs, vcs = [], [], []
+    for i in range(3):
+        s = simulate_sequence(120, seed=10 + i, n_slots=20)
+        pr = s.pr_m.copy()
+        outl = rng.random(s.mask.shape) < 0.03
+        pr += np.where(s.mask & outl, rng.choice([-1, 1], s.mask.shape) * rng.uniform(80, 300, s.mask.shape), 0.0)
+        coarse, clock = s.coarse_ecef_m.copy(), s.coarse_clock_m.copy()
+        if i == 1:                      # no coarse fix for the first epochs, nor inside an outage
+            coarse[:4] = np.nan
+            coarse[60:62] = np.nan
+        if i == 2:                      # 1 ms receiver clock jump and a coarse fix far off (divergence reset)
+            pr[70:] += np.where(s.mask[70:], 1e-3 * SPEED_OF_LIGHT_M_S, 0.0)
+            clock[70:, 0] += 1e-3 * SPEED_OF_LIGHT_M_S
+            coarse[100] += 400.0
+        s = replace(s, pr_m=np.where(s.mask, pr, 0.0), coarse_ecef_m=coarse, coarse_clock_m=clock)
+        seqs.append(s)
+        rs.append(np.where(s.mask, rng.uniform(2.0, 80.0, s.mask.shape), 0.0))
+        vcs.append(np.where(s.mask, rng.normal(0.0, 3.0, s.mask.shape), 0.0))
+    return seqs, np.stack(rs), np.stack(vcs)
+
+
+CONFIG = EkfConfig()
+
+
+def test_geometric_range_twin():
+    s = simulate_sequence(3, seed=2)
+    sat, rcv = s.sat_pos_ecef_m, s.truth_ecef_m[:, None, :]
+    got = geometric_range_m(torch.as_tensor(sat), torch.as_tensor(rcv)).numpy()
+    np.testing.assert_allclose(got, geometric_range_np(sat, rcv), rtol=0, atol=1e-8)
+
+
+def test_matches_filterpy_plugin(cases):
+    seqs, r, vc = cases
+    out = batch_ekf(to_batch(seqs), torch.as_tensor(r), torch.as_tensor(vc), n_systems=2, config=CONFIG)
+    assert out.pos_ecef_m.shape == (3, 120, 3) and out.state.shape == (3, 120, 9) and out.cov.shape == (3, 120, 9, 9)
+    for i, s in enumerate(seqs):
+        sol = LfgnssEkf(noise=FixedNoise(r[i], vc[i]), config=CONFIG).solve(s)
+        np.testing.assert_array_equal(out.status[i].numpy(), sol.status)
+        np.testing.assert_array_equal(out.n_used[i].numpy(), sol.n_used)
+        np.testing.assert_array_equal(out.n_gated[i].numpy(), sol.info["n_gated"])
+        np.testing.assert_allclose(out.pos_ecef_m[i].numpy(), sol.pos_ecef_m, rtol=0, atol=1e-6, equal_nan=True)
+        live = sol.status != STATUS_NONE
+        np.testing.assert_allclose(out.state[i].numpy()[live], sol.info["state"][live], rtol=0, atol=1e-6)
+        np.testing.assert_allclose(out.cov[i].numpy()[live], sol.info["cov"][live], rtol=1e-6, atol=1e-6)
+    status = out.status.numpy()
+    assert (out.n_gated.numpy() > 0).sum() > 10                          # the gate was active
+    assert (status[1, :4] == STATUS_NONE).all() and status[1, 4] == STATUS_RESET
+    assert status[2, 70] == STATUS_RESET and status[2, 100] == STATUS_RESET   # clock jump, divergence
+
+
+def test_padded_slots_have_no_effect(cases):
+    seqs, r, vc = cases
+    batch = to_batch(seqs)
+    rt = torch.as_tensor(r).clone().requires_grad_(True)
+    vt = torch.as_tensor(vc).clone().requires_grad_(True)
+    ref = batch_ekf(batch, rt, vt, n_systems=2, config=CONFIG)
+    ref.pos_ecef_m[:, -1].nansum().backward()
+
+    pad = ~batch.mask
+    g = torch.Generator().manual_seed(0)
+    junk = replace(batch,
+                   pr_m=torch.where(pad, torch.rand(pad.shape, generator=g, dtype=torch.float64) * 1e7, batch.pr_m),
+                   sat_pos_ecef_m=torch.where(pad[..., None], torch.full_like(batch.sat_pos_ecef_m, np.nan),
+                                              batch.sat_pos_ecef_m),
+                   system_index=torch.where(pad, torch.randint(-1, 2, pad.shape, generator=g), batch.system_index))
+    r2 = torch.where(pad, torch.as_tensor(-5.0, dtype=torch.float64), torch.as_tensor(r)).requires_grad_(True)
+    v2 = torch.where(pad, torch.as_tensor(1e4, dtype=torch.float64), torch.as_tensor(vc)).requires_grad_(True)
+    got = batch_ekf(junk, r2, v2, n_systems=2, config=CONFIG)
+    got.pos_ecef_m[:, -1].nansum().backward()
+
+    assert torch.equal(torch.nan_to_num(got.pos_ecef_m), torch.nan_to_num(ref.pos_ecef_m))
+    assert torch.equal(got.cov, ref.cov) and torch.equal(got.n_used, ref.n_used)
+    assert torch.equal(r2.grad, rt.grad) and torch.equal(v2.grad, vt.grad)
+    assert (r2.grad[pad] == 0).all() and (v2.grad[pad] == 0).all()
+
+
+def test_gradient_reaches_early_epochs():
+    seqs = [simulate_sequence(32, seed=s, n_slots=18) for s in range(4)]
+    batch = to_batch(seqs)
+    r = torch.full(batch.mask.shape, 20.0, dtype=torch.float64, requires_grad=True)
+    vc = torch.zeros(batch.mask.shape, dtype=torch.float64, requires_grad=True)
+    out = batch_ekf(batch, r, vc, n_systems=2, config=CONFIG)
+    loss = (out.pos_ecef_m[:, -1] - batch.truth_ecef_m[:, -1]).norm(dim=-1).mean()
+    loss.backward()
+    for g in (r.grad, vc.grad):
+        assert torch.isfinite(g).all()
+        early = g[:, :3].abs().sum(dim=(1, 2))
+        assert (early > 0).all(), early                  # every window, epochs 0-2, from a loss at epoch 31
+
+
+def test_gradcheck_tiny_case():
+    s = simulate_sequence(4, seed=4, sats_per_system=3, nlos_fraction=0.0, n_slots=8)
+    s = replace(s, mask=np.where(np.arange(8) < 6, True, False)[None, :].repeat(4, 0))
+    batch = to_batch([s])
+    cfg = EkfConfig(gate_sigma=0.0)          # no hard decision near the finite-difference steps
+    rng = np.random.default_rng(0)
+    r0 = torch.as_tensor(rng.uniform(5.0, 30.0, (1, 4, 8)), dtype=torch.float64).requires_grad_(True)
+    v0 = torch.as_tensor(rng.normal(0.0, 2.0, (1, 4, 8)), dtype=torch.float64).requires_grad_(True)
+
+    def last_position(r, vc):
+        return batch_ekf(batch, r, vc, n_systems=2, config=cfg).pos_ecef_m[:, -1]
+
+    assert torch.autograd.gradcheck(last_position, (r0, v0), eps=1e-3, atol=1e-5, rtol=1e-3)
+
+
+def test_shape_errors_raise(cases):
+    seqs, r, vc = cases
+    with pytest.raises(ValueError, match="must be"):
+        batch_ekf(to_batch(seqs), torch.as_tensor(r[:, :5]), torch.as_tensor(vc), n_systems=2, config=CONFIG)

@@ -1,0 +1,89 @@
+"""End-to-end training on simulated sequences: learning, resume, reproducibility, gradients."""
+import csv
+
+import numpy as np
+import pytest
+import torch
+
+from learning.export import load_model
+from learning.train import (_index_batch, build_model, ekf_config, load_config, load_sequences, main, prepare,
+                            run_filter, train)
+from learning.loss import make_loss
+
+EPOCHS = 4
+SETTINGS = ["data.datasets=['synthetic']", "data.synthetic.n_epochs=150", "data.synthetic.nlos_fraction=0.4",
+            "data.synthetic.train_seeds=[1, 2]", "data.synthetic.val_seeds=[101]", "data.window=20",
+            "data.stride=10", "train.batch_size=4", "train.lr=1e-2", f"train.epochs={EPOCHS}", "threads=1"]
+
+
+@pytest.fixture(scope="module")
+def config():
+    return load_config("learning/configs/default.toml", SETTINGS)
+
+
+@pytest.fixture(scope="module")
+def prepared(config):
+    return prepare(config)
+
+
+@pytest.fixture(scope="module")
+def full_run(config, prepared, tmp_path_factory):
+    out = tmp_path_factory.mktemp("full")
+    return out, train(config, out, progress=False, prepared=prepared)
+
+
+def test_validation_error_drops(full_run):
+    out, history = full_run
+    assert [h["epoch"] for h in history] == list(range(EPOCHS + 1))
+    assert history[-1]["val_rmse_3d_m"] < 0.5 * history[0]["val_rmse_3d_m"]
+    for name in ("last.pt", "best.pt", "log.csv", "curves.png", "model.npz"):
+        assert (out / name).exists(), name
+    with open(out / "log.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == EPOCHS + 1 and set(rows[0]) >= {"epoch", "train_loss", "val_rmse_3d_m", "seconds"}
+    model = load_model(out / "model.npz")
+    assert model.metadata["data_fingerprints"][0]["dataset"] == "synthetic"
+
+
+def test_resume_equals_uninterrupted_run_via_cli(full_run, tmp_path):
+    out, history = full_run
+    half = [s for s in SETTINGS if not s.startswith("train.epochs")] + ["train.epochs=2"]
+    args = ["--config", "learning/configs/default.toml", "--out", str(tmp_path), "--no-progress"]
+    assert main(args + [x for s in half for x in ("--set", s)]) == 0
+    assert main(args + ["--resume", "--set", f"train.epochs={EPOCHS}"]) == 0
+    resumed = torch.load(tmp_path / "last.pt", weights_only=False)
+    straight = torch.load(out / "last.pt", weights_only=False)
+    for a, b in zip(resumed["history"], straight["history"]):
+        assert a["train_loss"] == b["train_loss"] or (np.isnan(a["train_loss"]) and np.isnan(b["train_loss"]))
+        assert a["val_rmse_3d_m"] == b["val_rmse_3d_m"]
+    for key, value in straight["model"].items():
+        assert torch.equal(resumed["model"][key], value), key
+
+
+def test_same_seed_same_final_loss(config, prepared, full_run, tmp_path):
+    again = train(config, tmp_path, progress=False, prepared=prepared, export=False)
+    assert again[-1]["train_loss"] == full_run[1][-1]["train_loss"]
+    assert again[-1]["val_rmse_3d_m"] == full_run[1][-1]["val_rmse_3d_m"]
+
+
+def test_gradient_reaches_network_through_filter(config, prepared):
+    torch.manual_seed(0)
+    model = build_model(config, len(prepared.feature_names))
+    batch = _index_batch(prepared.train_batch, np.arange(4))
+    pos = run_filter(model, batch, n_systems=prepared.n_systems, ekf_cfg=ekf_config(config))
+    make_loss("hem")(pos, batch.truth_ecef_m).backward()
+    g = model.embed.weight.grad
+    assert g is not None and torch.isfinite(g).all() and g.abs().sum() > 0
+
+
+def test_test_split_is_refused(config, tmp_path):
+    with pytest.raises(ValueError, match="test split"):
+        load_sequences("synthetic", "test", config)
+    bad = load_config(None, SETTINGS + ["data.val_split='test'"])
+    with pytest.raises(ValueError, match="test split"):
+        train(bad, tmp_path, progress=False)
+
+
+def test_existing_run_needs_resume(full_run, config):
+    with pytest.raises(ValueError, match="--resume"):
+        train(config, full_run[0], progress=False)
