@@ -11,7 +11,9 @@ GLONASS epochs are UTC (GPST = UTC + leap seconds), as RTKLIB ``decode_eph``/``d
 """
 from __future__ import annotations
 
+import hashlib
 import io
+import pickle
 import re
 import warnings
 from dataclasses import dataclass, fields
@@ -22,6 +24,7 @@ import numpy as np
 import pandas as pd
 
 from .errors import RinexError
+from .paths import cache_dir
 from .time import BDT_MINUS_GPST_S, SECONDS_PER_WEEK, datetime64_to_gps_s, utc_to_gps_s
 
 KEPLER_SYSTEMS = ("G", "E", "J", "C")
@@ -111,7 +114,10 @@ class Navigation:
     sources: tuple[str, ...]
 
 
-def load_nav(paths: str | Path | Iterable[str | Path]) -> Navigation:
+_CACHE_VERSION = 1
+
+
+def load_nav(paths: str | Path | Iterable[str | Path], *, cache: bool = True) -> Navigation:
     """Read one or several RINEX navigation files into a :class:`Navigation`.
 
     Parameters
@@ -119,6 +125,8 @@ def load_nav(paths: str | Path | Iterable[str | Path]) -> Navigation:
     paths : path or iterable of paths
         RINEX 2 (``.n``, ``.g``) or RINEX 3 (single-system or mixed) navigation files, optionally
         gzip-compressed. Records from several files are concatenated; exact duplicates are dropped.
+    cache : bool
+        Reuse/write the parsed result in ``lfgnss.paths.cache_dir()``, keyed by the files' content.
 
     Raises
     ------
@@ -131,6 +139,32 @@ def load_nav(paths: str | Path | Iterable[str | Path]) -> Navigation:
     paths = [Path(p) for p in paths]
     if not paths:
         raise ValueError("load_nav needs at least one file")
+    if not cache:
+        return _parse_nav(paths)
+    digest = hashlib.sha256(str(_CACHE_VERSION).encode())
+    for path in paths:
+        try:
+            digest.update(path.read_bytes())
+        except OSError:
+            return _parse_nav(paths)  # the parser reports the unreadable file
+    target = cache_dir() / "nav" / f"{digest.hexdigest()[:24]}.pkl"
+    if target.exists():
+        try:
+            with open(target, "rb") as f:
+                cached = pickle.load(f)
+            return Navigation(cached.kepler, cached.glonass, cached.iono, tuple(str(p) for p in paths))
+        except Exception:  # a damaged cache entry is rebuilt, never trusted
+            target.unlink(missing_ok=True)
+    nav = _parse_nav(paths)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    tmp = target.with_suffix(".tmp")
+    with open(tmp, "wb") as f:
+        pickle.dump(nav, f, protocol=pickle.HIGHEST_PROTOCOL)
+    tmp.replace(target)
+    return nav
+
+
+def _parse_nav(paths: list[Path]) -> Navigation:
     kep_frames, glo_frames, iono = [], [], {}
     for path in paths:
         datasets = _read(path)
