@@ -141,6 +141,7 @@ class LfgnssModel:
         self.n_hidden = len(m["hidden"])
         self.r_floor_m2 = float(m["r_floor_m2"])
         self.r_scale_m2 = float(m.get("r_scale_m2", 1.0))
+        self.r_prior = m.get("r_prior")
         self.eps = float(metadata.get("layer_norm_eps", 1e-5))
 
     def __repr__(self) -> str:
@@ -195,7 +196,15 @@ class LfgnssModel:
         for i in range(self.n_hidden):
             h = np.maximum(_linear(h, p, f"mlp.{2 * i}"), 0.0)
         o = _linear(h, p, "head")
-        r = self.r_scale_m2 * _softplus(o[..., 0]) + self.r_floor_m2
+        if self.r_prior is None:
+            r = self.r_scale_m2 * _softplus(o[..., 0]) + self.r_floor_m2
+        else:  # learned factor on the hand-set C/N0-elevation variance (learning.network.prior_variance)
+            pr = self.r_prior
+            cn0 = x[..., pr["cn0_index"]] * pr["cn0_std"] + pr["cn0_mean"]
+            el = x[..., pr["el_index"]] * pr["el_std"] + pr["el_mean"]
+            prior = (pr["floor_m"] ** 2 + pr["cn0_scale_m2"] * 10.0 ** (-cn0 / 5.0)) / \
+                np.sin(np.maximum(el, pr["el_min_rad"])) ** pr["elevation_power"]
+            r = prior * _softplus(o[..., 0]) / np.log(2.0) + self.r_floor_m2
         vc = o[..., 1]
         r = np.where(m, r, PAD_R_M2).reshape(*lead, n)
         vc = np.where(m, vc, 0.0).reshape(*lead, n)

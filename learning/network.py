@@ -8,11 +8,17 @@ The network never sees the filter; it maps normalised features ``(..., N, d)`` a
     h2 = MLP(h1)                                     (hidden 64-128-64, ReLU after each layer)
     [o_R, o_v] = h2 W_o^T + b_o
     r = r_scale_m2 * softplus(o_R) + r_floor_m2,     vc = o_v
+    or, with a prior (``r_prior``):  r = r_prior(C/N0, el) * softplus(o_R) / ln 2 + r_floor_m2
+where r_prior is the hand-set C/N0-elevation variance of ``estimators.noise.HeuristicNoise`` computed from
+the network's own C/N0 and elevation inputs (un-normalised with stored constants): an untrained head
+(o_R = 0) reproduces the plain EKF's noise, and training learns a per-satellite factor on it.
 
 Padded slots are ignored as attention keys and their outputs are inert: ``r = PAD_R_M2``,
 ``vc = 0``. An epoch with no valid satellite yields inert outputs only (no NaN).
 """
 from __future__ import annotations
+
+import math
 
 import torch
 from torch import nn
@@ -41,11 +47,15 @@ class LfgnssNet(nn.Module):
         Constant unit scale of the softplus output [m^2] (1.0 = the paper's ``softplus(o_R)``).
     r_init_m2 : float or None
         If given, the R output bias is initialised so an all-zero input gives about this variance.
+    r_prior : dict or None
+        Prior variance model: ``cn0_index``, ``el_index`` (feature columns), ``cn0_mean``, ``cn0_std``,
+        ``el_mean``, ``el_std`` (normaliser constants) and ``floor_m``, ``cn0_scale_m2``,
+        ``elevation_power``, ``el_min_rad`` (HeuristicNoise parameters).
     """
 
     def __init__(self, n_features: int, *, d_model: int = 64, n_heads: int = 4,
                  hidden: tuple[int, ...] = (64, 128, 64), r_floor_m2: float = 0.01,
-                 r_scale_m2: float = 1.0, r_init_m2: float | None = None) -> None:
+                 r_scale_m2: float = 1.0, r_init_m2: float | None = None, r_prior: dict | None = None) -> None:
         super().__init__()
         if n_features < 1 or d_model % n_heads != 0:
             raise ValueError(f"need n_features >= 1 and d_model % n_heads == 0, got {n_features}, {d_model}, {n_heads}")
@@ -55,6 +65,8 @@ class LfgnssNet(nn.Module):
         self.hidden = tuple(int(h) for h in hidden)
         self.r_floor_m2 = float(r_floor_m2)
         self.r_scale_m2 = float(r_scale_m2)
+        self.r_prior = None if r_prior is None else {k: (int(v) if k.endswith("_index") else float(v))
+                                                     for k, v in r_prior.items()}
         self.embed = nn.Linear(self.n_features, self.d_model)
         self.attention = nn.MultiheadAttention(self.d_model, self.n_heads, batch_first=True)
         self.norm = nn.LayerNorm(self.d_model)
@@ -74,7 +86,8 @@ class LfgnssNet(nn.Module):
     def hyperparameters(self) -> dict:
         """Constructor keyword arguments (for export / rebuild)."""
         return {"n_features": self.n_features, "d_model": self.d_model, "n_heads": self.n_heads,
-                "hidden": list(self.hidden), "r_floor_m2": self.r_floor_m2, "r_scale_m2": self.r_scale_m2}
+                "hidden": list(self.hidden), "r_floor_m2": self.r_floor_m2, "r_scale_m2": self.r_scale_m2,
+                "r_prior": self.r_prior}
 
     def forward(self, features: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Noise for every slot.
@@ -100,12 +113,39 @@ class LfgnssNet(nn.Module):
         empty = ~m.any(dim=-1, keepdim=True)
         key_padding = ~(m | empty)
         x = torch.where(m[..., None], x, torch.zeros((), dtype=x.dtype))
+        prior = None if self.r_prior is None else prior_variance(x, self.r_prior)
         h0 = self.embed(x)
         attn, _ = self.attention(h0, h0, h0, key_padding_mask=key_padding, need_weights=False)
         h1 = self.norm(h0 + attn)
         out = self.head(self.mlp(h1))
-        r = self.r_scale_m2 * F.softplus(out[..., 0]) + self.r_floor_m2
+        if prior is None:
+            r = self.r_scale_m2 * F.softplus(out[..., 0]) + self.r_floor_m2
+        else:
+            r = prior * F.softplus(out[..., 0]) / math.log(2.0) + self.r_floor_m2
         vc = out[..., 1]
         r = torch.where(m, r, torch.full((), PAD_R_M2, dtype=r.dtype))
         vc = torch.where(m, vc, torch.zeros((), dtype=vc.dtype))
         return r.reshape(*lead, n), vc.reshape(*lead, n)
+
+
+def prior_variance(x_norm: torch.Tensor, prior: dict) -> torch.Tensor:
+    """Hand-set variance [m^2] from normalised features (..., N, d): HeuristicNoise's formula in torch."""
+    cn0 = x_norm[..., prior["cn0_index"]] * prior["cn0_std"] + prior["cn0_mean"]
+    el = x_norm[..., prior["el_index"]] * prior["el_std"] + prior["el_mean"]
+    sin_el = torch.sin(torch.clamp(el, min=prior["el_min_rad"]))
+    return (prior["floor_m"] ** 2 + prior["cn0_scale_m2"] * 10.0 ** (-cn0 / 5.0)) / sin_el ** prior["elevation_power"]
+
+
+def heuristic_prior(feature_names, mean, std, noise=None) -> dict:
+    """The ``r_prior`` dict for a feature layout and its normaliser (needs 'cn0' and 'elevation')."""
+    from estimators.noise import HeuristicNoise
+
+    noise = noise or HeuristicNoise()
+    names = list(feature_names)
+    if "cn0" not in names or "elevation" not in names:
+        raise ValueError("a heuristic R prior needs the 'cn0' and 'elevation' features")
+    i, j = names.index("cn0"), names.index("elevation")
+    return {"cn0_index": i, "el_index": j, "cn0_mean": float(mean[i]), "cn0_std": float(std[i]),
+            "el_mean": float(mean[j]), "el_std": float(std[j]), "floor_m": noise.floor_m,
+            "cn0_scale_m2": noise.cn0_scale_m2, "elevation_power": noise.elevation_power,
+            "el_min_rad": float(noise.el_min_rad)}

@@ -56,7 +56,7 @@ DEFAULT_CONFIG: dict[str, Any] = {
                       "train_seeds": [1, 2], "val_seeds": [101]},
     },
     "model": {"d_model": 64, "n_heads": 4, "hidden": [64, 128, 64], "r_floor_m2": 0.01, "r_scale_m2": 1.0,
-              "r_init_m2": None},
+              "r_init_m2": None, "r_prior": "none"},
     "train": {"epochs": 200, "batch_size": 16, "lr": 1.0e-3, "t_max": 50, "eta_min": 1.0e-4, "grad_clip": 0.0},
     "loss": {"kind": "hem", "alpha": 0.75, "gamma": 1.5, "lambda": 1.0},
     "ekf": {},
@@ -199,12 +199,21 @@ def fingerprint(sequence: Sequence) -> str:
 
 # --------------------------------------------------------------------------- model / evaluation
 
-def build_model(config: dict, n_features: int) -> LfgnssNet:
-    """LfgnssNet from the ``[model]`` table."""
+def build_model(config: dict, n_features: int, normaliser: Normaliser | None = None) -> LfgnssNet:
+    """LfgnssNet from the ``[model]`` table (``r_prior = "heuristic"`` needs the normaliser)."""
+    from .network import heuristic_prior
+
     m = config["model"]
+    prior = None
+    if m.get("r_prior", "none") == "heuristic":
+        if normaliser is None:
+            raise ValueError("model.r_prior = 'heuristic' needs the fitted normaliser")
+        prior = heuristic_prior(normaliser.feature_names, normaliser.mean, normaliser.std)
+    elif m.get("r_prior", "none") != "none":
+        raise ValueError(f"model.r_prior must be 'none' or 'heuristic', got {m['r_prior']!r}")
     return LfgnssNet(n_features, d_model=int(m["d_model"]), n_heads=int(m["n_heads"]), hidden=tuple(m["hidden"]),
                      r_floor_m2=float(m["r_floor_m2"]), r_scale_m2=float(m["r_scale_m2"]),
-                     r_init_m2=None if m.get("r_init_m2") is None else float(m["r_init_m2"]))
+                     r_init_m2=None if m.get("r_init_m2") is None else float(m["r_init_m2"]), r_prior=prior)
 
 
 def run_filter(model: LfgnssNet, batch: WindowBatch, *, n_systems: int, ekf_cfg) -> torch.Tensor:
@@ -368,7 +377,7 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
     prep = prepared or prepare(config)
     ekf_cfg = ekf_config(config)
     tr = config["train"]
-    model = build_model(config, len(prep.feature_names))
+    model = build_model(config, len(prep.feature_names), prep.normaliser)
     optimiser = torch.optim.Adam(model.parameters(), lr=float(tr["lr"]))
     scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, T_max=int(tr["t_max"]),
                                                            eta_min=float(tr["eta_min"]))

@@ -1,0 +1,182 @@
+"""``python -m lfgnss.benchmark``: every estimator side by side on the test splits of shared/BENCHMARK.md.
+
+For each dataset: RTKLIB ``rnx2rtkp`` (when installed), equal-weight and weighted least squares, the
+plain EKF, the LF-GNSS EKF and factor graph with the shipped model, and the three ablation models
+(w/o DPC, w/o HEM, w/o both) in the EKF. Writes a Markdown results table (all test epochs, and the
+epochs RTKLIB solved), CDF and track PNGs per dataset.
+"""
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from . import datasets
+from .metrics import accuracy_table, format_markdown, format_text
+from .paths import bundled_data_dir
+
+MODEL_DIR = bundled_data_dir() / "model"
+ABLATIONS = {"LF-GNSS EKF w/o DPC": "lfgnss-no_dpc.npz", "LF-GNSS EKF w/o HEM": "lfgnss-no_hem.npz",
+             "LF-GNSS EKF w/o both": "lfgnss-no_dpc_no_hem.npz"}
+
+
+@dataclass
+class Method:
+    """One row of the benchmark: a name and how to make its estimator."""
+
+    name: str
+    backend: str
+    model: Path | None = None
+    options: dict | None = None
+
+    def create(self):
+        """The estimator, with its model loaded."""
+        import estimators
+
+        options = dict(self.options or {})
+        if self.model is not None:
+            from learning.export import load_model
+
+            options["noise"] = load_model(self.model)
+        return estimators.create(self.backend, **options)
+
+
+def methods(model_dir: Path = MODEL_DIR) -> list[Method]:
+    """Baselines always; learned rows where their model file exists."""
+    rows = [Method("least squares (equal weight)", "wls"), Method("least squares (C/N0-weighted)", "wls-weighted"),
+            Method("plain EKF (C/N0 noise, gate)", "plain-ekf")]
+    default = model_dir / "lfgnss-default.npz"
+    if default.exists():
+        rows += [Method("LF-GNSS EKF", "ekf", default), Method("LF-GNSS FGO", "fgo", default)]
+    rows += [Method(name, "ekf", model_dir / f) for name, f in ABLATIONS.items() if (model_dir / f).exists()]
+    return rows
+
+
+def _rtklib_on(seq, spec, workdir: Path):
+    """RTKLIB's solution matched to the sequence's epochs (NaN where it gave none), and its run time."""
+    from .rtklib import rtklib_available, spp_solution
+    from .outputs import align_to
+
+    if not rtklib_available():
+        return None, None
+    sol, seconds = spp_solution(spec.obs[0], list(spec.nav), workdir / f"{spec.id}.pos",
+                                systems=spec.systems or ("G",))
+    return align_to(seq.time_gps_s, sol), seconds
+
+
+def run(dataset_ids: list[str], *, model_dir: Path = MODEL_DIR, out_dir: Path | None = None,
+        plots: bool = True) -> tuple[list[dict], list[dict]]:
+    """Rows over all test epochs and rows over RTKLIB's solved test epochs, for each dataset."""
+    from estimators.base import STATUS_NONE, STATUS_UPDATED, Solution
+    from .outputs import plot_solution
+
+    all_rows, rtk_rows = [], []
+    for dataset_id in dataset_ids:
+        spec = datasets.get(dataset_id)
+        if spec.missing():
+            print(f"{dataset_id}: skipped, missing {spec.missing()[0]}")
+            continue
+        test = datasets.load_split(dataset_id, "test")[0]
+        truth = test.truth_ecef_m
+        with tempfile.TemporaryDirectory() as tmp:
+            rtk_pos, rtk_s = _rtklib_on(test, spec, Path(tmp))
+        solutions = {}
+        if rtk_pos is not None:
+            ok = np.all(np.isfinite(rtk_pos), axis=1)
+            all_rows.append(accuracy_table(rtk_pos, truth, ok, dataset=dataset_id, method="RTKLIB rnx2rtkp",
+                                           trained_on="-") | {"epochs_per_s": float("nan")})
+        for m in methods(model_dir):
+            estimator = m.create()
+            start = time.perf_counter()
+            sol = estimator.solve(test)
+            rate = len(test) / (time.perf_counter() - start)
+            solutions[m.name] = sol
+            trained = _trained_on(m.model)
+            all_rows.append(accuracy_table(sol.pos_ecef_m, truth, sol.available, dataset=dataset_id, method=m.name,
+                                           trained_on=trained) | {"epochs_per_s": rate})
+            if rtk_pos is not None and ok.any():
+                rtk_rows.append(accuracy_table(sol.pos_ecef_m[ok], truth[ok], sol.available[ok], dataset=dataset_id,
+                                               method=m.name, trained_on=trained))
+        if rtk_pos is not None and ok.any():
+            rtk_rows.append(accuracy_table(rtk_pos[ok], truth[ok], ok[ok], dataset=dataset_id,
+                                           method="RTKLIB rnx2rtkp", trained_on="-"))
+            solutions["RTKLIB"] = Solution("rtklib", test.time_gps_s, rtk_pos, np.zeros((len(test), 3, 3)),
+                                           np.zeros(len(test)), np.zeros(len(test), int),
+                                           np.where(ok, STATUS_UPDATED, STATUS_NONE))
+        if plots and out_dir is not None and solutions:
+            main_name = "LF-GNSS EKF" if "LF-GNSS EKF" in solutions else next(iter(solutions))
+            extra = {k: v for k, v in solutions.items() if k != main_name}
+            plot_solution(out_dir / "figures", solutions[main_name], truth, extra_solutions=extra,
+                          prefix=f"{dataset_id}-")
+    return all_rows, rtk_rows
+
+
+def _trained_on(model: Path | None) -> str:
+    if model is None:
+        return "-"
+    from learning.export import load_model
+
+    meta = load_model(model).metadata
+    data = (meta.get("config") or {}).get("data", {})
+    return "+".join(data.get("datasets", [])) + f" ({data.get('train_split', 'train')})"
+
+
+_COLUMNS = ("dataset", "method", "trained_on", "n_labelled", "availability", "rmse_e_m", "rmse_n_m", "rmse_u_m",
+            "rmse_2d_m", "rmse_3d_m", "p50_2d_m", "p95_2d_m", "p50_3d_m", "p95_3d_m", "epochs_per_s")
+
+
+def _select(rows: list[dict]) -> list[dict]:
+    return [{k: r[k] for k in _COLUMNS if k in r} for r in rows]
+
+
+def write_report(path: Path, all_rows: list[dict], rtk_rows: list[dict], command: str) -> Path:
+    """Markdown results file with both tables and how they were made."""
+    text = [
+        "# lfgnss benchmark results",
+        "",
+        f"Produced by `{command}` (protocol: shared/BENCHMARK.md; test splits only; RMSE in metres in the local "
+        "ENU frame of the ground truth; availability = share of labelled test epochs with a solution; "
+        "epochs/s = estimator stage only, this machine, one run).",
+        "",
+        "## All labelled test epochs",
+        "",
+        format_markdown(_select(all_rows)),
+        "",
+        "## Epochs that RTKLIB solved (its chi-square test rejects the rest)",
+        "",
+        format_markdown(_select(rtk_rows)) if rtk_rows else "RTKLIB not installed: no rows.",
+        "",
+        "Figures: `figures/<dataset>-cdf.png`, `-track.png`, `-errors.png`.",
+        "",
+    ]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("\n".join(text))
+    return path
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the benchmark and write the results file."""
+    p = argparse.ArgumentParser(prog="python -m lfgnss.benchmark", description=__doc__.split("\n\n")[0])
+    p.add_argument("datasets", nargs="*", default=["hk-tst-2019", "berlin-pp", "hk-tst-static-2020"])
+    p.add_argument("--models", type=Path, default=MODEL_DIR, help="folder with lfgnss-*.npz model files")
+    p.add_argument("--out", type=Path, default=Path("docs"), help="folder for results.md and figures/")
+    p.add_argument("--no-plots", action="store_true")
+    args = p.parse_args(argv)
+    warnings.simplefilter("ignore", FutureWarning)
+    all_rows, rtk_rows = run(args.datasets, model_dir=args.models, out_dir=args.out, plots=not args.no_plots)
+    print(format_text(_select(all_rows)))
+    if rtk_rows:
+        print("\nOn the epochs RTKLIB solved:")
+        print(format_text(_select(rtk_rows)))
+    command = "python -m lfgnss.benchmark" + (" " + " ".join(argv) if argv else "")
+    print(f"\nwritten: {write_report(args.out / 'results.md', all_rows, rtk_rows, command)}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,124 @@
+"""Writes the notebooks of this folder (python notebooks/make_notebooks.py from the repo root)."""
+import nbformat as nbf
+from pathlib import Path
+
+def nb(cells, path):
+    n = nbf.v4.new_notebook()
+    n.metadata["kernelspec"] = {"name": "python3", "display_name": "Python 3", "language": "python"}
+    n.cells = [nbf.v4.new_markdown_cell(c[1]) if c[0] == "md" else nbf.v4.new_code_cell(c[1]) for c in cells]
+    nbf.write(n, path)
+
+nb([
+("md", "# Comparing estimators\n\nEqual-weight least squares, the plain EKF (hand-set C/N0 noise, innovation gate), and the LF-GNSS EKF and factor graph with the shipped model, on the bundled Berlin drive (smartLoc, CC BY-SA 4.0) and, when present, on a shared benchmark dataset's test split."),
+("code", """import warnings
+warnings.simplefilter("ignore", FutureWarning)
+import numpy as np
+import matplotlib
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+
+import lfgnss
+import estimators
+from lfgnss import datasets
+from lfgnss.metrics import accuracy_table, enu_errors, format_markdown
+from lfgnss.solve import DEFAULT_MODEL, SAMPLE_NAV, SAMPLE_OBS, SAMPLE_TRUTH"""),
+("code", """meas = lfgnss.load(SAMPLE_OBS, SAMPLE_NAV)
+fix = lfgnss.spp(meas)
+spec = datasets.DatasetSpec("sample", (SAMPLE_OBS,), SAMPLE_NAV, SAMPLE_TRUTH, "smartloc",
+                            time_origin_gps_s=meas.time_gps_s[0])
+truth, _ = datasets.align_truth(meas.time_gps_s, spec)
+seq = lfgnss.build_sequence(meas, fix, truth_ecef_m=truth)
+print(fix.summary())"""),
+("code", """def learned():
+    if DEFAULT_MODEL.exists():
+        from learning.export import load_model
+        return {"noise": load_model(DEFAULT_MODEL)}
+    return {}
+
+def compare(seq):
+    runs = {"least squares": estimators.create("wls"), "plain EKF": estimators.create("plain-ekf"),
+            "LF-GNSS EKF": estimators.create("ekf", **learned()), "LF-GNSS FGO": estimators.create("fgo", **learned())}
+    sols = {name: est.solve(seq) for name, est in runs.items()}
+    rows = [accuracy_table(s.pos_ecef_m, seq.truth_ecef_m, s.available, method=name) for name, s in sols.items()]
+    return sols, rows
+
+sols, rows = compare(seq)
+print(format_markdown([{k: r[k] for k in ("method", "availability", "rmse_2d_m", "rmse_3d_m", "p95_3d_m")} for r in rows]))"""),
+("code", """fig, ax = plt.subplots(figsize=(6, 4))
+for name, s in sols.items():
+    err = np.linalg.norm(enu_errors(s.pos_ecef_m, seq.truth_ecef_m), axis=1)
+    err = np.sort(err[np.isfinite(err)])
+    ax.plot(err, np.linspace(0, 1, err.size), label=name)
+ax.set_xscale("log"); ax.set_xlabel("3D error [m]"); ax.set_ylabel("CDF"); ax.legend(); ax.grid(True, alpha=0.3)
+fig.savefig("comparison_cdf.png", dpi=100)"""),
+("md", "## A shared benchmark dataset (skipped when `../shared/data` is absent)"),
+("code", """spec = datasets.get("hk-tst-static-2020")
+if spec.missing():
+    print("shared data not found:", spec.missing()[0])
+else:
+    test = datasets.load_split("hk-tst-static-2020", "test")[0]
+    _, rows = compare(test)
+    print(format_markdown([{k: r[k] for k in ("method", "availability", "rmse_2d_m", "rmse_3d_m")} for r in rows]))"""),
+], "notebooks/estimator_comparison.ipynb")
+
+nb([
+("md", "# Training walk-through\n\nThe LF-GNSS network is trained end to end through a differentiable EKF (`learning.torch_ekf`). This notebook trains a small model for a few epochs on simulated urban drives (seconds on a laptop), exports it to a model file and uses it in the filterpy EKF plug-in. For the real benchmark data use `python -m learning.train --config learning/configs/shipped.toml` (see `docs/results.md` for the command that made the shipped model)."),
+("code", """import tempfile, warnings
+from pathlib import Path
+warnings.simplefilter("ignore", FutureWarning)
+import numpy as np
+from learning.train import load_config, train
+from learning.export import load_model
+import estimators
+from lfgnss.simulate import simulate_sequence
+from lfgnss.metrics import accuracy_table"""),
+("code", """config = load_config("../learning/configs/synthetic.toml" if Path("../learning").exists() else None,
+                     ["train.epochs=3", "data.synthetic.n_epochs=120", "data.window=20"])
+print({k: config[k] for k in ("data", "loss")})"""),
+("code", """out = Path(tempfile.mkdtemp()) / "run"
+result = train(config, out, progress=False)
+print(open(out / "log.csv").read())"""),
+("code", """model = load_model(out / "model.npz")
+print(model, model.metadata["val_rmse_3d_m"])
+seq = simulate_sequence(200, seed=42)
+for name, est in {"plain EKF": estimators.create("plain-ekf"), "learned EKF": estimators.create("ekf", noise=model)}.items():
+    sol = est.solve(seq)
+    print(name, round(accuracy_table(sol.pos_ecef_m, seq.truth_ecef_m, sol.available)["rmse_3d_m"], 2), "m")"""),
+], "notebooks/training_walkthrough.ipynb")
+
+nb([
+("md", "# Use your own data\n\nDescribe your receiver's files in a small TOML file, register it, and every tool of lfgnss (the estimators, the trainer, the benchmark) can use it by id. Here the bundled Berlin files stand in for your own."),
+("code", """import tempfile, warnings
+from pathlib import Path
+warnings.simplefilter("ignore", FutureWarning)
+import estimators
+from lfgnss import datasets
+from lfgnss.metrics import accuracy_table
+from lfgnss.outputs import write_csv, write_pos
+from lfgnss.solve import SAMPLE_DIR
+
+folder = Path(tempfile.mkdtemp())
+config = folder / "my-drive.toml"
+config.write_text(f'''
+id = "my-drive"
+obs = ["{SAMPLE_DIR / 'Berlin_Potsdamer_Platz.obs.gz'}"]
+nav = ["{SAMPLE_DIR / 'brdc1580.16n.gz'}", "{SAMPLE_DIR / 'brdc1580.16g.gz'}"]
+[truth]
+file = "{SAMPLE_DIR / 'Berlin_Potsdamer_Platz_GT.txt'}"
+format = "smartloc"
+time_origin_gps_s = {1900 * 604800 + 126641.7}
+[splits]
+axis = "relative_s"
+train = [0, 150]
+val = [150, 180]
+test = [180, 400]
+''')
+spec = datasets.register_toml(config)
+print(spec.id, [p.name for p in spec.files()])"""),
+("code", """print(datasets.alignment_report(["my-drive"]))"""),
+("code", """test = datasets.load_split("my-drive", "test")[0]
+sol = estimators.create("plain-ekf").solve(test)
+print(accuracy_table(sol.pos_ecef_m, test.truth_ecef_m, sol.available, method="plain-ekf"))
+print(write_pos(folder / "my-drive.pos", sol), write_csv(folder / "my-drive.csv", sol, test.truth_ecef_m))"""),
+("md", "To train on it, register it in the same Python process and call the trainer: `learning.train.train(learning.train.load_config(\"learning/configs/default.toml\", ['data.datasets=[\"my-drive\"]']), \"runs/my-drive\")`. `python -m lfgnss.datasets --register my-drive.toml` prints its alignment report."),
+], "notebooks/your_own_data.ipynb")
