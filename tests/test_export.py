@@ -121,3 +121,36 @@ def test_file_is_a_single_npz_without_pickles(exported):
         names = z.namelist()
     assert "metadata.npy" in names and any(n.startswith("param/") for n in names)
     np.load(exported[0], allow_pickle=False)["metadata"]
+
+
+def test_prior_network_untrained_equals_heuristic_and_exports(tmp_path):
+    """With model.r_prior the untrained head (o_R = 0) gives the plain EKF's noise; numpy export agrees."""
+    from estimators.noise import HeuristicNoise
+    from learning.network import heuristic_prior
+
+    seq = simulate_sequence(40, seed=5, n_slots=16)
+    norm = Normaliser.fit([seq], DEFAULT_FEATURES)
+    prior = heuristic_prior(norm.feature_names, norm.mean, norm.std)
+    net = LfgnssNet(len(DEFAULT_FEATURES), r_floor_m2=1e-9, r_prior=prior).double().eval()
+    with torch.no_grad():
+        net.head.weight.zero_()
+        net.head.bias.zero_()
+    x = torch.as_tensor(norm.apply(select_features(seq, DEFAULT_FEATURES), seq.mask))
+    with torch.no_grad():
+        r, vc = net(x, torch.as_tensor(seq.mask))
+    expected, _ = HeuristicNoise()(seq)
+    np.testing.assert_allclose(r.numpy()[seq.mask], expected[seq.mask], rtol=1e-9)
+    assert np.all(vc.numpy() == 0.0)
+
+    with torch.no_grad():
+        for p in net.parameters():
+            p.add_(0.1 * torch.randn_like(p))
+    ckpt = tmp_path / "best.pt"
+    torch.save({"model": net.float().state_dict(), "model_hparams": net.hyperparameters(),
+                "normaliser": norm.to_dict(), "config": {}, "epoch": 1, "history": []}, ckpt)
+    model = load_model(export_model(ckpt, tmp_path / "model.npz"))
+    r_np, vc_np = model(seq)
+    with torch.no_grad():
+        r_t, vc_t = net.float()(x.float(), torch.as_tensor(seq.mask))
+    np.testing.assert_allclose(r_np[seq.mask], r_t.numpy()[seq.mask], rtol=1e-4)
+    np.testing.assert_allclose(vc_np[seq.mask], vc_t.numpy()[seq.mask], rtol=1e-4, atol=1e-4)
