@@ -1,0 +1,106 @@
+"""``python -m lfgnss.summary``: look at a dataset's features before training.
+
+Prints per-dataset (and per-constellation) statistics of the packed features and writes two PNGs per
+dataset: a sky plot coloured by the coarse pseudorange residual, and C/N0 against the residual.
+"""
+from __future__ import annotations
+
+import argparse
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from . import datasets
+from .sequence import Sequence
+
+
+def feature_statistics(seq: Sequence) -> list[dict]:
+    """One row per constellation and one for all: satellites per epoch, C/N0 and |residual| percentiles."""
+    names = list(seq.feature_names)
+    rows = []
+    groups = [("all", seq.mask)] + [(s, seq.mask & (seq.system_index == k)) for k, s in enumerate(seq.systems)]
+    for label, m in groups:
+        cn0 = seq.cn0_dbhz[m]
+        res = np.abs(seq.features[..., names.index("residual")][m]) if "residual" in names else np.zeros(0)
+        row = {"dataset": seq.name, "system": label, "epochs": len(seq),
+               "sats_per_epoch": float(m.sum(1).mean()) if len(seq) else 0.0,
+               "cn0_p5": np.percentile(cn0, 5) if cn0.size else np.nan,
+               "cn0_p50": np.percentile(cn0, 50) if cn0.size else np.nan,
+               "res_p50_m": np.percentile(res, 50) if res.size else np.nan,
+               "res_p95_m": np.percentile(res, 95) if res.size else np.nan}
+        rows.append(row)
+    return rows
+
+
+def plot_features(seq: Sequence, out_dir: Path, prefix: str) -> list[Path]:
+    """Sky plot coloured by |residual| and C/N0-vs-residual scatter, as PNGs."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    m = seq.mask
+    res = seq.features[..., list(seq.feature_names).index("residual")][m]
+    written = []
+
+    fig = Figure(figsize=(6, 6))
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(projection="polar")
+    ax.set_theta_zero_location("N")
+    ax.set_theta_direction(-1)
+    sc = ax.scatter(seq.az_rad[m], 90.0 - np.degrees(seq.el_rad[m]), c=np.clip(np.abs(res), 0, 60), s=3,
+                    cmap="viridis")
+    ax.set_rlim(0, 90)
+    ax.set_yticks([0, 30, 60, 90], labels=["90", "60", "30", "0"])
+    fig.colorbar(sc, ax=ax, label="|coarse residual| [m] (clipped at 60)", shrink=0.8)
+    ax.set_title(f"{seq.name}: sky plot")
+    written.append(out_dir / f"{prefix}skyplot.png")
+    fig.savefig(written[-1], dpi=110)
+
+    fig = Figure(figsize=(6, 4))
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    for k, s in enumerate(seq.systems):
+        sel = seq.system_index[m] == k
+        ax.scatter(seq.cn0_dbhz[m][sel], res[sel], s=2, alpha=0.4, label=s)
+    ax.set_xlabel("C/N0 [dB-Hz]")
+    ax.set_ylabel("coarse residual [m]")
+    ax.set_ylim(-100, 150)
+    ax.grid(True, alpha=0.3)
+    ax.legend(markerscale=5)
+    ax.set_title(f"{seq.name}: C/N0 vs residual")
+    written.append(out_dir / f"{prefix}cn0_residual.png")
+    fig.savefig(written[-1], dpi=110)
+    return written
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Print feature statistics of datasets and write their plots."""
+    import pandas as pd
+
+    p = argparse.ArgumentParser(prog="python -m lfgnss.summary", description=__doc__.split("\n\n")[0])
+    p.add_argument("ids", nargs="*", help="dataset ids (default: the registered TOML datasets, else the "
+                                          "three benchmark datasets)")
+    p.add_argument("--register", action="append", default=[], metavar="TOML", help="user dataset config")
+    p.add_argument("--out", type=Path, default=Path("lfgnss-summary"), help="folder for the PNGs")
+    args = p.parse_args(argv)
+    warnings.simplefilter("ignore", FutureWarning)
+    registered = [datasets.register_toml(t).id for t in args.register]
+    ids = list(args.ids) + registered or ["hk-tst-2019", "berlin-pp", "hk-tst-static-2020"]
+    rows, written = [], []
+    for dataset_id in ids:
+        spec = datasets.get(dataset_id)
+        if spec.missing():
+            print(f"{dataset_id}: skipped, missing {spec.missing()[0]}")
+            continue
+        seq = datasets.build(dataset_id)
+        rows += feature_statistics(seq)
+        written += plot_features(seq, args.out, f"{dataset_id}-")
+    if rows:
+        print(pd.DataFrame(rows).to_string(index=False, float_format=lambda v: f"{v:.1f}"))
+    print(f"plots: {', '.join(str(w) for w in written)}" if written else "no dataset found")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

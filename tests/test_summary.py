@@ -1,0 +1,29 @@
+"""Feature summary command: statistics and plots for a dataset (here the bundled sample as a user dataset)."""
+import numpy as np
+
+from lfgnss import datasets
+from lfgnss.solve import SAMPLE_DIR
+from lfgnss.summary import feature_statistics, main
+
+
+def test_summary_command_writes_stats_and_plots(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("LFGNSS_CACHE", str(tmp_path / "cache"))
+    cfg = tmp_path / "sample.toml"
+    cfg.write_text(f'''
+id = "summary-sample"
+obs = ["{SAMPLE_DIR / 'Berlin_Potsdamer_Platz.obs.gz'}"]
+nav = ["{SAMPLE_DIR / 'brdc1580.16n.gz'}", "{SAMPLE_DIR / 'brdc1580.16g.gz'}"]
+[truth]
+file = "{SAMPLE_DIR / 'Berlin_Potsdamer_Platz_GT.txt'}"
+format = "smartloc"
+time_origin_gps_s = {1900 * 604800 + 126641.7}
+''')
+    assert main(["--register", str(cfg), "--out", str(tmp_path / "png")]) == 0
+    out = capsys.readouterr().out
+    assert "summary-sample" in out and "cn0_p50" in out
+    pngs = sorted(p.name for p in (tmp_path / "png").glob("*.png"))
+    assert pngs == ["summary-sample-cn0_residual.png", "summary-sample-skyplot.png"]
+    rows = feature_statistics(datasets.build("summary-sample"))
+    assert [r["system"] for r in rows] == ["all", "G", "R"]
+    assert 10 < rows[0]["sats_per_epoch"] < 20 and 30 < rows[0]["cn0_p50"] < 50
+    assert np.isclose(rows[1]["sats_per_epoch"] + rows[2]["sats_per_epoch"], rows[0]["sats_per_epoch"])
