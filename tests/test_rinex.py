@@ -141,3 +141,13 @@ def test_crlf_line_endings(tmp_path):
     path.write_bytes(text.replace("\n", "\r\n").encode())
     ref = load_obs(SAMPLE_OBS)
     np.testing.assert_array_equal(load_obs(path, cache=False).pr_m, ref.pr_m)
+
+
+@pytest.mark.parametrize("kind", ["hatanaka", "hatanaka+gzip"], ids=str)
+def test_hatanaka_compressed(kind, tmp_path):
+    hatanaka = pytest.importorskip("hatanaka")
+    crx = hatanaka.rnx2crx(gzip.decompress(SAMPLE_OBS.read_bytes()))
+    assert crx.startswith(b"1.0") and b"COMPACT RINEX" in crx[:80]
+    path = tmp_path / ("s.16d" if kind == "hatanaka" else "s.16d.gz")
+    path.write_bytes(crx if kind == "hatanaka" else gzip.compress(crx))
+    np.testing.assert_array_equal(load_obs(path, cache=False).pr_m, load_obs(SAMPLE_OBS).pr_m)
