@@ -136,7 +136,9 @@ def load(obs: str | Path | Observations, nav: str | Path | Iterable[str | Path] 
                                 observations.approx_ecef_m, observations.warnings)
 
     n_t, n_s = observations.pr_m.shape
-    t_idx, s_idx = np.nonzero(np.isfinite(observations.pr_m))
+    # satellite states only for plausible pseudoranges: the transmission time comes from them, and an
+    # absurd one (1e308 m) would ask for an orbit propagated over ages; qc marks them out of range
+    t_idx, s_idx = np.nonzero((observations.pr_m >= qc_config.pr_min_m) & (observations.pr_m <= qc_config.pr_max_m))
     states = satellite_states(navigation, observations.sv[s_idx], observations.time_gps_s[t_idx],
                               observations.pr_m[t_idx, s_idx])
     pos = np.zeros((n_t, n_s, 3))

@@ -31,6 +31,7 @@ from .time import glonass_to_gps_s
 _PARSER_VERSION = 4
 _GPS_EPOCH = dt.datetime(1980, 1, 6)
 _SV_RE = re.compile(r"^[GRECJSI][ 0-9][0-9]$")
+_V2_RECORD_LIKE = re.compile(r"^[ 0-9.\-]*[0-9][ 0-9.\-]*$")  # digits, blanks, points, signs only
 _V2_EPOCH_RE = re.compile(r"^ [ \d]\d [ \d]\d [ \d]\d [ \d]\d [ \d]\d [ \d]\d\.\d+ +[0-6][ \d]{3}")
 
 #: Pseudorange code preference per constellation (single frequency, L1/E1/B1I/G1).
@@ -89,8 +90,8 @@ def _read_bytes(path: Path) -> bytes:
 def _decode(raw: bytes, path: Path) -> tuple[str, list[str]]:
     """Text of the file, decompressed (gzip, .Z, Hatanaka), CRLF normalised, non-ASCII bytes replaced.
 
-    A gzip stream that ends early or is damaged part-way (interrupted download) keeps what could be
-    decompressed, with a note; the epoch cut in the middle is then dropped like any truncated epoch.
+    A gzip stream that ends early (interrupted download) keeps what could be decompressed, with a
+    note; the epoch cut in the middle is then dropped like any truncated epoch.
     """
     notes: list[str] = []
     if raw[:2] == b"\x1f\x8b":
@@ -107,30 +108,30 @@ def _decode(raw: bytes, path: Path) -> tuple[str, list[str]]:
 
 
 def _gunzip(raw: bytes, path: Path, notes: list[str]) -> bytes:
-    """Decompress every gzip member; keep the data before a truncation or damage (with a note)."""
+    """Decompress every gzip member. A stream that ends early keeps the data before the cut (deflate
+    output is an exact prefix of the original), with a note; damaged data (a bad block or checksum)
+    are an error, since the damage may lie anywhere before the point where zlib notices it.
+    """
     out: list[bytes] = []
     rest = raw
     while rest:
         d = zlib.decompressobj(wbits=31)
         try:
-            for k in range(0, len(rest), 1 << 16):  # chunks: data before a damaged block is kept
-                out.append(d.decompress(rest[k: k + (1 << 16)]))
-                if d.eof:
-                    break
+            out.append(d.decompress(rest))
             out.append(d.flush())
         except zlib.error as err:
-            reason = f"damaged ({err})"
-        else:
-            if d.eof:
-                rest = d.unused_data.lstrip(b"\0")  # next member; trailing zero padding is allowed
-                continue
-            reason = "truncated"
-        size = sum(map(len, out))
-        if size == 0:
-            raise RinexError(path, f"cannot decompress: gzip data {reason}") from None
-        notes.append(f"{path}: compressed data end early (gzip data {reason}): {size} bytes recovered, "
-                     f"the rest of the file is lost")
-        break
+            raise RinexError(path, f"cannot decompress: damaged gzip data ({err})") from None
+        if not d.eof:
+            size = sum(map(len, out))
+            if size == 0:
+                raise RinexError(path, "cannot decompress: gzip data end before any content")
+            notes.append(f"{path}: compressed data end early (gzip data truncated): {size} bytes recovered, "
+                         f"the rest of the file is lost")
+            break
+        rest = d.unused_data.lstrip(b"\0")  # next member; trailing zero padding is allowed
+        if rest and rest[:2] != b"\x1f\x8b":
+            notes.append(f"{path}: {len(rest)} bytes after the end of the gzip data ignored")
+            break
     return b"".join(out)
 
 
@@ -256,6 +257,8 @@ def _cut_v3(body, n_header, path, info, problems):
             continue
         try:
             y, mo, d, h, mi, s, flag, nsat = _epoch_fields(ln, True)
+            if nsat < 0 or not 0 <= flag <= 6:  # a negative count would step backwards: endless loop
+                raise ValueError
             t = _to_gps_s(y, mo, d, h, mi, s, info["time_system"])
         except (ValueError, IndexError):
             problems.append(f"{path}:{lineno}: unreadable epoch line, epoch skipped")
@@ -311,9 +314,18 @@ def _cut_v2(body, n_header, path, info, problems):
             i += 1 + nsat
             continue
         n_sv_lines = max(1, (nsat + 11) // 12)
-        sv_text = "".join(body[i + k][32:68].ljust(36) for k in range(n_sv_lines) if i + k < n)
+        if any(i + k >= n or body[i + k][:32].strip() for k in range(1, n_sv_lines)):
+            # a continuation line of satellite ids starts with 32 blanks; anything else means the epoch's
+            # lines are shifted (a lost or repeated line) and its records would go to the wrong satellites
+            problems.append(f"{path}:{lineno}: epoch line without its satellite-id continuation line, skipped "
+                            f"up to the next epoch")
+            i += 1
+            while i < n and not _V2_EPOCH_RE.match(body[i]):
+                i += 1
+            continue
+        sv_text = "".join(body[i + k][32:68].ljust(36) for k in range(n_sv_lines) if i + k < n).ljust(3 * nsat)
         svs = [sv_text[3 * k: 3 * k + 3] for k in range(nsat)]
-        svs = [("G" + s[1:]) if s[0] == " " else s for s in svs]  # blank system letter means GPS
+        svs = [("G" + s[1:]) if s[0] == " " and s[1:].strip() else s for s in svs]  # blank system letter: GPS
         first = i + n_sv_lines
         recs = body[first: first + nsat * lines_per_sat]
         bad = next((k for k, r in enumerate(recs) if _V2_EPOCH_RE.match(r)), len(recs))
@@ -321,6 +333,19 @@ def _cut_v2(body, n_header, path, info, problems):
             problems.append(f"{path}:{lineno}: epoch truncated ({bad // lines_per_sat} of {nsat} satellite "
                             f"records), skipped")
             i = first + bad
+            continue
+        nxt = first + nsat * lines_per_sat
+        while nxt < n and not body[nxt].strip():
+            nxt += 1
+        if nxt < n and not _V2_EPOCH_RE.match(body[nxt]) and _V2_RECORD_LIKE.match(body[nxt]):
+            # one record line more than announced: a record was repeated or inserted, and since RINEX 2
+            # records carry no satellite id, those after it would be matched to the wrong satellites
+            problems.append(f"{path}:{lineno}: epoch followed by one record line more than its {nsat} "
+                            f"satellites (line {n_header + nxt + 1}): records cannot be matched to satellites, "
+                            f"skipped up to the next epoch")
+            i = nxt + 1
+            while i < n and not _V2_EPOCH_RE.match(body[i]):
+                i += 1
             continue
         ep = len(times)
         times.append(t)
@@ -343,6 +368,37 @@ def _numbers(texts: pd.Series) -> tuple[np.ndarray, np.ndarray]:
     return values, garbage
 
 
+_TIME_TOL_S = 1e-6
+
+
+def _increasing_epochs(times: np.ndarray) -> np.ndarray:
+    """(T,) bool: the longest strictly increasing run of epoch times, preferring the earliest epochs.
+
+    Dropping the fewest epochs means one bad time stamp (a duplicate, a step back, or a jump far ahead)
+    costs that epoch only, never the epochs after it; earlier epochs are kept on ties, so damage later
+    in a file never removes epochs before it.
+    """
+    import bisect
+
+    n = times.size
+    longest = np.zeros(n, int)   # longest increasing run starting at each epoch (patience sorting, backwards)
+    tails: list[float] = []      # tails[k]: largest start of a run of length k + 1 (negated: ascending)
+    for i in range(n - 1, -1, -1):
+        x = -times[i]
+        pos = bisect.bisect_left(tails, x - _TIME_TOL_S)
+        longest[i] = pos + 1
+        if pos == len(tails):
+            tails.append(x)
+        elif x < tails[pos]:
+            tails[pos] = x
+    keep = np.zeros(n, bool)
+    need, last = (int(longest.max()) if n else 0), -np.inf
+    for i in range(n):
+        if need and longest[i] == need and times[i] > last + _TIME_TOL_S:
+            keep[i], last, need = True, times[i], need - 1
+    return keep
+
+
 def _gpst_text(t: float) -> str:
     return (_GPS_EPOCH + dt.timedelta(seconds=float(t))).isoformat(" ", "milliseconds") + " GPST"
 
@@ -350,22 +406,24 @@ def _gpst_text(t: float) -> str:
 def _assemble(path, info, codes, epoch_times, epoch_lines, rec_epoch, rec_sv, rec_text, rec_line,
               problems) -> Observations:
     times = np.asarray(epoch_times, dtype=float)
-    keep_epoch = np.ones(times.size, bool)
-    last = -np.inf
-    for k, t in enumerate(times):  # time must increase: duplicates and backward steps are dropped
-        if t <= last + 1e-6:
-            keep_epoch[k] = False
-            what = "repeats" if abs(t - last) <= 1e-6 else "is before"
-            problems.append(f"{path}:{epoch_lines[k]}: epoch {_gpst_text(t)} {what} the previous epoch "
-                            f"{_gpst_text(last)} (duplicate or time going backwards), skipped")
+    keep_epoch = _increasing_epochs(times)
+    kept = np.flatnonzero(keep_epoch)
+    for k in np.flatnonzero(~keep_epoch):  # duplicates, backward steps and time stamps out of order
+        i = np.searchsorted(kept, k)
+        prev = times[kept[i - 1]] if i > 0 else None
+        if prev is not None and times[k] <= prev + _TIME_TOL_S:
+            what = "repeats" if abs(times[k] - prev) <= _TIME_TOL_S else "is before"
+            why = f"{what} the previous epoch {_gpst_text(prev)} (duplicate or time going backwards)"
         else:
-            last = t
-    sv = pd.Series(rec_sv, dtype=object).str.replace(" ", "0")
+            why = f"is after the next epoch {_gpst_text(times[kept[i]])} (time stamp out of order)"
+        problems.append(f"{path}:{epoch_lines[k]}: epoch {_gpst_text(times[k])} {why}, skipped")
+    raw_sv = pd.Series(rec_sv, dtype=object)
+    sv = raw_sv.str.replace(" ", "0")
     system = sv.str[0]
     text = pd.Series(rec_text, dtype=object)
     epoch = np.asarray(rec_epoch, dtype=int)
     line = np.asarray(rec_line, dtype=int)
-    valid_sv = sv.str.match(_SV_RE.pattern).to_numpy() if len(sv) else np.zeros(0, bool)
+    valid_sv = (raw_sv.str.match(_SV_RE.pattern) & (sv.str[1:] != "00")).to_numpy() if len(sv) else np.zeros(0, bool)
     n_rec = len(sv)
     pr = np.full(n_rec, np.nan)
     cn0 = np.full(n_rec, np.nan)

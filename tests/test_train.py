@@ -87,3 +87,24 @@ def test_test_split_is_refused(config, tmp_path):
 def test_existing_run_needs_resume(full_run, config):
     with pytest.raises(ValueError, match="--resume"):
         train(config, full_run[0], progress=False)
+
+
+def test_feature_selection_normaliser_and_padding():
+    from learning.data import DPC_FEATURES, Window, collate, resolve_feature_names
+    from learning.normalise import Normaliser
+    from lfgnss.simulate import simulate_sequence
+
+    assert resolve_feature_names(None, ["dpc"]) == ("cn0", "elevation", "azimuth", "residual")
+    assert load_config("learning/configs/no_dpc_no_hem.toml")["loss"]["kind"] == "rmse"
+    a = simulate_sequence(30, seed=1)                   # 14 slots
+    b = simulate_sequence(30, seed=2, n_slots=20)       # 20 slots, 6 padded
+    names = resolve_feature_names(None, ["dpc"])
+    norm = Normaliser.fit([a, b], names)
+    valid = np.concatenate([a.features[a.mask][:, :4], b.features[b.mask][:, :4]])
+    np.testing.assert_allclose(norm.mean, valid.mean(axis=0))
+    batch = collate([a, b], [Window(0, 0, 10), Window(1, 5, 10)], norm)
+    assert batch.features.shape == (2, 10, 20, 4) and batch.features.dtype == torch.float32
+    assert not batch.mask[0, :, 14:].any() and (batch.features[~batch.mask] == 0).all()
+    x = norm.apply_torch(torch.as_tensor(b.features[..., :4]), torch.as_tensor(b.mask))
+    np.testing.assert_allclose(x.numpy(), norm.apply(b.features[..., :4], b.mask))
+    assert not set(DPC_FEATURES) & set(norm.feature_names)
