@@ -99,7 +99,8 @@ def _coverage(navigation: Navigation, observations: Observations) -> str:
     t = observations.time_gps_s
     if toe.size == 0 or t.size == 0 or (toe.min() <= t[-1] and toe.max() >= t[0]):
         return ""
-    day = [str(gps_s_to_datetime64(v).astype("datetime64[s]")).replace("T", " ") for v in (toe.min(), toe.max(), t[0], t[-1])]
+    day = [str(gps_s_to_datetime64(v).astype("datetime64[s]")).replace("T", " ")
+           for v in (toe.min(), toe.max(), t[0], t[-1])]
     return f"; its ephemerides span {day[0]} to {day[1]} GPST, the observations {day[2]} to {day[3]}"
 
 

@@ -12,11 +12,13 @@ Every case is cut from the bundled real Berlin sample and damaged in one way. Fo
 """
 from __future__ import annotations
 
+import atexit
 import csv
 import io
 import json
 import os
 import re
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -39,8 +41,9 @@ from lfgnss.solve import DEFAULT_MODEL, main  # noqa: E402
 REPO = Path(__file__).resolve().parents[1]
 CASE_NAMES = [fn.__name__ for fn in make_corpus._BUILDERS]
 # outcomes at collection time, from a quick build without the model files (they need torch)
-_OUTCOMES = {c.name: c.outcome for c in make_corpus.build(tempfile.mkdtemp(prefix="lfgnss-corpus-"),
-                                                          models=False).values()}
+_SCRATCH = tempfile.mkdtemp(prefix="lfgnss-corpus-")
+atexit.register(shutil.rmtree, _SCRATCH, ignore_errors=True)
+_OUTCOMES = {c.name: c.outcome for c in make_corpus.build(_SCRATCH, models=False).values()}
 SOLVED_OBS_CASES = [n for n in CASE_NAMES if n.startswith("obs_") and _OUTCOMES.get(n) != "error"]
 BAD_NUMBER = re.compile(r"\b(nan|inf|infinity)\b", re.IGNORECASE)
 
@@ -145,7 +148,8 @@ def test_api(corpus, name):
         assert hits, notes
         if case.line is not None:
             assert any(f":{case.line}:" in n for n in hits), hits
-        assert all(str(w.message).startswith(str(folder)) for w in caught if issubclass(w.category, UserWarning))
+        rinex_warnings = [str(w.message) for w in caught if issubclass(w.category, lfgnss.rinex.RinexWarning)]
+        assert all(m.startswith(str(folder)) and "\n" not in m for m in rinex_warnings), rinex_warnings
     else:
         assert not [n for n in notes if "skipped" in n], notes
     if case.qc is not None:
@@ -291,6 +295,26 @@ def test_gap_restarts_the_filter(corpus, tmp_path):
     k = case.extra["reset_at"]
     assert t[k] - t[k - 1] > 180
     assert rows[k]["status"] == "reset" and all(r["status"] != "none" for r in rows)
+
+
+@pytest.mark.parametrize("backend, mode", [("ekf", None), ("fgo", "batch"), ("fgo", "fixed-lag")])
+def test_tunnel_is_coasted(corpus, backend, mode, tmp_path):
+    """60 s of epochs without satellites: coasted, then updated again; never a traceback."""
+    folder, cases = corpus
+    case = cases["obs_empty_epochs"]
+    out = tmp_path / "out"
+    args = _cli_args(folder, case, out, backend) + (["--mode", mode] if mode else [])
+    code, stdout, stderr = _cli(args)
+    assert "Traceback" not in stdout + stderr
+    if code == 3:   # estimators/fgo.py fixed-lag: gtsam IndeterminantLinearSystemException (reported)
+        lines = stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("error: internal error while solving"), stderr
+        pytest.xfail("fixed-lag factor graph fails on long outages (docs/bad_input.md, known limitations)")
+    assert code == 0, stderr
+    rows = _check_outputs(out)
+    start, stop = case.extra["tunnel"]
+    assert all(r["status"] == "coasted" for r in rows[start:stop])
+    assert all(r["status"] in ("updated", "reset") for r in rows[stop + 2:])
 
 
 def test_truncated_gzip_keeps_what_could_be_decompressed(corpus):

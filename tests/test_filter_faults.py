@@ -139,8 +139,8 @@ def _check_solution(faulted, sol) -> None:
 
 _FIXED_LAG_OUTAGE = pytest.mark.xfail(
     raises=RuntimeError, strict=False,
-    reason="estimators/fgo.py fixed-lag: gtsam IndeterminantLinearSystemException when no satellite is observed "
-           "for longer than lag_s (reported; the CLI turns it into a one-line error, exit code 3)")
+    reason="estimators/fgo.py fixed-lag: gtsam IndeterminantLinearSystemException after ~30 s without any "
+           "satellite (reported; the CLI turns it into a one-line error, exit code 3)")
 CASES = [pytest.param(b, f, marks=_FIXED_LAG_OUTAGE if (b, f) == ("fgo-fixed-lag", "outage") else ())
          for b in BACKENDS for f in FAULTS]
 

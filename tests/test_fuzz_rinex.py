@@ -19,9 +19,11 @@ At least 1,000 examples run in a normal test run (``derandomize=True``: the same
 """
 from __future__ import annotations
 
+import atexit
 import gzip
 import os
 import re
+import shutil
 import signal
 import sys
 import tempfile
@@ -48,6 +50,7 @@ TIME_LIMIT_S = 10.0
 SEED_EPOCHS = 8
 SV_RE = re.compile(r"^[GRECJ](0[1-9]|[1-9]\d)$")
 _WORK = Path(tempfile.mkdtemp(prefix="lfgnss-fuzz-"))
+atexit.register(shutil.rmtree, _WORK, ignore_errors=True)
 
 #: Bytes that mean something in RINEX, plus control and non-ASCII bytes.
 ALPHABET = list(b" 0123456789.-+DEeGRCEJS>#?xyz\n\r\t\x00\x7f\x80\xc3\xa9\xff")

@@ -553,11 +553,12 @@ def obs_gap(out):
 @_case
 def obs_empty_epochs(out):
     full = full_obs()
-    empty = [[ep[0][:29] + "  0"] for ep in full.epochs[15:90]]      # the real epoch times, no satellite
-    obs = ObsV2(full.header, full.epochs[:15] + empty + full.epochs[90:105])
-    return Case("obs_empty_epochs", "15 s of epochs without any satellite (a tunnel), between two 3 s stretches",
-                "ok", "", "solved; the empty epochs are coasted (Q=7 in .pos, 'coasted' in CSV)",
-                obs=_write(out, "obs_empty_epochs.obs", obs.text()), fault_epoch=15)
+    empty = [[ep[0][:29] + "  0"] for ep in full.epochs[15:315]]     # the real epoch times, no satellite
+    obs = ObsV2(full.header, full.epochs[:15] + empty + full.epochs[315:330])
+    return Case("obs_empty_epochs", "60 s of epochs without any satellite (a tunnel) between two 3 s stretches",
+                "ok", "", "solved; the empty epochs are coasted (Q=7 in .pos, 'coasted' in CSV), the filter "
+                "updates again after the tunnel", obs=_write(out, "obs_empty_epochs.obs", obs.text()),
+                fault_epoch=15, extra={"tunnel": (15, 315)})
 
 
 @_case
@@ -756,7 +757,8 @@ def truth_bad_lines(out):
 @_case
 def truth_all_bad(out):
     lines = [ln.replace("point3", "point3 x") for ln in base_truth()]
-    return Case("truth_all_bad", "ground truth without a single readable line", "error", "no readable ground-truth line",
+    return Case("truth_all_bad", "ground truth without a single readable line", "error",
+                "no readable ground-truth line",
                 "error naming the file", truth=_write(out, "truth_all_bad.txt", "\n".join(lines) + "\n"),
                 culprit="truth")
 
