@@ -41,9 +41,17 @@ from lfgnss.solve import DEFAULT_MODEL, main  # noqa: E402
 REPO = Path(__file__).resolve().parents[1]
 CASE_NAMES = [fn.__name__ for fn in make_corpus._BUILDERS]
 # outcomes at collection time, from a quick build without the model files (they need torch)
-_SCRATCH = tempfile.mkdtemp(prefix="lfgnss-corpus-")
+_SCRATCH = Path(tempfile.mkdtemp(prefix="lfgnss-corpus-"))
 atexit.register(shutil.rmtree, _SCRATCH, ignore_errors=True)
-_OUTCOMES = {c.name: c.outcome for c in make_corpus.build(_SCRATCH, models=False).values()}
+
+
+def _scratch() -> Path:
+    """The scratch folder, re-created if something removed it (it is shared by the whole run)."""
+    _SCRATCH.mkdir(parents=True, exist_ok=True)
+    return _SCRATCH
+
+
+_OUTCOMES = {c.name: c.outcome for c in make_corpus.build(_scratch(), models=False).values()}
 SOLVED_OBS_CASES = [n for n in CASE_NAMES if n.startswith("obs_") and _OUTCOMES.get(n) != "error"]
 BAD_NUMBER = re.compile(r"\b(nan|inf|infinity)\b", re.IGNORECASE)
 

@@ -52,6 +52,13 @@ SV_RE = re.compile(r"^[GRECJ](0[1-9]|[1-9]\d)$")
 _WORK = Path(tempfile.mkdtemp(prefix="lfgnss-fuzz-"))
 atexit.register(shutil.rmtree, _WORK, ignore_errors=True)
 
+
+def _work() -> Path:
+    """The scratch folder, re-created if something removed it (it is shared by the whole run)."""
+    _WORK.mkdir(parents=True, exist_ok=True)
+    return _WORK
+
+
 #: Bytes that mean something in RINEX, plus control and non-ASCII bytes.
 ALPHABET = list(b" 0123456789.-+DEeGRCEJS>#?xyz\n\r\t\x00\x7f\x80\xc3\xa9\xff")
 #: Values for a 14-column numeric field.
@@ -257,7 +264,7 @@ def _check_prefix(obs, clean, starts: list[int], first: int, seed: bytes) -> Non
 
 def _fuzz(seed_name: str, seed: bytes, v3: bool, data_first) -> None:
     data, first = data_first
-    path = _WORK / f"{seed_name}.{'rnx' if v3 else 'obs'}{'.gz' if seed_name.endswith('gz') else ''}"
+    path = _work() / f"{seed_name}.{'rnx' if v3 else 'obs'}{'.gz' if seed_name.endswith('gz') else ''}"
     path.write_bytes(data)
     obs, error, caught = _read(path)
     for message in caught:
@@ -269,7 +276,7 @@ def _fuzz(seed_name: str, seed: bytes, v3: bool, data_first) -> None:
         _check_observations(obs, path)
         event("read with warnings" if obs.warnings else "read cleanly")
     if not seed_name.endswith("gz"):
-        clean_path = _WORK / f"clean-{seed_name}"
+        clean_path = _work() / f"clean-{seed_name}"
         if not clean_path.exists():
             clean_path.write_bytes(seed)
         clean = load_obs(clean_path, cache=False)
@@ -323,7 +330,7 @@ _NAV = {}
 
 def _navigation():
     if not _NAV:
-        folder = _WORK / "nav"
+        folder = _work() / "nav"
         folder.mkdir(exist_ok=True)
         gps = folder / "base.16n"
         glo = folder / "base.16g"
@@ -338,7 +345,7 @@ def _navigation():
 def test_fuzz_pipeline(data_first):
     """Mutated observations through load, coarse fix, features and the EKF: LfgnssError or finite results."""
     data, _ = data_first
-    path = _WORK / "pipeline.obs"
+    path = _work() / "pipeline.obs"
     path.write_bytes(data)
     nav = _navigation()
     with warnings.catch_warnings(), time_limit(TIME_LIMIT_S):
