@@ -22,8 +22,10 @@ FIX_TOO_FEW_SATELLITES = 1
 FIX_NOT_CONVERGED = 2
 FIX_GROSS_RESIDUALS = 3
 FIX_BAD_GEOMETRY = 4
+FIX_IMPLAUSIBLE = 5
 FIX_STATUS = {FIX_OK: "ok", FIX_TOO_FEW_SATELLITES: "too few satellites", FIX_NOT_CONVERGED: "not converged",
-              FIX_GROSS_RESIDUALS: "gross residuals", FIX_BAD_GEOMETRY: "bad geometry"}
+              FIX_GROSS_RESIDUALS: "gross residuals", FIX_BAD_GEOMETRY: "bad geometry",
+              FIX_IMPLAUSIBLE: "implausible height"}
 
 
 @dataclass(frozen=True)
@@ -36,6 +38,7 @@ class SppConfig:
     gross_residual_m: float = 1000.0
     max_exclusions: int = 3        # worst-residual satellites dropped per epoch before giving up
     max_gdop: float = 50.0
+    height_range_m: tuple[float, float] = (-1000.0, 100_000.0)  # a fix without redundancy can land anywhere
 
 
 @dataclass(frozen=True)
@@ -175,6 +178,9 @@ def spp(meas: Measurements, config: SppConfig = SppConfig()) -> CoarseFix:
     status[~converged] = FIX_NOT_CONVERGED
     status[~enough] = FIX_TOO_FEW_SATELLITES
     status[converged & np.any(usable & (np.abs(res) > config.gross_residual_m), axis=1)] = FIX_GROSS_RESIDUALS
+    height = ecef_to_lla(x[:, :3])[:, 2]
+    low, high = config.height_range_m
+    status[(status == FIX_OK) & ~((height >= low) & (height <= high))] = FIX_IMPLAUSIBLE
     ok = status == FIX_OK
     if np.any(ok):
         from .dop import dop

@@ -111,3 +111,11 @@ def test_bundled_sample_every_epoch_fixed():
     assert counted == int(np.isfinite(meas.pr_m).sum())
     frame = meas.to_frame()
     assert len(frame) == counted and set(frame["qc"]) <= set(qc.REASONS.values())
+
+
+def test_implausible_height_is_rejected():
+    meas, truth, _, _ = _synthetic_measurements()
+    fix = lfgnss.spp(meas, lfgnss.SppConfig(height_range_m=(-1000.0, 10.0)))   # truth is at 20 m
+    assert np.all(fix.status == lfgnss.spp.__globals__["FIX_IMPLAUSIBLE"])
+    assert np.all(np.isnan(fix.pos_ecef_m))
+    assert fix.summary()["epoch_status"] == {"implausible height": len(fix.status)}
