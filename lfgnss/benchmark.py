@@ -96,7 +96,7 @@ def run(dataset_ids: list[str], *, model_dir: Path = MODEL_DIR, out_dir: Path | 
             sol = estimator.solve(test)
             rate = len(test) / (time.perf_counter() - start)
             solutions[m.name] = sol
-            trained = _trained_on(m.model)
+            trained = _trained_on(getattr(estimator, "noise", None))
             all_rows.append(accuracy_table(sol.pos_ecef_m, truth, sol.available, dataset=dataset_id, method=m.name,
                                            trained_on=trained) | {"epochs_per_s": rate})
             if rtk_pos is not None and ok.any():
@@ -116,12 +116,11 @@ def run(dataset_ids: list[str], *, model_dir: Path = MODEL_DIR, out_dir: Path | 
     return all_rows, rtk_rows
 
 
-def _trained_on(model: Path | None) -> str:
-    if model is None:
+def _trained_on(noise) -> str:
+    """Datasets and split a learned noise model was trained on ('-' for hand-set noise)."""
+    meta = getattr(noise, "metadata", None)
+    if meta is None:
         return "-"
-    from learning.export import load_model
-
-    meta = load_model(model).metadata
     data = (meta.get("config") or {}).get("data", {})
     return "+".join(data.get("datasets", [])) + f" ({data.get('train_split', 'train')})"
 

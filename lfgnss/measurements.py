@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Iterable
 
@@ -132,9 +132,7 @@ def load(obs: str | Path | Observations, nav: str | Path | Iterable[str | Path] 
             notes.append(note)
             warnings.warn(note, RinexWarning, stacklevel=2)
             cn0[:, cols] = np.where(np.isfinite(observations.pr_m[:, cols]), ASSUMED_CN0_DBHZ, np.nan)
-    observations = Observations(observations.path, observations.version, observations.time_gps_s, observations.sv,
-                                observations.pr_m, cn0, observations.doppler_hz, observations.codes,
-                                observations.approx_ecef_m, observations.warnings)
+    observations = replace(observations, cn0_dbhz=cn0)
 
     n_t, n_s = observations.pr_m.shape
     # satellite states only for plausible pseudoranges: the transmission time comes from them, and an

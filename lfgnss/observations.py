@@ -1,7 +1,7 @@
 """Observation containers: per-epoch x per-satellite arrays read from one RINEX observation file."""
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -57,12 +57,10 @@ class Observations:
     def select_systems(self, systems: tuple[str, ...] | list[str]) -> "Observations":
         """Only the satellites of the given constellations."""
         keep = np.isin(np.array([s[0] for s in self.sv]), list(systems))
-        return Observations(self.path, self.version, self.time_gps_s, self.sv[keep], self.pr_m[:, keep],
-                            self.cn0_dbhz[:, keep], self.doppler_hz[:, keep],
-                            {k: v for k, v in self.codes.items() if k in systems}, self.approx_ecef_m, self.warnings)
+        return replace(self, sv=self.sv[keep], pr_m=self.pr_m[:, keep], cn0_dbhz=self.cn0_dbhz[:, keep],
+                       doppler_hz=self.doppler_hz[:, keep], codes={k: v for k, v in self.codes.items() if k in systems})
 
     def select_epochs(self, index: slice | np.ndarray) -> "Observations":
         """Only the epochs selected by a slice, boolean mask or index array."""
-        return Observations(self.path, self.version, self.time_gps_s[index], self.sv, self.pr_m[index],
-                            self.cn0_dbhz[index], self.doppler_hz[index], self.codes, self.approx_ecef_m,
-                            self.warnings)
+        return replace(self, time_gps_s=self.time_gps_s[index], pr_m=self.pr_m[index],
+                       cn0_dbhz=self.cn0_dbhz[index], doppler_hz=self.doppler_hz[index])

@@ -193,7 +193,6 @@ def spp(meas: Measurements, config: SppConfig = SppConfig()) -> CoarseFix:
     reason[(reason == qc.OK) & excluded] = qc.GROSS_RESIDUAL
     reason[(reason == qc.OK) & ~usable] = qc.LOW_ELEVATION
     clock = np.where(observed, x[:, 3:], np.nan)
-    clock[:, 1:] = np.where(observed[:, 1:], clock[:, 1:], np.nan)
     return CoarseFix(meas.systems, meas.time_gps_s, np.where(ok[:, None], x[:, :3], np.nan),
                      np.where(ok[:, None], clock, np.nan), status, usable & ok[:, None], reason,
                      np.where(np.isfinite(meas.pr_m), pr_corr, np.nan), np.where(usable, res, np.nan),
