@@ -10,13 +10,17 @@ Per epoch ``k`` (models in ``estimators.models``)::
 
 so ``x = x^- + K (pr - h + vc)`` as in the paper. Initialisation and resets take the coarse fix
 (``Sequence.coarse_ecef_m`` / ``coarse_clock_m``) with covariance P0 and then update with the
-epoch's satellites. Resets happen when the filter has no state yet, after a gap longer than
+epoch's satellites, twice if a satellite's post-fit residual exceeds ``gate_sigma sqrt(r)`` (the
+second time without those satellites). Resets happen when the filter has no state yet, after a gap longer than
 ``max_gap_s``, when most usable satellites fail the gate (``reset_gated_fraction``; not in the epoch
-right after a reset), or when the
+right after a reset) with a median innovation of at least ``clock_jump_min_m`` and still do after the
+prior's clock was realigned to it (a receiver clock jump, ``models.realign_clock``), or when the
 updated position is farther than ``reset_distance_m`` from the coarse fix. ``learning.torch_ekf``
 implements exactly this logic, batched and differentiable.
 """
 from __future__ import annotations
+
+from dataclasses import fields
 
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
@@ -46,6 +50,21 @@ def coarse_available(sequence: Sequence) -> np.ndarray:
     return np.isfinite(sequence.coarse_ecef_m).all(-1) & np.isfinite(sequence.coarse_clock_m[:, 0])
 
 
+def config_of(noise: NoiseModel) -> EkfConfig:
+    """The EkfConfig a learned model was trained with (its file's ``ekf_config``), else the defaults.
+
+    A model file older than Doppler support has no ``doppler_sigma_m_s``; it gets 0 (pseudoranges
+    only), the filter it was trained in.
+    """
+    stored = (getattr(noise, "metadata", None) or {}).get("ekf_config")
+    if not stored:
+        return EkfConfig()
+    known = {f.name for f in fields(EkfConfig)}
+    values = {k: v for k, v in stored.items() if k in known}
+    values.setdefault("doppler_sigma_m_s", 0.0)
+    return EkfConfig(**values)
+
+
 def _given(_x: np.ndarray, value: np.ndarray) -> np.ndarray:
     """HJacobian/Hx for filterpy: H and h already evaluated at the prior state filterpy passes in."""
     return value
@@ -60,7 +79,8 @@ class LfgnssEkf:
     noise : NoiseModel
         ``noise(sequence) -> (r_m2, vc_m)``, each (T, N); a learned model or ``HeuristicNoise``.
     config : EkfConfig
-        Process noise, initial covariance, gate and reset settings.
+        Process noise, initial covariance, gate and reset settings; default: those the noise model
+        was trained with (``config_of``), else ``EkfConfig()``.
     name : str
         Backend label written into the Solution.
     use_compensation : bool
@@ -70,7 +90,7 @@ class LfgnssEkf:
     def __init__(self, noise: NoiseModel | None = None, config: EkfConfig | None = None, name: str = "ekf",
                  use_compensation: bool = True) -> None:
         self.noise = HeuristicNoise() if noise is None else noise
-        self.config = EkfConfig() if config is None else config
+        self.config = config_of(self.noise) if config is None else config
         self.name = name
         self.use_compensation = use_compensation
 
@@ -108,6 +128,10 @@ class LfgnssEkf:
         r_all, vc_all = self.noise_arrays(sequence, usable)
         z_all = compensated_pseudorange(np.where(usable, sequence.pr_m, 0.0), np.where(usable, vc_all, 0.0))
         r_all = np.where(usable, r_all, 1.0)
+        doppler_ok = usable & sequence.prr_mask if cfg.doppler_sigma_m_s > 0 else np.zeros_like(usable)
+        prr_all = np.where(doppler_ok, sequence.prr_m_s, 0.0)
+        satvel_all = sequence.sat_vel_ecef_m_s
+        r_doppler = cfg.doppler_sigma_m_s ** 2
         sat_all = sequence.sat_pos_ecef_m
         sys_all = sequence.system_index
         coarse_ok = coarse_available(sequence)
@@ -123,70 +147,101 @@ class LfgnssEkf:
         status = np.full(t_len, STATUS_NONE, dtype=np.int8)
         n_used = np.zeros(t_len, dtype=np.int32)
         n_gated = np.zeros(t_len, dtype=np.int32)
+        n_doppler = np.zeros(t_len, dtype=np.int32)
+        clock_realigned = np.zeros(t_len, dtype=bool)
         gate_sigma = cfg.gate_sigma
         started = False
 
-        def gate(k: int, idx: np.ndarray) -> tuple:
-            """h, H, z, r of the usable satellites ``idx`` at the current prior, and the gate's keep mask."""
+        def keep_mask(v: np.ndarray, H: np.ndarray, r: np.ndarray) -> np.ndarray:
+            if gate_sigma <= 0:
+                return np.ones(v.size, bool)
+            s_diag = np.einsum("ij,jk,ik->i", H, ekf.P, H) + r                # diag(H P^- H^T + R)
+            return np.abs(v) <= gate_sigma * np.sqrt(s_diag)
+
+        def gate(k: int, idx: np.ndarray, jdx: np.ndarray) -> tuple:
+            """(h, H, z, r, keep) of the pseudoranges ``idx`` and of the Dopplers ``jdx`` at the current prior."""
             h, H = models.measurement(ekf.x, sat_all[k, idx], sys_all[k, idx])
-            z = z_all[k, idx]
-            r = r_all[k, idx]
-            if gate_sigma > 0:
-                s_diag = np.einsum("ij,jk,ik->i", H, ekf.P, H) + r           # diag(H P^- H^T + R)
-                keep = np.abs(z - h) <= gate_sigma * np.sqrt(s_diag)
-            else:
-                keep = np.ones(idx.size, bool)
-            return h, H, z, r, keep
+            z, r = z_all[k, idx], r_all[k, idx]
+            g, G = models.doppler_measurement(ekf.x, sat_all[k, jdx], satvel_all[k, jdx])
+            y, rd = prr_all[k, jdx], np.full(jdx.size, r_doppler)
+            return (h, H, z, r, keep_mask(z - h, H, r)), (g, G, y, rd, keep_mask(y - g, G, rd))
 
         def update(k: int, gated: tuple) -> None:
-            """Joseph-form update with the kept satellites; records n_used and n_gated of epoch k."""
-            h, H, z, r, keep = gated
-            used = int(keep.sum())
-            n_gated[k] = keep.size - used
-            if used < cfg.min_sats_for_update:
-                n_used[k] = 0
-                return
-            if used < keep.size:
-                h, H, z, r = h[keep], H[keep], z[keep], r[keep]
-            ekf.update(z, _given, _given, R=np.diag(r), args=(H,), hx_args=(h,))
-            n_used[k] = used
+            """Joseph-form update with the kept measurements; records n_used, n_doppler and n_gated of epoch k."""
+            blocks = []
+            for j, (h, H, z, r, keep) in enumerate(gated):
+                used = int(keep.sum())
+                if j == 0:
+                    n_gated[k] = keep.size - used
+                if used < cfg.min_sats_for_update:
+                    used = 0
+                (n_used if j == 0 else n_doppler)[k] = used
+                if used:
+                    blocks.append((h[keep], H[keep], z[keep], r[keep]))
+            if blocks:
+                h, H, z, r = (np.concatenate(part) for part in zip(*blocks))
+                ekf.update(z, _given, _given, R=np.diag(r), args=(H,), hx_args=(h,))
 
-        def reset(k: int, idx: np.ndarray) -> None:
-            ekf.x = models.initial_state(sequence.coarse_ecef_m[k], sequence.coarse_clock_m[k])
-            ekf.P = p0.copy()
-            update(k, gate(k, idx))
+        def mostly_gated(gated: tuple, idx: np.ndarray) -> bool:
+            return idx.size - int(gated[0][-1].sum()) > cfg.reset_gated_fraction * idx.size
+
+        def reset(k: int, idx: np.ndarray, jdx: np.ndarray) -> None:
+            x0 = models.initial_state(sequence.coarse_ecef_m[k], sequence.coarse_clock_m[k])
+            ekf.x, ekf.P = x0, p0.copy()
+            update(k, gate(k, idx, jdx))
+            if gate_sigma > 0:
+                # P0's wide gate lets outliers in: drop satellites whose post-fit residual exceeds
+                # gate_sigma sqrt(r) and update the reset prior again without them.
+                h, _ = models.measurement(ekf.x, sat_all[k, idx], sys_all[k, idx])
+                ok = np.abs(z_all[k, idx] - h) <= gate_sigma * np.sqrt(r_all[k, idx])
+                if 0 < ok.sum() < idx.size:
+                    ekf.x, ekf.P = x0, p0.copy()
+                    update(k, gate(k, idx[ok], jdx))
+                    n_gated[k] += idx.size - int(ok.sum())
             status[k] = STATUS_RESET
 
         for k in range(t_len):
             dt = dt_all[k - 1] if k > 0 else 0.0
             idx = np.flatnonzero(usable[k])
+            jdx = np.flatnonzero(doppler_ok[k])
             if not started or (dt > cfg.max_gap_s and coarse_ok[k]):
                 if not coarse_ok[k]:
                     continue
-                reset(k, idx)
+                reset(k, idx, jdx)
                 started = True
             else:
                 if dt not in cache:
                     cache[dt] = (eye + dt * a, q1 * dt + q2 * dt ** 2 + q3 * dt ** 3)
                 ekf.F, ekf.Q = cache[dt]
                 ekf.predict()
-                gated = gate(k, idx)
-                n_rejected = idx.size - int(gated[-1].sum())
+                gated = gate(k, idx, jdx)
+                inconsistent = False
                 if (gate_sigma > 0 and coarse_ok[k] and idx.size >= cfg.reset_min_sats
-                        and status[k - 1] != STATUS_RESET and n_rejected > cfg.reset_gated_fraction * idx.size):
-                    reset(k, idx)      # most satellites disagree with the state (e.g. receiver clock jump)
+                        and status[k - 1] != STATUS_RESET and mostly_gated(gated, idx)):
+                    # Most satellites disagree with the prior by a clock-jump-sized median: realign the
+                    # clock; reset if that does not help. A smaller median is street-canyon multipath:
+                    # the update goes on with the kept satellites (the coarse fix is usually worse).
+                    shift = models.lower_median(gated[0][2] - gated[0][0])
+                    if abs(shift) >= cfg.clock_jump_min_m:
+                        ekf.x = models.realign_clock(ekf.x, shift)
+                        gated = gate(k, idx, jdx)
+                        clock_realigned[k] = True
+                        inconsistent = mostly_gated(gated, idx)
+                if inconsistent:
+                    reset(k, idx, jdx)      # not (just) the clock: the state is inconsistent with the data
                 else:
                     update(k, gated)
-                    status[k] = STATUS_UPDATED if n_used[k] else STATUS_COASTED
+                    status[k] = STATUS_UPDATED if n_used[k] + n_doppler[k] else STATUS_COASTED
                     if coarse_ok[k] and np.linalg.norm(ekf.x[:3] - sequence.coarse_ecef_m[k]) > cfg.reset_distance_m:
-                        reset(k, idx)  # diverged from the coarse fix
+                        reset(k, idx, jdx)  # diverged from the coarse fix
             state[k] = ekf.x
             cov[k] = ekf.P
 
         return Solution(backend=self.name, time_gps_s=time, pos_ecef_m=state[:, models.POS].copy(),
                         cov_ecef_m2=cov[:, models.POS, models.POS].copy(), clock_m=state[:, models.CLOCK].copy(),
                         n_used=n_used, status=status, vel_ecef_m_s=state[:, models.VEL].copy(),
-                        info={"state": state, "cov": cov, "n_gated": n_gated, "n_usable": usable.sum(1),
+                        info={"state": state, "cov": cov, "n_gated": n_gated, "n_usable": usable.sum(1), "n_doppler": n_doppler,
+                              "clock_realigned": clock_realigned,
                               "config": cfg})
 
 
@@ -200,4 +255,4 @@ class PlainEkf(LfgnssEkf):
                          use_compensation=False)
 
 
-__all__ = ["LfgnssEkf", "PlainEkf", "compensated_pseudorange", "usable_measurements", "coarse_available"]
+__all__ = ["config_of", "LfgnssEkf", "PlainEkf", "compensated_pseudorange", "usable_measurements", "coarse_available"]

@@ -3,7 +3,8 @@
 Graph, after gtsam's ``SinglePointPositioningExample``:
 
 * ``X(k)`` receiver position (Point3, ECEF [m]) and ``V(k)`` velocity (Point3, ECEF [m/s]) for
-  every epoch from the first coarse fix on, also epochs without usable satellites.
+  every epoch from the first coarse fix on, also epochs without usable satellites (batch; see Modes for
+  fixed-lag).
 * ``B(k * C + j)`` receiver clock of constellation ``systems[j]`` at epoch ``k`` [s], created only
   where that constellation has a usable satellite at that epoch. Clocks are free per epoch and
   constellation: no clock-drift factor. This makes inter-system biases implicit, keeps the clock
@@ -27,10 +28,16 @@ Graph, after gtsam's ``SinglePointPositioningExample``:
 
 Modes: ``"batch"`` optimises the whole trajectory with Levenberg-Marquardt (smoothed estimate);
 ``"fixed-lag"`` runs ``gtsam.IncrementalFixedLagSmoother`` (iSAM2) epoch by epoch and outputs the
-filtered (causal) estimate of each epoch right after its update.
+filtered (causal) estimate of each epoch right after its update. There, epochs whose pseudoranges say
+nothing on position (no usable satellite, or one per constellation: ``position_blind_epochs``) stay out
+of the graph and are coasted (CV prediction, clock from the residual); the next epoch is linked to the
+last one in the graph by one CV factor over the whole interval, the exact marginal of the skipped chain,
+so an outage is a time gap to the smoother. A long chain of short CV factors with nothing else on it made
+gtsam's Cholesky give up (IndeterminantLinearSystem after ~100-200 epochs, ~30 s at 5 Hz).
 
 Covariances: with ``covariances=True`` the position covariance is the gtsam marginal
-(``Marginals`` in batch, ``marginalCovariance`` in fixed-lag; costly). Otherwise ``cov_ecef_m2``
+(``Marginals`` in batch, ``marginalCovariance`` in fixed-lag, where coasted epochs propagate the joint
+marginal of ``X``, ``V`` at the last epoch in the graph; costly). Otherwise ``cov_ecef_m2``
 holds a cheap, conservative stand-in: the weighted least-squares snapshot covariance of the epoch
 (``(H^T R^-1 H)^-1`` at the estimate, position block, ignoring the motion model), and at epochs
 whose snapshot is rank deficient the previous covariance propagated by the motion model
@@ -128,6 +135,26 @@ def _interpolate_rows(t: np.ndarray, y: np.ndarray) -> np.ndarray:
     for a in range(y.shape[1]):
         out[:, a] = np.interp(t, t[ok], y[ok, a])
     return out
+
+
+def position_blind_epochs(seq: Sequence) -> np.ndarray:
+    """(T,) bool: epochs whose usable pseudoranges say nothing on position (none, or one per constellation).
+
+    With a free clock per epoch and constellation, each constellation's first satellite is spent on its clock.
+    """
+    n_sys = len(seq.systems)
+    present = np.zeros((len(seq), n_sys), bool)
+    rows, cols = np.nonzero(seq.mask)
+    present[rows, seq.system_index[rows, cols]] = True
+    return seq.mask.sum(axis=1) <= present.sum(axis=1)
+
+
+def _coasted_position_covariance(joint: gtsam.JointMarginal, x_key: int, v_key: int, dt_s: float,
+                                 accel_psd_ecef: np.ndarray) -> np.ndarray:
+    """Position block [m^2] of F P F^T + Q after ``dt_s`` [s] of CV prediction from the joint marginal P of x, v."""
+    pxx, pxv, pvv = joint.at(x_key, x_key), joint.at(x_key, v_key), joint.at(v_key, v_key)
+    out = pxx + dt_s * (pxv + pxv.T) + dt_s ** 2 * pvv + cv_process_covariance(dt_s, accel_psd_ecef)[:3, :3]
+    return 0.5 * (out + out.T)
 
 
 @register("fgo")
@@ -332,36 +359,73 @@ class LfgnssFgo:
         smoother = gtsam.IncrementalFixedLagSmoother(self.lag_s, isam)
         p0, v0 = self._initial_trajectory(seq, k0)
         motion = _MotionModel(psd_ecef)
+        blind = position_blind_epochs(seq)
         m = n_t - k0
         pos, vel, clk = np.empty((m, 3)), np.empty((m, 3)), np.full(m, np.nan)
         n_used = np.zeros(m, int)
         cov = np.empty((m, 3, 3)) if self.covariances else None
+        last = k0                                   # latest epoch in the graph
+        joint = None                                # marginal covariance blocks of X(last), V(last)
         for k in range(k0, n_t):
+            i = k - k0
+            if k > k0 and blind[k]:
+                # Kept out of the graph (module docstring): along a chain of short CV factors the Cholesky
+                # pivot of the newest position shrinks until it is ~2^11 below the previous epoch's, which
+                # gtsam's choleskyPartial takes for an underconstrained system.
+                dt = float(t[k] - t[last])
+                pos[i] = pos[last - k0] + dt * vel[last - k0]
+                vel[i] = vel[last - k0]
+                n_used[i], clk[i] = self._clock_only(k, seq, z_m, pos[i])
+                if cov is not None:
+                    if joint is None:
+                        joint = smoother.getISAM2().jointMarginalCovariance([X(last), V(last)])
+                    cov[i] = _coasted_position_covariance(joint, X(last), V(last), dt, psd_ecef)
+                continue
             graph = gtsam.NonlinearFactorGraph()
             values = gtsam.Values()
             if k == k0:
                 x_guess, v_guess = p0[0], v0[0]
                 self._priors(k0, x_guess, v_guess, graph)
             else:
-                dt = float(t[k] - t[k - 1])
-                v_guess = vel[k - 1 - k0]
-                x_guess = pos[k - 1 - k0] + dt * v_guess       # CV prediction from the filtered state
-                graph.add(motion.factor(k - 1, k, dt))
+                dt = float(t[k] - t[last])
+                v_guess = vel[last - k0]
+                x_guess = pos[last - k0] + dt * v_guess       # CV prediction from the filtered state
+                if dt > self.lag_s and np.all(np.isfinite(seq.coarse_ecef_m[k])):
+                    # X(last) leaves the window in this update, so this linearisation point is final for
+                    # the epoch: start from the coarse fix, not from a prediction maybe 100+ m off, which
+                    # would put every satellite deep in the robust kernel's tail.
+                    x_guess = seq.coarse_ecef_m[k]
+                graph.add(motion.factor(last, k, dt))
             values.insertPoint3(X(k), x_guess)
             values.insertPoint3(V(k), v_guess)
-            n_used[k - k0] = self._epoch(k, seq, z_m, sigma_m, x_guess, graph, values)
+            n_used[i] = self._epoch(k, seq, z_m, sigma_m, x_guess, graph, values)
             stamps = {key: float(t[k]) for key in values.keys()}
             smoother.update(graph, values, stamps)
             for _ in range(self.fixed_lag_iterations - 1):
                 smoother.update()
             est = smoother.calculateEstimate()
-            pos[k - k0] = est.atPoint3(X(k))
-            vel[k - k0] = est.atPoint3(V(k))
+            pos[i] = est.atPoint3(X(k))
+            vel[i] = est.atPoint3(V(k))
             if est.exists(clock_key(k, 0, n_sys)):
-                clk[k - k0] = est.atDouble(clock_key(k, 0, n_sys)) * SPEED_OF_LIGHT_M_S
+                clk[i] = est.atDouble(clock_key(k, 0, n_sys)) * SPEED_OF_LIGHT_M_S
             if cov is not None:
-                cov[k - k0] = smoother.marginalCovariance(X(k))
+                cov[i] = smoother.marginalCovariance(X(k))
+            last, joint = k, None
+        info["coasted_outside_graph"] = int(np.count_nonzero(blind[k0 + 1:]))
         return pos, vel, clk, n_used, cov
+
+    @staticmethod
+    def _clock_only(k: int, seq: Sequence, z_m: np.ndarray, pos: np.ndarray) -> tuple[int, float]:
+        """Satellites and clock of ``systems[0]`` [m] at a position-blind epoch k, at position ``pos`` [m].
+
+        One satellite per constellation: its clock takes the whole residual, as in the graph.
+        """
+        used = np.flatnonzero(seq.mask[k])
+        first = used[seq.system_index[k, used] == 0]
+        if first.size == 0:
+            return int(used.size), np.nan
+        rho = geometric_range_m(seq.sat_pos_ecef_m[k, first[:1]], pos)[0]
+        return int(used.size), float(z_m[k, first[0]] - rho)
 
     def _stand_in_covariance(self, seq: Sequence, k0: int, pos: np.ndarray, sigma_m: np.ndarray,
                              psd_ecef: np.ndarray) -> np.ndarray:
@@ -396,4 +460,5 @@ class LfgnssFgo:
         return out
 
 
-__all__ = ["LfgnssFgo", "cv_motion_factor", "cv_process_covariance", "clock_key", "MODES", "ROBUST_KERNELS"]
+__all__ = ["LfgnssFgo", "cv_motion_factor", "cv_process_covariance", "clock_key", "position_blind_epochs", "MODES",
+           "ROBUST_KERNELS"]

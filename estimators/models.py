@@ -34,6 +34,15 @@ clock and atmosphere, see ``lfgnss.sequence.Sequence``)::
     H_i = [-e_i^T, 0 0 0, 1, 0, onehot(s_i)]   e_i = (s - p) / |s - p|
 
 The Sagnac derivative (~1e-6 relative) is neglected in ``H`` but the Sagnac term is in ``h``.
+
+Doppler model of satellite ``i`` (pseudorange rate ``-lambda D`` corrected for the satellite clock
+drift, ``Sequence.prr_m_s``), used where ``Sequence.prr_mask``::
+
+    g_i(x) = e_i . (v_sat_i - v) + d + omega_e / c (vs_x p_y + s_x v_y - vs_y p_x - s_y v_x)
+    G_i = [0 0 0, -e_i^T, 0, 1, 0 ...]     (position derivative ~1e-4 /s, neglected)
+
+with variance ``doppler_sigma_m_s^2``: Doppler measures velocity and clock drift directly, so the
+constant-velocity model no longer has to infer them from differences of noisy pseudoranges.
 """
 from __future__ import annotations
 
@@ -41,6 +50,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from lfgnss.constants import OMEGA_EARTH_RAD_S, SPEED_OF_LIGHT_M_S
 from lfgnss.corrections import geometric_range_m
 
 #: Indices into the state vector.
@@ -89,10 +99,10 @@ class EkfConfig:
         Per-satellite innovation gate: satellite ``i`` is dropped when
         ``|v_i + vc_i| > gate_sigma * sqrt(S_ii)``, ``S = H P^- H^T + R``. 0 disables the gate.
     reset_gated_fraction : float
-        If at least ``reset_min_sats`` satellites are usable and more than this fraction of them is
-        gated, the filter is inconsistent with the data (e.g. a receiver clock jump): re-initialise
-        from the coarse fix. Values >= 1 disable this reset. Not applied in the epoch right after a
-        reset (velocity and drift are still unknown then), so resets cannot repeat every epoch.
+        If at least ``reset_min_sats`` satellites are usable, more than this fraction of them is gated
+        and their median innovation is at least ``clock_jump_min_m``, the receiver clock jumped: the
+        clock is realigned (``realign_clock``); if that fraction still fails the gate, re-initialise
+        from the coarse fix. Values >= 1 disable both. Not applied in the epoch right after a reset.
     reset_min_sats : int
         Minimum number of usable satellites before ``reset_gated_fraction`` applies.
     reset_distance_m : float
@@ -104,7 +114,16 @@ class EkfConfig:
         A time step longer than this re-initialises from the coarse fix when one is available
         (otherwise the filter predicts across the gap).
     min_sats_for_update : int
-        Fewer ungated satellites than this: predict only (coast).
+        Fewer ungated satellites than this: predict only (coast). Applies to pseudoranges and Dopplers
+        separately.
+    clock_jump_min_m : float
+        When most satellites fail the gate, the prior's clock is realigned to the median innovation
+        (``realign_clock``) only if that median is at least this large [m]: receiver clock jumps are
+        microseconds to milliseconds (300 m to 3e5 m), while a median innovation of tens of metres in a
+        street canyon is multipath, which realigning the clock would absorb into the clock state.
+    doppler_sigma_m_s : float
+        Standard deviation of a Doppler pseudorange rate [m/s]; 0 ignores Doppler. Dopplers pass the
+        same ``gate_sigma`` gate; they never trigger the clock realignment or a reset.
     """
 
     p0_pos_m2: float = 100.0 ** 2
@@ -123,13 +142,15 @@ class EkfConfig:
     reset_distance_m: float = 300.0
     max_gap_s: float = 30.0
     min_sats_for_update: int = 1
+    doppler_sigma_m_s: float = 0.5
+    clock_jump_min_m: float = 1000.0
 
     def __post_init__(self) -> None:
         for name in ("p0_pos_m2", "p0_vel_m2_s2", "p0_clock_m2", "p0_drift_m2_s2", "p0_isb_m2"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"estimators/models.py: EkfConfig.{name} must be > 0, got {getattr(self, name)}")
         for name in ("q_pos_m2_s", "q_vel_m2_s3", "q_clock_m2_s", "q_drift_m2_s3", "q_isb_m2_s", "gate_sigma",
-                     "reset_distance_m", "max_gap_s"):
+                     "reset_distance_m", "max_gap_s", "doppler_sigma_m_s", "clock_jump_min_m"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"estimators/models.py: EkfConfig.{name} must be >= 0, got {getattr(self, name)}")
         if self.min_sats_for_update < 1:
@@ -202,6 +223,26 @@ def process_noise(dt_s: float, n_systems: int, config: EkfConfig) -> np.ndarray:
     return q1 * dt_s + q2 * dt_s ** 2 + q3 * dt_s ** 3
 
 
+def lower_median(values: np.ndarray) -> float:
+    """Median that picks the lower middle element for even counts (as ``torch.nanmedian`` does)."""
+    v = np.sort(np.asarray(values, float))
+    return float(v[(v.size - 1) // 2])
+
+
+def realign_clock(x: np.ndarray, shift_m: float) -> np.ndarray:
+    """Prior state with the receiver clock moved by ``shift_m`` [m], the (lower) median innovation.
+
+    A receiver clock jump (u-blox receivers steer their clock in whole milliseconds, ~3e5 m) shifts
+    every pseudorange alike, so the median innovation estimates it while position, velocity, drift
+    and ISBs keep their values. The covariance is kept: widening the clock variance would open the
+    gate to every outlier, and to states that are wrong in more than the clock, which must fail the
+    gate again and reset.
+    """
+    x = x.copy()
+    x[CLOCK] += shift_m
+    return x
+
+
 def measurement(x: np.ndarray, sat_pos_ecef_m: np.ndarray, system_index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Predicted pseudoranges and their Jacobian at state ``x``.
 
@@ -230,6 +271,22 @@ def measurement(x: np.ndarray, sat_pos_ecef_m: np.ndarray, system_index: np.ndar
     return h, H
 
 
+def doppler_measurement(x: np.ndarray, sat_pos_ecef_m: np.ndarray, sat_vel_ecef_m_s: np.ndarray
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """Predicted pseudorange rates [m/s] (N,) and their Jacobian (N, n) at state ``x`` (see module docstring)."""
+    p, v = x[POS], x[VEL]
+    d = sat_pos_ecef_m - p
+    los = d / np.linalg.norm(d, axis=1, keepdims=True)
+    sagnac = OMEGA_EARTH_RAD_S / SPEED_OF_LIGHT_M_S * (
+        sat_vel_ecef_m_s[:, 0] * p[1] + sat_pos_ecef_m[:, 0] * v[1]
+        - sat_vel_ecef_m_s[:, 1] * p[0] - sat_pos_ecef_m[:, 1] * v[0])
+    g = np.einsum("ij,ij->i", los, sat_vel_ecef_m_s - v) + x[DRIFT] + sagnac
+    G = np.zeros((sat_pos_ecef_m.shape[0], x.shape[0]))
+    G[:, VEL] = -los
+    G[:, DRIFT] = 1.0
+    return g, G
+
+
 __all__ = ["EkfConfig", "n_states", "clock_column", "initial_covariance", "initial_state", "transition_generator",
-           "transition", "process_noise_coefficients", "process_noise", "measurement", "POS", "VEL", "CLOCK",
+           "transition", "process_noise_coefficients", "process_noise", "measurement", "doppler_measurement", "lower_median", "realign_clock", "POS", "VEL", "CLOCK",
            "DRIFT", "ISB0"]

@@ -84,7 +84,8 @@ def collate(sequences: Seq[Sequence], windows: Seq[Window], normaliser: Normalis
     c = max(len(s.systems) for s in used) if n_systems is None else n_systems
     parts: dict[str, list[np.ndarray]] = {k: [] for k in ("time_gps_s", "pr_m", "sat_pos_ecef_m", "system_index",
                                                           "mask", "features", "coarse_ecef_m", "coarse_clock_m",
-                                                          "truth_ecef_m")}
+                                                          "truth_ecef_m", "prr_m_s", "prr_mask",
+                                                          "sat_vel_ecef_m_s")}
     for w in windows:
         seq = sequences[w.seq_index].subset(slice(w.start, w.start + w.length)).pad_to(n)
         clock = np.zeros((len(seq), c))
@@ -98,7 +99,10 @@ def collate(sequences: Seq[Sequence], windows: Seq[Window], normaliser: Normalis
         parts["coarse_ecef_m"].append(seq.coarse_ecef_m)
         parts["coarse_clock_m"].append(clock)
         parts["truth_ecef_m"].append(seq.truth_ecef_m)
-    dtypes = {"system_index": torch.int64, "mask": torch.bool, "features": torch.float32}
+        parts["prr_m_s"].append(seq.prr_m_s)
+        parts["prr_mask"].append(seq.prr_mask)
+        parts["sat_vel_ecef_m_s"].append(seq.sat_vel_ecef_m_s)
+    dtypes = {"system_index": torch.int64, "mask": torch.bool, "prr_mask": torch.bool, "features": torch.float32}
     return WindowBatch(**{k: torch.as_tensor(np.stack(v), dtype=dtypes.get(k, torch.float64))
                           for k, v in parts.items()})
 

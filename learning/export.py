@@ -27,6 +27,7 @@ from typing import Iterable
 import numpy as np
 
 from lfgnss.errors import InputError
+from lfgnss.features import AVAILABLE_FEATURES
 from lfgnss.sequence import Sequence
 
 from .normalise import Normaliser, select_features
@@ -229,8 +230,8 @@ def load_model(path: str | Path, expected_features: Iterable[str] | None = None)
     ------
     ModelFileError
         (a ``ValueError``) naming the file and the reason: unreadable / truncated / corrupt file,
-        another format or version, missing or mis-shaped arrays, or features other than
-        ``expected_features`` (names and order).
+        another format or version, missing or mis-shaped arrays, features that this version of
+        ``lfgnss.features`` cannot compute, or features other than ``expected_features`` (names and order).
     """
     path = str(path)
     try:
@@ -252,6 +253,13 @@ def load_model(path: str | Path, expected_features: Iterable[str] | None = None)
     if meta["format_version"] != FORMAT_VERSION:
         raise ModelFileError(path, f"format version {meta['format_version']!r} is not supported "
                                    f"(this lfgnss reads version {FORMAT_VERSION})")
+    names = meta["feature_names"]
+    if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+        raise ModelFileError(path, f"feature_names is not a list of names ({names!r:.80})")
+    unknown = [n for n in names if n not in AVAILABLE_FEATURES]
+    if unknown:  # the same words as the CLI check in lfgnss.solve
+        raise ModelFileError(path, f"the model needs feature(s) {', '.join(unknown)} that this lfgnss cannot compute "
+                                   f"(it computes {', '.join(AVAILABLE_FEATURES)})")
     params = {}
     for name, shape in meta["parameters"].items():
         arr = arrays.get(f"param/{name}")

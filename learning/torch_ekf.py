@@ -13,9 +13,11 @@ Per epoch, both possible priors are gated and updated in one batched call of siz
 * the normal prior ``F x, F P F^T + Q``;
 * the reset prior ``x0(coarse), P0``.
 
-The reset result is taken at the first epoch with a coarse fix, after gaps > ``max_gap_s``, when more
-than ``reset_gated_fraction`` of the usable satellites fail the gate (not right after a reset), and
-when the normal update ends farther than ``reset_distance_m`` from the coarse fix. The gate decision
+When more than ``reset_gated_fraction`` of the usable satellites fail the gate (not right after a
+reset) and their median innovation is clock-jump sized (``clock_jump_min_m``), the prior's clock is
+realigned and gated again. The reset result
+is taken at the first epoch with a coarse fix, after gaps > ``max_gap_s``, when the realigned prior is
+still mostly gated, and when the normal update ends farther than ``reset_distance_m`` from the coarse fix. The gate decision
 (a hard mask) and the reset choice carry no gradient; everything else does.
 """
 from __future__ import annotations
@@ -53,6 +55,8 @@ class EkfOutput:
         ``estimators.base.STATUS_*`` codes, as in the plug-in's Solution.
     n_gated : (B, T) int64
         Usable satellites rejected by the gate.
+    n_doppler : (B, T) int64
+        Dopplers used in the update.
     """
 
     pos_ecef_m: torch.Tensor
@@ -61,6 +65,7 @@ class EkfOutput:
     n_used: torch.Tensor
     status: torch.Tensor
     n_gated: torch.Tensor
+    n_doppler: torch.Tensor
 
 
 def geometric_range_m(sat_ecef_m: torch.Tensor, rcv_ecef_m: torch.Tensor) -> torch.Tensor:
@@ -92,16 +97,42 @@ def _measurement(x: torch.Tensor, sat: torch.Tensor, clock_rows: torch.Tensor) -
     return h, H
 
 
+def _doppler_measurement(x: torch.Tensor, sat: torch.Tensor, sat_vel: torch.Tensor, usable: torch.Tensor
+                         ) -> tuple[torch.Tensor, torch.Tensor]:
+    """g (M, N) and G (M, N, n) at states ``x`` (M, n); mirrors ``estimators.models.doppler_measurement``."""
+    p, v = x[:, None, :3], x[:, None, 3:6]
+    d = sat - p
+    los = d / torch.linalg.norm(d, dim=-1, keepdim=True)
+    sagnac = OMEGA_EARTH_RAD_S / SPEED_OF_LIGHT_M_S * (sat_vel[..., 0] * p[..., 1] + sat[..., 0] * v[..., 1]
+                                                       - sat_vel[..., 1] * p[..., 0] - sat[..., 1] * v[..., 0])
+    g = (los * (sat_vel - v)).sum(-1) + x[:, None, models.DRIFT] + sagnac
+    G = torch.zeros(*los.shape[:-1], x.shape[-1], dtype=x.dtype, device=x.device)
+    G[..., 3:6] = -los
+    G[..., models.DRIFT] = 1.0
+    return g, G * usable[..., None]
+
+
 def _gate_and_update(x: torch.Tensor, P: torch.Tensor, sat: torch.Tensor, clock_rows: torch.Tensor,
                      z: torch.Tensor, r: torch.Tensor, usable: torch.Tensor, allowed: torch.Tensor,
-                     config: EkfConfig) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+                     config: EkfConfig, doppler: tuple | None = None) -> tuple:
     """Gate then Joseph-update priors (x (M, n), P (M, n, n)) with the usable slots (M, N).
 
-    Returns (x, P, n_used (M,), n_rejected (M,), n_usable (M,)); rows with ``allowed == False`` are
-    returned unchanged (their numbers are never selected by the caller).
+    ``doppler`` = (sat_vel (M, N, 3), prr (M, N), usable (M, N)) adds the Doppler rows (variance
+    ``config.doppler_sigma_m_s ** 2``); pseudoranges and Dopplers are gated alike, each block needs
+    ``min_sats_for_update`` kept rows to be used. Returns (x, P, n_used (M,), n_rejected (M,),
+    n_usable (M,), n_doppler (M,)), counts of pseudoranges except ``n_doppler``; rows with
+    ``allowed == False`` are returned unchanged (their numbers are never selected by the caller).
     """
     h, H = _measurement(x, sat, clock_rows)
     v = z - h
+    n_pr = v.shape[-1]
+    if doppler is not None:
+        sat_vel, prr, dop_usable = doppler
+        g, G = _doppler_measurement(x, sat, sat_vel, dop_usable)
+        v = torch.cat([v, prr - g], -1)
+        H = torch.cat([H, G], -2)
+        r = torch.cat([r, torch.full_like(prr, config.doppler_sigma_m_s ** 2)], -1)
+        usable = torch.cat([usable, dop_usable], -1)
     HP = H @ P
     with torch.no_grad():
         usable = usable & allowed[:, None]
@@ -110,9 +141,12 @@ def _gate_and_update(x: torch.Tensor, P: torch.Tensor, sat: torch.Tensor, clock_
             keep = usable & (v.abs() <= config.gate_sigma * torch.sqrt(s_diag))
         else:
             keep = usable
-        n_keep = keep.sum(-1)
-        used = keep & (n_keep >= config.min_sats_for_update)[:, None]
-        n_usable = usable.sum(-1)
+        n_keep_pr = keep[:, :n_pr].sum(-1)
+        n_keep_dop = keep[:, n_pr:].sum(-1)
+        enough = torch.cat([(n_keep_pr >= config.min_sats_for_update)[:, None].expand(-1, n_pr),
+                            (n_keep_dop >= config.min_sats_for_update)[:, None].expand(-1, keep.shape[-1] - n_pr)], -1)
+        used = keep & enough
+        n_usable = usable[:, :n_pr].sum(-1)
     usedf = used.to(torch.float64)
     Hm = H * usedf[..., None]
     vm = torch.where(used, v, torch.zeros_like(v))
@@ -125,7 +159,15 @@ def _gate_and_update(x: torch.Tensor, P: torch.Tensor, sat: torch.Tensor, clock_
     eye = torch.eye(x.shape[-1], dtype=x.dtype, device=x.device)
     IKH = eye - K @ Hm
     P_new = IKH @ P @ IKH.transpose(-1, -2) + (K * Rm[:, None, :]) @ K.transpose(-1, -2)   # Joseph
-    return x_new, P_new, used.sum(-1), n_usable - n_keep, n_usable
+    return x_new, P_new, used[:, :n_pr].sum(-1), n_usable - n_keep_pr, n_usable, used[:, n_pr:].sum(-1)
+
+
+def _clock_shift(x: torch.Tensor, sat: torch.Tensor, clock_rows: torch.Tensor, z: torch.Tensor,
+                 usable: torch.Tensor) -> torch.Tensor:
+    """(M,) lower median innovation [m] of the usable pseudoranges (``estimators.models.lower_median``)."""
+    h, _ = _measurement(x, sat, clock_rows)
+    v = torch.where(usable, z - h, torch.full((), float("nan"), dtype=x.dtype, device=x.device))
+    return torch.nan_to_num(torch.nanmedian(v, dim=-1).values, nan=0.0)
 
 
 def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor, vc_m: torch.Tensor, *, n_systems: int,
@@ -178,6 +220,10 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor, vc_m: torch.Tensor, *, n_s
     z_all = pr + vc                                  # z = pr + v^c: the one place v^c enters
     r_all = torch.where(usable_all, r_m2, torch.ones((), dtype=f64, device=dev))
     clock_rows_all = _clock_rows(batch.system_index.long(), usable_all, n)
+    use_doppler = config.doppler_sigma_m_s > 0
+    dop_all = usable_all & batch.prr_mask if use_doppler else torch.zeros_like(usable_all)
+    prr_all = torch.where(dop_all, batch.prr_m_s.to(f64), torch.zeros((), dtype=f64, device=dev))
+    satvel_all = torch.where(dop_all[..., None], batch.sat_vel_ecef_m_s.to(f64), torch.zeros((), dtype=f64, device=dev))
 
     coarse_ok_all = torch.isfinite(batch.coarse_ecef_m).all(-1) & torch.isfinite(batch.coarse_clock_m[..., 0])
     coarse_pos_all = torch.where(coarse_ok_all[..., None], batch.coarse_ecef_m.to(f64), torch.zeros((), dtype=f64))
@@ -196,7 +242,7 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor, vc_m: torch.Tensor, *, n_s
     P = P0.expand(b_len, n, n)
     started = torch.zeros(b_len, dtype=torch.bool, device=dev)
     prev_status = torch.full((b_len,), STATUS_NONE, dtype=torch.int64, device=dev)
-    xs, Ps, used_out, gated_out, status_out = [], [], [], [], []
+    xs, Ps, used_out, gated_out, status_out, dop_out = [], [], [], [], [], []
     for k in range(t_len):
         dt = dt_all[:, k, None, None]
         F = eye + dt * A
@@ -209,12 +255,31 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor, vc_m: torch.Tensor, *, n_s
 
         # Both branches in one batched call: rows [0, B) normal prior, [B, 2B) reset prior.
         two = lambda a: torch.cat([a, a], 0)  # noqa: E731
-        xu, Pu, n_used2, n_rej2, n_usable2 = _gate_and_update(
+        dop_k = (satvel_all[:, k], prr_all[:, k], dop_all[:, k]) if use_doppler else None
+        xu, Pu, n_used2, n_rej2, n_usable2, n_dop2 = _gate_and_update(
             torch.cat([x_pred, x0_all[:, k]], 0), torch.cat([P_pred, P0.expand(b_len, n, n)], 0),
             two(sat_all[:, k]), two(clock_rows_all[:, k]), two(z_all[:, k]), two(r_all[:, k]),
-            two(usable_all[:, k]), torch.cat([normal, coarse_ok], 0), config)
+            two(usable_all[:, k]), torch.cat([normal, coarse_ok], 0), config,
+            tuple(two(a) for a in dop_k) if use_doppler else None)
         x_n, x_r = xu[:b_len], xu[b_len:]
         P_n, P_r = Pu[:b_len], Pu[b_len:]
+        n_used_r, n_rej_r, n_dop_r = n_used2[b_len:], n_rej2[b_len:], n_dop2[b_len:]
+        if config.gate_sigma > 0:
+            # Post-fit check of the reset update (as the plug-in's reset): drop satellites beyond the gate.
+            h_r, _ = _measurement(x_r, sat_all[:, k], clock_rows_all[:, k])
+            with torch.no_grad():
+                ok = usable_all[:, k] & ((z_all[:, k] - h_r).abs() <= config.gate_sigma * torch.sqrt(r_all[:, k]))
+                n_ok, n_us = ok.sum(-1), usable_all[:, k].sum(-1)
+                redo = coarse_ok & (n_ok > 0) & (n_ok < n_us)
+            if bool(redo.any()):
+                x2, P2, n_used_2, n_rej_2, _, n_dop_2 = _gate_and_update(
+                    x0_all[:, k], P0.expand(b_len, n, n), sat_all[:, k], clock_rows_all[:, k], z_all[:, k],
+                    r_all[:, k], ok, redo, config, dop_k)
+                x_r = torch.where(redo[:, None], x2, x_r)
+                P_r = torch.where(redo[:, None, None], P2, P_r)
+                n_used_r = torch.where(redo, n_used_2, n_used_r)
+                n_rej_r = torch.where(redo, n_rej_2 + n_us - n_ok, n_rej_r)
+                n_dop_r = torch.where(redo, n_dop_2, n_dop_r)
 
         with torch.no_grad():
             n_usable = n_usable2[:b_len]
@@ -222,12 +287,32 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor, vc_m: torch.Tensor, *, n_s
                        & (n_rej2[:b_len].to(f64) > config.reset_gated_fraction * n_usable.to(f64)))
             if not config.gate_sigma > 0:
                 reset_g = torch.zeros_like(reset_g)
+        n_used_n, n_rej_n, n_dop_n = n_used2[:b_len], n_rej2[:b_len], n_dop2[:b_len]
+        if bool(reset_g.any()):
+            # Mostly gated: a receiver clock jump if the median innovation is one (as the plug-in does).
+            shift = _clock_shift(x_pred, sat_all[:, k], clock_rows_all[:, k], z_all[:, k], usable_all[:, k])
+            x_c = x_pred.clone()
+            x_c[:, models.CLOCK] = x_c[:, models.CLOCK] + shift        # models.realign_clock
+            with torch.no_grad():
+                try_jump = reset_g & (shift.abs() >= config.clock_jump_min_m)
+            xc, Pc, n_used_c, n_rej_c, _, n_dop_c = _gate_and_update(
+                x_c, P_pred, sat_all[:, k], clock_rows_all[:, k], z_all[:, k], r_all[:, k], usable_all[:, k], try_jump,
+                config, dop_k)
+            with torch.no_grad():
+                realigned = try_jump & ~(n_rej_c.to(f64) > config.reset_gated_fraction * n_usable.to(f64))
+            x_n = torch.where(realigned[:, None], xc, x_n)
+            P_n = torch.where(realigned[:, None, None], Pc, P_n)
+            n_used_n = torch.where(realigned, n_used_c, n_used_n)
+            n_rej_n = torch.where(realigned, n_rej_c, n_rej_n)
+            n_dop_n = torch.where(realigned, n_dop_c, n_dop_n)
+            reset_g = try_jump & ~realigned       # a smaller median: multipath, no reset
+        with torch.no_grad():
             far_off = torch.linalg.norm(x_n[:, :3] - coarse_pos_all[:, k], dim=-1) > config.reset_distance_m
             reset_d = normal & ~reset_g & coarse_ok & far_off
             reset = reset_a | reset_g | reset_d
             keep_n = normal & ~reset
             status = torch.where(reset, STATUS_RESET,
-                                 torch.where(keep_n, torch.where(n_used2[:b_len] > 0, STATUS_UPDATED, STATUS_COASTED),
+                                 torch.where(keep_n, torch.where(n_used_n + n_dop_n > 0, STATUS_UPDATED, STATUS_COASTED),
                                              STATUS_NONE))
         x = torch.where(reset[:, None], x_r, torch.where(keep_n[:, None], x_n, x))
         P = torch.where(reset[:, None, None], P_r, torch.where(keep_n[:, None, None], P_n, P))
@@ -236,15 +321,16 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor, vc_m: torch.Tensor, *, n_s
         xs.append(x)
         Ps.append(P)
         status_out.append(status)
-        used_out.append(torch.where(reset, n_used2[b_len:], torch.where(keep_n, n_used2[:b_len], 0)))
-        gated_out.append(torch.where(reset, n_rej2[b_len:], torch.where(keep_n, n_rej2[:b_len], 0)))
+        used_out.append(torch.where(reset, n_used_r, torch.where(keep_n, n_used_n, 0)))
+        gated_out.append(torch.where(reset, n_rej_r, torch.where(keep_n, n_rej_n, 0)))
+        dop_out.append(torch.where(reset, n_dop_r, torch.where(keep_n, n_dop_n, 0)))
 
     state = torch.stack(xs, 1)
     status = torch.stack(status_out, 1)
     pos = torch.where((status == STATUS_NONE)[..., None], torch.full((), float("nan"), dtype=f64, device=dev),
                       state[..., :3])
     return EkfOutput(pos_ecef_m=pos, state=state, cov=torch.stack(Ps, 1), n_used=torch.stack(used_out, 1),
-                     status=status, n_gated=torch.stack(gated_out, 1))
+                     status=status, n_gated=torch.stack(gated_out, 1), n_doppler=torch.stack(dop_out, 1))
 
 
 __all__ = ["EkfOutput", "batch_ekf", "geometric_range_m"]

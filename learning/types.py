@@ -23,6 +23,15 @@ class WindowBatch:
     coarse_ecef_m: torch.Tensor     # (B, T, 3) float64, NaN where no coarse fix
     coarse_clock_m: torch.Tensor    # (B, T, C) float64
     truth_ecef_m: torch.Tensor      # (B, T, 3) float64
+    prr_m_s: torch.Tensor | None = None           # (B, T, N) float64, Doppler pseudorange rate
+    prr_mask: torch.Tensor | None = None          # (B, T, N) bool
+    sat_vel_ecef_m_s: torch.Tensor | None = None  # (B, T, N, 3) float64
+
+    def __post_init__(self) -> None:
+        if self.prr_mask is None:               # no Doppler: zeros, nothing usable
+            self.prr_m_s = torch.zeros_like(self.pr_m)
+            self.prr_mask = torch.zeros_like(self.mask)
+            self.sat_vel_ecef_m_s = torch.zeros_like(self.sat_pos_ecef_m)
 
     def to(self, device: torch.device | str) -> "WindowBatch":
         """The same batch on another device."""

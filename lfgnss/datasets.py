@@ -32,7 +32,7 @@ from .paths import cache_dir, shared_data_dir
 from .sequence import DEFAULT_FEATURES, Sequence, load_sequence, save_sequence
 from .time import gps_s_to_week_tow, week_tow_to_gps_s
 
-_BUILD_VERSION = 4
+_BUILD_VERSION = 5
 SPLITS = ("train", "val", "test")
 
 

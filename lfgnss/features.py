@@ -58,6 +58,10 @@ def pack_features(names: tuple[str, ...], *, cn0_dbhz, el_rad, az_rad, residual_
     return np.where(mask[..., None], np.nan_to_num(out), 0.0)
 
 
+#: Pseudorange rates beyond this are not Doppler measurements [m/s] (satellite ~1 km/s, car, oscillator).
+MAX_ABS_PRR_M_S = 1.0e4
+
+
 def build_sequence(meas: Measurements, fix: CoarseFix, *, feature_names: tuple[str, ...] = DEFAULT_FEATURES,
                    name: str = "", truth_ecef_m: np.ndarray | None = None,
                    spp_config: SppConfig = SppConfig()) -> Sequence:
@@ -88,6 +92,8 @@ def build_sequence(meas: Measurements, fix: CoarseFix, *, feature_names: tuple[s
     cn0 = np.where(mask, np.nan_to_num(meas.cn0_dbhz), 0.0)
     feats = pack_features(tuple(feature_names), cn0_dbhz=cn0, el_rad=el, az_rad=az, residual_m=residual, dpc=dpc,
                           system_index=sysi, systems=meas.systems, mask=mask)
+    prr = meas.satclock_corrected_prr_m_s()
+    prr_mask = mask & np.isfinite(prr) & (np.abs(np.nan_to_num(prr)) < MAX_ABS_PRR_M_S) & (meas.obs.doppler_hz != 0)
     coarse_clock = pd.DataFrame(fix.clock_m).ffill().bfill().to_numpy()  # an ISB unseen in an epoch: nearest
     coarse_clock = np.where(fix.ok[:, None], coarse_clock, np.nan)
     truth = np.full((n_t, 3), np.nan) if truth_ecef_m is None else np.asarray(truth_ecef_m, float)
@@ -97,4 +103,5 @@ def build_sequence(meas: Measurements, fix: CoarseFix, *, feature_names: tuple[s
         pr_m=np.where(mask, pr_corr, 0.0), sat_pos_ecef_m=np.where(mask[..., None], meas.sat_pos_ecef_m, 0.0),
         cn0_dbhz=cn0, el_rad=np.where(mask, el, 0.0), az_rad=np.where(mask, az, 0.0), features=feats,
         feature_names=tuple(feature_names), coarse_ecef_m=fix.pos_ecef_m.copy(), coarse_clock_m=coarse_clock,
-        truth_ecef_m=truth)
+        truth_ecef_m=truth, prr_m_s=np.where(prr_mask, prr, 0.0), prr_mask=prr_mask,
+        sat_vel_ecef_m_s=np.where(prr_mask[..., None], meas.sat_vel_ecef_m_s, 0.0))

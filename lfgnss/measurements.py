@@ -40,6 +40,7 @@ class Measurements:
     carrier_hz: np.ndarray            # (S,) carrier frequency of the code used [Hz]
     reason: np.ndarray                # (T, S) int8 qc code
     warnings: tuple[str, ...] = field(default=())
+    sat_clock_drift_s_s: np.ndarray | None = None   # (T, S) satellite clock drift [s/s]; None: unknown (zeros)
 
     @property
     def time_gps_s(self) -> np.ndarray:
@@ -64,6 +65,11 @@ class Measurements:
     def satclock_corrected_pr_m(self) -> np.ndarray:
         """(T, S) pseudorange plus satellite clock minus group delay [m] (no atmosphere yet)."""
         return self.obs.pr_m + SPEED_OF_LIGHT_M_S * (self.sat_clock_s - self.group_delay_s)
+
+    def satclock_corrected_prr_m_s(self) -> np.ndarray:
+        """(T, S) pseudorange rate from Doppler, ``-lambda D``, plus satellite clock drift times c [m/s]."""
+        drift = 0.0 if self.sat_clock_drift_s_s is None else self.sat_clock_drift_s_s
+        return -SPEED_OF_LIGHT_M_S / self.carrier_hz * self.obs.doppler_hz + SPEED_OF_LIGHT_M_S * drift
 
     def to_frame(self) -> pd.DataFrame:
         """Tidy table, one row per observed (epoch, satellite), with qc reasons spelt out."""
@@ -115,7 +121,7 @@ def load(obs: str | Path | Observations, nav: str | Path | Iterable[str | Path] 
 
     observations = obs if isinstance(obs, Observations) else load_obs(obs, cache=cache)
     navigation = nav if isinstance(nav, Navigation) else load_nav(nav)
-    notes = list(observations.warnings)
+    notes = list(observations.warnings) + list(getattr(navigation, "warnings", ()))
     wanted = tuple(s for s in SYSTEMS if systems is None or s in set(systems))
     observations = observations.select_systems(wanted)
     if observations.sv.size == 0:
@@ -143,11 +149,13 @@ def load(obs: str | Path | Observations, nav: str | Path | Iterable[str | Path] 
     pos = np.zeros((n_t, n_s, 3))
     vel = np.zeros((n_t, n_s, 3))
     clock = np.zeros((n_t, n_s))
+    clock_drift = np.zeros((n_t, n_s))
     tgd = np.zeros((n_t, n_s))
     eph_code = np.full((n_t, n_s), qc.OK, dtype=np.int8)
     pos[t_idx, s_idx] = np.nan_to_num(states.pos_ecef_m)
     vel[t_idx, s_idx] = np.nan_to_num(states.vel_ecef_m_s)
     clock[t_idx, s_idx] = np.nan_to_num(states.clock_s)
+    clock_drift[t_idx, s_idx] = np.nan_to_num(states.clock_drift_s_s)
     tgd[t_idx, s_idx] = np.nan_to_num(states.group_delay_s)
     eph_code[t_idx, s_idx] = np.where(states.ok, qc.OK, qc.ephemeris_reason(states.reason))
     reason = qc.observation_reasons(observations.pr_m, cn0, eph_code, qc_config)
@@ -163,4 +171,4 @@ def load(obs: str | Path | Observations, nav: str | Path | Iterable[str | Path] 
     sys_index = np.array([usable_systems.index(c) if c in usable_systems else -1 for c in letters], dtype=int)
     reason = np.where((sys_index[None, :] < 0) & (reason == qc.OK), qc.SYSTEM_EXCLUDED, reason).astype(np.int8)
     return Measurements(observations, navigation, usable_systems, sys_index, pos, vel, clock, tgd,
-                        carrier_frequency_hz(observations.sv, navigation), reason, tuple(notes))
+                        carrier_frequency_hz(observations.sv, navigation), reason, tuple(notes), clock_drift)

@@ -11,6 +11,7 @@ GLONASS epochs are UTC (GPST = UTC + leap seconds), as RTKLIB ``decode_eph``/``d
 """
 from __future__ import annotations
 
+import datetime as dt
 import hashlib
 import io
 import pickle
@@ -25,6 +26,7 @@ import pandas as pd
 
 from .errors import RinexError
 from .paths import cache_dir
+from .rinex import RinexWarning, _decode
 from .time import BDT_MINUS_GPST_S, SECONDS_PER_WEEK, datetime64_to_gps_s, utc_to_gps_s
 
 KEPLER_SYSTEMS = ("G", "E", "J", "C")
@@ -106,15 +108,17 @@ class Navigation:
 
     ``iono`` maps 'GPS' and/or 'BDS' to 8 Klobuchar coefficients (alpha0..3 [s, s/sc, s/sc^2, s/sc^3],
     beta0..3 [s, ...]) when a header had them (RINEX 2 ION ALPHA/BETA, RINEX 3 GPSA/GPSB, BDSA/BDSB).
+    ``warnings`` holds one ``PATH:LINE: reason`` note per damaged record (or lines) that was skipped.
     """
 
     kepler: KeplerEphemerides
     glonass: GlonassEphemerides
     iono: dict[str, np.ndarray]
     sources: tuple[str, ...]
+    warnings: tuple[str, ...] = ()
 
 
-_CACHE_VERSION = 1
+_CACHE_VERSION = 2
 
 
 def load_nav(paths: str | Path | Iterable[str | Path], *, cache: bool = True) -> Navigation:
@@ -128,19 +132,35 @@ def load_nav(paths: str | Path | Iterable[str | Path], *, cache: bool = True) ->
     cache : bool
         Reuse/write the parsed result in ``lfgnss.paths.cache_dir()``, keyed by the files' content.
 
+    Warns
+    -----
+    RinexWarning
+        Once per file with damaged records (an unreadable value, non-ASCII bytes, a wrong number of
+        lines, an impossible epoch): those records are skipped, every other one is kept. The notes,
+        ``PATH:LINE: reason``, are in ``Navigation.warnings``.
+
     Raises
     ------
     RinexError
         A file is missing, empty, unreadable, not a navigation file or has no GPS/Galileo/QZSS/
-        BeiDou/GLONASS record: one line ``PATH: reason``.
+        BeiDou/GLONASS record (or none that is readable): one line ``PATH[:LINE]: reason``.
     """
     if isinstance(paths, (str, Path)):
         paths = [paths]
     paths = [Path(p) for p in paths]
     if not paths:
         raise ValueError("load_nav needs at least one file")
-    if not cache:
-        return _parse_nav(paths)
+    nav = _load_cached(paths) if cache else _parse_nav(paths)
+    for source in dict.fromkeys(nav.sources):  # also on a cache hit: the same file always gives the same warning
+        notes = [w for w in nav.warnings if w.startswith(source + ":")]
+        if notes:
+            warnings.warn(f"{source}: {len(notes)} problem(s), damaged navigation records skipped; first: {notes[0]}",
+                          RinexWarning, stacklevel=2)
+    return nav
+
+
+def _load_cached(paths: list[Path]) -> Navigation:
+    """:func:`_parse_nav` through the cache, keyed by the files' content."""
     digest = hashlib.sha256(str(_CACHE_VERSION).encode())
     for path in paths:
         try:
@@ -152,7 +172,9 @@ def load_nav(paths: str | Path | Iterable[str | Path], *, cache: bool = True) ->
         try:
             with open(target, "rb") as f:
                 cached = pickle.load(f)
-            return Navigation(cached.kepler, cached.glonass, cached.iono, tuple(str(p) for p in paths))
+            sources = tuple(str(p) for p in paths)
+            return Navigation(cached.kepler, cached.glonass, cached.iono, sources,
+                              _rename(cached.warnings, cached.sources, sources))
         except Exception:  # a damaged cache entry is rebuilt, never trusted
             target.unlink(missing_ok=True)
     nav = _parse_nav(paths)
@@ -164,10 +186,21 @@ def load_nav(paths: str | Path | Iterable[str | Path], *, cache: bool = True) ->
     return nav
 
 
+def _rename(notes: tuple[str, ...], old: tuple[str, ...], new: tuple[str, ...]) -> tuple[str, ...]:
+    """Notes of a cached parse, naming the files of this call (the same content may have other names)."""
+    out = []
+    for note in notes:
+        hits = [i for i, o in enumerate(old) if note.startswith(o + ":")]
+        i = max(hits, key=lambda k: len(old[k]), default=None)
+        out.append(note if i is None else new[i] + note[len(old[i]):])
+    return tuple(dict.fromkeys(out))
+
+
 def _parse_nav(paths: list[Path]) -> Navigation:
-    kep_frames, glo_frames, iono = [], [], {}
+    kep_frames, glo_frames, iono, notes = [], [], {}, []
     for path in paths:
-        datasets = _read(path)
+        datasets, skipped = _read(path)
+        notes += skipped
         raw = pd.concat([_flat(ds) for ds in datasets], ignore_index=True)
         kep, glo = _kepler_frame(raw), _glonass_frame(raw)
         if kep.empty and glo.empty:
@@ -180,14 +213,16 @@ def _parse_nav(paths: list[Path]) -> Navigation:
                 iono[key] = coef
     kepler = _kepler_records(pd.concat(kep_frames, ignore_index=True))
     glonass = _glonass_records(pd.concat(glo_frames, ignore_index=True))
-    return Navigation(kepler=kepler, glonass=glonass, iono=iono, sources=tuple(str(p) for p in paths))
+    return Navigation(kepler=kepler, glonass=glonass, iono=iono, sources=tuple(str(p) for p in paths),
+                      warnings=tuple(dict.fromkeys(notes)))
 
 
 # --------------------------------------------------------------------------------------------------
-def _read(path: Path) -> list:
+def _read(path: Path) -> tuple[list, list[str]]:
     """georinex.load on a cleaned copy of the file; every failure becomes a one-line RinexError.
 
-    Returns one xarray Dataset per chunk of records (see :func:`_clean_layers`).
+    Returns one xarray Dataset per chunk of records (see :func:`_clean_layers`) and the notes on
+    what was skipped.
     """
     import georinex
     from georinex.rio import opener
@@ -197,13 +232,21 @@ def _read(path: Path) -> list:
     if path.stat().st_size == 0:
         raise RinexError(path, "empty file")
     try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise RinexError(path, f"cannot read file ({exc.strerror or exc})") from None
+    try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            with opener(path) as f:   # georinex's reader: plain, gzip, bzip2, zip, Hatanaka
-                text = f.read()
-            if isinstance(text, bytes):
-                text = text.decode("ascii", errors="replace")
-            layers = _clean_layers(text, path)
+            if raw[:3] == b"BZh" or raw[:2] == b"PK":
+                with opener(path) as f:   # georinex's reader for bzip2 and zip
+                    text = f.read()
+                notes: list[str] = []
+            else:
+                # plain, gzip (also cut short), .Z, Hatanaka; one character per byte, so a non-ASCII
+                # byte stays where it was instead of shifting the fixed-width fields after it
+                text, notes = _decode(raw, path)
+            layers, skipped = _clean_layers(text, path)
             datasets = [georinex.load(io.StringIO(layer)) for layer in layers]
     except RinexError:
         raise
@@ -215,18 +258,74 @@ def _read(path: Path) -> list:
             raise RinexError(path, "not a readable RINEX navigation file")
         if ds.attrs.get("rinextype") != "nav":
             raise RinexError(path, f"not a RINEX navigation file (type {ds.attrs.get('rinextype')!r})")
-    return datasets
+    return datasets, notes + skipped
 
 
 _RECORD_START = {2: re.compile(r"^[ 0-9][0-9] [ 0-9][0-9] [ 0-9][0-9] [ 0-9][0-9] "),
                  3: re.compile(r"^[GRECJSI][ 0-9][0-9] [0-9]{4} ")}
 _FIELD_W = 19
 _ZERO_FIELD = " 0.000000000000E+00"
+# a value as georinex reads it (float() after D -> E), without nan/inf, underscores or inner blanks
+_NUMBER = re.compile(r" *[+-]?(\d+\.?\d*|\.\d+)([EeD][+-]?\d+)? *")
+_COMPLETE_NUMBER = re.compile(r" *[+-]?(\d+\.?\d*|\.\d+)[EeD][+-]?\d\d+ *")
+#: Lines per record: RINEX 3 by the record's system letter, RINEX 2 by the file type of the header.
+_RECORD_LINES = {3: {"G": 8, "E": 8, "J": 8, "C": 8, "I": 8, "R": 4, "S": 4}, 2: {"N": 8, "E": 8, "G": 4}}
 
 
-def _clean_layers(text: str, path: Path) -> list[str]:
-    """Work around three georinex 1.16 defects without reading any value ourselves.
+def _epoch_ok(line: str, version: int) -> bool:
+    """Whether the satellite number and epoch of a record's first line are valid (georinex skips others)."""
+    try:
+        if version == 3:
+            prn = int(line[1:3])
+            dt.datetime(int(line[4:8]), int(line[9:11]), int(line[12:14]), int(line[15:17]), int(line[18:20]),
+                        int(line[21:23]))
+        else:
+            prn = int(line[:2])
+            year, second = int(line[3:5]), float(line[17:22])
+            dt.datetime(year + (1900 if year >= 80 else 2000), int(line[6:8]), int(line[9:11]), int(line[12:14]),
+                        int(line[15:17]), int(second))
+            if not 0.0 <= second < 60.0:
+                return False
+    except ValueError:
+        return False
+    return prn > 0
 
+
+def _record_problem(rec: list[str], version: int, n_lines: int, slots: list[tuple[int, int]],
+                    cut: bool) -> tuple[int, str] | None:
+    """(index of the damaged line, reason) for a record (lines padded to 80 columns) that cannot be read, or None.
+
+    ``cut``: the file ends inside this record's last line (no newline at its end), so its last value may be cut.
+    """
+    if len(rec) != n_lines:
+        what = "cut short" if len(rec) < n_lines else "too long (damaged, or merged with the next record)"
+        return 0, f"record {what}: {len(rec)} lines instead of {n_lines}"
+    epoch = rec[0][:slots[0][1]]
+    if "\ufffd" in epoch:
+        return 0, "non-ASCII bytes in the epoch line"
+    if not _epoch_ok(rec[0], version):
+        return 0, f"unreadable satellite number or epoch {epoch.strip()!r}"
+    for j, c in slots:
+        value = rec[j][c:c + _FIELD_W]
+        if "\ufffd" in value:
+            return j, f"non-ASCII bytes in value {value.strip().replace(chr(0xfffd), '?')!r}"
+        if value.strip() and (not _NUMBER.fullmatch(value) or not np.isfinite(float(value.replace("D", "E")))):
+            return j, f"unreadable value {value.strip()!r}"
+    filled = [(j, c) for j, c in slots if rec[j][c:c + _FIELD_W].strip()]
+    if cut and filled:
+        j, c = filled[-1]
+        if not _COMPLETE_NUMBER.fullmatch(rec[j][c:c + _FIELD_W]):
+            return j, f"file ends inside value {rec[j][c:c + _FIELD_W].strip()!r}"
+    return None
+
+
+def _clean_layers(text: str, path: Path) -> tuple[list[str], list[str]]:
+    """Skip damaged records and work around three georinex 1.16 defects without reading any value ourselves.
+
+    0. A record with an unreadable value (text, non-ASCII bytes, nan/inf), an impossible epoch or a
+       wrong number of lines makes georinex fail on the whole file (RINEX 2), silently drop it
+       (RINEX 3) or read the next record's lines into it: such a record is skipped with a note
+       ``PATH:LINE: reason``; all records damaged is an error.
     1. A blank field inside a record (BeiDou/Galileo "spare" fields) makes ``float('   ')`` fail and
        georinex silently turns the whole record into NaN (nav3) or crashes (nav2): interior blank
        fields are written as zeros, as RTKLIB reads them.
@@ -237,9 +336,9 @@ def _clean_layers(text: str, path: Path) -> list[str]:
 
     Also, georinex's RINEX 3 reader merges satellites one by one into a growing xarray Dataset
     (seconds for a daily mixed file): there each satellite of each layer becomes its own small text.
-    Returns the file as one or more RINEX texts (header + records).
+    Returns the file as one or more RINEX texts (header + records), and the notes.
     """
-    lines = text.splitlines()
+    lines = text.replace("\r\n", "\n").replace("\r", "\n").split("\n")  # not splitlines: \f, \x1c... are no line ends
     end = next((i for i, ln in enumerate(lines) if "END OF HEADER" in ln), None)
     if end is None:
         raise RinexError(path, "no END OF HEADER line: not a RINEX file")
@@ -252,19 +351,36 @@ def _clean_layers(text: str, path: Path) -> list[str]:
     start = _RECORD_START[version]
     first_col = 23 if version == 3 else 22
     cont_col = 4 if version == 3 else 3
-    records: list[list[str]] = []
-    for ln in lines[end + 1:]:
+    records: list[tuple[list[int], list[str]]] = []   # (line numbers, lines)
+    orphans: list[int] = []
+    for i, ln in enumerate(lines[end + 1:], start=end + 2):
         if start.match(ln):
-            records.append([ln])
+            records.append(([i], [ln]))
         elif records and ln.strip():
-            records[-1].append(ln)
+            records[-1][0].append(i)
+            records[-1][1].append(ln)
+        elif ln.strip():
+            orphans.append(i)
+    notes = [f"{path}:{orphans[0]}: {len(orphans)} line(s) before the first ephemeris record skipped"] if orphans else []
+    cut_line = len(lines) if lines[-1].strip() else None   # the file ends without a newline
     seen: set[tuple[str, ...]] = set()
     count: dict[str, int] = {}
     chunks: dict[tuple[int, str], list[str]] = {}
-    for rec in records:
+    damaged: list[tuple[int, str]] = []   # (line, reason) of each skipped record
+    for numbers, rec in records:
         rec = [ln.ljust(80)[:80] for ln in rec]
+        n_lines = _RECORD_LINES[version].get(rec[0][0] if version == 3 else lines[0][20], 8)
+        if numbers[-1] == cut_line and len(rec) == n_lines + 1:   # a file cut inside the next epoch line
+            notes.append(f"{path}:{cut_line}: file ends inside this line; skipped")
+            numbers, rec = numbers[:-1], rec[:-1]
         slots = [(0, first_col + k * _FIELD_W) for k in range(3)]
         slots += [(j, cont_col + k * _FIELD_W) for j in range(1, len(rec)) for k in range(4)]
+        problem = _record_problem(rec, version, n_lines, slots, numbers[-1] == cut_line)
+        if problem is not None:
+            sv = rec[0][:3] if version == 3 else {"N": "G", "G": "R", "E": "E"}.get(lines[0][20], "?") + rec[0][:2]
+            sv = sv.replace(" ", "0")
+            damaged.append((numbers[problem[0]], f"{problem[1]}; {sv} record of line {numbers[0]} skipped"))
+            continue
         filled = [i for i, (j, c) in enumerate(slots) if rec[j][c:c + _FIELD_W].strip()]
         last = filled[-1] if filled else -1
         for i, (j, c) in enumerate(slots[:last]):
@@ -278,10 +394,14 @@ def _clean_layers(text: str, path: Path) -> list[str]:
         n = count.get(ident, 0)
         count[ident] = n + 1
         chunks.setdefault((n, rec[0][:3] if version == 3 else ""), []).extend(rec)
+    if not chunks and damaged:
+        raise RinexError(path, f"not a readable RINEX navigation file: all {len(damaged)} ephemeris record(s) "
+                               f"damaged; first: {damaged[0][1]}", line=damaged[0][0])
     if not chunks:
         raise RinexError(path, "no ephemeris records")
     head = lines[: end + 1]
-    return ["\n".join(head + chunk) + "\n" for chunk in chunks.values()]
+    notes += [f"{path}:{line}: {reason}" for line, reason in damaged]
+    return ["\n".join(head + chunk) + "\n" for chunk in chunks.values()], notes
 
 
 def _adjweek(sow_s: np.ndarray, ref_s: np.ndarray) -> np.ndarray:

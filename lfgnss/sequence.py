@@ -48,6 +48,16 @@ class Sequence:
         Receiver clock of ``systems[0]`` then ISBs of the others from the coarse fix [m]; NaN if none.
     truth_ecef_m : (T, 3) float
         Ground truth [m]; NaN where the epoch has no label.
+    prr_m_s : (T, N) float, optional
+        Pseudorange rate from Doppler, ``-lambda D``, corrected for the satellite clock drift [m/s];
+        the receiver clock drift is still in it. Zeros where ``prr_mask`` is False.
+    prr_mask : (T, N) bool, optional
+        True where the slot's pseudorange is usable and it has a Doppler measurement.
+    sat_vel_ecef_m_s : (T, N, 3) float, optional
+        Satellite velocity at transmission, ECEF [m/s].
+
+    The three Doppler arrays default to "no Doppler" (zeros, all False), so sequences built without
+    Doppler stay valid; estimators then use pseudoranges only.
     """
 
     name: str
@@ -66,13 +76,21 @@ class Sequence:
     coarse_ecef_m: np.ndarray
     coarse_clock_m: np.ndarray
     truth_ecef_m: np.ndarray
+    prr_m_s: np.ndarray | None = None
+    prr_mask: np.ndarray | None = None
+    sat_vel_ecef_m_s: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         t, n = self.mask.shape
+        for key, shape, dtype in (("prr_m_s", (t, n), float), ("prr_mask", (t, n), bool),
+                                  ("sat_vel_ecef_m_s", (t, n, 3), float)):
+            if getattr(self, key) is None:
+                object.__setattr__(self, key, np.zeros(shape, dtype))
         expect = {"time_gps_s": (t,), "sv": (t, n), "system_index": (t, n), "pr_m": (t, n),
                   "sat_pos_ecef_m": (t, n, 3), "cn0_dbhz": (t, n), "el_rad": (t, n), "az_rad": (t, n),
                   "features": (t, n, len(self.feature_names)), "coarse_ecef_m": (t, 3),
-                  "coarse_clock_m": (t, len(self.systems)), "truth_ecef_m": (t, 3)}
+                  "coarse_clock_m": (t, len(self.systems)), "truth_ecef_m": (t, 3), "prr_m_s": (t, n),
+                  "prr_mask": (t, n), "sat_vel_ecef_m_s": (t, n, 3)}
         for key, shape in expect.items():
             got = np.shape(getattr(self, key))
             if got != shape:
@@ -109,7 +127,8 @@ class Sequence:
                        mask=pad(self.mask, False), pr_m=pad(self.pr_m, 0.0),
                        sat_pos_ecef_m=pad(self.sat_pos_ecef_m, 0.0), cn0_dbhz=pad(self.cn0_dbhz, 0.0),
                        el_rad=pad(self.el_rad, 0.0), az_rad=pad(self.az_rad, 0.0),
-                       features=pad(self.features, 0.0))
+                       features=pad(self.features, 0.0), prr_m_s=pad(self.prr_m_s, 0.0),
+                       prr_mask=pad(self.prr_mask, False), sat_vel_ecef_m_s=pad(self.sat_vel_ecef_m_s, 0.0))
 
 
 def save_sequence(path, seq: Sequence) -> None:

@@ -314,10 +314,6 @@ def test_tunnel_is_coasted(corpus, backend, mode, tmp_path):
     args = _cli_args(folder, case, out, backend) + (["--mode", mode] if mode else [])
     code, stdout, stderr = _cli(args)
     assert "Traceback" not in stdout + stderr
-    if code == 3:   # estimators/fgo.py fixed-lag: gtsam IndeterminantLinearSystemException (reported)
-        lines = stderr.strip().splitlines()
-        assert len(lines) == 1 and lines[0].startswith("error: internal error while solving"), stderr
-        pytest.xfail("fixed-lag factor graph fails on long outages (docs/bad_input.md, known limitations)")
     assert code == 0, stderr
     rows = _check_outputs(out)
     start, stop = case.extra["tunnel"]

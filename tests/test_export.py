@@ -9,6 +9,7 @@ import torch
 from learning.export import FORMAT_VERSION, LfgnssModel, ModelFileError, export_model, load_model
 from learning.network import LfgnssNet
 from learning.normalise import Normaliser, select_features
+from lfgnss.errors import InputError
 from lfgnss.sequence import DEFAULT_FEATURES
 from lfgnss.simulate import simulate_sequence
 
@@ -114,6 +115,31 @@ def test_mismatched_features(exported, tmp_path):
     model = load_model(path)
     with pytest.raises(ValueError, match="dpc_gdop"):
         model(replace(seq, features=seq.features[..., :4], feature_names=no_dpc))
+
+
+@pytest.mark.parametrize("bogus", [["snr_db"], ["snr_db", "multipath_index"]])
+def test_unknown_feature_names_file_and_feature(exported, tmp_path, bogus):
+    """A model needing features this lfgnss cannot compute fails at load time, naming the file and features."""
+    dst = tmp_path / "unknown_feature.npz"
+
+    def change(meta):
+        for i, name in enumerate(bogus):
+            meta["feature_names"][i] = name
+            meta["normaliser"]["feature_names"][i] = name
+
+    _rewrite_metadata(exported[0], dst, change)
+    with pytest.raises(ModelFileError) as info:
+        load_model(dst)
+    message = str(info.value)
+    assert message.startswith(f"{dst}: the model needs feature(s) {', '.join(bogus)} ") and "\n" not in message
+    assert isinstance(info.value, InputError) and isinstance(info.value, ValueError)
+
+
+def test_feature_names_not_a_list_of_names(exported, tmp_path):
+    dst = tmp_path / "bad_names.npz"
+    _rewrite_metadata(exported[0], dst, lambda m: m.update(feature_names="cn0"))
+    with pytest.raises(ModelFileError, match=rf"^{dst}: feature_names is not a list of names"):
+        load_model(dst)
 
 
 def test_file_is_a_single_npz_without_pickles(exported):

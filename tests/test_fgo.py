@@ -13,7 +13,8 @@ from gtsam.utils.numerical_derivative import (numericalDerivative41, numericalDe
                                               numericalDerivative43, numericalDerivative44)
 
 from estimators.base import STATUS_COASTED, STATUS_NONE, STATUS_UPDATED, create  # noqa: E402
-from estimators.fgo import DEFAULT_KERNEL, LfgnssFgo, cv_motion_factor, cv_process_covariance  # noqa: E402
+from estimators.fgo import (DEFAULT_KERNEL, LfgnssFgo, cv_motion_factor, cv_process_covariance,  # noqa: E402
+                            position_blind_epochs)
 from lfgnss.constants import SPEED_OF_LIGHT_M_S  # noqa: E402
 from lfgnss.corrections import geometric_range_m  # noqa: E402
 from lfgnss.simulate import simulate_sequence  # noqa: E402
@@ -183,6 +184,43 @@ def test_sixty_second_outage_and_recovery(mode):
     err = _err(sol, seq)
     assert np.all(err[100:160] < 50.0)                       # CV coasting (fixed-lag: 17.5 m max)
     assert np.sqrt(np.mean(err[170:] ** 2)) < 8.0            # recovered within 10 s
+
+
+@pytest.mark.parametrize("left", ["none", "one per constellation"])
+def test_fixed_lag_outage_much_longer_than_lag(left):
+    """60 s at 5 Hz without position information (lag 10 s): gtsam used to raise IndeterminantLinearSystem.
+
+    300 epochs chained by 0.2 s CV factors only, under an ever weaker marginal, made gtsam's Cholesky give up
+    after ~200 of them; one satellite per constellation (each spent on its clock) did the same.
+    """
+    clean = simulate_sequence(500, dt_s=0.2, seed=21)
+    out = slice(100, 400)
+    mask = clean.mask.copy()
+    for k in range(out.start, out.stop):
+        keep = ([np.flatnonzero(mask[k] & (clean.system_index[k] == j))[0] for j in range(len(clean.systems))]
+                if left != "none" else [])
+        mask[k] = False
+        mask[k, keep] = True
+    seq = replace(clean, mask=mask)
+    assert np.array_equal(np.flatnonzero(position_blind_epochs(seq)), np.arange(out.start, out.stop))
+    sol = LfgnssFgo(mode="fixed-lag", lag_s=10.0, covariances=True).solve(seq)
+    assert np.all(sol.available) and np.isfinite(sol.pos_ecef_m).all() and np.isfinite(sol.cov_ecef_m2).all()
+    if left == "none":
+        assert np.all(sol.status[out] == STATUS_COASTED) and np.all(sol.n_used[out] == 0)
+    else:                                                    # the satellites still give the clock
+        assert np.all(sol.n_used[out] == len(seq.systems)) and np.isfinite(sol.clock_m[out]).all()
+    # coasted: the CV prediction from the last epoch before, with a growing covariance
+    dt = seq.time_gps_s[out] - seq.time_gps_s[out.start - 1]
+    pred = sol.pos_ecef_m[out.start - 1] + dt[:, None] * sol.vel_ecef_m_s[out.start - 1]
+    np.testing.assert_allclose(sol.pos_ecef_m[out], pred, atol=1e-6)
+    trace = np.trace(sol.cov_ecef_m2, axis1=1, axis2=2)
+    assert np.all(np.diff(trace[out.start - 1: out.stop]) > 0) and trace[out.stop] < trace[out.stop - 1]
+    # back on the satellites at once (from ~150 m off), and 2 s later as accurate as without the outage
+    assert np.all(sol.status[out.stop:] == STATUS_UPDATED)
+    err, err_clean = _err(sol, seq), _err(LfgnssFgo(mode="fixed-lag", lag_s=10.0).solve(clean), clean)
+    assert err[out.stop - 1] > 50.0 and np.all(err[out.stop: out.stop + 5] < 15.0), err[out.stop - 1: out.stop + 5]
+    after = slice(out.stop + 10, None)
+    assert np.sqrt(np.mean(err[after] ** 2)) < np.sqrt(np.mean(err_clean[after] ** 2)) + 0.5
 
 
 def test_epochs_before_first_coarse_fix_are_none():

@@ -15,8 +15,8 @@ the urban coarse fix of this drive is itself often 100+ m off (the fault-free EK
 it), so the bound is taken as: from ``RECOVERY_EPOCHS`` (2 s) after each fault event on, every epoch
 with a coarse fix is within 100 m of it, or no more than ``MARGIN_M`` farther from it than the fault-free
 run of the same estimator; the same at the last epoch. Per fault: outliers never move the solution more
-than ``OUTLIER_TOL_M`` from the fault-free one; the clock jump leaves the factor graph unchanged (a free
-clock per epoch) and makes the EKF re-initialise in the jump epoch; outage epochs are coasted with a
+than ``OUTLIER_TOL_M`` farther from the truth than the fault-free one; the clock jump leaves the factor
+graph unchanged (a free clock per epoch) and the EKF realigns only its clock in the jump epoch; outage epochs are coasted with a
 growing covariance, and the filter updates again right after; a time gap re-initialises the EKF.
 """
 from __future__ import annotations
@@ -29,7 +29,8 @@ import pytest
 import estimators
 import lfgnss
 from lfgnss.constants import SPEED_OF_LIGHT_M_S
-from lfgnss.solve import SAMPLE_NAV, SAMPLE_OBS
+import lfgnss.datasets
+from lfgnss.solve import SAMPLE_NAV, SAMPLE_OBS, SAMPLE_TRUTH
 
 N_EPOCHS = 600
 RECOVERY_EPOCHS = 10          # 2 s at 5 Hz
@@ -53,6 +54,13 @@ def sequence(tmp_path_factory):
 
 
 _CLEAN: dict = {}
+
+
+def _sample_truth(seq) -> np.ndarray:
+    """(T, 3) ground truth of the bundled drive at the sequence's epochs [m] (NaN where none)."""
+    spec = lfgnss.datasets.DatasetSpec("sample", (SAMPLE_OBS,), tuple(SAMPLE_NAV), SAMPLE_TRUTH, "smartloc",
+                                       match_tolerance_s=0.05, time_origin_gps_s=float(seq.time_gps_s[0]))
+    return lfgnss.datasets.align_truth(seq.time_gps_s, spec)[0]
 
 
 def _clean(seq, backend: str):
@@ -137,12 +145,7 @@ def _check_solution(faulted, sol) -> None:
     assert np.isfinite(sol.pos_ecef_m).all() and np.isfinite(sol.cov_ecef_m2).all()
 
 
-_FIXED_LAG_OUTAGE = pytest.mark.xfail(
-    raises=RuntimeError, strict=False,
-    reason="estimators/fgo.py fixed-lag: gtsam IndeterminantLinearSystemException after ~30 s without any "
-           "satellite (reported; the CLI turns it into a one-line error, exit code 3)")
-CASES = [pytest.param(b, f, marks=_FIXED_LAG_OUTAGE if (b, f) == ("fgo-fixed-lag", "outage") else ())
-         for b in BACKENDS for f in FAULTS]
+CASES = [(b, f) for b in BACKENDS for f in FAULTS]
 
 
 @pytest.mark.parametrize("backend, fault", CASES)
@@ -156,12 +159,23 @@ def test_fault_recovery(sequence, backend, fault):
 
     status = sol.status
     if fault == "outlier":
-        moved = np.linalg.norm(sol.pos_ecef_m - clean.pos_ecef_m, axis=1)
-        assert moved.max() <= OUTLIER_TOL_M, (moved.max(), int(np.argmax(moved)))
+        # Against the truth: an outlier may shift when a reset happens (a reset is discontinuous, and
+        # the fault-free run on this drive is itself sometimes stuck 80+ m off), but it must never make
+        # the position worse by more than OUTLIER_TOL_M.
+        truth = _sample_truth(sequence)
+        err = np.linalg.norm(sol.pos_ecef_m - truth, axis=1)
+        err_clean = np.linalg.norm(clean.pos_ecef_m - truth, axis=1)
+        worse = np.nan_to_num(err - err_clean)
+        assert np.isfinite(truth).mean() > 0.9 and worse.max() <= OUTLIER_TOL_M, (worse.max(), int(np.argmax(worse)))
     elif fault == "clock_jump":
         if backend == "ekf":
-            assert status[CLOCK_JUMP_EPOCH] == estimators.STATUS_RESET
+            # only the clock is realigned: no reset, and the track stays on the fault-free one
+            assert sol.info["clock_realigned"][CLOCK_JUMP_EPOCH] and status[CLOCK_JUMP_EPOCH] == estimators.STATUS_UPDATED
             assert not np.any(status == estimators.STATUS_COASTED)
+            gap = np.linalg.norm(sol.pos_ecef_m - clean.pos_ecef_m, axis=1)
+            # the median innovation misses the jump by a few metres (multipath), which the track
+            # absorbs over some seconds; a reset to this drive's coarse fix would move it ~100 m
+            assert gap[CLOCK_JUMP_EPOCH:].max() < 20.0, gap[CLOCK_JUMP_EPOCH:].max()
         else:                                   # a free clock per epoch: the jump changes nothing
             np.testing.assert_allclose(sol.pos_ecef_m, clean.pos_ecef_m, atol=0.5)
     elif fault == "outage":
@@ -174,6 +188,8 @@ def test_fault_recovery(sequence, backend, fault):
             trace = np.trace(sol.cov_ecef_m2, axis1=1, axis2=2)
             idx = np.flatnonzero(out)
             assert np.all(np.diff(trace[idx]) > 0) and trace[after] < trace[idx[-1]]
+        if backend == "fgo-fixed-lag":          # causal: back on the satellites in the first epoch after it
+            assert np.linalg.norm(sol.pos_ecef_m[after] - faulted.coarse_ecef_m[after]) <= BOUND_M
     elif fault == "gap":
         after = events[0]
         dt = np.diff(faulted.time_gps_s)[after - 1]

@@ -3,13 +3,17 @@ from __future__ import annotations
 
 import gzip
 import shutil
+from dataclasses import fields
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from lfgnss.ephemeris import ephemeris_states
 from lfgnss.errors import RinexError
 from lfgnss.navigation import Navigation, load_nav
+from lfgnss.paths import bundled_data_dir
+from lfgnss.rinex import RinexWarning
 from lfgnss.time import week_tow_to_gps_s
 
 # One GPS and one GLONASS record of the IGS/CDDIS daily broadcast files brdc1580.16n / brdc1580.16g
@@ -45,6 +49,11 @@ teqc  2013Mar15     GPS Operator        20160607  0:11:     COMMENT
    -0.198351259766D+05-0.136699771881D+01 0.279396772385D-08 0.100000000000D+01
     0.127667167969D+05-0.295661067963D+01-0.931322574616D-09 0.000000000000D+00
 """
+
+
+@pytest.fixture(autouse=True)
+def _private_cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("LFGNSS_CACHE", str(tmp_path / "cache"))
 
 
 @pytest.fixture
@@ -231,3 +240,194 @@ def test_mixed_rinex3_and_iono(shared_data):
     hk = load_nav([shared_data(f"{HK2019}/hksc1180.19n"), shared_data(f"{HK2019}/hksc1180.19b")])
     np.testing.assert_allclose(hk.iono["GPS"][:4], [9.3132e-09, 1.4901e-08, -5.9605e-08, -1.1921e-07])
     np.testing.assert_allclose(hk.iono["BDS"][4:], [1.2493e05, -6.8813e05, 6.8813e06, -7.4056e06])
+
+
+# ---------------------------------------------------------------- damaged records: skipped with a warning
+SAMPLE = bundled_data_dir() / "berlin-potsdamer-platz"
+
+
+def _record_starts(lines: list[bytes]) -> list[int]:
+    """Indices of the epoch lines of a RINEX 2/3 nav file's records, found independently of load_nav."""
+    end = next(i for i, ln in enumerate(lines) if b"END OF HEADER" in ln)
+    if lines[0][5:6] == b"3":
+        return [i for i in range(end + 1, len(lines)) if lines[i][:1] in b"GRECJ" and lines[i][1:3].strip().isdigit()]
+    return [i for i in range(end + 1, len(lines)) if lines[i][:2].strip().isdigit() and lines[i][3:5].strip().isdigit()]
+
+
+def _damaged_copy(src: Path, dst: Path, damage: list[tuple[int, int, int, bytes]]) -> list[tuple[int, str]]:
+    """Write ``src`` (plain or gzip) to ``dst`` (gzip if it ends in .gz) with ``new`` bytes at column ``col``
+    of line ``line`` of record ``record`` for each (record, line, col, new); returns (1-based line, sv)."""
+    raw = src.read_bytes()
+    lines = (gzip.decompress(raw) if raw[:2] == b"\x1f\x8b" else raw).split(b"\n")
+    starts = _record_starts(lines)
+    letter = "" if lines[0][5:6] == b"3" else {b"N": "G", b"G": "R"}[lines[0][20:21]]
+    out = []
+    for record, line, col, new in damage:
+        head = lines[starts[record]]
+        out.append((starts[record] + line + 1, f"{letter}{int(head[:2]):02d}" if letter else head[:3].decode()))
+        i = starts[record] + line
+        lines[i] = lines[i][:col] + new + lines[i][col + len(new):]
+    data = b"\n".join(lines)
+    dst.write_bytes(gzip.compress(data) if dst.suffix == ".gz" else data)
+    return out
+
+
+def _assert_one_record_less(clean: Navigation, damaged: Navigation, sv: str) -> None:
+    """``damaged`` holds exactly the records of ``clean`` but one record of ``sv``, with identical values."""
+    part = "glonass" if sv[0] == "R" else "kepler"
+    for name in ("kepler", "glonass"):
+        a, b = getattr(clean, name), getattr(damaged, name)
+        cols = [f.name for f in fields(a)]
+        if name != part:
+            for c in cols:
+                np.testing.assert_array_equal(getattr(a, c), getattr(b, c))
+            continue
+        assert len(b) == len(a) - 1
+
+        def same(k: int) -> bool:
+            return all(np.array_equal(getattr(a, c)[k], getattr(b, c)[k], equal_nan=getattr(a, c).dtype.kind == "f")
+                       for c in cols)
+
+        i = next((k for k in range(len(b)) if not same(k)), len(b))
+        assert a.sv[i] == sv
+        for c in cols:
+            np.testing.assert_array_equal(np.delete(getattr(a, c), i, axis=0), getattr(b, c))
+
+
+def _assert_states_unchanged(clean: Navigation, damaged: Navigation, sv_bad: str) -> None:
+    """Satellite states of every other satellite are the same; the damaged one still has states."""
+    svs = np.unique(np.concatenate([clean.kepler.sv, clean.glonass.sv]))
+    toe = np.concatenate([clean.kepler.toe_gps_s, clean.glonass.toe_gps_s])
+    times = np.arange(toe.min(), toe.max(), 600.0)
+    sv, t = np.repeat(svs, times.size), np.tile(times, svs.size)
+    a, b = ephemeris_states(clean, sv, t), ephemeris_states(damaged, sv, t)
+    other = sv != sv_bad
+    assert a.ok[other].sum() > 100
+    for name in ("pos_ecef_m", "vel_ecef_m_s", "clock_s", "group_delay_s", "toe_gps_s", "ok"):
+        np.testing.assert_array_equal(getattr(a, name)[other], getattr(b, name)[other])
+    assert np.isfinite(b.pos_ecef_m[~other]).any()              # from its other records
+
+
+@pytest.mark.parametrize("name, damage, reason, out", [
+    ("brdc1580.16n.gz", (3, 2, 10, b"##garbage##"), "unreadable value", "gps.16n"),
+    ("brdc1580.16n.gz", (40, 5, 30, b"\xff\xe9\xb0"), "non-ASCII bytes", "gps_bytes.16n"),
+    ("brdc1580.16n.gz", (40, 5, 30, b"\xff\xe9\xb0"), "non-ASCII bytes", "gps_bytes.16n.gz"),
+    ("brdc1580.16n.gz", (7, 3, 23, b"nan"), "unreadable value", "gps_nan.16n"),
+    ("brdc1580.16n.gz", (9, 0, 6, b"13"), "unreadable satellite number or epoch", "gps_month.16n"),
+    ("brdc1580.16g.gz", (10, 1, 8, b"x"), "unreadable value", "glo.16g"),
+    ("brdc1580.16g.gz", (25, 3, 50, b"\xe9"), "non-ASCII bytes", "glo_bytes.16g.gz"),
+], ids=["gps-text", "gps-non-ascii", "gps-non-ascii-gz", "gps-nan", "gps-bad-month", "glo-text", "glo-non-ascii-gz"])
+def test_damaged_record_is_skipped_with_a_warning(tmp_path, name, damage, reason, out):
+    """One damaged value costs that record only: a warning naming file and line, the rest identical."""
+    src, path = SAMPLE / name, tmp_path / out
+    [(line, sv)] = _damaged_copy(src, path, [damage])
+    with pytest.warns(RinexWarning, match=rf"{path}: 1 problem.*first: {path}:{line}: {reason}"):
+        nav = load_nav(path)
+    assert len(nav.warnings) == 1 and nav.warnings[0].startswith(f"{path}:{line}: {reason}"), nav.warnings
+    assert "\n" not in nav.warnings[0] and f"; {sv} record of line" in nav.warnings[0]
+    clean = load_nav(src)
+    _assert_one_record_less(clean, nav, sv)
+    _assert_states_unchanged(clean, nav, sv)
+
+
+def test_damaged_records_are_cached_and_warned_again_under_the_new_name(tmp_path):
+    first, second = tmp_path / "first.16n", tmp_path / "second.16n"
+    [(line, _), (line2, _)] = _damaged_copy(SAMPLE / "brdc1580.16n.gz", first,
+                                            [(3, 2, 10, b"##garbage##"), (60, 7, 5, b"?")])
+    shutil.copy(first, second)
+    with pytest.warns(RinexWarning, match=r"first\.16n: 2 problem"):
+        a = load_nav(first)
+    with pytest.warns(RinexWarning, match=r"second\.16n: 2 problem"):
+        b = load_nav(second)
+    assert [w.split(": ", 1)[0] for w in a.warnings] == [f"{first}:{line}", f"{first}:{line2}"]
+    assert [w.split(": ", 1)[0] for w in b.warnings] == [f"{second}:{line}", f"{second}:{line2}"]
+    assert len(b.kepler) == len(a.kepler) == len(load_nav(SAMPLE / "brdc1580.16n.gz").kepler) - 2
+    with pytest.warns(RinexWarning, match=r"second\.16n: 2 problem"):   # one note per file, also when repeated
+        both = load_nav([second, SAMPLE / "brdc1580.16g.gz", second])
+    assert len(both.warnings) == 2
+
+
+def test_cut_records_are_skipped_not_read_as_zeros(tmp_path):
+    """A file cut inside its last record: that record is skipped (georinex would fill the rest with 0)."""
+    text = gzip.decompress((SAMPLE / "brdc1580.16n.gz").read_bytes()).decode()
+    clean = load_nav(SAMPLE / "brdc1580.16n.gz")
+    lines = text.splitlines()
+    cut_lines = tmp_path / "cut_lines.16n"                      # cut after the 4th line of the last record
+    cut_lines.write_text("\n".join(lines[:-4]) + "\n0.1676")
+    with pytest.warns(RinexWarning, match="record cut short: 5 lines instead of 8"):
+        nav = load_nav(cut_lines)
+    assert nav.warnings[0].startswith(f"{cut_lines}:{len(lines) - 7}: ")
+    _assert_one_record_less(clean, nav, f"G{int(lines[-8][:2]):02d}")
+    cut_value = tmp_path / "cut_value.16n"                      # cut inside the last value, no newline
+    cut_value.write_text(text.rstrip("\n")[:-51])               # last line: "    0.165600000000D+06 0.4000"
+    with pytest.warns(RinexWarning, match=rf"{cut_value}:{len(lines)}: file ends inside value '0\.40*'"):
+        nav = load_nav(cut_value)
+    assert len(nav.kepler) == len(clean.kepler) - 1
+    cut_epoch = tmp_path / "cut_epoch.16n"                      # cut inside the epoch line of a next record
+    cut_epoch.write_text(text + "12 16  6")
+    with pytest.warns(RinexWarning, match=rf"{cut_epoch}:{len(lines) + 1}: file ends inside this line"):
+        nav = load_nav(cut_epoch)
+    for c in ("sv", "toe_gps_s", "sqrt_a_sqrt_m", "af0_s"):
+        np.testing.assert_array_equal(getattr(nav.kepler, c), getattr(clean.kepler, c))
+    whole = tmp_path / "no_final_newline.16n"                   # a complete last record without a newline
+    whole.write_text(text.rstrip("\n"))
+    assert len(load_nav(whole).kepler) == len(clean.kepler) and not load_nav(whole).warnings
+
+
+def test_gzip_cut_short_keeps_the_records_before_the_cut(tmp_path):
+    """An interrupted download of a .gz nav file: what was decompressed is used, the cut record skipped."""
+    data = (SAMPLE / "brdc1580.16g.gz").read_bytes()
+    path = tmp_path / "cut.16g.gz"
+    path.write_bytes(data[: len(data) // 2])
+    with pytest.warns(RinexWarning, match=r"cut\.16g\.gz: 2 problem.*compressed data end early"):
+        nav = load_nav(path)
+    assert "record cut short" in nav.warnings[1] or "file ends inside value" in nav.warnings[1]
+    clean = load_nav(SAMPLE / "brdc1580.16g.gz").glonass
+    n = len(nav.glonass)
+    assert 0 < n < len(clean)
+    keys = set(zip(clean.sv.tolist(), clean.toe_gps_s.tolist(), clean.pos_ecef_m[:, 0].tolist()))
+    assert set(zip(nav.glonass.sv.tolist(), nav.glonass.toe_gps_s.tolist(), nav.glonass.pos_ecef_m[:, 0].tolist())) <= keys
+
+
+def test_record_merged_with_a_damaged_epoch_line_is_skipped(tmp_path):
+    """An unrecognisable epoch line glues its record to the previous one: both are skipped, with a warning."""
+    path = tmp_path / "epoch.16n"
+    [(line, _)] = _damaged_copy(SAMPLE / "brdc1580.16n.gz", path, [(5, 0, 0, b"#")])
+    with pytest.warns(RinexWarning, match=rf"{path}:{line - 8}: record too long .*16 lines instead of 8"):
+        nav = load_nav(path)
+    assert len(nav.kepler) == len(load_nav(SAMPLE / "brdc1580.16n.gz").kepler) - 2
+
+
+def test_every_record_damaged_is_one_line_error(tmp_path):
+    head, rec = GPS_RINEX2.split("END OF HEADER\n")
+    one = tmp_path / "one.16n"
+    one.write_text(head + "END OF HEADER\n" + rec.replace("0.320000000000D+02-0.2065", "0.3200#0000000D+02-0.2065"))
+    with pytest.raises(RinexError) as info:
+        load_nav(one)
+    msg = str(info.value)
+    assert msg.startswith(f"{one}:10: not a readable RINEX navigation file: all 1 ephemeris record(s) damaged")
+    assert "\n" not in msg and "unreadable value" in msg
+    src = SAMPLE / "brdc1580.16g.gz"
+    n = len(_record_starts(gzip.decompress(src.read_bytes()).split(b"\n")))
+    every = tmp_path / "every.16g"
+    _damaged_copy(src, every, [(k, 2, 7 + k % 50, b"\xff") for k in range(n)])
+    with pytest.raises(RinexError, match=rf"^{every}:\d+: not a readable RINEX navigation file: all {n} ephemeris"):
+        load_nav(every)
+
+
+@pytest.mark.shared_data
+def test_damaged_rinex3_record_is_skipped_with_a_warning(shared_data, tmp_path):
+    """RINEX 3 mixed file: georinex would drop a damaged record silently; now it is a warning."""
+    src = shared_data(f"{BERLIN}/BRDC00WRD_U_20161580000_01D_MN.rnx")
+    lines = src.read_bytes().split(b"\n")
+    starts = _record_starts(lines)
+    rec = next(k for k, i in enumerate(starts) if lines[i][:1] == b"E")
+    glo = next(k for k, i in enumerate(starts) if lines[i][:1] == b"R")
+    for k, line, system in ((rec, 4, "E"), (glo, 2, "R")):
+        path = tmp_path / f"damaged_{system}.rnx"
+        [(number, sv)] = _damaged_copy(src, path, [(k, line, 40, b"#x")])
+        with pytest.warns(RinexWarning, match=rf"{path}:{number}: unreadable value .*{sv} record"):
+            nav = load_nav(path)
+        clean = load_nav(src)
+        _assert_one_record_less(clean, nav, sv)
+        _assert_states_unchanged(clean, nav, sv)

@@ -8,7 +8,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from estimators.base import STATUS_NONE, STATUS_RESET  # noqa: E402
+from estimators.base import STATUS_NONE, STATUS_RESET, STATUS_UPDATED  # noqa: E402
 from estimators.ekf import LfgnssEkf  # noqa: E402
 from estimators.models import EkfConfig  # noqa: E402
 from estimators.noise import FixedNoise  # noqa: E402
@@ -36,7 +36,9 @@ def to_batch(seqs) -> WindowBatch:
     return WindowBatch(time_gps_s=stack("time_gps_s"), pr_m=stack("pr_m"), sat_pos_ecef_m=stack("sat_pos_ecef_m"),
                        system_index=stack("system_index", torch.int64), mask=stack("mask", torch.bool),
                        features=stack("features", torch.float32), coarse_ecef_m=stack("coarse_ecef_m"),
-                       coarse_clock_m=stack("coarse_clock_m"), truth_ecef_m=stack("truth_ecef_m"))
+                       coarse_clock_m=stack("coarse_clock_m"), truth_ecef_m=stack("truth_ecef_m"),
+                       prr_m_s=stack("prr_m_s"), prr_mask=stack("prr_mask", torch.bool),
+                       sat_vel_ecef_m_s=stack("sat_vel_ecef_m_s"))
 
 
 @pytest.fixture(scope="module")
@@ -50,6 +52,8 @@ def cases():
         outl = rng.random(s.mask.shape) < 0.03
         pr += np.where(s.mask & outl, rng.choice([-1, 1], s.mask.shape) * rng.uniform(80, 300, s.mask.shape), 0.0)
         coarse, clock = s.coarse_ecef_m.copy(), s.coarse_clock_m.copy()
+        if i == 0:                      # one epoch inconsistent with any clock: the full reset path
+            pr[40] += np.where(s.mask[40], np.resize([3000.0, -5000.0, 9000.0], s.mask.shape[1]), 0.0)
         if i == 1:                      # no coarse fix for the first epochs, nor inside an outage
             coarse[:4] = np.nan
             coarse[60:62] = np.nan
@@ -59,7 +63,8 @@ def cases():
             coarse[100] += 400.0
         s = replace(s, pr_m=np.where(s.mask, pr, 0.0), coarse_ecef_m=coarse, coarse_clock_m=clock)
         seqs.append(s)
-        rs.append(np.where(s.mask, rng.uniform(2.0, 80.0, s.mask.shape), 0.0))
+        scale = 4.0 if i == 2 else 1.0   # seq 2: R wide enough for its NLOS errors, so the clock realignment holds
+        rs.append(np.where(s.mask, scale * rng.uniform(2.0, 80.0, s.mask.shape), 0.0))
         vcs.append(np.where(s.mask, rng.normal(0.0, 3.0, s.mask.shape), 0.0))
     return seqs, np.stack(rs), np.stack(vcs)
 
@@ -83,6 +88,7 @@ def test_matches_filterpy_plugin(cases):
         np.testing.assert_array_equal(out.status[i].numpy(), sol.status)
         np.testing.assert_array_equal(out.n_used[i].numpy(), sol.n_used)
         np.testing.assert_array_equal(out.n_gated[i].numpy(), sol.info["n_gated"])
+        np.testing.assert_array_equal(out.n_doppler[i].numpy(), sol.info["n_doppler"])
         np.testing.assert_allclose(out.pos_ecef_m[i].numpy(), sol.pos_ecef_m, rtol=0, atol=1e-6, equal_nan=True)
         live = sol.status != STATUS_NONE
         np.testing.assert_allclose(out.state[i].numpy()[live], sol.info["state"][live], rtol=0, atol=1e-6)
@@ -90,7 +96,18 @@ def test_matches_filterpy_plugin(cases):
     status = out.status.numpy()
     assert (out.n_gated.numpy() > 0).sum() > 10                          # the gate was active
     assert (status[1, :4] == STATUS_NONE).all() and status[1, 4] == STATUS_RESET
-    assert status[2, 70] == STATUS_RESET and status[2, 100] == STATUS_RESET   # clock jump, divergence
+    assert status[0, 40] == STATUS_RESET                                       # not a clock jump: reset
+    assert status[2, 70] == STATUS_UPDATED and status[2, 100] == STATUS_RESET  # clock realigned, divergence
+    assert abs(out.state[2, 70, 6].item() - out.state[2, 69, 6].item() - out.state[2, 69, 7].item()
+               - 1e-3 * SPEED_OF_LIGHT_M_S) < 10.0                                # clock + drift dt + jump
+
+
+def test_clock_jump_realigns_only_the_clock(cases):
+    seqs, r, vc = cases
+    sol = LfgnssEkf(noise=FixedNoise(r[2], vc[2]), config=CONFIG).solve(seqs[2])
+    assert np.flatnonzero(sol.info["clock_realigned"]).tolist() == [70] and sol.status[70] == STATUS_UPDATED
+    sol = LfgnssEkf(noise=FixedNoise(r[0], vc[0]), config=CONFIG).solve(seqs[0])
+    assert sol.info["clock_realigned"][40] and sol.status[40] == STATUS_RESET   # tried first, then reset
 
 
 def test_padded_slots_have_no_effect(cases):

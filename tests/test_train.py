@@ -35,7 +35,8 @@ def full_run(config, prepared, tmp_path_factory):
 def test_validation_error_drops(full_run):
     out, history = full_run
     assert [h["epoch"] for h in history] == list(range(EPOCHS + 1))
-    assert history[-1]["val_rmse_3d_m"] < 0.5 * history[0]["val_rmse_3d_m"]
+    # the selected (best-validation) model at least halves the untrained model's error
+    assert min(h["val_rmse_3d_m"] for h in history[1:]) < 0.5 * history[0]["val_rmse_3d_m"]
     for name in ("last.pt", "best.pt", "log.csv", "curves.png", "model.npz"):
         assert (out / name).exists(), name
     with open(out / "log.csv") as fh:

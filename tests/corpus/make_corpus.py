@@ -721,18 +721,19 @@ def nav_truncated(out):
     header, recs = base_nav("n")
     text = _join(header, recs)
     cut = text[: text.rindex("\n", 0, len(text) - 300) - 10]        # inside the last record
-    return Case("nav_truncated", "GPS navigation file cut inside its last record", "ok", "",
-                "the incomplete record is ignored, solved with the others",
-                nav=(_write(out, "nav_truncated.16n", cut), "base.16g"), culprit="nav", fault_epoch=BASE_EPOCHS)
+    return Case("nav_truncated", "GPS navigation file cut inside its last record", "warning", "record cut short",
+                "warning naming the file and line; the incomplete record is skipped, solved with the others",
+                nav=(_write(out, "nav_truncated.16n", cut), "base.16g"), culprit="nav", line=617,
+                fault_epoch=BASE_EPOCHS)
 
 
 @_case
 def nav_garbage(out):
     header, recs = base_nav("n")
     recs[3][2] = recs[3][2][:10] + "##garbage##" + recs[3][2][21:]
-    return Case("nav_garbage", "garbage inside one ephemeris record", "error", "not a readable RINEX navigation file",
-                "error naming the file (georinex cannot read the file; see the known limitation in docs/bad_input.md)",
-                nav=(_write(out, "nav_garbage.16n", _join(header, recs)), "base.16g"), culprit="nav")
+    return Case("nav_garbage", "garbage inside one ephemeris record", "warning", "unreadable value",
+                "warning naming the file and line; that one record is skipped, solved with the others",
+                nav=(_write(out, "nav_garbage.16n", _join(header, recs)), "base.16g"), culprit="nav", line=35)
 
 
 @_case
@@ -813,9 +814,8 @@ def model_unknown_feature(out):
         meta["feature_names"][0] = "snr_db"
         meta["normaliser"]["feature_names"][0] = "snr_db"
     return Case("model_unknown_feature", "model file that needs a feature this lfgnss cannot compute", "error",
-                "snr_db", "error naming the file and the feature (the API: ValueError from build_sequence naming the "
-                "feature)", model=_model_with(out, "model_unknown_feature.npz", change), culprit="model",
-                extra={"api_error": "ValueError"})
+                "snr_db", "error naming the file and the feature (load_model and the CLI alike)",
+                model=_model_with(out, "model_unknown_feature.npz", change), culprit="model")
 
 
 @_case
