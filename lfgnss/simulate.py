@@ -53,7 +53,8 @@ def simulate_sequence(n_epochs: int = 120, *, dt_s: float = 1.0, systems: tuple[
     los /= np.linalg.norm(los, axis=-1, keepdims=True)
     vel = vel_enu @ rot
     drift = np.gradient(clock, t) if n_epochs > 1 else np.full(n_epochs, 50.0)
-    prr_noise = np.random.default_rng([seed, 1]).normal(size=(n_epochs, n_sat))   # own stream: other draws unchanged * np.where(nlos_t, 1.5, 0.1 + 2.0 * 10 ** (-cn0 / 20.0))
+    rng_doppler = np.random.default_rng([seed, 1])     # its own stream: the other draws stay as they were
+    prr_noise = rng_doppler.normal(size=(n_epochs, n_sat)) * np.where(nlos_t, 1.5, 0.1 + 2.0 * 10 ** (-cn0 / 20.0))
     prr = np.einsum("tni,tni->tn", los, sat_vel - vel[:, None, :]) + drift[:, None] + prr_noise
 
     mask = np.ones((n_epochs, n_sat), bool)

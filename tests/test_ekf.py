@@ -207,6 +207,9 @@ def test_doppler_helps_and_can_be_switched_off(seq):
     without = create("plain-ekf", config=EkfConfig(doppler_sigma_m_s=0.0)).solve(seq)
     assert (with_doppler.info["n_doppler"] > 0).mean() > 0.99 and (without.info["n_doppler"] == 0).all()
     assert _rms(_err(with_doppler, seq)) < 0.9 * _rms(_err(without, seq))
+    vel_truth = np.gradient(seq.truth_ecef_m, seq.time_gps_s, axis=0)
+    vel_err = np.linalg.norm(with_doppler.vel_ecef_m_s - vel_truth, axis=1)[5:]
+    assert np.sqrt(np.mean(vel_err ** 2)) < 0.5           # Doppler measures velocity to ~0.1-1 m/s
 
 
 def test_doppler_model_matches_finite_differences():
