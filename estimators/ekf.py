@@ -11,8 +11,8 @@ Per epoch ``k`` (models in ``estimators.models``)::
 so ``x = x^- + K (pr - h + vc)`` as in the paper. Initialisation and resets take the coarse fix
 (``Sequence.coarse_ecef_m`` / ``coarse_clock_m``) with covariance P0 and then update with the
 epoch's satellites, twice if a satellite's post-fit residual exceeds ``gate_sigma sqrt(r)`` (the
-second time without those satellites). Resets happen when the filter has no state yet, after a gap longer than
-``max_gap_s``, when most usable satellites fail the gate (``reset_gated_fraction``; not in the epoch
+second time without those satellites). Resets happen when the filter has no state yet, after a gap
+longer than ``max_gap_s``, when most usable satellites fail the gate (``reset_gated_fraction``; not in the epoch
 right after a reset) with a median innovation of at least ``clock_jump_min_m`` and still do after the
 prior's clock was realigned to it (a receiver clock jump, ``models.realign_clock``), or when the
 updated position is farther than ``reset_distance_m`` from the coarse fix. ``learning.torch_ekf``
@@ -240,9 +240,8 @@ class LfgnssEkf:
         return Solution(backend=self.name, time_gps_s=time, pos_ecef_m=state[:, models.POS].copy(),
                         cov_ecef_m2=cov[:, models.POS, models.POS].copy(), clock_m=state[:, models.CLOCK].copy(),
                         n_used=n_used, status=status, vel_ecef_m_s=state[:, models.VEL].copy(),
-                        info={"state": state, "cov": cov, "n_gated": n_gated, "n_usable": usable.sum(1), "n_doppler": n_doppler,
-                              "clock_realigned": clock_realigned,
-                              "config": cfg})
+                        info={"state": state, "cov": cov, "n_gated": n_gated, "n_usable": usable.sum(1),
+                              "n_doppler": n_doppler, "clock_realigned": clock_realigned, "config": cfg})
 
 
 @register("plain-ekf")

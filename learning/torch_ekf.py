@@ -15,10 +15,11 @@ Per epoch, both possible priors are gated and updated in one batched call of siz
 
 When more than ``reset_gated_fraction`` of the usable satellites fail the gate (not right after a
 reset) and their median innovation is clock-jump sized (``clock_jump_min_m``), the prior's clock is
-realigned and gated again. The reset result
-is taken at the first epoch with a coarse fix, after gaps > ``max_gap_s``, when the realigned prior is
-still mostly gated, and when the normal update ends farther than ``reset_distance_m`` from the coarse fix. The gate decision
-(a hard mask) and the reset choice carry no gradient; everything else does.
+realigned and gated again. The reset result is taken at the first epoch with a coarse fix, after gaps
+> ``max_gap_s``, when the realigned prior is still mostly gated, and when the normal update ends
+farther than ``reset_distance_m`` from the coarse fix; in the rows that reset, satellites failing the
+post-fit check are dropped and the reset prior updated again. The gate decision (a hard mask) and
+the reset choice carry no gradient; everything else does.
 """
 from __future__ import annotations
 
@@ -263,24 +264,6 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor, vc_m: torch.Tensor, *, n_s
             tuple(two(a) for a in dop_k) if use_doppler else None)
         x_n, x_r = xu[:b_len], xu[b_len:]
         P_n, P_r = Pu[:b_len], Pu[b_len:]
-        n_used_r, n_rej_r, n_dop_r = n_used2[b_len:], n_rej2[b_len:], n_dop2[b_len:]
-        if config.gate_sigma > 0:
-            # Post-fit check of the reset update (as the plug-in's reset): drop satellites beyond the gate.
-            h_r, _ = _measurement(x_r, sat_all[:, k], clock_rows_all[:, k])
-            with torch.no_grad():
-                ok = usable_all[:, k] & ((z_all[:, k] - h_r).abs() <= config.gate_sigma * torch.sqrt(r_all[:, k]))
-                n_ok, n_us = ok.sum(-1), usable_all[:, k].sum(-1)
-                redo = coarse_ok & (n_ok > 0) & (n_ok < n_us)
-            if bool(redo.any()):
-                x2, P2, n_used_2, n_rej_2, _, n_dop_2 = _gate_and_update(
-                    x0_all[:, k], P0.expand(b_len, n, n), sat_all[:, k], clock_rows_all[:, k], z_all[:, k],
-                    r_all[:, k], ok, redo, config, dop_k)
-                x_r = torch.where(redo[:, None], x2, x_r)
-                P_r = torch.where(redo[:, None, None], P2, P_r)
-                n_used_r = torch.where(redo, n_used_2, n_used_r)
-                n_rej_r = torch.where(redo, n_rej_2 + n_us - n_ok, n_rej_r)
-                n_dop_r = torch.where(redo, n_dop_2, n_dop_r)
-
         with torch.no_grad():
             n_usable = n_usable2[:b_len]
             reset_g = (normal & coarse_ok & (prev_status != STATUS_RESET) & (n_usable >= config.reset_min_sats)
@@ -312,8 +295,25 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor, vc_m: torch.Tensor, *, n_s
             reset = reset_a | reset_g | reset_d
             keep_n = normal & ~reset
             status = torch.where(reset, STATUS_RESET,
-                                 torch.where(keep_n, torch.where(n_used_n + n_dop_n > 0, STATUS_UPDATED, STATUS_COASTED),
-                                             STATUS_NONE))
+                                 torch.where(keep_n, torch.where(n_used_n + n_dop_n > 0, STATUS_UPDATED,
+                                                                 STATUS_COASTED), STATUS_NONE))
+        n_used_r, n_rej_r, n_dop_r = n_used2[b_len:], n_rej2[b_len:], n_dop2[b_len:]
+        if config.gate_sigma > 0 and bool(reset.any()):
+            # Post-fit check of the reset update (as the plug-in's reset): drop satellites beyond the gate.
+            h_r, _ = _measurement(x_r, sat_all[:, k], clock_rows_all[:, k])
+            with torch.no_grad():
+                ok = usable_all[:, k] & ((z_all[:, k] - h_r).abs() <= config.gate_sigma * torch.sqrt(r_all[:, k]))
+                n_ok, n_us = ok.sum(-1), usable_all[:, k].sum(-1)
+                redo = reset & (n_ok > 0) & (n_ok < n_us)
+            if bool(redo.any()):
+                x2, P2, n_used_2, n_rej_2, _, n_dop_2 = _gate_and_update(
+                    x0_all[:, k], P0.expand(b_len, n, n), sat_all[:, k], clock_rows_all[:, k], z_all[:, k],
+                    r_all[:, k], ok, redo, config, dop_k)
+                x_r = torch.where(redo[:, None], x2, x_r)
+                P_r = torch.where(redo[:, None, None], P2, P_r)
+                n_used_r = torch.where(redo, n_used_2, n_used_r)
+                n_rej_r = torch.where(redo, n_rej_2 + n_us - n_ok, n_rej_r)
+                n_dop_r = torch.where(redo, n_dop_2, n_dop_r)
         x = torch.where(reset[:, None], x_r, torch.where(keep_n[:, None], x_n, x))
         P = torch.where(reset[:, None, None], P_r, torch.where(keep_n[:, None, None], P_n, P))
         started = started | reset

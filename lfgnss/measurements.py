@@ -121,7 +121,7 @@ def load(obs: str | Path | Observations, nav: str | Path | Iterable[str | Path] 
 
     observations = obs if isinstance(obs, Observations) else load_obs(obs, cache=cache)
     navigation = nav if isinstance(nav, Navigation) else load_nav(nav)
-    notes = list(observations.warnings) + list(getattr(navigation, "warnings", ()))
+    notes = list(observations.warnings) + list(navigation.warnings)
     wanted = tuple(s for s in SYSTEMS if systems is None or s in set(systems))
     observations = observations.select_systems(wanted)
     if observations.sv.size == 0:
