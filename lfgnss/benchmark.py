@@ -1,8 +1,9 @@
 """``python -m lfgnss.benchmark``: every estimator side by side on the test splits of shared/BENCHMARK.md.
 
 For each dataset: RTKLIB ``rnx2rtkp`` (when installed), equal-weight and weighted least squares, the
-plain EKF, the LF-GNSS EKF and factor graph with the shipped model, and the three ablation models
-(w/o DPC, w/o HEM, w/o both) in the EKF. Writes a Markdown results table (all test epochs, and the
+plain EKF, the LF-GNSS EKF and factor graph with the shipped (joint) model, the three ablation models
+(w/o DPC, w/o HEM, w/o both) in the EKF, and the EKF and factor graph with the dataset's own model
+(``lfgnss-<dataset id>.npz``, trained on that dataset's train split only) where there is one. Writes a Markdown results table (all test epochs, and the
 epochs RTKLIB solved), CDF and track PNGs per dataset.
 """
 from __future__ import annotations
@@ -46,14 +47,18 @@ class Method:
         return estimators.create(self.backend, **options)
 
 
-def methods(model_dir: Path = MODEL_DIR) -> list[Method]:
-    """Baselines always; learned rows where their model file exists."""
+def methods(model_dir: Path = MODEL_DIR, dataset_id: str | None = None) -> list[Method]:
+    """Baselines always; learned rows where their model file exists (per-dataset ones for ``dataset_id``)."""
     rows = [Method("least squares (equal weight)", "wls"), Method("least squares (C/N0-weighted)", "wls-weighted"),
             Method("plain EKF (C/N0 noise, gate)", "plain-ekf")]
     default = model_dir / "lfgnss-default.npz"
     if default.exists():
         rows += [Method("LF-GNSS EKF", "ekf", default), Method("LF-GNSS FGO", "fgo", default)]
     rows += [Method(name, "ekf", model_dir / f) for name, f in ABLATIONS.items() if (model_dir / f).exists()]
+    own = model_dir / f"lfgnss-{dataset_id}.npz"
+    if dataset_id is not None and own.exists():
+        rows += [Method("LF-GNSS EKF, per-dataset model", "ekf", own),
+                 Method("LF-GNSS FGO, per-dataset model", "fgo", own)]
     return rows
 
 
@@ -90,7 +95,7 @@ def run(dataset_ids: list[str], *, model_dir: Path = MODEL_DIR, out_dir: Path | 
             ok = np.all(np.isfinite(rtk_pos), axis=1)
             all_rows.append(accuracy_table(rtk_pos, truth, ok, dataset=dataset_id, method="RTKLIB rnx2rtkp",
                                            trained_on="-") | {"epochs_per_s": float("nan")})
-        for m in methods(model_dir):
+        for m in methods(model_dir, dataset_id):
             estimator = m.create()
             start = time.perf_counter()
             sol = estimator.solve(test)

@@ -1,0 +1,110 @@
+"""Receiver velocity from Doppler: per-epoch robust weighted least squares, vectorised over epochs.
+
+Each Doppler pseudorange rate (``Sequence.prr_m_s``, satellite clock drift removed) is linear in the
+receiver velocity ``v`` and clock drift ``d`` once the position ``p`` is known (the model of
+``estimators.models.doppler_measurement``, Sagnac included)::
+
+    prr_i = e_i . (vs_i - v) + d + omega_e / c (vs_x p_y + s_x v_y - vs_y p_x - s_y v_x)
+
+``e_i`` changes by less than 1e-5 rad for a 100 m position error, so the coarse fix is good enough for
+``p``. The fit is iteratively reweighted with Huber weights on the residuals in sigmas, which bounds the
+pull of a Doppler multipath outlier (urban NLOS Dopplers are off by metres per second).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from lfgnss.constants import OMEGA_EARTH_RAD_S, SPEED_OF_LIGHT_M_S
+from lfgnss.corrections import line_of_sight
+
+#: Unknowns of the fit: three velocity components and the clock drift.
+N_UNKNOWNS = 4
+
+
+@dataclass(frozen=True)
+class DopplerVelocity:
+    """Per-epoch velocity fix from Doppler. Shapes: ``T`` epochs.
+
+    Attributes
+    ----------
+    vel_ecef_m_s : (T, 3) receiver velocity, ECEF [m/s]; NaN where ``ok`` is False
+    drift_m_s : (T,) receiver clock drift times c [m/s]; NaN where ``ok`` is False
+    cov_m2_s2 : (T, 3, 3) velocity covariance [(m/s)^2], scaled by ``sigma_m_s^2``; NaN where not ``ok``
+    n_used : (T,) Dopplers in the fit
+    ok : (T,) True where at least ``min_dopplers`` Dopplers gave a well-conditioned fix
+    """
+
+    vel_ecef_m_s: np.ndarray
+    drift_m_s: np.ndarray
+    cov_m2_s2: np.ndarray
+    n_used: np.ndarray
+    ok: np.ndarray
+
+
+def doppler_design(sat_pos_ecef_m: np.ndarray, sat_vel_ecef_m_s: np.ndarray, rcv_ecef_m: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Linear Doppler model ``prr = a + A [v; d]``: offsets ``a`` (..., N) [m/s] and rows ``A`` (..., N, 4).
+
+    ``sat_*`` are (..., N, 3), ``rcv_ecef_m`` (..., 3) broadcast over satellites.
+    """
+    s = np.asarray(sat_pos_ecef_m, float)
+    vs = np.asarray(sat_vel_ecef_m_s, float)
+    p = np.asarray(rcv_ecef_m, float)[..., None, :]
+    los = line_of_sight(s, p)
+    w = OMEGA_EARTH_RAD_S / SPEED_OF_LIGHT_M_S
+    a = np.einsum("...j,...j->...", los, vs) + w * (vs[..., 0] * p[..., 1] - vs[..., 1] * p[..., 0])
+    A = np.empty(s.shape[:-1] + (N_UNKNOWNS,))
+    A[..., :3] = -los
+    A[..., 0] -= w * s[..., 1]
+    A[..., 1] += w * s[..., 0]
+    A[..., 3] = 1.0
+    return a, A
+
+
+def doppler_velocity(prr_m_s: np.ndarray, prr_mask: np.ndarray, sat_pos_ecef_m: np.ndarray,
+                     sat_vel_ecef_m_s: np.ndarray, rcv_ecef_m: np.ndarray, *, sigma_m_s: float = 0.5,
+                     huber_k: float = 1.5, iterations: int = 5, min_dopplers: int = 5,
+                     max_condition: float = 1e8) -> DopplerVelocity:
+    """Robust per-epoch velocity and clock drift from Doppler (T epochs, N slots).
+
+    Parameters
+    ----------
+    prr_m_s, prr_mask : (T, N) pseudorange rates [m/s] and where they are usable
+    sat_pos_ecef_m, sat_vel_ecef_m_s : (T, N, 3) satellite positions [m] and velocities [m/s]
+    rcv_ecef_m : (T, 3) receiver position [m], e.g. the coarse fix; epochs with NaN get no fix
+    sigma_m_s : a priori Doppler standard deviation [m/s]
+    huber_k : Huber threshold [sigmas] of the reweighting
+    iterations : reweighting passes after the equal-weight fit
+    min_dopplers : fewest Dopplers for a fix (5: one more than the unknowns, so an outlier can show)
+    max_condition : epochs whose normal matrix is worse conditioned get no fix
+    """
+    mask = np.asarray(prr_mask, bool) & np.all(np.isfinite(np.asarray(rcv_ecef_m, float)), axis=-1)[:, None]
+    rcv = np.nan_to_num(np.asarray(rcv_ecef_m, float))
+    a, A = doppler_design(np.where(mask[..., None], sat_pos_ecef_m, 1.0e7 + rcv[:, None, :]),
+                          np.where(mask[..., None], sat_vel_ecef_m_s, 0.0), rcv)
+    y = np.where(mask, np.asarray(prr_m_s, float) - a, 0.0)
+    n_used = mask.sum(axis=1)
+    enough = n_used >= min_dopplers
+    eye = np.eye(N_UNKNOWNS)
+    weight = mask.astype(float)
+    x = np.zeros((mask.shape[0], N_UNKNOWNS))
+    for it in range(iterations + 1):
+        normal = np.einsum("tn,tni,tnj->tij", weight, A, A)
+        normal[~enough] = eye                     # keep the batch solvable; those epochs are discarded
+        x = np.linalg.solve(normal, np.einsum("tn,tni,tn->ti", weight, A, y)[..., None])[..., 0]
+        if it == iterations:
+            break
+        u = np.abs(y - np.einsum("tni,ti->tn", A, x)) / sigma_m_s
+        weight = np.where(mask, np.minimum(1.0, huber_k / np.maximum(u, 1e-12)), 0.0)
+    ok = enough & (np.linalg.cond(normal) < max_condition)
+    cov = np.linalg.inv(normal)[:, :3, :3] * sigma_m_s ** 2
+    nan3 = np.full(3, np.nan)
+    return DopplerVelocity(vel_ecef_m_s=np.where(ok[:, None], x[:, :3], nan3),
+                           drift_m_s=np.where(ok, x[:, 3], np.nan),
+                           cov_m2_s2=np.where(ok[:, None, None], cov, np.nan),
+                           n_used=n_used.astype(np.int32), ok=ok)
+
+
+__all__ = ["DopplerVelocity", "doppler_design", "doppler_velocity"]
