@@ -286,18 +286,17 @@ class LfgnssFgo:
         return doppler_velocity(seq.prr_m_s, seq.prr_mask & seq.mask, seq.sat_pos_ecef_m, seq.sat_vel_ecef_m_s,
                                 seq.coarse_ecef_m, sigma_m_s=self.doppler_sigma_m_s)
 
-    def _velocity_prior(self, k: int, dv: DopplerVelocity | None, graph: gtsam.NonlinearFactorGraph) -> bool:
-        """Add epoch k's Doppler velocity fix as a Huber-robust prior on ``V(k)``; True if added.
+    def _velocity_prior(self, k: int, dv: DopplerVelocity | None, graph: gtsam.NonlinearFactorGraph) -> None:
+        """Add epoch k's Doppler velocity fix, if it has one, as a Huber-robust prior on ``V(k)``.
 
         A prior on each epoch's velocity, not a factor per Doppler: the fix has already spent one
         Doppler per epoch on the clock drift, which the graph does not carry (free clocks per epoch).
         """
         if dv is None or not dv.ok[k]:
-            return False
+            return
         base = gtsam.noiseModel.Gaussian.Covariance(dv.cov_m2_s2[k])
         model = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(DOPPLER_HUBER_K), base)
         graph.add(gtsam.PriorFactorPoint3(V(k), dv.vel_ecef_m_s[k], model))
-        return True
 
     def _accel_psd_ecef(self, ref_ecef_m: np.ndarray) -> np.ndarray:
         lat, lon, _ = ecef_to_lla(ref_ecef_m)
@@ -390,9 +389,9 @@ class LfgnssFgo:
             self._priors(k0, p0[0], v0[0], graph)
             n_used = np.zeros(n_t - k0, int)
             for k in range(k0, n_t):
-                start.insertPoint3(X(k), p0[k - k0] if values is None else values.atPoint3(X(k)))
-                start.insertPoint3(V(k), v0[k - k0] if values is None else values.atPoint3(V(k)))
                 guess = p0[k - k0] if values is None else values.atPoint3(X(k))
+                start.insertPoint3(X(k), guess)
+                start.insertPoint3(V(k), v0[k - k0] if values is None else values.atPoint3(V(k)))
                 n_used[k - k0] = self._epoch(k, seq, z_m, sigma_m, guess, graph, start, kernel)
                 self._velocity_prior(k, dv, graph)
                 if k > k0:
@@ -402,7 +401,7 @@ class LfgnssFgo:
             optimizer = gtsam.LevenbergMarquardtOptimizer(graph, start, params)
             values = optimizer.optimize()
             info["iterations"] += int(optimizer.iterations())
-        result = values
+        result = values                             # the last stage's optimum
         info["final_error"] = float(graph.error(result))
         pos = np.array([result.atPoint3(X(k)) for k in range(k0, n_t)])
         vel = np.array([result.atPoint3(V(k)) for k in range(k0, n_t)])

@@ -3,8 +3,8 @@
 For each dataset: RTKLIB ``rnx2rtkp`` (when installed), equal-weight and weighted least squares, the
 plain EKF, the LF-GNSS EKF and factor graph with the shipped (joint) model, the three ablation models
 (w/o DPC, w/o HEM, w/o both) in the EKF, and the EKF and factor graph with the dataset's own model
-(``lfgnss-<dataset id>.npz``, trained on that dataset's train split only) where there is one. Writes a Markdown results table (all test epochs, and the
-epochs RTKLIB solved), CDF and track PNGs per dataset.
+(``lfgnss-<dataset id>.npz``, trained on that dataset's train split only) where there is one. Writes a
+Markdown results table (all test epochs, and the epochs RTKLIB solved), CDF and track PNGs per dataset.
 """
 from __future__ import annotations
 

@@ -82,6 +82,8 @@ def doppler_velocity(prr_m_s: np.ndarray, prr_mask: np.ndarray, sat_pos_ecef_m: 
     """
     mask = np.asarray(prr_mask, bool) & np.all(np.isfinite(np.asarray(rcv_ecef_m, float)), axis=-1)[:, None]
     rcv = np.nan_to_num(np.asarray(rcv_ecef_m, float))
+    # Empty slots hold zeros; a dummy satellite 1e7 m away keeps their line of sight finite (0/0 would be NaN,
+    # and NaN times a zero weight is still NaN in the normal equations).
     a, A = doppler_design(np.where(mask[..., None], sat_pos_ecef_m, 1.0e7 + rcv[:, None, :]),
                           np.where(mask[..., None], sat_vel_ecef_m_s, 0.0), rcv)
     y = np.where(mask, np.asarray(prr_m_s, float) - a, 0.0)
