@@ -1,7 +1,7 @@
 """Benchmark rows (lfgnss.benchmark.methods): which estimators run for a dataset, from which model files."""
 import shutil
 
-from lfgnss.benchmark import MODEL_DIR, methods
+from lfgnss.benchmark import MODEL_DIR, PLAIN, RTKLIB, _plain_markdown, methods, target_rows
 
 
 def test_rows_follow_the_model_files(tmp_path):
@@ -19,3 +19,23 @@ def test_rows_follow_the_model_files(tmp_path):
     # another dataset's own model is not used
     assert not any("per-dataset" in m.name for m in methods(tmp_path, "hk-tst-2019"))
     assert rows["LF-GNSS EKF, per-dataset model"].create().noise.metadata["feature_names"]
+
+
+def _row(dataset, method, d3, d2):
+    return {"dataset": dataset, "method": method, "trained_on": "-", "rmse_3d_m": d3, "rmse_2d_m": d2}
+
+
+def test_target_rows_compare_each_learned_row_with_its_bars():
+    all_rows = [_row("hk-tst-2019", PLAIN, 13.0, 5.0), _row("hk-tst-2019", "LF-GNSS EKF", 9.0, 4.0),
+                _row("hk-tst-2019", "LF-GNSS FGO", 12.5, 3.0), _row("hk-tst-2019", "LF-GNSS EKF w/o HEM", 9.5, 4.0)]
+    rtk_rows = [_row("hk-tst-2019", "LF-GNSS EKF", 8.0, 3.0), _row("hk-tst-2019", RTKLIB, 8.71, 3.88)]
+    rows = {r["method"]: r for r in target_rows(all_rows, rtk_rows)}
+    assert set(rows) == {"LF-GNSS EKF", "LF-GNSS FGO"}                      # ablations and baselines left out
+    ekf, fgo = rows["LF-GNSS EKF"], rows["LF-GNSS FGO"]
+    assert ekf["3D vs target"] == "9.00 vs 10.00 (yes)" and ekf["2D vs target"] == "4.00 vs 3.50 (no)"
+    assert ekf["3D vs plain EKF"] == "9.00 vs 13.00 (yes)"
+    assert ekf["3D vs yardstick"] == "9.00 vs 14.00 (yes)"                  # the yardstick's EKF ...
+    assert fgo["3D vs yardstick"] == "12.50 vs 12.20 (no)"                  # ... and its robust graph
+    assert ekf["3D vs RTKLIB, its epochs"] == "8.00 vs 8.71 (yes)"
+    assert fgo["3D vs RTKLIB, its epochs"] == "-"                           # no row on RTKLIB's epochs
+    assert "| 3D vs target |" in _plain_markdown(list(rows.values()))
