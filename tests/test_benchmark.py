@@ -1,4 +1,4 @@
-"""Benchmark rows (lfgnss.benchmark.methods): which estimators run for a dataset, from which model files."""
+"""Benchmark rows (methods) and the targets table (target_rows): which estimators run, against which bars."""
 import shutil
 
 from lfgnss.benchmark import MODEL_DIR, PLAIN, RTKLIB, _plain_markdown, methods, target_rows
