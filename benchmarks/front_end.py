@@ -37,7 +37,7 @@ if str(REPO) not in sys.path:
 import lfgnss  # noqa: E402
 from lfgnss import datasets  # noqa: E402
 from lfgnss import qc  # noqa: E402
-from lfgnss.metrics import accuracy_table, enu_rotations, format_markdown, format_text  # noqa: E402
+from lfgnss.metrics import accuracy_table, enu_rotations, format_markdown, format_text, markdown_table  # noqa: E402
 from lfgnss.rtklib import rtklib_available, run_rnx2rtkp  # noqa: E402
 from lfgnss.spp import FIX_STATUS  # noqa: E402
 
@@ -221,16 +221,6 @@ def like_for_like(run: Run) -> list[dict]:
     return out
 
 
-def _fmt_rows(rows: list[dict], keys: list[str]) -> str:
-    def cell(v):
-        if isinstance(v, float):
-            return f"{v:.2f}" if np.isfinite(v) else "-"
-        return str(v)
-    lines = ["| " + " | ".join(keys) + " |", "| " + " | ".join("---" for _ in keys) + " |"]
-    lines += ["| " + " | ".join(cell(r.get(k)) for k in keys) + " |" for r in rows]
-    return "\n".join(lines) + "\n"
-
-
 def table(ids: list[str], write_doc: bool = True) -> str:
     acc, claims, lfl = [], [], []
     with tempfile.TemporaryDirectory(prefix="lfgnss-fe-") as tmp:
@@ -240,12 +230,12 @@ def table(ids: list[str], write_doc: bool = True) -> str:
             claims += claim_rows(run)
             lfl += like_for_like(run)
     md = format_markdown(acc, digits=1)
-    claim_md = _fmt_rows([{**c, "share": f"{100 * c['share']:.1f} %",
-                           "failures": ", ".join(f"{k}: {v}" for k, v in c["failures"].items()) or "-"}
-                          for c in claims],
-                         ["dataset", "epochs", "n", "enough_sats", "with_fix", "share", "fix_without_enough", "not_enough_no_fix",
-                          "failures"])
-    lfl_md = _fmt_rows(lfl, ["dataset", "vs", "subset", "n", "d2_p50", "d2_p95", "d3_p50", "d3_p95", "ratio_p50"])
+    claim_md = markdown_table([{**c, "share": f"{100 * c['share']:.1f} %",
+                                "failures": ", ".join(f"{k}: {v}" for k, v in c["failures"].items()) or "-"}
+                               for c in claims],
+                              ["dataset", "epochs", "n", "enough_sats", "with_fix", "share", "fix_without_enough",
+                               "not_enough_no_fix", "failures"])
+    lfl_md = markdown_table(lfl, ["dataset", "vs", "subset", "n", "d2_p50", "d2_p95", "d3_p50", "d3_p95", "ratio_p50"])
     print(format_text(acc, digits=1))
     print("Issue 2 claim: fix for >= 98 % of labelled epochs with >= 4 + (constellations - 1) QC-passing "
           "satellites >= 10 deg (elevation from the truth, else the nearest fix):")

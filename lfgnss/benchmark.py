@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from . import datasets
-from .metrics import accuracy_table, format_markdown, format_text
+from .metrics import accuracy_table, format_markdown, format_text, markdown_table
 from .paths import bundled_data_dir
 
 MODEL_DIR = bundled_data_dir() / "model"
@@ -178,18 +178,9 @@ def target_rows(all_rows: list[dict], rtk_rows: list[dict]) -> list[dict]:
     return out
 
 
-def _plain_markdown(rows: list[dict]) -> str:
-    """A Markdown table of string cells, columns in the first row's order."""
-    if not rows:
-        return "No learned rows (no model files).\n"
-    head = list(rows[0])
-    lines = ["| " + " | ".join(head) + " |", "| " + " | ".join("---" for _ in head) + " |"]
-    lines += ["| " + " | ".join(str(r[k]) for k in head) + " |" for r in rows]
-    return "\n".join(lines) + "\n"
-
-
 def write_report(path: Path, all_rows: list[dict], rtk_rows: list[dict], command: str) -> Path:
     """Markdown results file with both tables and how they were made."""
+    targets = target_rows(all_rows, rtk_rows)
     text = [
         "# lfgnss benchmark results",
         "",
@@ -211,7 +202,7 @@ def write_report(path: Path, all_rows: list[dict], rtk_rows: list[dict], command
         "EKF rows and its robust batch graph for FGO rows; RTKLIB is compared on the epochs it solved. `yes`: "
         "at or below the bar. Why figures fall short is discussed in the README's Results section.",
         "",
-        _plain_markdown(target_rows(all_rows, rtk_rows)),
+        markdown_table(targets) if targets else "No learned rows (no model files).\n",
         "",
         "Figures: `figures/<dataset>-cdf.png`, `-track.png`, `-errors.png`.",
         "",

@@ -163,7 +163,17 @@ def format_markdown(rows: Iterable[Mapping], digits: int = 2) -> str:
     """
     head, body = _table(rows, digits)
     n_lab = len(head) - len(METRIC_COLUMNS)
-    align = ["---"] * n_lab + ["---:"] * len(METRIC_COLUMNS)
+    return _markdown(head, body, ["---"] * n_lab + ["---:"] * len(METRIC_COLUMNS))
+
+
+def markdown_table(rows: Iterable[Mapping], keys: list[str] | None = None, digits: int = 2) -> str:
+    """Any dict rows as a Markdown table of ``keys`` (default: the first row's); cells as in format_markdown."""
+    rows = list(rows)
+    keys = list(rows[0]) if keys is None and rows else list(keys or [])
+    return _markdown(keys, [[_cell(k, r.get(k), digits) for k in keys] for r in rows], ["---"] * len(keys))
+
+
+def _markdown(head: list[str], body: list[list[str]], align: list[str]) -> str:
     lines = ["| " + " | ".join(head) + " |", "| " + " | ".join(align) + " |"]
     lines += ["| " + " | ".join(r) + " |" for r in body]
     return "\n".join(lines) + "\n"

@@ -1,7 +1,8 @@
 """Benchmark rows (methods) and the targets table (target_rows): which estimators run, against which bars."""
 import shutil
 
-from lfgnss.benchmark import MODEL_DIR, PLAIN, RTKLIB, _plain_markdown, methods, target_rows
+from lfgnss.benchmark import MODEL_DIR, PLAIN, RTKLIB, methods, target_rows
+from lfgnss.metrics import markdown_table
 
 
 def test_rows_follow_the_model_files(tmp_path):
@@ -38,4 +39,4 @@ def test_target_rows_compare_each_learned_row_with_its_bars():
     assert fgo["3D vs yardstick"] == "12.50 vs 12.20 (no)"                  # ... and its robust graph
     assert ekf["3D vs RTKLIB, its epochs"] == "8.00 vs 8.71 (yes)"
     assert fgo["3D vs RTKLIB, its epochs"] == "-"                           # no row on RTKLIB's epochs
-    assert "| 3D vs target |" in _plain_markdown(list(rows.values()))
+    assert "| 3D vs target |" in markdown_table(list(rows.values()))
