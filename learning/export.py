@@ -143,6 +143,7 @@ class LfgnssModel:
         self.r_floor_m2 = float(m["r_floor_m2"])
         self.r_scale_m2 = float(m.get("r_scale_m2", 1.0))
         self.r_prior = m.get("r_prior")
+        self.compensation = bool(m.get("compensation", True))
         self.eps = float(metadata.get("layer_norm_eps", 1e-5))
 
     def __repr__(self) -> str:
@@ -206,7 +207,7 @@ class LfgnssModel:
             prior = (pr["floor_m"] ** 2 + pr["cn0_scale_m2"] * 10.0 ** (-cn0 / 5.0)) / \
                 np.sin(np.maximum(el, pr["el_min_rad"])) ** pr["elevation_power"]
             r = prior * _softplus(o[..., 0]) / np.log(2.0) + self.r_floor_m2
-        vc = o[..., 1]
+        vc = o[..., 1] if self.compensation else np.zeros_like(r)
         r = np.where(m, r, PAD_R_M2).reshape(*lead, n)
         vc = np.where(m, vc, 0.0).reshape(*lead, n)
         return r, vc

@@ -47,6 +47,8 @@ class LfgnssNet(nn.Module):
         Constant unit scale of the softplus output [m^2] (1.0 = the paper's ``softplus(o_R)``).
     r_init_m2 : float or None
         If given, the R output bias is initialised so an all-zero input gives about this variance.
+    compensation : bool
+        Output the innovation compensation ``v^c`` (False: ``v^c = 0``, the network learns R only).
     r_prior : dict or None
         Prior variance model: ``cn0_index``, ``el_index`` (feature columns), ``cn0_mean``, ``cn0_std``,
         ``el_mean``, ``el_std`` (normaliser constants) and ``floor_m``, ``cn0_scale_m2``,
@@ -55,7 +57,8 @@ class LfgnssNet(nn.Module):
 
     def __init__(self, n_features: int, *, d_model: int = 64, n_heads: int = 4,
                  hidden: tuple[int, ...] = (64, 128, 64), r_floor_m2: float = 0.01,
-                 r_scale_m2: float = 1.0, r_init_m2: float | None = None, r_prior: dict | None = None) -> None:
+                 r_scale_m2: float = 1.0, r_init_m2: float | None = None, r_prior: dict | None = None,
+                 compensation: bool = True) -> None:
         super().__init__()
         if n_features < 1 or d_model % n_heads != 0:
             raise ValueError(f"need n_features >= 1 and d_model % n_heads == 0, got {n_features}, {d_model}, {n_heads}")
@@ -65,6 +68,7 @@ class LfgnssNet(nn.Module):
         self.hidden = tuple(int(h) for h in hidden)
         self.r_floor_m2 = float(r_floor_m2)
         self.r_scale_m2 = float(r_scale_m2)
+        self.compensation = bool(compensation)
         self.r_prior = None if r_prior is None else {k: (int(v) if k.endswith("_index") else float(v))
                                                      for k, v in r_prior.items()}
         self.embed = nn.Linear(self.n_features, self.d_model)
@@ -87,7 +91,7 @@ class LfgnssNet(nn.Module):
         """Constructor keyword arguments (for export / rebuild)."""
         return {"n_features": self.n_features, "d_model": self.d_model, "n_heads": self.n_heads,
                 "hidden": list(self.hidden), "r_floor_m2": self.r_floor_m2, "r_scale_m2": self.r_scale_m2,
-                "r_prior": self.r_prior}
+                "r_prior": self.r_prior, "compensation": self.compensation}
 
     def forward(self, features: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Noise for every slot.
@@ -122,7 +126,7 @@ class LfgnssNet(nn.Module):
             r = self.r_scale_m2 * F.softplus(out[..., 0]) + self.r_floor_m2
         else:
             r = prior * F.softplus(out[..., 0]) / math.log(2.0) + self.r_floor_m2
-        vc = out[..., 1]
+        vc = out[..., 1] if self.compensation else torch.zeros_like(r)
         r = torch.where(m, r, torch.full((), PAD_R_M2, dtype=r.dtype))
         vc = torch.where(m, vc, torch.zeros((), dtype=vc.dtype))
         return r.reshape(*lead, n), vc.reshape(*lead, n)

@@ -56,8 +56,9 @@ DEFAULT_CONFIG: dict[str, Any] = {
                       "train_seeds": [1, 2], "val_seeds": [101]},
     },
     "model": {"d_model": 64, "n_heads": 4, "hidden": [64, 128, 64], "r_floor_m2": 0.01, "r_scale_m2": 1.0,
-              "r_init_m2": None, "r_prior": "none"},
-    "train": {"epochs": 200, "batch_size": 16, "lr": 1.0e-3, "t_max": 50, "eta_min": 1.0e-4, "grad_clip": 0.0},
+              "r_init_m2": None, "r_prior": "none", "compensation": True},
+    "train": {"epochs": 200, "batch_size": 16, "lr": 1.0e-3, "t_max": 50, "eta_min": 1.0e-4, "grad_clip": 0.0,
+              "weight_decay": 0.0},
     "loss": {"kind": "hem", "alpha": 0.75, "gamma": 1.5, "lambda": 1.0},
     "ekf": {},
 }
@@ -213,7 +214,8 @@ def build_model(config: dict, n_features: int, normaliser: Normaliser | None = N
         raise ValueError(f"model.r_prior must be 'none' or 'heuristic', got {m['r_prior']!r}")
     return LfgnssNet(n_features, d_model=int(m["d_model"]), n_heads=int(m["n_heads"]), hidden=tuple(m["hidden"]),
                      r_floor_m2=float(m["r_floor_m2"]), r_scale_m2=float(m["r_scale_m2"]),
-                     r_init_m2=None if m.get("r_init_m2") is None else float(m["r_init_m2"]), r_prior=prior)
+                     r_init_m2=None if m.get("r_init_m2") is None else float(m["r_init_m2"]), r_prior=prior,
+                     compensation=bool(m.get("compensation", True)))
 
 
 def run_filter(model: LfgnssNet, batch: WindowBatch, *, n_systems: int, ekf_cfg) -> torch.Tensor:
@@ -275,16 +277,21 @@ class Prepared:
     source_files: dict[str, dict[str, str]]
 
 
-def prepare(config: dict) -> Prepared:
-    """Load train/val Sequences, fit the normaliser on train, cut and collate windows."""
+def prepare(config: dict, source=None) -> Prepared:
+    """Load train/val Sequences, fit the normaliser on train, cut and collate windows.
+
+    ``source(dataset_id, split, config) -> list[Sequence]`` replaces ``load_sequences`` (e.g. the
+    cross-validation folds of ``learning.crossval``).
+    """
     data = config["data"]
     for key in ("train_split", "val_split"):
         if data[key] in _FORBIDDEN_SPLITS:
             raise ValueError(f"data.{key} = {data[key]!r}: the test split may not be used for training or selection")
+    source = source or load_sequences
     train_seqs, val_seqs, prints = [], [], []
     for ds in data["datasets"]:
         for split, bucket in ((data["train_split"], train_seqs), (data["val_split"], val_seqs)):
-            seqs = load_sequences(ds, split, config)
+            seqs = source(ds, split, config)
             if not seqs:
                 raise ValueError(f"dataset {ds!r} split {split!r} gave no sequence")
             bucket.extend(seqs)
@@ -378,7 +385,10 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
     ekf_cfg = ekf_config(config)
     tr = config["train"]
     model = build_model(config, len(prep.feature_names), prep.normaliser)
-    optimiser = torch.optim.Adam(model.parameters(), lr=float(tr["lr"]))
+    decay = float(tr.get("weight_decay", 0.0))
+    # Adam as in the paper; decoupled weight decay (AdamW) only when asked for, so 0 is the paper's optimiser.
+    optimiser = (torch.optim.AdamW(model.parameters(), lr=float(tr["lr"]), weight_decay=decay) if decay > 0
+                 else torch.optim.Adam(model.parameters(), lr=float(tr["lr"])))
     scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, T_max=int(tr["t_max"]),
                                                            eta_min=float(tr["eta_min"]))
     lc = config["loss"]

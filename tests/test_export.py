@@ -180,3 +180,25 @@ def test_prior_network_untrained_equals_heuristic_and_exports(tmp_path):
         r_t, vc_t = net.float()(x.float(), torch.as_tensor(seq.mask))
     np.testing.assert_allclose(r_np[seq.mask], r_t.numpy()[seq.mask], rtol=1e-4)
     np.testing.assert_allclose(vc_np[seq.mask], vc_t.numpy()[seq.mask], rtol=1e-4, atol=1e-4)
+
+
+def test_r_only_network_outputs_no_compensation_and_exports(exported, tmp_path):
+    """model.compensation = false: v^c is 0 in torch and in the exported file; R is unchanged."""
+    _, net, norm, seq = exported
+    hp = dict(net.hyperparameters(), compensation=False)
+    r_only = LfgnssNet(**hp).eval()
+    r_only.load_state_dict(net.state_dict())
+    x = torch.as_tensor(norm.apply(select_features(seq, DEFAULT_FEATURES), seq.mask)).float()
+    mask = torch.as_tensor(seq.mask)
+    with torch.no_grad():
+        r_full, vc_full = net.eval()(x, mask)
+        r, vc = r_only(x, mask)
+    assert torch.equal(r, r_full) and torch.all(vc == 0) and torch.any(vc_full != 0)
+    ckpt = tmp_path / "best.pt"
+    torch.save({"model": r_only.state_dict(), "model_hparams": r_only.hyperparameters(),
+                "normaliser": norm.to_dict(), "config": {}, "epoch": 1, "history": []}, ckpt)
+    model = load_model(export_model(ckpt, tmp_path / "model.npz"))
+    r_np, vc_np = model(seq)
+    assert model.metadata["model"]["compensation"] is False
+    np.testing.assert_allclose(r_np[seq.mask], r.numpy()[seq.mask], rtol=1e-5)
+    assert np.all(vc_np == 0.0)

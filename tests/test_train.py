@@ -109,3 +109,20 @@ def test_feature_selection_normaliser_and_padding():
     x = norm.apply_torch(torch.as_tensor(b.features[..., :4]), torch.as_tensor(b.mask))
     np.testing.assert_allclose(x.numpy(), norm.apply(b.features[..., :4], b.mask))
     assert not set(DPC_FEATURES) & set(norm.feature_names)
+
+
+def test_weight_decay_and_r_only_settings_train(config, prepared, full_run, tmp_path):
+    """train.weight_decay switches to AdamW (and changes the run); model.compensation = false trains R only."""
+    import copy
+
+    cfg = copy.deepcopy(config)
+    cfg["train"]["epochs"] = 1
+    cfg["train"]["weight_decay"] = 0.5
+    cfg["model"]["compensation"] = False
+    history = train(cfg, tmp_path, progress=False, prepared=prepared, export=True)
+    assert np.isfinite(history[-1]["train_loss"]) and history[-1]["train_loss"] != full_run[1][1]["train_loss"]
+    ckpt = torch.load(tmp_path / "last.pt", weights_only=False)
+    assert ckpt["optimiser"]["param_groups"][0]["weight_decay"] == 0.5
+    model = load_model(tmp_path / "model.npz")
+    _, vc = model(load_sequences("synthetic", "val", cfg)[0])
+    assert np.all(vc == 0.0)

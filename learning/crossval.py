@@ -1,0 +1,136 @@
+"""Blocked K-fold cross-validation of a training recipe on the train + validation epochs (never test).
+
+    python -m learning.crossval --config learning/configs/default.toml --folds 3 [--set key=value ...]
+                                [--out runs/cv-NAME] [--no-progress]
+
+A validation split of a minute or two is one street: whether a recipe generalises cannot be read from
+it. Here each dataset's train and validation epochs, in time order, are cut into ``K`` contiguous
+blocks; fold ``j`` trains on the other blocks (as separate sequences where the held-out block cuts
+them) and evaluates on block ``j``, once per training epoch, exactly as ``learning.train`` evaluates
+its validation split. Each fold also runs the plain EKF (hand-set C/N0-elevation R, no v^c, the same
+EKF settings) on its held-out block, the bar the learned model has to clear.
+
+Reported per fold and pooled over folds (RMSE pooled by epochs): the plain EKF, the untrained network
+(epoch 0), the last epoch (the honest figure of a fixed schedule) and the best epoch (optimistic: it
+is picked on the held-out block itself). Writes ``crossval.csv`` and ``crossval.md`` in ``--out`` and
+each fold's training log and curves in ``--out/fold<j>/``.
+"""
+from __future__ import annotations
+
+import argparse
+import copy
+import csv
+import math
+from pathlib import Path
+
+import numpy as np
+
+from lfgnss.metrics import accuracy_table, markdown_table
+from lfgnss.sequence import Sequence
+
+from .train import ekf_config, load_config, load_sequences, prepare, train
+
+COLUMNS = ["fold", "held_out_epochs", "plain_ekf_rmse_3d_m", "untrained_rmse_3d_m", "last_rmse_3d_m",
+           "best_rmse_3d_m", "best_epoch"]
+
+
+def _runs(index: np.ndarray) -> list[np.ndarray]:
+    """Contiguous runs of a sorted index array."""
+    return [r for r in np.split(index, np.flatnonzero(np.diff(index) > 1) + 1) if r.size]
+
+
+def fold_sequences(sequences: list[Sequence], folds: int, fold: int,
+                   min_epochs: int = 2) -> tuple[list[Sequence], list[Sequence]]:
+    """(training pieces, held-out pieces) of block ``fold`` of ``folds`` over the sequences' epochs in order.
+
+    Pieces shorter than ``min_epochs`` are dropped (a filter needs more than one epoch to mean anything).
+    """
+    if not 0 <= fold < folds or folds < 2:
+        raise ValueError(f"need 2 <= folds and 0 <= fold < folds, got fold {fold} of {folds}")
+    total = sum(len(s) for s in sequences)
+    if total < folds * min_epochs:
+        raise ValueError(f"{total} epochs cannot make {folds} folds of at least {min_epochs} epochs")
+    block = np.array_split(np.arange(total), folds)[fold]
+    train, held, start = [], [], 0
+    for seq in sequences:
+        local = np.arange(len(seq))
+        in_block = (local + start >= block[0]) & (local + start <= block[-1])
+        for part, bucket, tag in ((~in_block, train, "cv-train"), (in_block, held, "cv-held-out")):
+            for k, run in enumerate(_runs(np.flatnonzero(part))):
+                if run.size >= min_epochs:
+                    bucket.append(seq.subset(slice(run[0], run[-1] + 1), name=f"{seq.name}/{tag}{fold}.{k}"))
+        start += len(seq)
+    return train, held
+
+
+def plain_ekf_rmse_3d_m(sequences: list[Sequence], config: dict) -> float:
+    """3D RMSE [m] of the plain EKF over the labelled epochs of ``sequences``, pooled."""
+    from estimators.ekf import PlainEkf
+
+    sq, n = 0.0, 0
+    for seq in sequences:
+        sol = PlainEkf(config=ekf_config(config)).solve(seq)
+        row = accuracy_table(sol.pos_ecef_m, seq.truth_ecef_m, sol.available)
+        if row["n_solved"]:
+            sq += row["rmse_3d_m"] ** 2 * row["n_solved"]
+            n += row["n_solved"]
+    return math.sqrt(sq / n) if n else float("nan")
+
+
+def _pooled(rows: list[dict], key: str) -> float:
+    n = sum(r["held_out_epochs"] for r in rows)
+    return math.sqrt(sum(r[key] ** 2 * r["held_out_epochs"] for r in rows) / n)
+
+
+def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = True) -> list[dict]:
+    """Train ``config`` on each fold; one row per fold plus a ``pooled`` row (see the module docstring)."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    data = config["data"]
+    whole = {ds: load_sequences(ds, data["train_split"], config) + load_sequences(ds, data["val_split"], config)
+             for ds in data["datasets"]}
+    rows = []
+    for j in range(folds):
+        parts = {ds: fold_sequences(seqs, folds, j) for ds, seqs in whole.items()}
+
+        def source(ds: str, split: str, _config: dict, parts=parts) -> list[Sequence]:
+            return parts[ds][0] if split == data["train_split"] else parts[ds][1]
+
+        held = [s for _, h in parts.values() for s in h]
+        history = train(copy.deepcopy(config), out / f"fold{j}", progress=progress,
+                        prepared=prepare(config, source), export=False)
+        best = min(history, key=lambda h: h["val_rmse_3d_m"])
+        rows.append({"fold": j, "held_out_epochs": sum(len(s) for s in held),
+                     "plain_ekf_rmse_3d_m": plain_ekf_rmse_3d_m(held, config),
+                     "untrained_rmse_3d_m": history[0]["val_rmse_3d_m"], "last_rmse_3d_m": history[-1]["val_rmse_3d_m"],
+                     "best_rmse_3d_m": best["val_rmse_3d_m"], "best_epoch": best["epoch"]})
+    keys = ["plain_ekf_rmse_3d_m", "untrained_rmse_3d_m", "last_rmse_3d_m", "best_rmse_3d_m"]
+    rows.append({"fold": "pooled", "held_out_epochs": sum(r["held_out_epochs"] for r in rows),
+                 **{k: _pooled(rows, k) for k in keys}, "best_epoch": "-"})
+    with open(out / "crossval.csv", "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=COLUMNS)
+        w.writeheader()
+        w.writerows(rows)
+    (out / "crossval.md").write_text(markdown_table(rows, COLUMNS))
+    return rows
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Command-line entry point."""
+    p = argparse.ArgumentParser(prog="python -m learning.crossval", description=__doc__.split("\n")[0])
+    p.add_argument("--config", help="TOML configuration (default: built-in defaults)")
+    p.add_argument("--folds", type=int, default=3, help="number of contiguous blocks (default 3)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a configuration key (repeatable)")
+    p.add_argument("--out", help="output folder (default: runs/cv-<config name>)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    args = p.parse_args(argv)
+    config = load_config(args.config, args.overrides)
+    out = Path(args.out or Path("runs") / f"cv-{Path(args.config).stem if args.config else 'default'}")
+    crossval(config, args.folds, out, progress=not args.no_progress)
+    print((out / "crossval.md").read_text(), end="")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,62 @@
+"""learning.crossval: blocked folds over train + validation epochs, and the command on simulated data."""
+import csv
+import math
+
+import numpy as np
+import pytest
+
+from learning.crossval import fold_sequences, main
+from lfgnss.simulate import simulate_sequence
+
+
+@pytest.fixture(scope="module")
+def sequences():
+    return [simulate_sequence(50, seed=1, name="a"), simulate_sequence(31, seed=2, name="b")]
+
+
+@pytest.mark.parametrize("folds", [2, 3, 4])
+def test_folds_partition_the_epochs_without_overlap(sequences, folds):
+    times = np.concatenate([s.time_gps_s + 1e6 * i for i, s in enumerate(sequences)])
+    held_all = []
+    for j in range(folds):
+        train, held = fold_sequences(sequences, folds, j, min_epochs=1)
+        t_train = np.concatenate([s.time_gps_s + 1e6 * (s.name.startswith("b")) for s in train])
+        t_held = np.concatenate([s.time_gps_s + 1e6 * (s.name.startswith("b")) for s in held])
+        assert not set(t_train) & set(t_held)
+        assert sorted(np.concatenate([t_train, t_held])) == sorted(times)
+        assert np.all(np.diff(t_held[: len(held[0])]) > 0)          # a held-out piece is contiguous
+        held_all.append(t_held)
+    assert sorted(np.concatenate(held_all)) == sorted(times)          # every epoch is held out exactly once
+    sizes = [len(h) for h in held_all]
+    assert max(sizes) - min(sizes) <= 1
+
+
+def test_block_across_a_sequence_boundary_and_bad_arguments(sequences):
+    train, held = fold_sequences(sequences, 2, 1)                     # 81 epochs: block 1 = 41..80, end of a + all b
+    assert [len(s) for s in held] == [9, 31] and [len(s) for s in train] == [41]
+    with pytest.raises(ValueError, match="fold"):
+        fold_sequences(sequences, 2, 2)
+    with pytest.raises(ValueError, match="cannot make"):
+        fold_sequences(sequences[:1], 30, 0)
+
+
+def test_command_writes_per_fold_and_pooled_rows(tmp_path, capsys):
+    args = ["--config", "learning/configs/default.toml", "--folds", "2", "--out", str(tmp_path), "--no-progress"]
+    for s in ("data.datasets=['synthetic']", "data.synthetic.n_epochs=60", "data.window=20", "data.stride=10",
+              "train.batch_size=4", "train.epochs=2"):
+        args += ["--set", s]
+    assert main(args) == 0
+    with open(tmp_path / "crossval.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [r["fold"] for r in rows] == ["0", "1", "pooled"]
+    for r in rows:
+        for key in ("plain_ekf_rmse_3d_m", "untrained_rmse_3d_m", "last_rmse_3d_m", "best_rmse_3d_m"):
+            assert math.isfinite(float(r[key])) and float(r[key]) > 0
+        assert float(r["best_rmse_3d_m"]) <= float(r["last_rmse_3d_m"]) + 1e-12
+    n = [int(r["held_out_epochs"]) for r in rows]
+    assert n[2] == n[0] + n[1] == 3 * 60                                # two train seeds + one val seed, 60 epochs each
+    pooled = math.sqrt(sum(float(r["plain_ekf_rmse_3d_m"]) ** 2 * k for r, k in zip(rows[:2], n)) / n[2])
+    assert float(rows[2]["plain_ekf_rmse_3d_m"]) == pytest.approx(pooled)
+    for j in (0, 1):
+        assert (tmp_path / f"fold{j}" / "log.csv").exists() and not (tmp_path / f"fold{j}" / "model.npz").exists()
+    assert "| pooled |" in capsys.readouterr().out
