@@ -91,11 +91,8 @@ def run(dataset_ids: list[str], *, model_dir: Path = MODEL_DIR, out_dir: Path | 
     from .outputs import plot_solution
 
     all_rows, rtk_rows = [], []
-    for dataset_id in dataset_ids:
+    for dataset_id in datasets.present(dataset_ids):
         spec = datasets.get(dataset_id)
-        if spec.missing():
-            print(f"{dataset_id}: skipped, missing {spec.missing()[0]}")
-            continue
         test = datasets.load_split(dataset_id, "test")[0]
         truth = test.truth_ecef_m
         with tempfile.TemporaryDirectory() as tmp:

@@ -262,6 +262,18 @@ def split_index(seq: Sequence, spec: DatasetSpec, split: str) -> np.ndarray:
     return labelled & (axis >= start) & (axis < stop)
 
 
+def present(dataset_ids, report=print) -> list[str]:
+    """The ids whose files are all there; ``report`` gets one "ID: skipped, missing PATH" line for each other."""
+    ids = []
+    for dataset_id in dataset_ids:
+        missing = get(dataset_id).missing()
+        if missing:
+            report(f"{dataset_id}: skipped, missing {missing[0]}")
+        else:
+            ids.append(dataset_id)
+    return ids
+
+
 def load_split(dataset_id: str, split: str, *, feature_names: tuple[str, ...] = DEFAULT_FEATURES,
                cache: bool = True) -> list[Sequence]:
     """The split's contiguous epochs as Sequences (one per unbroken run of epochs)."""
@@ -275,8 +287,8 @@ def load_split(dataset_id: str, split: str, *, feature_names: tuple[str, ...] = 
             for k, r in enumerate(runs)]
 
 
-__all__ = ["DatasetSpec", "SPLITS", "align_truth", "build", "get", "load_split", "register", "register_toml",
-           "registered", "split_index"]
+__all__ = ["DatasetSpec", "SPLITS", "align_truth", "build", "get", "load_split", "present", "register",
+           "register_toml", "registered", "split_index"]
 
 
 def alignment_report(dataset_ids: list[str] | None = None) -> str:
@@ -284,11 +296,8 @@ def alignment_report(dataset_ids: list[str] | None = None) -> str:
     from .metrics import accuracy_table
 
     lines = []
-    for dataset_id in dataset_ids or sorted(_builtin()):
+    for dataset_id in present(dataset_ids or sorted(_builtin()), lines.append):
         spec = get(dataset_id)
-        if spec.missing():
-            lines.append(f"{dataset_id}: skipped, missing {spec.missing()[0]}")
-            continue
         seq = build(dataset_id)
         labelled = np.all(np.isfinite(seq.truth_ecef_m), axis=1)
         lines.append(f"{dataset_id}: {len(seq)} epochs, {int(labelled.sum())} with truth; systems "

@@ -88,11 +88,7 @@ def main(argv: list[str] | None = None) -> int:
     registered = [datasets.register_toml(t).id for t in args.register]
     ids = list(args.ids) + registered or ["hk-tst-2019", "berlin-pp", "hk-tst-static-2020"]
     rows, written = [], []
-    for dataset_id in ids:
-        spec = datasets.get(dataset_id)
-        if spec.missing():
-            print(f"{dataset_id}: skipped, missing {spec.missing()[0]}")
-            continue
+    for dataset_id in datasets.present(ids):
         seq = datasets.build(dataset_id)
         rows += feature_statistics(seq)
         written += plot_features(seq, args.out, f"{dataset_id}-")

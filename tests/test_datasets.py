@@ -81,3 +81,11 @@ def test_bad_toml_is_one_line_error(tmp_path):
     cfg.write_text('id = "x"\nobs = ["a.obs"]\n')
     with pytest.raises(InputError, match="bad.toml: dataset config lacks"):
         datasets.register_toml(cfg)
+
+
+def test_present_reports_each_dataset_with_missing_files(tmp_path, monkeypatch):
+    monkeypatch.setenv("LFGNSS_SHARED_DATA", str(tmp_path))
+    lines = []
+    assert datasets.present(["hk-tst-2019", "berlin-pp"], lines.append) == []
+    assert [line.split(":")[0] for line in lines] == ["hk-tst-2019", "berlin-pp"]
+    assert all("skipped, missing " + str(tmp_path) in line for line in lines)
