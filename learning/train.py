@@ -7,7 +7,8 @@ Each epoch: shuffled windows of consecutive epochs -> network -> ``learning.torc
 -> HEM (or RMSE) loss on the filtered positions -> Adam; then the torch EKF runs over each whole
 validation sequence (no gradient) for the validation 3D RMSE. Every epoch writes ``last.pt``
 (model, optimiser, scheduler, epoch, RNG states, normaliser, config); the best validation epoch
-is kept as ``best.pt`` and exported to ``model.npz``; ``log.csv`` and ``curves.png`` record the run.
+is kept as ``best.pt`` and exported to ``model.npz`` (``train.select = "last"`` exports the last epoch
+instead: a fixed schedule, e.g. one chosen by ``learning.crossval``); ``log.csv`` and ``curves.png`` record the run.
 The test split is never loaded here: asking for it raises.
 
 Sequences come from one pluggable function, ``load_sequences(dataset_id, split, config)``:
@@ -58,7 +59,7 @@ DEFAULT_CONFIG: dict[str, Any] = {
     "model": {"d_model": 64, "n_heads": 4, "hidden": [64, 128, 64], "r_floor_m2": 0.01, "r_scale_m2": 1.0,
               "r_init_m2": None, "r_prior": "none", "compensation": True},
     "train": {"epochs": 200, "batch_size": 16, "lr": 1.0e-3, "t_max": 50, "eta_min": 1.0e-4, "grad_clip": 0.0,
-              "weight_decay": 0.0},
+              "weight_decay": 0.0, "select": "val"},
     "loss": {"kind": "hem", "alpha": 0.75, "gamma": 1.5, "lambda": 1.0},
     "ekf": {},
 }
@@ -391,6 +392,8 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
                  else torch.optim.Adam(model.parameters(), lr=float(tr["lr"])))
     scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, T_max=int(tr["t_max"]),
                                                            eta_min=float(tr["eta_min"]))
+    if tr.get("select", "val") not in ("val", "last"):
+        raise ValueError(f"train.select must be 'val' or 'last', got {tr['select']!r}")
     lc = config["loss"]
     loss_fn = make_loss(lc["kind"], alpha=float(lc["alpha"]), gamma=float(lc["gamma"]), lam=float(lc["lambda"]))
     history: list[dict] = []
@@ -467,7 +470,7 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
     if export:
         from .export import export_model
 
-        export_model(best_path, out / "model.npz")
+        export_model(last_path if tr.get("select", "val") == "last" else best_path, out / "model.npz")
     return history
 
 
@@ -485,8 +488,9 @@ def main(argv: list[str] | None = None) -> int:
     out = args.out or str(Path("runs") / (Path(args.config).stem if args.config else "default"))
     history = train(config, out, resume=args.resume, overrides=args.overrides, progress=not args.no_progress)
     best = min(history, key=lambda h: h["val_rmse_3d_m"])
-    print(f"{out}: best validation 3D RMSE {best['val_rmse_3d_m']:.3f} m at epoch {best['epoch']}; "
-          f"model {Path(out) / 'model.npz'}")
+    chosen = history[-1] if config["train"].get("select", "val") == "last" else best
+    print(f"{out}: best validation 3D RMSE {best['val_rmse_3d_m']:.3f} m at epoch {best['epoch']}; model "
+          f"{Path(out) / 'model.npz'} is epoch {chosen['epoch']} (validation {chosen['val_rmse_3d_m']:.3f} m)")
     return 0
 
 

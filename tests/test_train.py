@@ -111,18 +111,26 @@ def test_feature_selection_normaliser_and_padding():
     assert not set(DPC_FEATURES) & set(norm.feature_names)
 
 
-def test_weight_decay_and_r_only_settings_train(config, prepared, full_run, tmp_path):
-    """train.weight_decay switches to AdamW (and changes the run); model.compensation = false trains R only."""
+def test_weight_decay_r_only_and_last_epoch_settings(config, prepared, full_run, tmp_path):
+    """train.weight_decay switches to AdamW (and changes the run); model.compensation = false trains R only;
+    train.select = "last" exports the last epoch whatever validation says."""
     import copy
 
     cfg = copy.deepcopy(config)
-    cfg["train"]["epochs"] = 1
+    cfg["train"]["epochs"] = 2
     cfg["train"]["weight_decay"] = 0.5
+    cfg["train"]["select"] = "last"
+    cfg["train"]["lr"] = 0.3                     # too large: validation is best at epoch 0, last is epoch 2
     cfg["model"]["compensation"] = False
     history = train(cfg, tmp_path, progress=False, prepared=prepared, export=True)
-    assert np.isfinite(history[-1]["train_loss"]) and history[-1]["train_loss"] != full_run[1][1]["train_loss"]
+    assert np.isfinite(history[-1]["train_loss"]) and history[1]["train_loss"] != full_run[1][1]["train_loss"]
     ckpt = torch.load(tmp_path / "last.pt", weights_only=False)
     assert ckpt["optimiser"]["param_groups"][0]["weight_decay"] == 0.5
+    assert torch.load(tmp_path / "best.pt", weights_only=False)["epoch"] == 0
     model = load_model(tmp_path / "model.npz")
+    assert model.metadata["epoch"] == 2 and model.metadata["val_rmse_3d_m"] == history[-1]["val_rmse_3d_m"]
     _, vc = model(load_sequences("synthetic", "val", cfg)[0])
     assert np.all(vc == 0.0)
+    cfg["train"]["select"] = "best"
+    with pytest.raises(ValueError, match="train.select"):
+        train(cfg, tmp_path / "bad", progress=False, prepared=prepared)
