@@ -12,8 +12,9 @@ EKF settings) on its held-out block, the bar the learned model has to clear.
 
 Reported per fold and pooled over folds (RMSE pooled by epochs): the plain EKF, the untrained network
 (epoch 0), the last epoch (the honest figure of a fixed schedule) and the best epoch (optimistic: it
-is picked on the held-out block itself). Writes ``crossval.csv`` and ``crossval.md`` in ``--out`` and
-each fold's training log and curves in ``--out/fold<j>/``.
+is picked on the held-out block itself). "untrained" has a random output head, so it is near, not equal
+to, the plain EKF even for a recipe with the hand-set R prior. Writes ``crossval.csv`` and ``crossval.md``
+in ``--out`` and each fold's run (``log.csv``, ``curves.png``, ``best.pt``, ``last.pt``) in ``--out/fold<j>/``.
 """
 from __future__ import annotations
 
@@ -85,6 +86,8 @@ def _pooled(rows: list[dict], key: str) -> float:
 def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = True) -> list[dict]:
     """Train ``config`` on each fold; one row per fold plus a ``pooled`` row (see the module docstring)."""
     out = Path(out_dir)
+    if (out / "crossval.csv").exists() or (out / "fold0").exists():
+        raise ValueError(f"{out}: already holds a cross-validation; choose another --out")
     out.mkdir(parents=True, exist_ok=True)
     data = config["data"]
     whole = {ds: load_sequences(ds, data["train_split"], config) + load_sequences(ds, data["val_split"], config)

@@ -4,7 +4,7 @@
                              [--out runs/NAME] [--resume] [--no-progress]
 
 Each epoch: shuffled windows of consecutive epochs -> network -> ``learning.torch_ekf.batch_ekf``
--> HEM (or RMSE) loss on the filtered positions -> Adam; then the torch EKF runs over each whole
+-> HEM (or RMSE) loss on the filtered positions -> Adam (AdamW if ``train.weight_decay`` > 0); then the torch EKF runs over each whole
 validation sequence (no gradient) for the validation 3D RMSE. Every epoch writes ``last.pt``
 (model, optimiser, scheduler, epoch, RNG states, normaliser, config); the best validation epoch
 is kept as ``best.pt`` and exported to ``model.npz`` (``train.select = "last"`` exports the last epoch
@@ -111,7 +111,16 @@ def load_config(path: str | Path | None = None, overrides: list[str] = ()) -> di
     config = copy.deepcopy(DEFAULT_CONFIG)
     if path is not None:
         config = _merge(config, _read_toml(Path(path)))
-    return apply_overrides(config, list(overrides))
+    return check_config(apply_overrides(config, list(overrides)))
+
+
+def check_config(config: dict) -> dict:
+    """``config`` unchanged, or ValueError for a setting of the wrong kind (caught before any data loads)."""
+    if config["train"].get("select", "val") not in ("val", "last"):
+        raise ValueError(f"train.select must be 'val' or 'last', got {config['train']['select']!r}")
+    if not isinstance(config["model"].get("compensation", True), bool):
+        raise ValueError(f"model.compensation must be true or false, got {config['model']['compensation']!r}")
+    return config
 
 
 def _read_toml(path: Path, depth: int = 0) -> dict:
@@ -347,8 +356,8 @@ def train(config: dict, out_dir: str | Path, *, resume: bool = False, overrides:
         Run folder for ``last.pt``, ``best.pt``, ``log.csv``, ``curves.png``, ``model.npz``.
     resume : bool
         Continue from ``out_dir/last.pt`` exactly (same shuffles, optimiser and scheduler state). The
-        checkpoint's configuration is used, updated by ``overrides`` (e.g. ``["train.epochs=300"]``);
-        ``config`` is then ignored.
+        checkpoint's configuration is used, updated by ``overrides`` (e.g. ``["train.epochs=300"]``; not
+        ``train.lr`` or ``train.weight_decay``, which the saved optimiser fixes); ``config`` is then ignored.
     prepared : Prepared, optional
         Pre-built data (tests reuse it across runs); built from ``config`` otherwise.
     """
@@ -361,8 +370,14 @@ def train(config: dict, out_dir: str | Path, *, resume: bool = False, overrides:
             raise ValueError(f"{last_path}: no checkpoint to resume from")
         checkpoint = torch.load(last_path, map_location="cpu", weights_only=False)
         config = apply_overrides(checkpoint["config"], list(overrides))
+        for key in ("lr", "weight_decay"):
+            # load_state_dict restores the optimiser as saved, so these would be silently ignored
+            if config["train"].get(key) != checkpoint["config"]["train"].get(key):
+                raise ValueError(f"{last_path}: train.{key} cannot change on --resume "
+                                 f"({checkpoint['config']['train'].get(key)} -> {config['train'].get(key)})")
     elif last_path.exists():
         raise ValueError(f"{last_path}: a run already exists here; pass --resume or choose another --out")
+    check_config(config)
 
     threads, deterministic = torch.get_num_threads(), torch.are_deterministic_algorithms_enabled()
     torch.set_num_threads(int(config["threads"]))
@@ -392,8 +407,6 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
                  else torch.optim.Adam(model.parameters(), lr=float(tr["lr"])))
     scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, T_max=int(tr["t_max"]),
                                                            eta_min=float(tr["eta_min"]))
-    if tr.get("select", "val") not in ("val", "last"):
-        raise ValueError(f"train.select must be 'val' or 'last', got {tr['select']!r}")
     lc = config["loss"]
     loss_fn = make_loss(lc["kind"], alpha=float(lc["alpha"]), gamma=float(lc["gamma"]), lam=float(lc["lambda"]))
     history: list[dict] = []
@@ -487,10 +500,12 @@ def main(argv: list[str] | None = None) -> int:
     config = load_config(args.config, args.overrides)
     out = args.out or str(Path("runs") / (Path(args.config).stem if args.config else "default"))
     history = train(config, out, resume=args.resume, overrides=args.overrides, progress=not args.no_progress)
+    from .export import load_model
+
     best = min(history, key=lambda h: h["val_rmse_3d_m"])
-    chosen = history[-1] if config["train"].get("select", "val") == "last" else best
+    exported = load_model(Path(out) / "model.npz").metadata     # the run's own config decides (--resume)
     print(f"{out}: best validation 3D RMSE {best['val_rmse_3d_m']:.3f} m at epoch {best['epoch']}; model "
-          f"{Path(out) / 'model.npz'} is epoch {chosen['epoch']} (validation {chosen['val_rmse_3d_m']:.3f} m)")
+          f"{Path(out) / 'model.npz'} is epoch {exported['epoch']} (validation {exported['val_rmse_3d_m']:.3f} m)")
     return 0
 
 

@@ -16,19 +16,18 @@ def sequences():
 
 @pytest.mark.parametrize("folds", [2, 3, 4])
 def test_folds_partition_the_epochs_without_overlap(sequences, folds):
-    times = np.concatenate([s.time_gps_s + 1e6 * i for i, s in enumerate(sequences)])
-    held_all = []
+    # an epoch's global position in the concatenated order: its time within a, or 50 + its index in b
+    position = {("a", t): k for k, t in enumerate(sequences[0].time_gps_s)}
+    position.update({("b", t): 50 + k for k, t in enumerate(sequences[1].time_gps_s)})
+
+    def positions(pieces):
+        return sorted(position[(s.name[0], t)] for s in pieces for t in s.time_gps_s)
+
     for j in range(folds):
         train, held = fold_sequences(sequences, folds, j, min_epochs=1)
-        t_train = np.concatenate([s.time_gps_s + 1e6 * (s.name.startswith("b")) for s in train])
-        t_held = np.concatenate([s.time_gps_s + 1e6 * (s.name.startswith("b")) for s in held])
-        assert not set(t_train) & set(t_held)
-        assert sorted(np.concatenate([t_train, t_held])) == sorted(times)
-        assert np.all(np.diff(t_held[: len(held[0])]) > 0)          # a held-out piece is contiguous
-        held_all.append(t_held)
-    assert sorted(np.concatenate(held_all)) == sorted(times)          # every epoch is held out exactly once
-    sizes = [len(h) for h in held_all]
-    assert max(sizes) - min(sizes) <= 1
+        block = np.array_split(np.arange(81), folds)[j]
+        assert positions(held) == list(block)                          # exactly block j, one contiguous range
+        assert positions(train) == sorted(set(range(81)) - set(block))
 
 
 def test_block_across_a_sequence_boundary_and_bad_arguments(sequences):
@@ -60,3 +59,28 @@ def test_command_writes_per_fold_and_pooled_rows(tmp_path, capsys):
     for j in (0, 1):
         assert (tmp_path / f"fold{j}" / "log.csv").exists() and not (tmp_path / f"fold{j}" / "model.npz").exists()
     assert "| pooled |" in capsys.readouterr().out
+    with pytest.raises(ValueError, match="already holds a cross-validation"):
+        main(args)
+
+
+def test_each_fold_trains_on_the_other_blocks_and_scores_the_held_out_one(monkeypatch, tmp_path):
+    """What ``prepare`` receives per fold: training pieces as the train split, the held-out block as validation."""
+    import learning.crossval as cv
+    from learning.train import load_config
+
+    config = load_config("learning/configs/default.toml", ["data.datasets=['synthetic']", "data.synthetic.n_epochs=60",
+                                                           "data.window=20", "data.stride=10"])
+    seen = []
+    real_prepare = cv.prepare
+
+    def spy_prepare(cfg, source):
+        seen.append((source("synthetic", "train", cfg), source("synthetic", "val", cfg)))
+        return real_prepare(cfg, source)
+
+    monkeypatch.setattr(cv, "prepare", spy_prepare)
+    monkeypatch.setattr(cv, "train", lambda *a, **k: [{"epoch": 0, "val_rmse_3d_m": 1.0}])
+    rows = cv.crossval(config, 3, tmp_path, progress=False)
+    for j, (train, held) in enumerate(seen):
+        assert all("/cv-train" in s.name for s in train) and all("/cv-held-out" in s.name for s in held)
+        assert sum(len(s) for s in held) == rows[j]["held_out_epochs"] == 60       # 180 epochs in 3 blocks
+        assert sum(len(s) for s in train) == 120

@@ -89,3 +89,9 @@ def test_present_reports_each_dataset_with_missing_files(tmp_path, monkeypatch):
     assert datasets.present(["hk-tst-2019", "berlin-pp"], lines.append) == []
     assert [line.split(":")[0] for line in lines] == ["hk-tst-2019", "berlin-pp"]
     assert all("skipped, missing " + str(tmp_path) in line for line in lines)
+    for path in datasets.get("berlin-pp").files():                     # now give berlin-pp its files
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.touch()
+    lines.clear()
+    assert datasets.present(["hk-tst-2019", "berlin-pp"], lines.append) == ["berlin-pp"]
+    assert len(lines) == 1 and lines[0].startswith("hk-tst-2019: skipped")

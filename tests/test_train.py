@@ -111,9 +111,9 @@ def test_feature_selection_normaliser_and_padding():
     assert not set(DPC_FEATURES) & set(norm.feature_names)
 
 
-def test_weight_decay_r_only_and_last_epoch_settings(config, prepared, full_run, tmp_path):
-    """train.weight_decay switches to AdamW (and changes the run); model.compensation = false trains R only;
-    train.select = "last" exports the last epoch whatever validation says."""
+def test_weight_decay_r_only_and_last_epoch_settings(config, prepared, tmp_path):
+    """train.weight_decay switches to AdamW; model.compensation = false trains R only; train.select = "last"
+    exports the last epoch whatever validation says; bad settings and a changed decay on resume are refused."""
     import copy
 
     cfg = copy.deepcopy(config)
@@ -123,9 +123,9 @@ def test_weight_decay_r_only_and_last_epoch_settings(config, prepared, full_run,
     cfg["train"]["lr"] = 0.3                     # too large: validation is best at epoch 0, last is epoch 2
     cfg["model"]["compensation"] = False
     history = train(cfg, tmp_path, progress=False, prepared=prepared, export=True)
-    assert np.isfinite(history[-1]["train_loss"]) and history[1]["train_loss"] != full_run[1][1]["train_loss"]
-    ckpt = torch.load(tmp_path / "last.pt", weights_only=False)
-    assert ckpt["optimiser"]["param_groups"][0]["weight_decay"] == 0.5
+    assert np.isfinite(history[-1]["train_loss"])
+    group = torch.load(tmp_path / "last.pt", weights_only=False)["optimiser"]["param_groups"][0]
+    assert group["weight_decay"] == 0.5 and group["decoupled_weight_decay"] is True      # AdamW, not Adam's L2
     assert torch.load(tmp_path / "best.pt", weights_only=False)["epoch"] == 0
     model = load_model(tmp_path / "model.npz")
     assert model.metadata["epoch"] == 2 and model.metadata["val_rmse_3d_m"] == history[-1]["val_rmse_3d_m"]
@@ -134,3 +134,19 @@ def test_weight_decay_r_only_and_last_epoch_settings(config, prepared, full_run,
     cfg["train"]["select"] = "best"
     with pytest.raises(ValueError, match="train.select"):
         train(cfg, tmp_path / "bad", progress=False, prepared=prepared)
+    with pytest.raises(ValueError, match="model.compensation"):
+        load_config("learning/configs/default.toml", ["model.compensation='False'"])
+    with pytest.raises(ValueError, match="weight_decay cannot change"):
+        train(cfg, tmp_path, resume=True, overrides=["train.weight_decay=0.0"], progress=False, prepared=prepared)
+
+
+def test_weight_decay_alone_changes_the_run(config, prepared, full_run, tmp_path):
+    import copy
+
+    cfg = copy.deepcopy(config)
+    cfg["train"]["epochs"] = 1
+    cfg["train"]["weight_decay"] = 0.5
+    history = train(cfg, tmp_path, progress=False, prepared=prepared, export=False)
+    assert history[0]["val_rmse_3d_m"] == full_run[1][0]["val_rmse_3d_m"]   # same start (seed) ...
+    assert history[1]["train_loss"] != full_run[1][1]["train_loss"]         # ... and only the decay differs
+    assert history[1]["val_rmse_3d_m"] != full_run[1][1]["val_rmse_3d_m"]
