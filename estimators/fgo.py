@@ -281,7 +281,7 @@ class LfgnssFgo:
 
     def _doppler_velocity(self, seq: Sequence) -> DopplerVelocity | None:
         """Per-epoch Doppler velocity fixes at the coarse fix (``lfgnss.velocity``); None when not used."""
-        if self.doppler_sigma_m_s <= 0 or seq.prr_mask is None or not np.any(seq.prr_mask):
+        if self.doppler_sigma_m_s <= 0 or not np.any(seq.prr_mask):
             return None
         return doppler_velocity(seq.prr_m_s, seq.prr_mask & seq.mask, seq.sat_pos_ecef_m, seq.sat_vel_ecef_m_s,
                                 seq.coarse_ecef_m, sigma_m_s=self.doppler_sigma_m_s)

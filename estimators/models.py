@@ -50,8 +50,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lfgnss.constants import OMEGA_EARTH_RAD_S, SPEED_OF_LIGHT_M_S
-from lfgnss.corrections import geometric_range_m
+from lfgnss.corrections import geometric_range_m, line_of_sight
+from lfgnss.velocity import doppler_design
 
 #: Indices into the state vector.
 POS = slice(0, 3)
@@ -279,16 +279,14 @@ def measurement(x: np.ndarray, sat_pos_ecef_m: np.ndarray, system_index: np.ndar
 
 def doppler_measurement(x: np.ndarray, sat_pos_ecef_m: np.ndarray, sat_vel_ecef_m_s: np.ndarray
                         ) -> tuple[np.ndarray, np.ndarray]:
-    """Predicted pseudorange rates [m/s] (N,) and their Jacobian (N, n) at state ``x`` (see module docstring)."""
-    p, v = x[POS], x[VEL]
-    d = sat_pos_ecef_m - p
-    los = d / np.linalg.norm(d, axis=1, keepdims=True)
-    sagnac = OMEGA_EARTH_RAD_S / SPEED_OF_LIGHT_M_S * (
-        sat_vel_ecef_m_s[:, 0] * p[1] + sat_pos_ecef_m[:, 0] * v[1]
-        - sat_vel_ecef_m_s[:, 1] * p[0] - sat_pos_ecef_m[:, 1] * v[0])
-    g = np.einsum("ij,ij->i", los, sat_vel_ecef_m_s - v) + x[DRIFT] + sagnac
+    """Predicted pseudorange rates [m/s] (N,) and their Jacobian (N, n) at state ``x`` (see module docstring).
+
+    The model is ``lfgnss.velocity.doppler_design``'s; ``G`` leaves out its Sagnac velocity terms, as ``H`` does.
+    """
+    a, A = doppler_design(sat_pos_ecef_m, sat_vel_ecef_m_s, x[POS])
+    g = a + A @ np.r_[x[VEL], x[DRIFT]]
     G = np.zeros((sat_pos_ecef_m.shape[0], x.shape[0]))
-    G[:, VEL] = -los
+    G[:, VEL] = -line_of_sight(sat_pos_ecef_m, x[POS])
     G[:, DRIFT] = 1.0
     return g, G
 

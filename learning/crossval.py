@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lfgnss.datasets import contiguous_runs
 from lfgnss.metrics import accuracy_table, markdown_table
 from lfgnss.sequence import Sequence
 
@@ -33,11 +34,6 @@ from .train import ekf_config, load_config, load_sequences, prepare, train
 
 COLUMNS = ["fold", "held_out_epochs", "plain_ekf_rmse_3d_m", "untrained_rmse_3d_m", "last_rmse_3d_m",
            "best_rmse_3d_m", "best_epoch"]
-
-
-def _runs(index: np.ndarray) -> list[np.ndarray]:
-    """Contiguous runs of a sorted index array."""
-    return [r for r in np.split(index, np.flatnonzero(np.diff(index) > 1) + 1) if r.size]
 
 
 def fold_sequences(sequences: list[Sequence], folds: int, fold: int,
@@ -57,7 +53,7 @@ def fold_sequences(sequences: list[Sequence], folds: int, fold: int,
         local = np.arange(len(seq))
         in_block = (local + start >= block[0]) & (local + start <= block[-1])
         for part, bucket, tag in ((~in_block, train, "cv-train"), (in_block, held, "cv-held-out")):
-            for k, run in enumerate(_runs(np.flatnonzero(part))):
+            for k, run in enumerate(contiguous_runs(np.flatnonzero(part))):
                 if run.size >= min_epochs:
                     bucket.append(seq.subset(slice(run[0], run[-1] + 1), name=f"{seq.name}/{tag}{fold}.{k}"))
         start += len(seq)
@@ -68,19 +64,17 @@ def plain_ekf_rmse_3d_m(sequences: list[Sequence], config: dict) -> float:
     """3D RMSE [m] of the plain EKF over the labelled epochs of ``sequences``, pooled."""
     from estimators.ekf import PlainEkf
 
-    sq, n = 0.0, 0
+    rows = []
     for seq in sequences:
         sol = PlainEkf(config=ekf_config(config)).solve(seq)
-        row = accuracy_table(sol.pos_ecef_m, seq.truth_ecef_m, sol.available)
-        if row["n_solved"]:
-            sq += row["rmse_3d_m"] ** 2 * row["n_solved"]
-            n += row["n_solved"]
-    return math.sqrt(sq / n) if n else float("nan")
+        rows.append(accuracy_table(sol.pos_ecef_m, seq.truth_ecef_m, sol.available))
+    return pooled_rmse([r["rmse_3d_m"] for r in rows], [r["n_solved"] for r in rows])
 
 
-def _pooled(rows: list[dict], key: str) -> float:
-    n = sum(r["held_out_epochs"] for r in rows)
-    return math.sqrt(sum(r[key] ** 2 * r["held_out_epochs"] for r in rows) / n)
+def pooled_rmse(rmse: list[float], counts: list[int]) -> float:
+    """One RMSE over parts with RMSEs ``rmse`` over ``counts`` epochs each; NaN when no epoch (parts of 0 are skipped)."""
+    n = sum(counts)
+    return math.sqrt(sum(r ** 2 * c for r, c in zip(rmse, counts) if c) / n) if n else float("nan")
 
 
 def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = True) -> list[dict]:
@@ -109,7 +103,8 @@ def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = 
                      "best_rmse_3d_m": best["val_rmse_3d_m"], "best_epoch": best["epoch"]})
     keys = ["plain_ekf_rmse_3d_m", "untrained_rmse_3d_m", "last_rmse_3d_m", "best_rmse_3d_m"]
     rows.append({"fold": "pooled", "held_out_epochs": sum(r["held_out_epochs"] for r in rows),
-                 **{k: _pooled(rows, k) for k in keys}, "best_epoch": "-"})
+                 **{k: pooled_rmse([r[k] for r in rows], [r["held_out_epochs"] for r in rows]) for k in keys},
+                 "best_epoch": "-"})
     with open(out / "crossval.csv", "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=COLUMNS)
         w.writeheader()

@@ -274,21 +274,23 @@ def present(dataset_ids, report=print) -> list[str]:
     return ids
 
 
+def contiguous_runs(index: np.ndarray) -> list[np.ndarray]:
+    """The unbroken runs (consecutive integers) of a sorted index array."""
+    return [r for r in np.split(index, np.flatnonzero(np.diff(index) > 1) + 1) if r.size]
+
+
 def load_split(dataset_id: str, split: str, *, feature_names: tuple[str, ...] = DEFAULT_FEATURES,
                cache: bool = True) -> list[Sequence]:
     """The split's contiguous epochs as Sequences (one per unbroken run of epochs)."""
     spec = get(dataset_id)
     seq = build(dataset_id, feature_names=feature_names, cache=cache)
-    index = np.flatnonzero(split_index(seq, spec, split))
-    if index.size == 0:
-        return []
-    runs = np.split(index, np.flatnonzero(np.diff(index) > 1) + 1)
+    runs = contiguous_runs(np.flatnonzero(split_index(seq, spec, split)))
     return [seq.subset(slice(r[0], r[-1] + 1), name=f"{dataset_id}/{split}" + (f"#{k}" if len(runs) > 1 else ""))
             for k, r in enumerate(runs)]
 
 
-__all__ = ["DatasetSpec", "SPLITS", "align_truth", "build", "get", "load_split", "present", "register",
-           "register_toml", "registered", "split_index"]
+__all__ = ["DatasetSpec", "SPLITS", "align_truth", "build", "contiguous_runs", "get", "load_split", "present",
+           "register", "register_toml", "registered", "split_index"]
 
 
 def alignment_report(dataset_ids: list[str] | None = None) -> str:
