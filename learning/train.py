@@ -9,6 +9,9 @@ validation sequence (no gradient) for the validation 3D RMSE. Every epoch writes
 (model, optimiser, scheduler, epoch, RNG states, normaliser, config); the best validation epoch
 is kept as ``best.pt`` and exported to ``model.npz`` (``train.select = "last"`` exports the last epoch
 instead: a fixed schedule, e.g. one chosen by ``learning.crossval``); ``log.csv`` and ``curves.png`` record the run.
+With ``train.ema_decay`` = d > 0 the validated, saved and exported weights are an exponential moving
+average of the end-of-epoch weights, ``w_avg = d w_avg + (1 - d) w`` (``torch.optim.swa_utils``), which
+steadies a fixed schedule's last epoch; training itself goes on from the raw weights.
 The test split is never loaded here: asking for it raises.
 
 Sequences come from one pluggable function, ``load_sequences(dataset_id, split, config)``:
@@ -59,7 +62,7 @@ DEFAULT_CONFIG: dict[str, Any] = {
     "model": {"d_model": 64, "n_heads": 4, "hidden": [64, 128, 64], "r_floor_m2": 0.01, "r_scale_m2": 1.0,
               "r_init_m2": None, "r_prior": "none", "compensation": True},
     "train": {"epochs": 200, "batch_size": 16, "lr": 1.0e-3, "t_max": 50, "eta_min": 1.0e-4, "grad_clip": 0.0,
-              "weight_decay": 0.0, "select": "val"},
+              "weight_decay": 0.0, "select": "val", "ema_decay": 0.0},
     "loss": {"kind": "hem", "alpha": 0.75, "gamma": 1.5, "lambda": 1.0},
     "ekf": {},
 }
@@ -118,6 +121,9 @@ def check_config(config: dict) -> dict:
     """``config`` unchanged, or ValueError for a setting of the wrong kind (caught before any data loads)."""
     if config["train"].get("select", "val") not in ("val", "last"):
         raise ValueError(f"train.select must be 'val' or 'last', got {config['train']['select']!r}")
+    ema = config["train"].get("ema_decay", 0.0)
+    if isinstance(ema, bool) or not isinstance(ema, (int, float)) or not 0.0 <= ema < 1.0:
+        raise ValueError(f"train.ema_decay must be a number in [0, 1), got {ema!r}")
     if not isinstance(config["model"].get("compensation", True), bool):
         raise ValueError(f"model.compensation must be true or false, got {config['model']['compensation']!r}")
     return config
@@ -370,8 +376,8 @@ def train(config: dict, out_dir: str | Path, *, resume: bool = False, overrides:
             raise ValueError(f"{last_path}: no checkpoint to resume from")
         checkpoint = torch.load(last_path, map_location="cpu", weights_only=False)
         config = apply_overrides(checkpoint["config"], list(overrides))
-        for key in ("lr", "weight_decay"):
-            # load_state_dict restores the optimiser as saved, so these would be silently ignored
+        for key in ("lr", "weight_decay", "ema_decay"):
+            # load_state_dict restores the optimiser (and the average) as saved: these would be silently ignored
             if config["train"].get(key) != checkpoint["config"]["train"].get(key):
                 raise ValueError(f"{last_path}: train.{key} cannot change on --resume "
                                  f"({checkpoint['config']['train'].get(key)} -> {config['train'].get(key)})")
@@ -407,6 +413,10 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
                  else torch.optim.Adam(model.parameters(), lr=float(tr["lr"])))
     scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, T_max=int(tr["t_max"]),
                                                            eta_min=float(tr["eta_min"]))
+    ema_decay = float(tr.get("ema_decay", 0.0))
+    averaged = (torch.optim.swa_utils.AveragedModel(
+        model, multi_avg_fn=torch.optim.swa_utils.get_ema_multi_avg_fn(ema_decay)) if ema_decay > 0 else None)
+    kept = model if averaged is None else averaged.module       # the weights validated, saved and exported
     lc = config["loss"]
     loss_fn = make_loss(lc["kind"], alpha=float(lc["alpha"]), gamma=float(lc["gamma"]), lam=float(lc["lambda"]))
     history: list[dict] = []
@@ -414,7 +424,9 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
     start_epoch = 1
 
     def save(path: Path, epoch: int) -> None:
-        torch.save({"model": model.state_dict(), "model_hparams": model.hyperparameters(),
+        extra = {} if averaged is None else {"trained_model": model.state_dict(),
+                                             "ema_n_averaged": int(averaged.n_averaged)}
+        torch.save({"model": kept.state_dict(), **extra, "model_hparams": model.hyperparameters(),
                     "optimiser": optimiser.state_dict(), "scheduler": scheduler.state_dict(), "epoch": epoch,
                     "history": history, "best_val_rmse_3d_m": best, "rng": _rng_state(),
                     "normaliser": prep.normaliser.to_dict(), "feature_names": list(prep.feature_names),
@@ -422,7 +434,10 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
                     "data_fingerprints": prep.fingerprints, "source_files": prep.source_files}, path)
 
     if checkpoint is not None:
-        model.load_state_dict(checkpoint["model"])
+        model.load_state_dict(checkpoint["model" if averaged is None else "trained_model"])
+        if averaged is not None:
+            averaged.module.load_state_dict(checkpoint["model"])
+            averaged.n_averaged.fill_(int(checkpoint["ema_n_averaged"]))
         optimiser.load_state_dict(checkpoint["optimiser"])
         scheduler.load_state_dict(checkpoint["scheduler"])
         history = list(checkpoint["history"])
@@ -431,7 +446,7 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
         _set_rng_state(checkpoint["rng"])
     else:
         t0 = time.perf_counter()
-        val, avail = evaluate(model, prep.val_batches, n_systems=prep.n_systems, ekf_cfg=ekf_cfg)
+        val, avail = evaluate(kept, prep.val_batches, n_systems=prep.n_systems, ekf_cfg=ekf_cfg)
         history.append({"epoch": 0, "train_loss": float("nan"), "val_rmse_3d_m": val, "val_availability": avail,
                         "lr": optimiser.param_groups[0]["lr"], "seconds": time.perf_counter() - t0})
         best = val
@@ -467,7 +482,9 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
             if progress:
                 chunks.set_postfix(loss=f"{float(loss.detach()):.3f}")
         scheduler.step()
-        val, avail = evaluate(model, prep.val_batches, n_systems=prep.n_systems, ekf_cfg=ekf_cfg)
+        if averaged is not None:
+            averaged.update_parameters(model)
+        val, avail = evaluate(kept, prep.val_batches, n_systems=prep.n_systems, ekf_cfg=ekf_cfg)
         history.append({"epoch": epoch, "train_loss": total / count, "val_rmse_3d_m": val, "val_availability": avail,
                         "lr": lr, "seconds": time.perf_counter() - t0})
         if val < best:

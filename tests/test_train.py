@@ -150,3 +150,43 @@ def test_weight_decay_alone_changes_the_run(config, prepared, full_run, tmp_path
     assert history[0]["val_rmse_3d_m"] == full_run[1][0]["val_rmse_3d_m"]   # same start (seed) ...
     assert history[1]["train_loss"] != full_run[1][1]["train_loss"]         # ... and only the decay differs
     assert history[1]["val_rmse_3d_m"] != full_run[1][1]["val_rmse_3d_m"]
+
+
+def test_weight_averaging_is_an_ema_of_epoch_weights_and_resumes(config, prepared, full_run, tmp_path):
+    """train.ema_decay = d: the validated and saved weights are avg_k = d avg_(k-1) + (1 - d) w_k over the
+    end-of-epoch weights w_k (avg_1 = w_1); training itself is unchanged; --resume continues the average
+    exactly; bad values and a changed decay on resume are refused."""
+    import copy
+
+    cfg = copy.deepcopy(config)
+    cfg["train"]["ema_decay"] = 0.5
+    cfg["train"]["epochs"] = 3
+    straight = train(cfg, tmp_path / "straight", progress=False, prepared=prepared, export=True)
+    # the raw weights follow the run without averaging; only the validated weights differ
+    assert [h["train_loss"] for h in straight[1:]] == [h["train_loss"] for h in full_run[1][1:4]]
+    assert straight[0]["val_rmse_3d_m"] == full_run[1][0]["val_rmse_3d_m"]
+    assert straight[2]["val_rmse_3d_m"] != full_run[1][2]["val_rmse_3d_m"]
+
+    raw, avg = [], None
+    for epochs in (1, 2, 3):                    # one epoch at a time, resuming: w_k from each checkpoint
+        cfg["train"]["epochs"] = epochs
+        train(cfg, tmp_path / "steps", resume=epochs > 1, overrides=[f"train.epochs={epochs}"], progress=False,
+              prepared=prepared, export=False)
+        ckpt = torch.load(tmp_path / "steps" / "last.pt", weights_only=False)
+        raw.append(ckpt["trained_model"])
+        avg = ckpt["model"]
+    expected = dict(raw[0])
+    for w in raw[1:]:
+        expected = {k: 0.5 * expected[k] + 0.5 * w[k] for k in expected}
+    done = torch.load(tmp_path / "straight" / "last.pt", weights_only=False)
+    for key, value in expected.items():
+        torch.testing.assert_close(avg[key], value, rtol=1e-6, atol=1e-7)
+        assert torch.equal(done["model"][key], avg[key]), key          # resumed == uninterrupted
+    assert load_model(tmp_path / "straight" / "model.npz").metadata["config"]["train"]["ema_decay"] == 0.5
+
+    for bad in ("1.0", "-0.1", "true", "'0.9'"):
+        with pytest.raises(ValueError, match="train.ema_decay"):
+            load_config("learning/configs/default.toml", [f"train.ema_decay={bad}"])
+    with pytest.raises(ValueError, match="ema_decay cannot change"):
+        train(cfg, tmp_path / "steps", resume=True, overrides=["train.ema_decay=0.9"], progress=False,
+              prepared=prepared)
