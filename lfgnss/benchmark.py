@@ -124,7 +124,7 @@ def run(dataset_ids: list[str], *, model_dir: Path = MODEL_DIR, out_dir: Path | 
             main_name = "LF-GNSS EKF" if "LF-GNSS EKF" in solutions else next(iter(solutions))
             extra = {k: v for k, v in solutions.items() if k != main_name}
             plot_solution(out_dir / "figures", solutions[main_name], truth, extra_solutions=extra,
-                          prefix=f"{dataset_id}-")
+                          prefix=f"{dataset_id}-", label=main_name)
     return all_rows, rtk_rows
 
 

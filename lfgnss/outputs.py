@@ -420,7 +420,7 @@ def _named(extra: Mapping[str, Solution] | Sequence[Solution] | None) -> list[tu
 
 def plot_solution(out_dir: str | Path, solution: Solution, truth_ecef_m: np.ndarray | None = None,
                   extra_solutions: Mapping[str, Solution] | Sequence[Solution] | None = None,
-                  prefix: str = "") -> list[Path]:
+                  prefix: str = "", label: str | None = None) -> list[Path]:
     """PNG figures of a solution (matplotlib Agg canvas; pyplot's global state is untouched).
 
     * ``{prefix}track.png``: horizontal track in ENU [m] about the first truth point (else the first
@@ -429,13 +429,15 @@ def plot_solution(out_dir: str | Path, solution: Solution, truth_ecef_m: np.ndar
       ``{prefix}cdf.png``, the CDF of 2D and 3D errors of every solution on one plot.
 
     Extra solutions (a name -> Solution mapping, or Solutions named by their backend) are matched to
-    ``solution``'s epochs by GPS time rounded to 0.1 s.
+    ``solution``'s epochs by GPS time rounded to 0.1 s. ``label`` names ``solution`` (default: its backend).
+    Every run gets its own colour (tab20 beyond ten runs).
 
     Returns
     -------
     list of Path
         The files written, in the order above.
     """
+    import matplotlib
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
     from matplotlib.ticker import NullFormatter, ScalarFormatter
@@ -443,7 +445,7 @@ def plot_solution(out_dir: str | Path, solution: Solution, truth_ecef_m: np.ndar
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     t = np.asarray(solution.time_gps_s, dtype=float)
-    runs = [(solution.backend, np.where(_has_position(solution)[:, None], solution.pos_ecef_m, np.nan))]
+    runs = [(label or solution.backend, np.where(_has_position(solution)[:, None], solution.pos_ecef_m, np.nan))]
     runs += [(name, align_to(t, s)) for name, s in _named(extra_solutions)]
     truth = None
     if truth_ecef_m is not None:
@@ -454,6 +456,11 @@ def plot_solution(out_dir: str | Path, solution: Solution, truth_ecef_m: np.ndar
     candidates += [p for _, p in runs]
     ref = next((c[np.isfinite(c).all(axis=1)][0] for c in candidates if np.isfinite(c).all(axis=1).any()), None)
     written: list[Path] = []
+    palette = list(matplotlib.colormaps["tab10" if len(runs) <= 10 else "tab20"].colors)
+
+    def axes(a):
+        a.set_prop_cycle(color=palette)
+        return a
 
     def save(fig: Figure, name: str) -> None:
         FigureCanvasAgg(fig)
@@ -462,7 +469,7 @@ def plot_solution(out_dir: str | Path, solution: Solution, truth_ecef_m: np.ndar
         written.append(p)
 
     fig = Figure(figsize=(7, 7), layout="constrained")
-    ax = fig.add_subplot()
+    ax = axes(fig.add_subplot())
     if ref is not None:
         rot = enu_rotations(ref[None])[0]
         if truth is not None:
@@ -486,7 +493,7 @@ def plot_solution(out_dir: str | Path, solution: Solution, truth_ecef_m: np.ndar
     t_rel = t - t[0] if len(t) else t
     errors = [(name, enu_errors(p, truth)) for name, p in runs]
     fig = Figure(figsize=(10, 6), layout="constrained")
-    ax2, axu = fig.subplots(2, 1, sharex=True)
+    ax2, axu = (axes(a) for a in fig.subplots(2, 1, sharex=True))
     for name, e in errors:
         ax2.plot(t_rel, np.hypot(e[:, 0], e[:, 1]), ".-", ms=3, lw=0.8, label=name)  # dots: isolated epochs
         axu.plot(t_rel, e[:, 2], ".-", ms=3, lw=0.8, label=name)
@@ -499,7 +506,7 @@ def plot_solution(out_dir: str | Path, solution: Solution, truth_ecef_m: np.ndar
     save(fig, "errors.png")
 
     fig = Figure(figsize=(10, 5), layout="constrained")
-    ax_h, ax_3 = fig.subplots(1, 2, sharey=True)
+    ax_h, ax_3 = (axes(a) for a in fig.subplots(1, 2, sharey=True))
     labelled = np.isfinite(truth).all(axis=1)
     for name, e in errors:
         for a, v in ((ax_h, np.hypot(e[:, 0], e[:, 1])), (ax_3, np.linalg.norm(e, axis=1))):
