@@ -456,11 +456,9 @@ def plot_solution(out_dir: str | Path, solution: Solution, truth_ecef_m: np.ndar
     candidates += [p for _, p in runs]
     ref = next((c[np.isfinite(c).all(axis=1)][0] for c in candidates if np.isfinite(c).all(axis=1).any()), None)
     written: list[Path] = []
-    palette = list(matplotlib.colormaps["tab10" if len(runs) <= 10 else "tab20"].colors)
-
-    def axes(a):
-        a.set_prop_cycle(color=palette)
-        return a
+    tab = matplotlib.colormaps["tab10" if len(runs) <= 10 else "tab20"].colors
+    palette = list(tab) if len(runs) <= 10 else list(tab[::2] + tab[1::2])    # dark hues first, then light
+    colour = {name: palette[i % len(palette)] for i, (name, _) in enumerate(runs)}   # the same in every figure
 
     def save(fig: Figure, name: str) -> None:
         FigureCanvasAgg(fig)
@@ -469,7 +467,7 @@ def plot_solution(out_dir: str | Path, solution: Solution, truth_ecef_m: np.ndar
         written.append(p)
 
     fig = Figure(figsize=(7, 7), layout="constrained")
-    ax = axes(fig.add_subplot())
+    ax = fig.add_subplot()
     if ref is not None:
         rot = enu_rotations(ref[None])[0]
         if truth is not None:
@@ -477,7 +475,7 @@ def plot_solution(out_dir: str | Path, solution: Solution, truth_ecef_m: np.ndar
             ax.plot(enu[:, 0], enu[:, 1], "k-", lw=2, label="truth")
         for name, p in runs:
             enu = (p[np.isfinite(p).all(axis=1)] - ref) @ rot.T  # join across epochs without position
-            ax.plot(enu[:, 0], enu[:, 1], ".-", ms=2, lw=0.8, label=name)
+            ax.plot(enu[:, 0], enu[:, 1], ".-", ms=2, lw=0.8, color=colour[name], label=name)
         _legend(ax)
     else:
         ax.text(0.5, 0.5, "no position", ha="center", va="center", transform=ax.transAxes)
@@ -485,7 +483,7 @@ def plot_solution(out_dir: str | Path, solution: Solution, truth_ecef_m: np.ndar
     ax.set_ylabel("north [m]")
     ax.set_aspect("equal", adjustable="datalim")
     ax.grid(True, alpha=0.3)
-    ax.set_title(f"track ({solution.backend})")
+    ax.set_title(f"track ({runs[0][0]})")
     save(fig, "track.png")
 
     if truth is None:
@@ -493,10 +491,11 @@ def plot_solution(out_dir: str | Path, solution: Solution, truth_ecef_m: np.ndar
     t_rel = t - t[0] if len(t) else t
     errors = [(name, enu_errors(p, truth)) for name, p in runs]
     fig = Figure(figsize=(10, 6), layout="constrained")
-    ax2, axu = (axes(a) for a in fig.subplots(2, 1, sharex=True))
+    ax2, axu = fig.subplots(2, 1, sharex=True)
     for name, e in errors:
-        ax2.plot(t_rel, np.hypot(e[:, 0], e[:, 1]), ".-", ms=3, lw=0.8, label=name)  # dots: isolated epochs
-        axu.plot(t_rel, e[:, 2], ".-", ms=3, lw=0.8, label=name)
+        # dots: isolated epochs
+        ax2.plot(t_rel, np.hypot(e[:, 0], e[:, 1]), ".-", ms=3, lw=0.8, color=colour[name], label=name)
+        axu.plot(t_rel, e[:, 2], ".-", ms=3, lw=0.8, color=colour[name], label=name)
     ax2.set_ylabel("2D error [m]")
     axu.set_ylabel("up error [m]")
     axu.set_xlabel("time since first epoch [s]")
@@ -506,14 +505,15 @@ def plot_solution(out_dir: str | Path, solution: Solution, truth_ecef_m: np.ndar
     save(fig, "errors.png")
 
     fig = Figure(figsize=(10, 5), layout="constrained")
-    ax_h, ax_3 = (axes(a) for a in fig.subplots(1, 2, sharey=True))
+    ax_h, ax_3 = fig.subplots(1, 2, sharey=True)
     labelled = np.isfinite(truth).all(axis=1)
     for name, e in errors:
         for a, v in ((ax_h, np.hypot(e[:, 0], e[:, 1])), (ax_3, np.linalg.norm(e, axis=1))):
             v = np.sort(v[np.isfinite(v)])
             if v.size:
                 # CDF over labelled epochs: unsolved epochs count as missing, so curves end at availability.
-                a.step(v, np.arange(1, v.size + 1) / max(labelled.sum(), 1), where="post", label=name)
+                a.step(v, np.arange(1, v.size + 1) / max(labelled.sum(), 1), where="post", color=colour[name],
+                       label=name)
     for a, title in ((ax_h, "2D error [m]"), (ax_3, "3D error [m]")):
         a.set_xlabel(title)
         a.set_xscale("log")

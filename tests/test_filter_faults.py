@@ -11,8 +11,9 @@ run. Faults are injected into the Sequence arrays, as the measurements would car
   epoch at all (a time gap, as a receiver writes it).
 
 What is asserted ("recover within a few epochs and never end more than 100 m from the coarse fix"):
-the urban coarse fix of this drive is itself often 100+ m off (the fault-free EKF is up to ~125 m from
-it), so the bound is taken as: from ``RECOVERY_EPOCHS`` (2 s) after each fault event on, every epoch
+the urban coarse fix of this drive is itself often 100+ m off (the fault-free EKF is up to ~130 m from
+it), so the bound is taken as: from ``RECOVERY_EPOCHS`` (2 s) after each fault event on (the first outlier
+for the outliers, which come every ``RECOVERY_EPOCHS``), every epoch
 with a coarse fix is within 100 m of it, or no more than ``MARGIN_M`` farther from it than the fault-free
 run of the same estimator; the same at the last epoch. The stronger form is asserted too: those
 epochs are all within 100 m of the ground truth (the faulted runs stay within ~60 m of it). Per fault: outliers never move the solution more
@@ -132,6 +133,7 @@ def _check_recovery(seq, faulted, events, sol, clean) -> None:
     for k in [0, *np.atleast_1d(events)]:
         settled[k: k + RECOVERY_EPOCHS] = False
     check = settled & has_coarse
+    assert check.sum() > len(faulted) // 3, "too few epochs to check"
     bad = np.flatnonzero(check & ~(d <= limit))
     assert bad.size == 0, (f"{bad.size} epochs beyond the bound, first {bad[:5]}: "
                            f"{d[bad[:5]].round(1)} m from the coarse fix, fault-free {d_clean[bad[:5]].round(1)} m")
@@ -140,8 +142,10 @@ def _check_recovery(seq, faulted, events, sol, clean) -> None:
     # the stronger form of the bound: the same epochs are within BOUND_M of the truth (the coarse fix
     # itself is up to ~140 m from it on this drive)
     err = np.linalg.norm(sol.pos_ecef_m - _sample_truth(seq)[keep], axis=1)
+    assert np.isfinite(err[check]).mean() > 0.9, "too few epochs with ground truth"
     far = np.flatnonzero(check & ~(err <= BOUND_M) & np.isfinite(err))
-    assert far.size == 0, f"{far.size} epochs more than {BOUND_M} m from the truth, first {far[:5]}: {err[far[:5]].round(1)}"
+    assert far.size == 0, (f"{far.size} epochs more than {BOUND_M} m from the truth, first {far[:5]}: "
+                           f"{err[far[:5]].round(1)}")
 
 
 def _check_solution(faulted, sol) -> None:
@@ -161,7 +165,8 @@ def test_fault_recovery(sequence, backend, fault):
     sol = estimators.create(name, **options).solve(faulted)
     clean = _clean(sequence, backend)
     _check_solution(faulted, sol)
-    _check_recovery(sequence, faulted, events, sol, clean)
+    # outliers come every 10 epochs, as long as the recovery time: the bound holds from the first one on
+    _check_recovery(sequence, faulted, events[:1] if fault == "outlier" else events, sol, clean)
 
     status = sol.status
     if fault == "outlier":

@@ -165,6 +165,7 @@ def test_weight_averaging_is_an_ema_of_epoch_weights_and_resumes(config, prepare
     # the raw weights follow the run without averaging; only the validated weights differ
     assert [h["train_loss"] for h in straight[1:]] == [h["train_loss"] for h in full_run[1][1:4]]
     assert straight[0]["val_rmse_3d_m"] == full_run[1][0]["val_rmse_3d_m"]
+    assert straight[1]["val_rmse_3d_m"] == full_run[1][1]["val_rmse_3d_m"]     # avg_1 = w_1, validated
     assert straight[2]["val_rmse_3d_m"] != full_run[1][2]["val_rmse_3d_m"]
 
     raw, avg = [], None
@@ -182,7 +183,11 @@ def test_weight_averaging_is_an_ema_of_epoch_weights_and_resumes(config, prepare
     for key, value in expected.items():
         torch.testing.assert_close(avg[key], value, rtol=1e-6, atol=1e-7)
         assert torch.equal(done["model"][key], avg[key]), key          # resumed == uninterrupted
-    assert load_model(tmp_path / "straight" / "model.npz").metadata["config"]["train"]["ema_decay"] == 0.5
+    exported = load_model(tmp_path / "straight" / "model.npz")
+    assert exported.metadata["config"]["train"]["ema_decay"] == 0.5
+    best = torch.load(tmp_path / "straight" / "best.pt", weights_only=False)["model"]
+    for key, value in best.items():                                     # the averaged weights are exported
+        np.testing.assert_array_equal(exported.params[key], value.numpy().astype(np.float32))
 
     for bad in ("1.0", "-0.1", "true", "'0.9'"):
         with pytest.raises(ValueError, match="train.ema_decay"):
