@@ -430,7 +430,7 @@ def plot_solution(out_dir: str | Path, solution: Solution, truth_ecef_m: np.ndar
 
     Extra solutions (a name -> Solution mapping, or Solutions named by their backend) are matched to
     ``solution``'s epochs by GPS time rounded to 0.1 s. ``label`` names ``solution`` (default: its backend).
-    Every run gets its own colour (tab20 beyond ten runs).
+    Every run gets its own colour (tab10's, then their light shades beyond ten runs).
 
     Returns
     -------
@@ -456,8 +456,8 @@ def plot_solution(out_dir: str | Path, solution: Solution, truth_ecef_m: np.ndar
     candidates += [p for _, p in runs]
     ref = next((c[np.isfinite(c).all(axis=1)][0] for c in candidates if np.isfinite(c).all(axis=1).any()), None)
     written: list[Path] = []
-    tab = matplotlib.colormaps["tab10" if len(runs) <= 10 else "tab20"].colors
-    palette = list(tab) if len(runs) <= 10 else list(tab[::2] + tab[1::2])    # dark hues first, then light
+    tab20 = matplotlib.colormaps["tab20"].colors
+    palette = tab20[::2] + tab20[1::2]              # tab10's colours (the dark hues), then their light ones
     colour = {name: palette[i % len(palette)] for i, (name, _) in enumerate(runs)}   # the same in every figure
 
     def save(fig: Figure, name: str) -> None:

@@ -55,6 +55,11 @@ def sequence(tmp_path_factory):
     return seq
 
 
+@pytest.fixture(scope="module")
+def truth(sequence) -> np.ndarray:
+    return _sample_truth(sequence)
+
+
 _CLEAN: dict = {}
 
 
@@ -121,7 +126,7 @@ FAULTS = {"outlier": with_outliers, "clock_jump": with_clock_jump, "outage": wit
 
 
 # ----------------------------------------------------------------------------------------------- checks
-def _check_recovery(seq, faulted, events, sol, clean) -> None:
+def _check_recovery(seq, faulted, events, sol, clean, truth) -> None:
     keep = np.isin(seq.time_gps_s, faulted.time_gps_s)
     ref = clean.pos_ecef_m[keep]
     coarse = faulted.coarse_ecef_m
@@ -141,7 +146,7 @@ def _check_recovery(seq, faulted, events, sol, clean) -> None:
     assert d[last] <= limit[last], (d[last], d_clean[last])
     # the stronger form of the bound: the same epochs are within BOUND_M of the truth (the coarse fix
     # itself is up to ~140 m from it on this drive)
-    err = np.linalg.norm(sol.pos_ecef_m - _sample_truth(seq)[keep], axis=1)
+    err = np.linalg.norm(sol.pos_ecef_m - truth[keep], axis=1)
     assert np.isfinite(err[check]).mean() > 0.9, "too few epochs with ground truth"
     far = np.flatnonzero(check & ~(err <= BOUND_M) & np.isfinite(err))
     assert far.size == 0, (f"{far.size} epochs more than {BOUND_M} m from the truth, first {far[:5]}: "
@@ -159,21 +164,20 @@ CASES = [(b, f) for b in BACKENDS for f in FAULTS]
 
 
 @pytest.mark.parametrize("backend, fault", CASES)
-def test_fault_recovery(sequence, backend, fault):
+def test_fault_recovery(sequence, truth, backend, fault):
     faulted, events = FAULTS[fault](sequence)
     name, options = BACKENDS[backend]
     sol = estimators.create(name, **options).solve(faulted)
     clean = _clean(sequence, backend)
     _check_solution(faulted, sol)
     # outliers come every 10 epochs, as long as the recovery time: the bound holds from the first one on
-    _check_recovery(sequence, faulted, events[:1] if fault == "outlier" else events, sol, clean)
+    _check_recovery(sequence, faulted, events[:1] if fault == "outlier" else events, sol, clean, truth)
 
     status = sol.status
     if fault == "outlier":
         # Against the truth: an outlier may shift when a reset happens (a reset is discontinuous, and
         # the fault-free run on this drive is itself sometimes stuck 80+ m off), but it must never make
         # the position worse by more than OUTLIER_TOL_M.
-        truth = _sample_truth(sequence)
         err = np.linalg.norm(sol.pos_ecef_m - truth, axis=1)
         err_clean = np.linalg.norm(clean.pos_ecef_m - truth, axis=1)
         worse = np.nan_to_num(err - err_clean)
