@@ -22,6 +22,7 @@ import argparse
 import copy
 import csv
 import math
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -30,7 +31,7 @@ from lfgnss.datasets import contiguous_runs
 from lfgnss.metrics import accuracy_table, markdown_table
 from lfgnss.sequence import Sequence
 
-from .train import ekf_config, load_config, load_sequences, prepare, train
+from .train import adopt_init, ekf_config, init_model, init_record, load_config, load_sequences, prepare, train
 
 COLUMNS = ["fold", "held_out_epochs", "plain_ekf_rmse_3d_m", "untrained_rmse_3d_m", "last_rmse_3d_m",
            "best_rmse_3d_m", "best_epoch"]
@@ -83,7 +84,13 @@ def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = 
     if (out / "crossval.csv").exists() or (out / "fold0").exists():
         raise ValueError(f"{out}: already holds a cross-validation; choose another --out")
     out.mkdir(parents=True, exist_ok=True)
+    config = adopt_init(config)
     data = config["data"]
+    init = init_model(config)
+    seen = sorted(set(data["datasets"]) & set(init_record(init)["datasets"])) if init is not None else []
+    if seen:
+        print(f"warning: train.init {init.path} was trained on {', '.join(seen)}: the held-out blocks are not "
+              "unseen data, so this cross-validation is optimistic", file=sys.stderr)
     whole = {ds: load_sequences(ds, data["train_split"], config) + load_sequences(ds, data["val_split"], config)
              for ds in data["datasets"]}
     rows = []

@@ -6,7 +6,9 @@ Format (``FORMAT_NAME`` version ``FORMAT_VERSION``), arrays in one uncompressed 
                         model (hyper-parameters), layer_norm_eps, parameters (names, shapes),
                         normaliser, training config, ekf_config, n_systems, data_fingerprints
                         (per sequence: dataset, split, name, epochs, content sha256), source_files
-                        (dataset -> file name -> sha256 of the input files), epoch,
+                        (dataset -> file name -> sha256 of the input files), init_model (the
+                        model file fine-tuning started from: path, sha256, datasets, its data
+                        fingerprints and its own init_model; null when trained from scratch), epoch,
                         val_rmse_3d_m, versions (lfgnss, torch, numpy), created_utc
     normaliser_mean     (d,) float64   per-feature mean of the training split (valid slots)
     normaliser_std      (d,) float64   per-feature std
@@ -84,6 +86,7 @@ def export_model(checkpoint_path: str | Path, out_path: str | Path, *, extra_met
         "n_systems": ckpt.get("n_systems"),
         "data_fingerprints": ckpt.get("data_fingerprints", []),
         "source_files": ckpt.get("source_files", {}),
+        "init_model": ckpt.get("init_model"),
         "epoch": ckpt.get("epoch"),
         "val_rmse_3d_m": row.get("val_rmse_3d_m"),
         "versions": {"lfgnss": lfgnss.__version__, "torch": torch.__version__, "numpy": np.__version__},

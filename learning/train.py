@@ -12,11 +12,16 @@ instead: a fixed schedule, e.g. one chosen by ``learning.crossval``); ``log.csv`
 With ``train.ema_decay`` = d > 0 the validated, saved and exported weights are an exponential moving
 average of the end-of-epoch weights, ``w_avg = d w_avg + (1 - d) w`` (``torch.optim.swa_utils``), which
 steadies a fixed schedule's last epoch; training itself goes on from the raw weights.
+With ``train.init`` = a model file (``.npz``, e.g. the shipped one), training starts from that model's weights
+instead of random ones (fine-tuning on your own data): the network, its features and their normalisation are
+the model's, so ``[model]`` and ``data.features``/``data.drop_features`` are taken from the file, and the new
+model file records the one it started from (``init_model``: path, hash, and the data it was trained on).
 The test split is never loaded here: asking for it raises.
 
 Sequences come from one pluggable function, ``load_sequences(dataset_id, split, config)``:
 dataset ``"synthetic"`` uses ``lfgnss.simulate.simulate_sequence``, any other id goes to
-``lfgnss.datasets.load_split``.
+``lfgnss.datasets.load_split``; your own data is a dataset TOML file (``lfgnss.datasets.register_toml``)
+named in ``data.register``, e.g. ``--set 'data.register=["my-drive.toml"]' --set 'data.datasets=["my-drive"]'``.
 """
 from __future__ import annotations
 
@@ -54,6 +59,7 @@ DEFAULT_CONFIG: dict[str, Any] = {
         "val_split": "val",
         "features": list(DEFAULT_FEATURES),
         "drop_features": [],
+        "register": [],
         "window": 40,
         "stride": 5,
         "synthetic": {"n_epochs": 300, "sats_per_system": 7, "systems": ["G", "C"], "nlos_fraction": 0.2,
@@ -62,7 +68,7 @@ DEFAULT_CONFIG: dict[str, Any] = {
     "model": {"d_model": 64, "n_heads": 4, "hidden": [64, 128, 64], "r_floor_m2": 0.01, "r_scale_m2": 1.0,
               "r_init_m2": None, "r_prior": "none", "compensation": True},
     "train": {"epochs": 200, "batch_size": 16, "lr": 1.0e-3, "t_max": 50, "eta_min": 1.0e-4, "grad_clip": 0.0,
-              "weight_decay": 0.0, "select": "val", "ema_decay": 0.0},
+              "weight_decay": 0.0, "select": "val", "ema_decay": 0.0, "init": ""},
     "loss": {"kind": "hem", "alpha": 0.75, "gamma": 1.5, "lambda": 1.0},
     "ekf": {},
 }
@@ -124,6 +130,8 @@ def check_config(config: dict) -> dict:
     ema = config["train"].get("ema_decay", 0.0)
     if isinstance(ema, bool) or not isinstance(ema, (int, float)) or not 0.0 <= ema < 1.0:
         raise ValueError(f"train.ema_decay must be a number in [0, 1), got {ema!r}")
+    if not isinstance(config["train"].get("init", ""), str):
+        raise ValueError(f"train.init must be the path of a model file (a string), got {config['train']['init']!r}")
     if not isinstance(config["model"].get("compensation", True), bool):
         raise ValueError(f"model.compensation must be true or false, got {config['model']['compensation']!r}")
     return config
@@ -165,6 +173,48 @@ def ekf_config(config: dict):
     return EkfConfig(**config["ekf"])
 
 
+def init_model(config: dict):
+    """The ``train.init`` model file (``learning.export.LfgnssModel``), or None when training starts from scratch."""
+    path = config["train"].get("init", "")
+    if not path:
+        return None
+    from .export import load_model
+
+    return load_model(path)
+
+
+def adopt_init(config: dict) -> dict:
+    """A copy of ``config`` whose ``[model]`` and data features are those the ``train.init`` model was trained with.
+
+    Fine-tuning keeps the network and the meaning of its inputs, so these come from the model file; a note
+    on stderr says when the given configuration asked for something else.
+    """
+    model = init_model(config)
+    if model is None:
+        return config
+    trained = model.metadata.get("config") or {}
+    if "model" not in trained:
+        raise ValueError(f"train.init: {model.path} does not record its training configuration")
+    out = copy.deepcopy(config)
+    out["model"] = copy.deepcopy(trained["model"])
+    out["data"]["features"] = list(model.feature_names)
+    out["data"]["drop_features"] = []
+    given = resolve_feature_names(config["data"]["features"], config["data"]["drop_features"])
+    if config["model"] != out["model"] or tuple(given) != model.feature_names:
+        print(f"train.init: the network and features are those of {model.path} ([model] and data.features of "
+              "the configuration are replaced)", file=sys.stderr)
+    return out
+
+
+def init_record(model) -> dict:
+    """What a fine-tuned model file says about the model it started from: path, content hash and lineage."""
+    h = hashlib.sha256(Path(model.path).read_bytes()).hexdigest()[:16]
+    meta = model.metadata
+    return {"path": str(model.path), "sha256_16": h, "epoch": meta.get("epoch"),
+            "datasets": ((meta.get("config") or {}).get("data") or {}).get("datasets", []),
+            "data_fingerprints": meta.get("data_fingerprints", []), "init_model": meta.get("init_model")}
+
+
 # --------------------------------------------------------------------------- data source
 
 def load_sequences(dataset_id: str, split: str, config: dict) -> list[Sequence]:
@@ -185,8 +235,10 @@ def load_sequences(dataset_id: str, split: str, config: dict) -> list[Sequence]:
                                   sats_per_system=int(syn["sats_per_system"]),
                                   nlos_fraction=float(syn["nlos_fraction"]), seed=int(s),
                                   name=f"synthetic/{split}/{s}") for s in seeds]
-    from lfgnss.datasets import load_split
+    from lfgnss.datasets import load_split, register_toml
 
+    for path in config["data"].get("register", []):        # the user's own datasets, by TOML file
+        register_toml(path)
     return list(load_split(dataset_id, split, feature_names=tuple(config["data"]["features"])))
 
 
@@ -291,6 +343,7 @@ class Prepared:
     n_systems: int
     fingerprints: list[dict]
     source_files: dict[str, dict[str, str]]
+    init: Any = None                # the train.init LfgnssModel, or None
 
 
 def prepare(config: dict, source=None) -> Prepared:
@@ -314,14 +367,19 @@ def prepare(config: dict, source=None) -> Prepared:
             prints.extend({"dataset": ds, "split": split, "sequence": s.name, "epochs": len(s),
                            "sha256_16": fingerprint(s)} for s in seqs)
     names = resolve_feature_names(data["features"], data["drop_features"])
-    normaliser = Normaliser.fit(train_seqs, names)
+    init = init_model(config)
+    if init is not None and tuple(names) != init.feature_names:
+        raise ValueError(f"train.init: {init.path} takes features {list(init.feature_names)}, the configuration "
+                         f"gives {list(names)} (use adopt_init)")
+    # a fine-tuned network keeps the normalisation its weights were trained with
+    normaliser = Normaliser.fit(train_seqs, names) if init is None else init.normaliser
     n_systems = max(len(s.systems) for s in train_seqs + val_seqs)
     windows = make_windows(train_seqs, int(data["window"]), int(data["stride"]))
     n_slots = max(s.n_slots for s in train_seqs)
     train_batch = collate(train_seqs, windows, normaliser, n_slots=n_slots, n_systems=n_systems)
     val_batches = [sequence_batch(s, normaliser, n_systems=n_systems) for s in val_seqs]
     files = {ds: source_file_hashes(ds) for ds in data["datasets"]}
-    return Prepared(names, normaliser, windows, train_batch, val_batches, n_systems, prints, files)
+    return Prepared(names, normaliser, windows, train_batch, val_batches, n_systems, prints, files, init)
 
 
 def _write_log(path: Path, history: list[dict]) -> None:
@@ -383,6 +441,8 @@ def train(config: dict, out_dir: str | Path, *, resume: bool = False, overrides:
                                  f"({checkpoint['config']['train'].get(key)} -> {config['train'].get(key)})")
     elif last_path.exists():
         raise ValueError(f"{last_path}: a run already exists here; pass --resume or choose another --out")
+    else:
+        config = adopt_init(check_config(config))
     check_config(config)
 
     threads, deterministic = torch.get_num_threads(), torch.are_deterministic_algorithms_enabled()
@@ -407,6 +467,12 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
     ekf_cfg = ekf_config(config)
     tr = config["train"]
     model = build_model(config, len(prep.feature_names), prep.normaliser)
+    if prep.init is not None:
+        if model.hyperparameters() != prep.init.metadata["model"]:
+            raise ValueError(f"train.init: {prep.init.path} cannot be rebuilt from its training configuration "
+                             f"({prep.init.metadata['model']} vs {model.hyperparameters()})")
+        model.load_state_dict({k: torch.as_tensor(v) for k, v in prep.init.params.items()})
+    started_from = None if prep.init is None else init_record(prep.init)
     decay = float(tr.get("weight_decay", 0.0))
     # Adam as in the paper; decoupled weight decay (AdamW) only when asked for, so 0 is the paper's optimiser.
     optimiser = (torch.optim.AdamW(model.parameters(), lr=float(tr["lr"]), weight_decay=decay) if decay > 0
@@ -431,7 +497,8 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
                     "history": history, "best_val_rmse_3d_m": best, "rng": _rng_state(),
                     "normaliser": prep.normaliser.to_dict(), "feature_names": list(prep.feature_names),
                     "n_systems": prep.n_systems, "config": config, "ekf_config": dataclasses.asdict(ekf_cfg),
-                    "data_fingerprints": prep.fingerprints, "source_files": prep.source_files}, path)
+                    "data_fingerprints": prep.fingerprints, "source_files": prep.source_files,
+                    "init_model": started_from}, path)
 
     if checkpoint is not None:
         model.load_state_dict(checkpoint["model" if averaged is None else "trained_model"])

@@ -134,7 +134,9 @@ def _trained_on(noise) -> str:
     if meta is None:
         return "-"
     data = (meta.get("config") or {}).get("data", {})
-    return "+".join(data.get("datasets", [])) + f" ({data.get('train_split', 'train')})"
+    trained = "+".join(data.get("datasets", [])) + f" ({data.get('train_split', 'train')})"
+    init = meta.get("init_model")
+    return trained if not init else f"{trained}, fine-tuned from {'+'.join(init.get('datasets', []))} (train)"
 
 
 _COLUMNS = ("dataset", "method", "trained_on", "n_labelled", "availability", "rmse_e_m", "rmse_n_m", "rmse_u_m",

@@ -9,7 +9,6 @@ from __future__ import annotations
 import warnings
 
 import numpy as np
-import pandas as pd
 
 from .constants import SYSTEMS
 from .dop import dop_contribution
@@ -44,6 +43,17 @@ def _reference_positions(fix: CoarseFix, approx_ecef_m: np.ndarray) -> np.ndarra
     left = np.clip(right - 1, 0, ok.size - 1)
     nearest = np.where(np.abs(t[ok][left] - t) <= np.abs(t[ok][right] - t), ok[left], ok[right])
     return fix.pos_ecef_m[nearest]
+
+
+def fill_from_nearest_epoch(values: np.ndarray) -> np.ndarray:
+    """(T, C) copy with each NaN replaced by its column's last earlier value, else its first later one."""
+    values = np.asarray(values, float)
+    t = np.arange(values.shape[0])[:, None]
+    known = ~np.isnan(values)
+    before = np.maximum.accumulate(np.where(known, t, -1), axis=0)
+    after = np.minimum.accumulate(np.where(known, t, values.shape[0])[::-1], axis=0)[::-1]
+    source = np.clip(np.where(before >= 0, before, after), 0, max(values.shape[0] - 1, 0))
+    return np.take_along_axis(values, source, axis=0)
 
 
 def pack_features(names: tuple[str, ...], *, cn0_dbhz, el_rad, az_rad, residual_m, dpc, system_index,
@@ -94,7 +104,7 @@ def build_sequence(meas: Measurements, fix: CoarseFix, *, feature_names: tuple[s
                           system_index=sysi, systems=meas.systems, mask=mask)
     prr = meas.satclock_corrected_prr_m_s()
     prr_mask = mask & np.isfinite(prr) & (np.abs(np.nan_to_num(prr)) < MAX_ABS_PRR_M_S) & (meas.obs.doppler_hz != 0)
-    coarse_clock = pd.DataFrame(fix.clock_m).ffill().bfill().to_numpy()  # an ISB unseen in an epoch: nearest
+    coarse_clock = fill_from_nearest_epoch(fix.clock_m)  # an ISB unseen in an epoch: nearest
     coarse_clock = np.where(fix.ok[:, None], coarse_clock, np.nan)
     truth = np.full((n_t, 3), np.nan) if truth_ecef_m is None else np.asarray(truth_ecef_m, float)
     return Sequence(

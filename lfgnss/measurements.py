@@ -4,10 +4,9 @@ from __future__ import annotations
 import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Iterable
+from typing import TYPE_CHECKING, Iterable
 
 import numpy as np
-import pandas as pd
 
 from . import qc
 from .constants import (BDS_B1I_HZ, GAL_E1_HZ, GLO_L1_BASE_HZ, GLO_L1_STEP_HZ, GPS_L1_HZ, SPEED_OF_LIGHT_M_S,
@@ -16,6 +15,9 @@ from .errors import RinexError
 from .navigation import Navigation, load_nav
 from .observations import Observations
 from .rinex import RinexWarning, load_obs
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 #: C/N0 assumed for a constellation whose file carries no C/N0 at all [dB-Hz].
 ASSUMED_CN0_DBHZ = 40.0
@@ -73,6 +75,8 @@ class Measurements:
 
     def to_frame(self) -> pd.DataFrame:
         """Tidy table, one row per observed (epoch, satellite), with qc reasons spelt out."""
+        import pandas as pd
+
         t_idx, s_idx = np.nonzero(np.isfinite(self.obs.pr_m))
         return pd.DataFrame({
             "time_gps_s": self.time_gps_s[t_idx], "sv": self.sv[s_idx], "pr_m": self.pr_m[t_idx, s_idx],

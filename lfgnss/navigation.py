@@ -19,15 +19,17 @@ import re
 import warnings
 from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Iterable
+from typing import TYPE_CHECKING, Iterable
 
 import numpy as np
-import pandas as pd
 
 from .errors import RinexError
 from .paths import cache_dir
 from .rinex import RinexWarning, _decode
 from .time import BDT_MINUS_GPST_S, SECONDS_PER_WEEK, datetime64_to_gps_s, utc_to_gps_s
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 KEPLER_SYSTEMS = ("G", "E", "J", "C")
 
@@ -197,6 +199,8 @@ def _rename(notes: tuple[str, ...], old: tuple[str, ...], new: tuple[str, ...]) 
 
 
 def _parse_nav(paths: list[Path]) -> Navigation:
+    import pandas as pd  # only when parsing: pandas costs ~0.4 s of start-up
+
     kep_frames, glo_frames, iono, notes = [], [], {}, []
     for path in paths:
         datasets, skipped = _read(path)
@@ -413,6 +417,8 @@ def _adjweek(sow_s: np.ndarray, ref_s: np.ndarray) -> np.ndarray:
 
 def _flat(ds) -> pd.DataFrame:
     """One row per (time, sv) cell of a georinex Dataset that holds a record (cheaper than to_dataframe)."""
+    import pandas as pd
+
     if "sv" not in ds.dims or "time" not in ds.dims or ds.sizes["time"] == 0 or ds.sizes["sv"] == 0:
         return pd.DataFrame()
     names = [n for n in ds.data_vars if ds[n].dims == ("time", "sv")]
@@ -431,6 +437,8 @@ def _flat(ds) -> pd.DataFrame:
 
 def _frame(raw: pd.DataFrame, prefixes: tuple[str, ...], required: str) -> pd.DataFrame:
     """Rows of the satellites whose id starts with one of ``prefixes`` and have ``required``."""
+    import pandas as pd
+
     if raw.empty or required not in raw:
         return pd.DataFrame()
     keep = raw["sv"].str[0].isin(prefixes).to_numpy() & np.isfinite(raw[required].to_numpy(dtype=float))
@@ -442,6 +450,8 @@ def _col(df: pd.DataFrame, name: str) -> np.ndarray:
 
 
 def _kepler_frame(raw: pd.DataFrame) -> pd.DataFrame:
+    import pandas as pd
+
     df = _frame(raw, KEPLER_SYSTEMS, "sqrtA")
     if df.empty:
         return df
@@ -482,6 +492,8 @@ def _kepler_frame(raw: pd.DataFrame) -> pd.DataFrame:
 
 
 def _glonass_frame(raw: pd.DataFrame) -> pd.DataFrame:
+    import pandas as pd
+
     df = _frame(raw, ("R",), "X")
     if df.empty:
         return df

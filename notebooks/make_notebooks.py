@@ -125,5 +125,17 @@ print(spec.id, [p.name for p in spec.files()])"""),
 sol = estimators.create("plain-ekf").solve(test)
 print(accuracy_table(sol.pos_ecef_m, test.truth_ecef_m, sol.available, method="plain-ekf"))
 print(write_pos(folder / "my-drive.pos", sol), write_csv(folder / "my-drive.csv", sol, test.truth_ecef_m))"""),
-("md", "To train on it, register it in the same Python process and call the trainer: `learning.train.train(learning.train.load_config(\"learning/configs/default.toml\", ['data.datasets=[\"my-drive\"]']), \"runs/my-drive\")`. `python -m lfgnss.datasets --register my-drive.toml` prints its alignment report."),
+("md", "## Fine-tune the shipped model on your drive\n\nWith a few minutes of labelled data, start from the shipped model rather than from scratch: `train.init` loads its weights, network, features and normalisation, and the new model file records what it started from. `data.register` names your dataset TOML files. One epoch here, to keep the notebook quick (the bundled drive is also one the shipped model was trained on, so this shows the mechanics, not a gain). The same from the shell:\n\n    python -m learning.train --config learning/configs/default.toml --set 'data.register=[\"my-drive.toml\"]' --set 'data.datasets=[\"my-drive\"]' --set train.init=lfgnss/data/model/lfgnss-default.npz --out runs/my-drive\n\n`python -m lfgnss.datasets --register my-drive.toml` prints the alignment report."),
+("code", """from learning.export import load_model
+from learning.train import load_config, train
+from lfgnss.solve import DEFAULT_MODEL
+
+cfg = load_config(None, [f'data.register=["{config}"]', 'data.datasets=["my-drive"]', f'train.init="{DEFAULT_MODEL}"',
+                         "train.epochs=1", "data.window=100", "data.stride=20", "train.lr=1e-4", 'train.select="last"'])
+train(cfg, folder / "fine-tuned", progress=False)
+tuned = load_model(folder / "fine-tuned" / "model.npz")
+print("started from", tuned.metadata["init_model"]["path"], "trained on", tuned.metadata["init_model"]["datasets"])
+for name, noise in {"shipped model": load_model(DEFAULT_MODEL), "fine-tuned": tuned}.items():
+    sol = estimators.create("ekf", noise=noise).solve(test)
+    print(name, round(accuracy_table(sol.pos_ecef_m, test.truth_ecef_m, sol.available)["rmse_3d_m"], 2), "m 3D")"""),
 ], "notebooks/your_own_data.ipynb")

@@ -195,3 +195,50 @@ def test_weight_averaging_is_an_ema_of_epoch_weights_and_resumes(config, prepare
     with pytest.raises(ValueError, match="ema_decay cannot change"):
         train(cfg, tmp_path / "steps", resume=True, overrides=["train.ema_decay=0.9"], progress=False,
               prepared=prepared)
+
+
+def test_fine_tuning_starts_from_a_model_file(config, full_run, tmp_path, capsys):
+    """train.init = a model file: epoch 0 is that model (same weights, same normalisation, so the same
+    validation error), its network and features replace the configuration's, training moves on from it, and
+    the new file records what it started from; a missing file is one clear error."""
+    import copy
+    import hashlib
+
+    from lfgnss.benchmark import _trained_on
+    from learning.crossval import crossval
+    from learning.export import ModelFileError
+
+    out, _ = full_run
+    start = load_model(out / "model.npz")
+    cfg = copy.deepcopy(config)
+    cfg["train"].update(init=str(out / "model.npz"), epochs=1, lr=1e-3)
+    cfg["model"]["d_model"] = 32                                # replaced by the init model's network
+    cfg["data"]["drop_features"] = ["dpc"]                      # and its features
+    history = train(cfg, tmp_path / "tuned", progress=False)
+    assert "network and features are those of" in capsys.readouterr().err
+    assert history[0]["val_rmse_3d_m"] == pytest.approx(start.metadata["val_rmse_3d_m"], rel=1e-9, abs=0)
+    assert history[1]["val_rmse_3d_m"] != history[0]["val_rmse_3d_m"]
+    tuned = load_model(tmp_path / "tuned" / "model.npz")
+    assert tuned.metadata["model"] == start.metadata["model"] and tuned.feature_names == start.feature_names
+    np.testing.assert_array_equal(tuned.normaliser.mean, start.normaliser.mean)
+    record = tuned.metadata["init_model"]
+    assert record["sha256_16"] == hashlib.sha256((out / "model.npz").read_bytes()).hexdigest()[:16]
+    assert record["datasets"] == ["synthetic"] and record["data_fingerprints"] == start.metadata["data_fingerprints"]
+    assert record["epoch"] == start.metadata["epoch"] and record["init_model"] is None
+    assert _trained_on(tuned) == "synthetic (train), fine-tuned from synthetic (train)"
+    assert load_model(out / "model.npz").metadata["init_model"] is None
+
+    cfg["train"]["epochs"] = 2                                  # the fine-tuned run resumes like any other
+    train(cfg, tmp_path / "tuned", resume=True, overrides=["train.epochs=2"], progress=False)
+    assert load_model(tmp_path / "tuned" / "model.npz").metadata["init_model"] == record
+
+    cv = copy.deepcopy(cfg)
+    cv["train"]["epochs"] = 1
+    crossval(cv, 2, tmp_path / "cv", progress=False)            # the init model saw these data: say so
+    assert "cross-validation is optimistic" in capsys.readouterr().err
+
+    cfg["train"]["init"] = str(tmp_path / "absent.npz")
+    with pytest.raises(ModelFileError, match="absent.npz: no such model file"):
+        train(cfg, tmp_path / "absent", progress=False)
+    with pytest.raises(ValueError, match="train.init must be"):
+        load_config("learning/configs/default.toml", ["train.init=3"])
