@@ -131,7 +131,7 @@ from learning.train import load_config, train
 from lfgnss.solve import DEFAULT_MODEL
 
 cfg = load_config(None, [f'data.register=["{config}"]', 'data.datasets=["my-drive"]', f'train.init="{DEFAULT_MODEL}"',
-                         "train.epochs=1", "data.window=100", "data.stride=20", "train.lr=1e-4", 'train.select="last"'])
+                         "train.epochs=1", "data.window=100", "data.stride=20", "train.lr=1e-3", 'train.select="last"'])
 train(cfg, folder / "fine-tuned", progress=False)
 tuned = load_model(folder / "fine-tuned" / "model.npz")
 print("started from", tuned.metadata["init_model"]["path"], "trained on", tuned.metadata["init_model"]["datasets"])
