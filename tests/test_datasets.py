@@ -63,6 +63,19 @@ def test_user_dataset_from_toml(tmp_path, monkeypatch):
     assert list((tmp_path / "cache" / "sequences").glob("my-berlin-*.npz"))
 
 
+def test_training_registers_user_datasets_named_in_its_config(tmp_path, monkeypatch):
+    """learning.train's data.register lets the trainer (and its CLI) load a user dataset by id."""
+    from learning.train import load_config, load_sequences
+
+    monkeypatch.setenv("LFGNSS_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setattr(datasets, "_REGISTRY", {})
+    (tmp_path / "Berlin_Potsdamer_Platz_GT.txt").write_text((SAMPLE_DIR / "Berlin_Potsdamer_Platz_GT.txt").read_text())
+    config = load_config(None, [f'data.register=["{_user_toml(tmp_path)}"]', 'data.datasets=["my-berlin"]'])
+    assert "my-berlin" not in datasets.registered()
+    val = load_sequences("my-berlin", "val", config)
+    assert "my-berlin" in datasets.registered() and len(val) == 1 and 90 < len(val[0]) < 110
+
+
 def test_truth_file_with_bad_lines(tmp_path):
     lines = (SAMPLE_DIR / "Berlin_Potsdamer_Platz_GT.txt").read_text().splitlines()
     lines[2] = "point3 0.5 37851x5.7 899901.8 5037236.1 0 0 0"

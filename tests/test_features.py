@@ -89,3 +89,14 @@ def test_same_features_for_every_entry_point(sample):
     again = lfgnss.process(SAMPLE_OBS, SAMPLE_NAV)
     np.testing.assert_array_equal(again.features, seq.features)
     np.testing.assert_array_equal(again.mask, seq.mask)
+
+
+def test_fill_from_nearest_epoch_is_forward_then_backward_fill():
+    """The coarse ISB of an epoch without that system's satellites: the last earlier value, else the next one."""
+    from lfgnss.features import fill_from_nearest_epoch
+
+    nan = np.nan
+    values = np.array([[nan, 1.0, nan], [2.0, nan, nan], [nan, nan, nan], [3.0, 4.0, nan]])
+    expected = np.array([[2.0, 1.0, nan], [2.0, 1.0, nan], [2.0, 1.0, nan], [3.0, 4.0, nan]])
+    np.testing.assert_array_equal(fill_from_nearest_epoch(values), expected)
+    assert fill_from_nearest_epoch(np.zeros((0, 2))).shape == (0, 2)
