@@ -31,7 +31,8 @@ from lfgnss.datasets import contiguous_runs
 from lfgnss.metrics import accuracy_table, markdown_table
 from lfgnss.sequence import Sequence
 
-from .train import adopt_init, ekf_config, init_model, init_record, load_config, load_sequences, prepare, train
+from .train import (adopt_init, ekf_config, init_model, load_config, load_sequences, prepare, train,
+                    trained_datasets)
 
 COLUMNS = ["fold", "held_out_epochs", "plain_ekf_rmse_3d_m", "untrained_rmse_3d_m", "last_rmse_3d_m",
            "best_rmse_3d_m", "best_epoch"]
@@ -87,7 +88,7 @@ def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = 
     config = adopt_init(config)
     data = config["data"]
     init = init_model(config)
-    seen = sorted(set(data["datasets"]) & set(init_record(init)["datasets"])) if init is not None else []
+    seen = sorted(set(data["datasets"]) & set(trained_datasets(init))) if init is not None else []
     if seen:
         print(f"warning: train.init {init.path} was trained on {', '.join(seen)}: the held-out blocks are not "
               "unseen data, so this cross-validation is optimistic", file=sys.stderr)

@@ -206,12 +206,16 @@ def adopt_init(config: dict) -> dict:
     return out
 
 
+def trained_datasets(model) -> list[str]:
+    """Dataset ids a loaded model file was trained on (its recorded ``data.datasets``)."""
+    return list(((model.metadata.get("config") or {}).get("data") or {}).get("datasets", []))
+
+
 def init_record(model) -> dict:
     """What a fine-tuned model file says about the model it started from: path, content hash and lineage."""
     h = hashlib.sha256(Path(model.path).read_bytes()).hexdigest()[:16]
     meta = model.metadata
-    return {"path": str(model.path), "sha256_16": h, "epoch": meta.get("epoch"),
-            "datasets": ((meta.get("config") or {}).get("data") or {}).get("datasets", []),
+    return {"path": str(model.path), "sha256_16": h, "epoch": meta.get("epoch"), "datasets": trained_datasets(model),
             "data_fingerprints": meta.get("data_fingerprints", []), "init_model": meta.get("init_model")}
 
 
@@ -441,9 +445,9 @@ def train(config: dict, out_dir: str | Path, *, resume: bool = False, overrides:
                                  f"({checkpoint['config']['train'].get(key)} -> {config['train'].get(key)})")
     elif last_path.exists():
         raise ValueError(f"{last_path}: a run already exists here; pass --resume or choose another --out")
-    else:
-        config = adopt_init(check_config(config))
     check_config(config)
+    if checkpoint is None:
+        config = adopt_init(config)     # a resumed run's checkpoint config has adopted it already
 
     threads, deterministic = torch.get_num_threads(), torch.are_deterministic_algorithms_enabled()
     torch.set_num_threads(int(config["threads"]))
