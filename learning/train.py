@@ -379,6 +379,11 @@ def prepare(config: dict, source=None) -> Prepared:
     normaliser = Normaliser.fit(train_seqs, names) if init is None else init.normaliser
     n_systems = max(len(s.systems) for s in train_seqs + val_seqs)
     windows = make_windows(train_seqs, int(data["window"]), int(data["stride"]))
+    labelled = [int(np.isfinite(s.truth_ecef_m).all(axis=-1).sum()) for s in train_seqs]
+    short = [f"{s.name} ({n} labelled epochs)" for s, n in zip(train_seqs, labelled) if n and len(s) < data["window"]]
+    if short:
+        print(f"note: {len(short)} training piece(s) shorter than the {data['window']}-epoch window are not trained "
+              f"on: {', '.join(short)}", file=sys.stderr)
     n_slots = max(s.n_slots for s in train_seqs)
     train_batch = collate(train_seqs, windows, normaliser, n_slots=n_slots, n_systems=n_systems)
     val_batches = [sequence_batch(s, normaliser, n_systems=n_systems) for s in val_seqs]

@@ -111,6 +111,20 @@ def test_feature_selection_normaliser_and_padding():
     assert not set(DPC_FEATURES) & set(norm.feature_names)
 
 
+def test_a_labelled_piece_shorter_than_the_window_is_named(config, capsys):
+    """A training piece with labels but fewer epochs than a window cannot be trained on: a note names it."""
+    from lfgnss.simulate import simulate_sequence
+
+    pieces = {"train": [simulate_sequence(60, seed=1), simulate_sequence(12, seed=2)],
+              "val": [simulate_sequence(30, seed=3)]}
+    prep = prepare(config, source=lambda ds, split, cfg: pieces[split])
+    assert {w.seq_index for w in prep.windows} == {0}
+    err = capsys.readouterr().err
+    assert "1 training piece(s) shorter than the 20-epoch window" in err and "(12 labelled epochs)" in err
+    prepare(config, source=lambda ds, split, cfg: pieces[split][:1] if split == "train" else pieces[split])
+    assert "shorter than" not in capsys.readouterr().err
+
+
 def test_weight_decay_r_only_and_last_epoch_settings(config, prepared, tmp_path):
     """train.weight_decay switches to AdamW; model.compensation = false trains R only; train.select = "last"
     exports the last epoch whatever validation says; bad settings and a changed decay on resume are refused."""
@@ -242,3 +256,17 @@ def test_fine_tuning_starts_from_a_model_file(config, full_run, tmp_path, capsys
         train(cfg, tmp_path / "absent", progress=False)
     with pytest.raises(ValueError, match="train.init must be"):
         load_config("learning/configs/default.toml", ["train.init=3"])
+
+
+def test_every_config_file_loads():
+    """Each file in learning/configs parses with known keys; a bundled init model it names exists."""
+    from pathlib import Path
+
+    files = sorted(Path("learning/configs").glob("*.toml"))
+    assert len(files) >= 10
+    for path in files:
+        cfg = load_config(str(path))
+        assert cfg["data"]["datasets"] and cfg["train"]["epochs"] >= 1, path
+        init = cfg["train"]["init"]
+        if init.startswith("lfgnss/"):
+            assert Path(init).is_file(), f"{path}: train.init {init} is not bundled"
