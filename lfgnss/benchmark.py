@@ -214,10 +214,12 @@ def write_report(path: Path, all_rows: list[dict], rtk_rows: list[dict], command
 def main(argv: list[str] | None = None) -> int:
     """Run the benchmark and write the results file."""
     p = argparse.ArgumentParser(prog="python -m lfgnss.benchmark", description=__doc__.split("\n\n")[0])
-    p.add_argument("datasets", nargs="*", default=["hk-tst-2019", "berlin-pp", "hk-tst-static-2020"])
-    p.add_argument("--models", type=Path, default=MODEL_DIR, help="folder with lfgnss-*.npz model files")
-    p.add_argument("--out", type=Path, default=Path("docs"), help="folder for results.md and figures/")
-    p.add_argument("--no-plots", action="store_true")
+    p.add_argument("datasets", nargs="*", default=["hk-tst-2019", "berlin-pp", "hk-tst-static-2020"],
+                   help="dataset ids (default: all three of shared/BENCHMARK.md)")
+    p.add_argument("--models", type=Path, default=MODEL_DIR,
+                   help="folder with lfgnss-*.npz model files (default: the bundled models)")
+    p.add_argument("--out", type=Path, default=Path("docs"), help="folder for results.md and figures/ (default: docs)")
+    p.add_argument("--no-plots", action="store_true", help="skip the CDF, track and error PNGs")
     args = p.parse_args(argv)
     warnings.simplefilter("ignore", FutureWarning)
     all_rows, rtk_rows = run(args.datasets, model_dir=args.models, out_dir=args.out, plots=not args.no_plots)

@@ -24,15 +24,24 @@ DEFAULT_MODEL = bundled_data_dir() / "model" / "lfgnss-default.npz"
 LEARNED_BACKENDS = ("ekf", "fgo")
 
 
+class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Shows a default only where there is one to show (not None, not a flag's False)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        if action.default is None or action.default is False or "default:" in (action.help or ""):
+            return action.help or ""
+        return super()._get_help_string(action)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The command-line interface of ``python -m lfgnss.solve``."""
     import estimators
 
     p = argparse.ArgumentParser(prog="python -m lfgnss.solve", description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                                formatter_class=_HelpFormatter)
     p.add_argument("--backend", default="ekf", choices=estimators.available(), help="estimator plug-in")
     p.add_argument("--obs", type=Path, help="RINEX observation file (default: bundled Berlin sample)")
-    p.add_argument("--nav", type=Path, nargs="+", help="RINEX navigation file(s)")
+    p.add_argument("--nav", type=Path, nargs="+", help="RINEX navigation file(s) (default: the bundled sample's, with no --obs)")
     p.add_argument("--model", type=Path, help="LF-GNSS model file (default: the bundled model)")
     p.add_argument("--no-model", action="store_true", help="use the hand-set C/N0 noise model instead")
     p.add_argument("--systems", default=None, help="constellations to use, e.g. GC (default: all present)")
