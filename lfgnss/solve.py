@@ -41,7 +41,8 @@ def build_parser() -> argparse.ArgumentParser:
                                 formatter_class=_HelpFormatter)
     p.add_argument("--backend", default="ekf", choices=estimators.available(), help="estimator plug-in")
     p.add_argument("--obs", type=Path, help="RINEX observation file (default: bundled Berlin sample)")
-    p.add_argument("--nav", type=Path, nargs="+", help="RINEX navigation file(s) (default: the bundled sample's, with no --obs)")
+    p.add_argument("--nav", type=Path, nargs="+",
+                   help="RINEX navigation file(s) (default: the bundled sample's, with no --obs)")
     p.add_argument("--model", type=Path, help="LF-GNSS model file (default: the bundled model)")
     p.add_argument("--no-model", action="store_true", help="use the hand-set C/N0 noise model instead")
     p.add_argument("--systems", default=None, help="constellations to use, e.g. GC (default: all present)")
