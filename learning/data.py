@@ -56,7 +56,7 @@ def make_windows(sequences: Seq[Sequence], length: int, stride: int) -> list[Win
         raise ValueError(f"window length and stride must be >= 1, got {length}, {stride}")
     out = []
     for i, seq in enumerate(sequences):
-        labelled = np.all(np.isfinite(seq.truth_ecef_m), axis=-1)
+        labelled = seq.labelled
         for start in range(0, len(seq) - length + 1, stride):
             if labelled[start:start + length].any():
                 out.append(Window(i, start, length))

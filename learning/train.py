@@ -379,8 +379,8 @@ def prepare(config: dict, source=None) -> Prepared:
     normaliser = Normaliser.fit(train_seqs, names) if init is None else init.normaliser
     n_systems = max(len(s.systems) for s in train_seqs + val_seqs)
     windows = make_windows(train_seqs, int(data["window"]), int(data["stride"]))
-    labelled = [int(np.isfinite(s.truth_ecef_m).all(axis=-1).sum()) for s in train_seqs]
-    short = [f"{s.name} ({n} labelled epochs)" for s, n in zip(train_seqs, labelled) if n and len(s) < data["window"]]
+    short = [f"{s.name} ({int(s.labelled.sum())} labelled epochs)" for s in train_seqs
+             if s.labelled.any() and len(s) < data["window"]]
     if short:
         print(f"note: {len(short)} training piece(s) shorter than the {data['window']}-epoch window are not trained "
               f"on: {', '.join(short)}", file=sys.stderr)

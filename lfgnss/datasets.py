@@ -249,7 +249,7 @@ def split_index(seq: Sequence, spec: DatasetSpec, split: str) -> np.ndarray:
     if split not in spec.splits:
         raise KeyError(f"dataset {spec.id} has no split {split!r}; it has {', '.join(spec.splits)}")
     start, stop = spec.splits[split]
-    labelled = np.all(np.isfinite(seq.truth_ecef_m), axis=1)
+    labelled = seq.labelled
     if spec.split_axis == "tow":
         axis = gps_s_to_week_tow(seq.time_gps_s)[1]
         axis = np.round(axis, 1)
@@ -301,7 +301,7 @@ def alignment_report(dataset_ids: list[str] | None = None) -> str:
     for dataset_id in present(dataset_ids or sorted(_builtin()), lines.append):
         spec = get(dataset_id)
         seq = build(dataset_id)
-        labelled = np.all(np.isfinite(seq.truth_ecef_m), axis=1)
+        labelled = seq.labelled
         lines.append(f"{dataset_id}: {len(seq)} epochs, {int(labelled.sum())} with truth; systems "
                      f"{''.join(seq.systems)}; {spec.description}")
         for split in spec.splits:

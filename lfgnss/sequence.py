@@ -100,6 +100,11 @@ class Sequence:
         return int(self.mask.shape[0])
 
     @property
+    def labelled(self) -> np.ndarray:
+        """(T,) bool: epochs with a ground-truth position."""
+        return np.all(np.isfinite(self.truth_ecef_m), axis=-1)
+
+    @property
     def n_slots(self) -> int:
         """Number of padded satellite slots N."""
         return int(self.mask.shape[1])
