@@ -10,6 +10,7 @@ from typing import Protocol
 
 import numpy as np
 
+from lfgnss import weighted_fix
 from lfgnss.sequence import Sequence
 
 
@@ -28,18 +29,19 @@ class HeuristicNoise:
 
     Defaults chosen on the validation splits of hk-tst-2019, berlin-pp and hk-tst-static-2020 (grid over
     floor 2/5 m, scale 9e7/1e9/1e10, elevation power 1/2; EKF 3D RMSE 10.5 / 14.1 / 3.8 m there):
-    sigma is 2.2 m at 45 dB-Hz, 3.8 m at 35, 10 m at 30 and 32 m at 25 dB-Hz at zenith.
+    sigma is 2.2 m at 45 dB-Hz, 3.7 m at 40, 10 m at 35 and 32 m at 30 dB-Hz at zenith (``lfgnss.weighted_fix``).
     """
 
-    floor_m: float = 2.0
-    cn0_scale_m2: float = 1.0e9
-    elevation_power: float = 1.0
-    el_min_rad: float = np.radians(5.0)
+    floor_m: float = weighted_fix.FLOOR_M
+    cn0_scale_m2: float = weighted_fix.CN0_SCALE_M2
+    elevation_power: float = weighted_fix.ELEVATION_POWER
+    el_min_rad: float = weighted_fix.EL_MIN_RAD
 
     def __call__(self, sequence: Sequence) -> tuple[np.ndarray, np.ndarray]:
         cn0 = np.where(sequence.mask, sequence.cn0_dbhz, 45.0)
-        el = np.maximum(np.where(sequence.mask, sequence.el_rad, np.pi / 2), self.el_min_rad)
-        r = (self.floor_m ** 2 + self.cn0_scale_m2 * 10.0 ** (-cn0 / 5.0)) / np.sin(el) ** self.elevation_power
+        el = np.where(sequence.mask, sequence.el_rad, np.pi / 2)
+        r = weighted_fix.cn0_elevation_variance_m2(cn0, el, floor_m=self.floor_m, cn0_scale_m2=self.cn0_scale_m2,
+                                                    elevation_power=self.elevation_power, el_min_rad=self.el_min_rad)
         return r, np.zeros_like(r)
 
 

@@ -31,6 +31,7 @@ import numpy as np
 from lfgnss.errors import InputError
 from lfgnss.features import AVAILABLE_FEATURES
 from lfgnss.sequence import Sequence
+from lfgnss.weighted_fix import cn0_elevation_variance_m2
 
 from .normalise import Normaliser, select_features
 
@@ -207,8 +208,8 @@ class LfgnssModel:
             pr = self.r_prior
             cn0 = x[..., pr["cn0_index"]] * pr["cn0_std"] + pr["cn0_mean"]
             el = x[..., pr["el_index"]] * pr["el_std"] + pr["el_mean"]
-            prior = (pr["floor_m"] ** 2 + pr["cn0_scale_m2"] * 10.0 ** (-cn0 / 5.0)) / \
-                np.sin(np.maximum(el, pr["el_min_rad"])) ** pr["elevation_power"]
+            prior = cn0_elevation_variance_m2(cn0, el, floor_m=pr["floor_m"], cn0_scale_m2=pr["cn0_scale_m2"],
+                                              elevation_power=pr["elevation_power"], el_min_rad=pr["el_min_rad"])
             r = prior * _softplus(o[..., 0]) / np.log(2.0) + self.r_floor_m2
         vc = o[..., 1] if self.compensation else np.zeros_like(r)
         r = np.where(m, r, PAD_R_M2).reshape(*lead, n)

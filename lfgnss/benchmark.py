@@ -72,6 +72,16 @@ def methods(model_dir: Path = MODEL_DIR, dataset_id: str | None = None) -> list[
     return rows
 
 
+def _features_for(plugins) -> tuple[str, ...]:
+    """The default features plus any further ones the estimators' models read, so one sequence serves every row."""
+    from .sequence import DEFAULT_FEATURES
+
+    names = list(DEFAULT_FEATURES)
+    for estimator in plugins:
+        names += [n for n in getattr(getattr(estimator, "noise", None), "feature_names", ()) if n not in names]
+    return tuple(names)
+
+
 def _rtklib_on(seq, spec, workdir: Path):
     """RTKLIB's solution matched to the sequence's epochs (NaN where it gave none), and its run time."""
     from .rtklib import rtklib_available, spp_solution
@@ -93,7 +103,8 @@ def run(dataset_ids: list[str], *, model_dir: Path = MODEL_DIR, out_dir: Path | 
     all_rows, rtk_rows = [], []
     for dataset_id in datasets.present(dataset_ids):
         spec = datasets.get(dataset_id)
-        test = datasets.load_split(dataset_id, "test")[0]
+        plugins = [(m.name, m.create()) for m in methods(model_dir, dataset_id)]
+        test = datasets.load_split(dataset_id, "test", feature_names=_features_for(e for _, e in plugins))[0]
         truth = test.truth_ecef_m
         with tempfile.TemporaryDirectory() as tmp:
             rtk_pos, rtk_s = _rtklib_on(test, spec, Path(tmp))
@@ -102,18 +113,17 @@ def run(dataset_ids: list[str], *, model_dir: Path = MODEL_DIR, out_dir: Path | 
             ok = np.all(np.isfinite(rtk_pos), axis=1)
             all_rows.append(accuracy_table(rtk_pos, truth, ok, dataset=dataset_id, method=RTKLIB,
                                            trained_on="-") | {"epochs_per_s": float("nan")})
-        for m in methods(model_dir, dataset_id):
-            estimator = m.create()
+        for name, estimator in plugins:
             start = time.perf_counter()
             sol = estimator.solve(test)
             rate = len(test) / (time.perf_counter() - start)
-            solutions[m.name] = sol
+            solutions[name] = sol
             trained = _trained_on(getattr(estimator, "noise", None))
-            all_rows.append(accuracy_table(sol.pos_ecef_m, truth, sol.available, dataset=dataset_id, method=m.name,
+            all_rows.append(accuracy_table(sol.pos_ecef_m, truth, sol.available, dataset=dataset_id, method=name,
                                            trained_on=trained) | {"epochs_per_s": rate})
             if rtk_pos is not None and ok.any():
                 rtk_rows.append(accuracy_table(sol.pos_ecef_m[ok], truth[ok], sol.available[ok], dataset=dataset_id,
-                                               method=m.name, trained_on=trained))
+                                               method=name, trained_on=trained))
         if rtk_pos is not None and ok.any():
             rtk_rows.append(accuracy_table(rtk_pos[ok], truth[ok], ok[ok], dataset=dataset_id,
                                            method=RTKLIB, trained_on="-"))

@@ -1,8 +1,10 @@
 """The feature packer shared by every estimator and the trainer (LF-GNSS step 2).
 
 Per satellite and epoch: C/N0, elevation, azimuth, coarse pseudorange residual and the DOP
-contribution (full minus leave-one-out GDOP, PDOP, HDOP, VDOP). Optional extras (constellation
-one-hot ``sys_G`` ...) are selected by name, so ablations are configuration only.
+contribution (full minus leave-one-out GDOP, PDOP, HDOP, VDOP). Optional extras are selected by
+name, so ablations are configuration only: ``residual_weighted``, the post-fit residual of the
+C/N0-elevation-weighted least-squares fix of the epoch (``lfgnss.weighted_fix``), and the
+constellation one-hot ``sys_G`` ....
 """
 from __future__ import annotations
 
@@ -17,9 +19,10 @@ from .measurements import Measurements
 from .sequence import DEFAULT_FEATURES, Sequence
 from .spp import CoarseFix, SppConfig, _geometry
 from . import qc
+from .weighted_fix import cn0_elevation_variance_m2, weighted_least_squares
 
 #: Every feature the packer knows, in a stable order.
-AVAILABLE_FEATURES = DEFAULT_FEATURES + tuple(f"sys_{s}" for s in SYSTEMS)
+AVAILABLE_FEATURES = DEFAULT_FEATURES + ("residual_weighted",) + tuple(f"sys_{s}" for s in SYSTEMS)
 
 
 def check_feature_names(names: tuple[str, ...] | list[str]) -> tuple[str, ...]:
@@ -57,9 +60,12 @@ def fill_from_nearest_epoch(values: np.ndarray) -> np.ndarray:
 
 
 def pack_features(names: tuple[str, ...], *, cn0_dbhz, el_rad, az_rad, residual_m, dpc, system_index,
-                  systems: tuple[str, ...], mask) -> np.ndarray:
+                  systems: tuple[str, ...], mask, residual_weighted_m=None) -> np.ndarray:
     """(T, N, d) raw features by name; zeros in masked slots."""
+    if "residual_weighted" in names and residual_weighted_m is None:
+        raise ValueError("the residual_weighted feature needs residual_weighted_m")
     columns = {"cn0": cn0_dbhz, "elevation": el_rad, "azimuth": az_rad, "residual": residual_m,
+               "residual_weighted": residual_weighted_m,
                "dpc_gdop": dpc[..., 0], "dpc_pdop": dpc[..., 1], "dpc_hdop": dpc[..., 2], "dpc_vdop": dpc[..., 3]}
     for letter in SYSTEMS:
         idx = systems.index(letter) if letter in systems else -2
@@ -100,8 +106,14 @@ def build_sequence(meas: Measurements, fix: CoarseFix, *, feature_names: tuple[s
     residual = np.where(mask, np.nan_to_num(residual), 0.0)
     dpc = dop_contribution(el, az, np.where(mask, sysi, -1), mask, len(meas.systems))
     cn0 = np.where(mask, np.nan_to_num(meas.cn0_dbhz), 0.0)
+    weighted = None
+    if "residual_weighted" in feature_names:  # epochs too thin for the weighted fix keep the coarse residual
+        wfix = weighted_least_squares(np.where(mask, pr_corr, 0.0), np.where(mask[..., None], meas.sat_pos_ecef_m, 0.0),
+                                      np.where(mask, sysi, -1), mask, len(meas.systems), ref,
+                                      cn0_elevation_variance_m2(cn0, el))
+        weighted = np.where(wfix.ok[:, None] & mask, wfix.residual_m, residual)
     feats = pack_features(tuple(feature_names), cn0_dbhz=cn0, el_rad=el, az_rad=az, residual_m=residual, dpc=dpc,
-                          system_index=sysi, systems=meas.systems, mask=mask)
+                          system_index=sysi, systems=meas.systems, mask=mask, residual_weighted_m=weighted)
     prr = meas.satclock_corrected_prr_m_s()
     prr_mask = mask & np.isfinite(prr) & (np.abs(np.nan_to_num(prr)) < MAX_ABS_PRR_M_S) & (meas.obs.doppler_hz != 0)
     coarse_clock = fill_from_nearest_epoch(fix.clock_m)  # an ISB unseen in an epoch: nearest

@@ -1,8 +1,10 @@
 """Benchmark rows (methods) and the targets table (target_rows): which estimators run, against which bars."""
 import shutil
+from types import SimpleNamespace
 
-from lfgnss.benchmark import MODEL_DIR, PLAIN, RTKLIB, methods, target_rows
+from lfgnss.benchmark import MODEL_DIR, PLAIN, RTKLIB, _features_for, methods, target_rows
 from lfgnss.metrics import markdown_table
+from lfgnss.sequence import DEFAULT_FEATURES
 
 
 def test_rows_follow_the_model_files(tmp_path):
@@ -20,6 +22,13 @@ def test_rows_follow_the_model_files(tmp_path):
     # another dataset's own model is not used
     assert not any("per-dataset" in m.name for m in methods(tmp_path, "hk-tst-2019"))
     assert rows["LF-GNSS EKF, per-dataset model"].create().noise.metadata["feature_names"]
+
+
+def test_one_test_sequence_carries_every_feature_the_models_read():
+    plain = SimpleNamespace(noise=SimpleNamespace())                        # hand-set noise: no feature names
+    extra = SimpleNamespace(noise=SimpleNamespace(feature_names=("cn0", "residual_weighted", "elevation")))
+    names = _features_for([plain, extra, extra])
+    assert names == DEFAULT_FEATURES + ("residual_weighted",)
 
 
 def _row(dataset, method, d3, d2):
