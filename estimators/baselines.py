@@ -5,21 +5,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from lfgnss.features import fill_from_nearest_epoch
 from lfgnss.sequence import Sequence
 from lfgnss.weighted_fix import weighted_least_squares
 
 from .base import STATUS_NONE, STATUS_UPDATED, Solution, register
 from .noise import HeuristicNoise, NoiseModel
-
-
-def _start_positions(seq: Sequence) -> np.ndarray:
-    """(T, 3) coarse fix, else the nearest earlier (then later) coarse fix; NaN if the sequence has none."""
-    pos = seq.coarse_ecef_m.copy()
-    ok = np.flatnonzero(np.all(np.isfinite(pos), axis=1))
-    if ok.size == 0:
-        return pos
-    idx = np.clip(np.searchsorted(ok, np.arange(len(seq)), side="right") - 1, 0, None)
-    return pos[ok[idx]]
 
 
 @dataclass
@@ -34,7 +25,7 @@ class _LeastSquares:
         else:
             r, _ = self.noise(sequence)
         fix = weighted_least_squares(sequence.pr_m, sequence.sat_pos_ecef_m, sequence.system_index, sequence.mask,
-                                     len(sequence.systems), _start_positions(sequence), r,
+                                     len(sequence.systems), fill_from_nearest_epoch(sequence.coarse_ecef_m), r,
                                      scale_by_residuals=self.noise is None)
         pos, cov, clock, ok = fix.pos_ecef_m, fix.cov_ecef_m2, fix.clock_m[:, 0], fix.ok
         return Solution(self.name, sequence.time_gps_s.copy(), np.where(ok[:, None], pos, np.nan),

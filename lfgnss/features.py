@@ -104,12 +104,14 @@ def build_sequence(meas: Measurements, fix: CoarseFix, *, feature_names: tuple[s
         clock = np.where(sysi == k, np.nan_to_num(med)[:, None], clock)
     residual = np.where(fix.ok[:, None] & fix.used, fix.residual_m, raw_res - clock)
     residual = np.where(mask, np.nan_to_num(residual), 0.0)
-    dpc = dop_contribution(el, az, np.where(mask, sysi, -1), mask, len(meas.systems))
+    sys_used = np.where(mask, sysi, -1)
+    pr_used = np.where(mask, pr_corr, 0.0)
+    sat_used = np.where(mask[..., None], meas.sat_pos_ecef_m, 0.0)
+    dpc = dop_contribution(el, az, sys_used, mask, len(meas.systems))
     cn0 = np.where(mask, np.nan_to_num(meas.cn0_dbhz), 0.0)
     weighted = None
     if "residual_weighted" in feature_names:  # epochs too thin for the weighted fix keep the coarse residual
-        wfix = weighted_least_squares(np.where(mask, pr_corr, 0.0), np.where(mask[..., None], meas.sat_pos_ecef_m, 0.0),
-                                      np.where(mask, sysi, -1), mask, len(meas.systems), ref,
+        wfix = weighted_least_squares(pr_used, sat_used, sys_used, mask, len(meas.systems), ref,
                                       cn0_elevation_variance_m2(cn0, el))
         weighted = np.where(wfix.ok[:, None] & mask, wfix.residual_m, residual)
     feats = pack_features(tuple(feature_names), cn0_dbhz=cn0, el_rad=el, az_rad=az, residual_m=residual, dpc=dpc,
@@ -121,8 +123,8 @@ def build_sequence(meas: Measurements, fix: CoarseFix, *, feature_names: tuple[s
     truth = np.full((n_t, 3), np.nan) if truth_ecef_m is None else np.asarray(truth_ecef_m, float)
     return Sequence(
         name=name or meas.obs.path, systems=meas.systems, time_gps_s=meas.time_gps_s.copy(),
-        sv=np.broadcast_to(meas.sv, (n_t, n_s)).copy(), system_index=np.where(mask, sysi, -1), mask=mask,
-        pr_m=np.where(mask, pr_corr, 0.0), sat_pos_ecef_m=np.where(mask[..., None], meas.sat_pos_ecef_m, 0.0),
+        sv=np.broadcast_to(meas.sv, (n_t, n_s)).copy(), system_index=sys_used, mask=mask,
+        pr_m=pr_used, sat_pos_ecef_m=sat_used,
         cn0_dbhz=cn0, el_rad=np.where(mask, el, 0.0), az_rad=np.where(mask, az, 0.0), features=feats,
         feature_names=tuple(feature_names), coarse_ecef_m=fix.pos_ecef_m.copy(), coarse_clock_m=coarse_clock,
         truth_ecef_m=truth, prr_m_s=np.where(prr_mask, prr, 0.0), prr_mask=prr_mask,
