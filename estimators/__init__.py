@@ -2,6 +2,7 @@
 
 Importing this package registers the back ends: ``create("ekf")``, ``create("plain-ekf")``,
 ``create("fgo")``, ``create("wls")``, ``create("wls-weighted")``; ``fgo`` (gtsam) is imported on first use.
+``create("ekf", smooth=True)`` (or ``plain-ekf``) adds the Rauch-Tung-Striebel smoother (``estimators.smoother``).
 """
 from .base import (STATUS_COASTED, STATUS_NAMES, STATUS_NONE, STATUS_RESET, STATUS_UPDATED, Estimator, Solution,
                    available, create, register)

@@ -31,6 +31,7 @@ from . import models
 from .base import STATUS_COASTED, STATUS_NONE, STATUS_RESET, STATUS_UPDATED, Solution, register
 from .models import EkfConfig
 from .noise import HeuristicNoise, NoiseModel
+from .smoother import rts_smooth
 
 
 def compensated_pseudorange(pr_m: np.ndarray, vc_m: np.ndarray) -> np.ndarray:
@@ -85,14 +86,19 @@ class LfgnssEkf:
         Backend label written into the Solution.
     use_compensation : bool
         Add ``v^c`` to the innovation (False: ignore the model's ``v^c``).
+    smooth : bool
+        Post-process the forward run with the Rauch-Tung-Striebel smoother (``estimators.smoother``): each
+        epoch then uses the epochs after it too, up to the next re-initialisation. Gates, resets and
+        statuses are the forward filter's; ``info["filtered_state"]`` keeps its states.
     """
 
     def __init__(self, noise: NoiseModel | None = None, config: EkfConfig | None = None, name: str = "ekf",
-                 use_compensation: bool = True) -> None:
+                 use_compensation: bool = True, smooth: bool = False) -> None:
         self.noise = HeuristicNoise() if noise is None else noise
         self.config = config_of(self.noise) if config is None else config
         self.name = name
         self.use_compensation = use_compensation
+        self.smooth = smooth
 
     def noise_arrays(self, sequence: Sequence, usable: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(r_m2, vc_m), each (T, N), from the noise model, checked on the usable slots."""
@@ -144,6 +150,9 @@ class LfgnssEkf:
         ekf = ExtendedKalmanFilter(dim_x=n, dim_z=1)
         state = np.full((t_len, n), np.nan)
         cov = np.full((t_len, n, n), np.nan)
+        prior = np.full((t_len, n), np.nan)
+        prior_cov = np.full((t_len, n, n), np.nan)
+        steps = np.full((t_len, n, n), np.nan)
         status = np.full(t_len, STATUS_NONE, dtype=np.int8)
         n_used = np.zeros(t_len, dtype=np.int32)
         n_gated = np.zeros(t_len, dtype=np.int32)
@@ -214,6 +223,7 @@ class LfgnssEkf:
                     cache[dt] = (eye + dt * a, q1 * dt + q2 * dt ** 2 + q3 * dt ** 3)
                 ekf.F, ekf.Q = cache[dt]
                 ekf.predict()
+                steps[k] = ekf.F
                 gated = gate(k, idx, jdx)
                 inconsistent = False
                 if (gate_sigma > 0 and coarse_ok[k] and idx.size >= cfg.reset_min_sats
@@ -227,6 +237,7 @@ class LfgnssEkf:
                         gated = gate(k, idx, jdx)
                         clock_realigned[k] = True
                         inconsistent = mostly_gated(gated, idx)
+                prior[k], prior_cov[k] = ekf.x, ekf.P
                 if inconsistent:
                     reset(k, idx, jdx)      # not (just) the clock: the state is inconsistent with the data
                 else:
@@ -237,11 +248,14 @@ class LfgnssEkf:
             state[k] = ekf.x
             cov[k] = ekf.P
 
+        info = {"n_gated": n_gated, "n_usable": usable.sum(1), "n_doppler": n_doppler,
+                "clock_realigned": clock_realigned, "config": cfg, "filtered_state": state}
+        if self.smooth:
+            state, cov = rts_smooth(state, cov, prior, prior_cov, steps, status == STATUS_RESET)
         return Solution(backend=self.name, time_gps_s=time, pos_ecef_m=state[:, models.POS].copy(),
                         cov_ecef_m2=cov[:, models.POS, models.POS].copy(), clock_m=state[:, models.CLOCK].copy(),
                         n_used=n_used, status=status, vel_ecef_m_s=state[:, models.VEL].copy(),
-                        info={"state": state, "cov": cov, "n_gated": n_gated, "n_usable": usable.sum(1),
-                              "n_doppler": n_doppler, "clock_realigned": clock_realigned, "config": cfg})
+                        info=info | {"state": state, "cov": cov})
 
 
 @register("plain-ekf")
@@ -249,9 +263,9 @@ class PlainEkf(LfgnssEkf):
     """The baseline: the same EKF, gate and resets with hand-set ``HeuristicNoise`` R and no v^c."""
 
     def __init__(self, noise: HeuristicNoise | None = None, config: EkfConfig | None = None,
-                 name: str = "plain-ekf") -> None:
+                 name: str = "plain-ekf", smooth: bool = False) -> None:
         super().__init__(noise=HeuristicNoise() if noise is None else noise, config=config, name=name,
-                         use_compensation=False)
+                         use_compensation=False, smooth=smooth)
 
 
 __all__ = ["config_of", "LfgnssEkf", "PlainEkf", "compensated_pseudorange", "usable_measurements", "coarse_available"]

@@ -22,6 +22,7 @@ SAMPLE_NAV = (SAMPLE_DIR / "brdc1580.16n.gz", SAMPLE_DIR / "brdc1580.16g.gz")
 SAMPLE_TRUTH = SAMPLE_DIR / "Berlin_Potsdamer_Platz_GT.txt"
 DEFAULT_MODEL = bundled_data_dir() / "model" / "lfgnss-default.npz"
 LEARNED_BACKENDS = ("ekf", "fgo")
+SMOOTHABLE_BACKENDS = ("ekf", "plain-ekf")
 
 
 class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
@@ -51,6 +52,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--truth-origin", type=float, default=None,
                    help="GPS seconds of t=0 for smartloc truth (default: first epoch)")
     p.add_argument("--mode", default="batch", choices=("batch", "fixed-lag"), help="fgo mode")
+    p.add_argument("--smooth", action="store_true",
+                   help="ekf, plain-ekf: smooth the filter's run backwards (Rauch-Tung-Striebel; post-processing)")
     p.add_argument("--out", type=Path, default=Path("lfgnss-out"), help="output folder")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     p.add_argument("--quiet", action="store_true", help="print only the accuracy table")
@@ -88,6 +91,9 @@ def run(args) -> int:
     from .outputs import plot_solution, write_csv, write_geojson, write_kml, write_pos
     from .spp import spp
 
+    if args.smooth and args.backend not in SMOOTHABLE_BACKENDS:
+        raise ValueError(f"--smooth applies to --backend {' and '.join(SMOOTHABLE_BACKENDS)}, not {args.backend} "
+                         f"(the factor graph's batch mode already uses every epoch)")
     sample = args.obs is None
     obs = SAMPLE_OBS if sample else args.obs
     nav = list(SAMPLE_NAV) if sample else (args.nav or [])
@@ -125,7 +131,11 @@ def run(args) -> int:
     options = {"noise": noise} if noise is not None else {}
     if args.backend == "fgo":
         options["mode"] = args.mode
+    label = f"{args.backend}+rts" if args.smooth else args.backend
+    if args.smooth:
+        options["smooth"] = True
     estimator = estimators.create(args.backend, **options)
+    estimator.name = label
     solution = estimator.solve(seq)
 
     args.out.mkdir(parents=True, exist_ok=True)
@@ -137,7 +147,7 @@ def run(args) -> int:
 
     if not args.quiet:
         summary = fix.summary()
-        print(f"{obs}: {summary['epochs']} epochs, systems {''.join(meas.systems)}, backend {args.backend} "
+        print(f"{obs}: {summary['epochs']} epochs, systems {''.join(meas.systems)}, backend {label} "
               f"({noise_text})")
         print(f"coarse fix: {summary['epoch_status']}; observations: {summary['observations']}")
         if meas.warnings:
@@ -148,7 +158,7 @@ def run(args) -> int:
         print(f"outputs: {', '.join(str(p) for p in written[:4])}" + (f" and {len(written) - 4} plots" if len(written) > 4 else ""))
     if truth is not None:
         rows = [accuracy_table(fix.pos_ecef_m, truth, fix.ok, method="least squares (coarse)"),
-                accuracy_table(solution.pos_ecef_m, truth, solution.available, method=args.backend)]
+                accuracy_table(solution.pos_ecef_m, truth, solution.available, method=label)]
         print(format_text(rows))
     return 0
 

@@ -9,7 +9,7 @@ def nb(cells, path):
     nbf.write(n, path)
 
 nb([
-("md", "# Comparing estimators\n\nEqual-weight least squares, the plain EKF (hand-set C/N0 noise, innovation gate), and the LF-GNSS EKF and factor graph with the shipped model, on the bundled Berlin drive (smartLoc, CC BY-SA 4.0) and, when present, on a shared benchmark dataset's test split."),
+("md", "# Comparing estimators\n\nEqual-weight least squares, the plain EKF (hand-set C/N0 noise, innovation gate), and the LF-GNSS EKF (forward, and smoothed backwards with `smooth=True` for post-processing) and factor graph with the shipped model, on the bundled Berlin drive (smartLoc, CC BY-SA 4.0) and, when present, on a shared benchmark dataset's test split."),
 ("code", """import warnings
 warnings.simplefilter("ignore", FutureWarning)
 import numpy as np
@@ -37,7 +37,9 @@ print(fix.summary())"""),
 
 def compare(seq):
     runs = {"least squares": estimators.create("wls"), "plain EKF": estimators.create("plain-ekf"),
-            "LF-GNSS EKF": estimators.create("ekf", **learned()), "LF-GNSS FGO": estimators.create("fgo", **learned())}
+            "LF-GNSS EKF": estimators.create("ekf", **learned()),
+            "LF-GNSS EKF + RTS smoother": estimators.create("ekf", smooth=True, **learned()),
+            "LF-GNSS FGO": estimators.create("fgo", **learned())}
     sols = {name: est.solve(seq) for name, est in runs.items()}
     rows = [accuracy_table(s.pos_ecef_m, seq.truth_ecef_m, s.available, method=name) for name, s in sols.items()]
     return sols, rows

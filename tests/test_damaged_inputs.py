@@ -305,13 +305,14 @@ def test_gap_restarts_the_filter(corpus, tmp_path):
     assert rows[k]["status"] == "reset" and all(r["status"] != "none" for r in rows)
 
 
-@pytest.mark.parametrize("backend, mode", [("ekf", None), ("fgo", "batch"), ("fgo", "fixed-lag")])
+@pytest.mark.parametrize("backend, mode", [("ekf", None), ("ekf", "smooth"), ("fgo", "batch"), ("fgo", "fixed-lag")])
 def test_tunnel_is_coasted(corpus, backend, mode, tmp_path):
     """60 s of epochs without satellites: coasted, then updated again; never a traceback."""
     folder, cases = corpus
     case = cases["obs_empty_epochs"]
     out = tmp_path / "out"
-    args = _cli_args(folder, case, out, backend) + (["--mode", mode] if mode else [])
+    args = _cli_args(folder, case, out, backend) + (["--smooth"] if mode == "smooth" else
+                                                     ["--mode", mode] if mode else [])
     code, stdout, stderr = _cli(args)
     assert "Traceback" not in stdout + stderr
     assert code == 0, stderr
@@ -319,6 +320,13 @@ def test_tunnel_is_coasted(corpus, backend, mode, tmp_path):
     start, stop = case.extra["tunnel"]
     assert all(r["status"] == "coasted" for r in rows[start:stop])
     assert all(r["status"] in ("updated", "reset") for r in rows[stop + 2:])
+
+
+def test_smoothing_a_backend_without_it_is_one_line(corpus, tmp_path):
+    folder, cases = corpus
+    code, stdout, stderr = _cli(_cli_args(folder, cases["obs_gap"], tmp_path, backend="fgo") + ["--smooth"])
+    assert code == 2 and stderr.count("\n") == 1 and "--smooth applies to --backend ekf and plain-ekf" in stderr
+    assert not (tmp_path / "obs_gap.csv").exists()
 
 
 def test_truncated_gzip_keeps_what_could_be_decompressed(corpus):
