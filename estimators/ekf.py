@@ -20,6 +20,7 @@ implements exactly this logic, batched and differentiable.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import fields
 
 import numpy as np
@@ -31,7 +32,7 @@ from . import models
 from .base import STATUS_COASTED, STATUS_NONE, STATUS_RESET, STATUS_UPDATED, Solution, register
 from .models import EkfConfig
 from .noise import HeuristicNoise, NoiseModel
-from .smoother import rts_smooth
+from .smoother import lag_horizon, rts_smooth
 
 
 def compensated_pseudorange(pr_m: np.ndarray, vc_m: np.ndarray) -> np.ndarray:
@@ -90,15 +91,21 @@ class LfgnssEkf:
         Post-process the forward run with the Rauch-Tung-Striebel smoother (``estimators.smoother``): each
         epoch then uses the epochs after it too, up to the next re-initialisation. Gates, resets and
         statuses are the forward filter's; ``info["filtered_state"]`` keeps its states.
+    smooth_lag_s : float
+        With ``smooth``: use only the epochs up to this many seconds later (a fixed-lag smoother, whose
+        estimate of an epoch is ready that much later); ``inf``: the whole run.
     """
 
     def __init__(self, noise: NoiseModel | None = None, config: EkfConfig | None = None, name: str = "ekf",
-                 use_compensation: bool = True, smooth: bool = False) -> None:
+                 use_compensation: bool = True, smooth: bool = False, smooth_lag_s: float = math.inf) -> None:
+        if not smooth_lag_s >= 0:
+            raise ValueError(f"estimators/ekf.py: smooth_lag_s must be >= 0, got {smooth_lag_s}")
         self.noise = HeuristicNoise() if noise is None else noise
         self.config = config_of(self.noise) if config is None else config
         self.name = name
         self.use_compensation = use_compensation
         self.smooth = smooth
+        self.smooth_lag_s = float(smooth_lag_s)
 
     def noise_arrays(self, sequence: Sequence, usable: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(r_m2, vc_m), each (T, N), from the noise model, checked on the usable slots."""
@@ -251,7 +258,8 @@ class LfgnssEkf:
         info = {"n_gated": n_gated, "n_usable": usable.sum(1), "n_doppler": n_doppler,
                 "clock_realigned": clock_realigned, "config": cfg, "filtered_state": state}
         if self.smooth:
-            state, cov = rts_smooth(state, cov, prior, prior_cov, steps, status == STATUS_RESET)
+            horizon = lag_horizon(time, self.smooth_lag_s) if math.isfinite(self.smooth_lag_s) else None
+            state, cov = rts_smooth(state, cov, prior, prior_cov, steps, status == STATUS_RESET, horizon)
         return Solution(backend=self.name, time_gps_s=time, pos_ecef_m=state[:, models.POS].copy(),
                         cov_ecef_m2=cov[:, models.POS, models.POS].copy(), clock_m=state[:, models.CLOCK].copy(),
                         n_used=n_used, status=status, vel_ecef_m_s=state[:, models.VEL].copy(),
@@ -263,9 +271,9 @@ class PlainEkf(LfgnssEkf):
     """The baseline: the same EKF, gate and resets with hand-set ``HeuristicNoise`` R and no v^c."""
 
     def __init__(self, noise: HeuristicNoise | None = None, config: EkfConfig | None = None,
-                 name: str = "plain-ekf", smooth: bool = False) -> None:
+                 name: str = "plain-ekf", smooth: bool = False, smooth_lag_s: float = math.inf) -> None:
         super().__init__(noise=HeuristicNoise() if noise is None else noise, config=config, name=name,
-                         use_compensation=False, smooth=smooth)
+                         use_compensation=False, smooth=smooth, smooth_lag_s=smooth_lag_s)
 
 
 __all__ = ["config_of", "LfgnssEkf", "PlainEkf", "compensated_pseudorange", "usable_measurements", "coarse_available"]

@@ -4,8 +4,8 @@ For each dataset: RTKLIB ``rnx2rtkp`` (when installed), equal-weight and weighte
 plain EKF, the LF-GNSS EKF and factor graph with the shipped (joint) model, the three ablation models
 (w/o DPC, w/o HEM, w/o both) in the EKF, and the EKF and factor graph with the dataset's own model
 (``lfgnss-<dataset id>.npz``, trained on that dataset's train split only) where there is one. The plain and
-LF-GNSS EKFs also run with the RTS smoother (``estimators.smoother``, post-processing) as rows of their own. Writes a
-Markdown results table (all test epochs, and the epochs RTKLIB solved, and each learned row against the
+LF-GNSS EKFs also run with the RTS smoother (``estimators.smoother``, post-processing) as rows of their own.
+Writes a Markdown results table (all test epochs, and the epochs RTKLIB solved, and each learned row against the
 targets and yardstick of BENCHMARK.md), CDF and track PNGs per dataset.
 """
 from __future__ import annotations

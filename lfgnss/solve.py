@@ -54,6 +54,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--mode", default="batch", choices=("batch", "fixed-lag"), help="fgo mode")
     p.add_argument("--smooth", action="store_true",
                    help="ekf, plain-ekf: smooth the filter's run backwards (Rauch-Tung-Striebel; post-processing)")
+    p.add_argument("--smooth-lag", type=float, default=None, metavar="SECONDS",
+                   help="with --smooth: a fixed-lag smoother, each epoch using the epochs up to SECONDS later")
     p.add_argument("--out", type=Path, default=Path("lfgnss-out"), help="output folder")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     p.add_argument("--quiet", action="store_true", help="print only the accuracy table")
@@ -91,6 +93,8 @@ def run(args) -> int:
     from .outputs import plot_solution, write_csv, write_geojson, write_kml, write_pos
     from .spp import spp
 
+    if args.smooth_lag is not None and not (args.smooth and args.smooth_lag >= 0):
+        raise ValueError(f"--smooth-lag needs --smooth and a lag >= 0 seconds, got {args.smooth_lag}")
     if args.smooth and args.backend not in SMOOTHABLE_BACKENDS:
         raise ValueError(f"--smooth applies to --backend {' and '.join(SMOOTHABLE_BACKENDS)}, not {args.backend} "
                          f"(the factor graph's batch mode already uses every epoch)")
@@ -131,9 +135,13 @@ def run(args) -> int:
     options = {"noise": noise} if noise is not None else {}
     if args.backend == "fgo":
         options["mode"] = args.mode
-    label = f"{args.backend}+rts" if args.smooth else args.backend
+    label = args.backend
     if args.smooth:
         options["smooth"] = True
+        label += "+rts"
+        if args.smooth_lag is not None:
+            options["smooth_lag_s"] = args.smooth_lag
+            label += f" (lag {args.smooth_lag:g} s)"
     estimator = estimators.create(args.backend, **options)
     estimator.name = label
     solution = estimator.solve(seq)

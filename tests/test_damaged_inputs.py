@@ -322,11 +322,24 @@ def test_tunnel_is_coasted(corpus, backend, mode, tmp_path):
     assert all(r["status"] in ("updated", "reset") for r in rows[stop + 2:])
 
 
-def test_smoothing_a_backend_without_it_is_one_line(corpus, tmp_path):
+@pytest.mark.parametrize("backend, extra, message", [
+    ("fgo", ["--smooth"], "--smooth applies to --backend ekf and plain-ekf"),
+    ("ekf", ["--smooth-lag", "5"], "--smooth-lag needs --smooth"),
+    ("ekf", ["--smooth", "--smooth-lag", "-1"], "a lag >= 0 seconds, got -1.0")])
+def test_smoothing_options_misused_is_one_line(corpus, tmp_path, backend, extra, message):
     folder, cases = corpus
-    code, stdout, stderr = _cli(_cli_args(folder, cases["obs_gap"], tmp_path, backend="fgo") + ["--smooth"])
-    assert code == 2 and stderr.count("\n") == 1 and "--smooth applies to --backend ekf and plain-ekf" in stderr
+    code, stdout, stderr = _cli(_cli_args(folder, cases["obs_gap"], tmp_path, backend=backend) + extra)
+    assert code == 2 and stderr.count("\n") == 1 and message in stderr, stderr
     assert not (tmp_path / "obs_gap.csv").exists()
+
+
+def test_fixed_lag_smoothing_from_the_command_line(corpus, tmp_path):
+    folder, cases = corpus
+    code, stdout, stderr = _cli(_cli_args(folder, cases["obs_gap"], tmp_path) + ["--smooth", "--smooth-lag", "5"])
+    assert code == 0, stderr
+    assert "ekf+rts (lag 5 s)" in stdout
+    rows = _read_csv(tmp_path / "obs_gap.csv")
+    assert len(rows) == make_corpus.BASE_EPOCHS and rows[cases["obs_gap"].extra["reset_at"]]["status"] == "reset"
 
 
 def test_truncated_gzip_keeps_what_could_be_decompressed(corpus):

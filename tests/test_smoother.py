@@ -1,13 +1,16 @@
 """RTS smoother (estimators.smoother) against filterpy's and a batch solution, and as the EKF's ``smooth`` option."""
 from __future__ import annotations
 
+import sys
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
+import pytest
 from filterpy.kalman import KalmanFilter
 
 from estimators.base import STATUS_NONE, STATUS_RESET, create
-from estimators.smoother import rts_smooth
+from estimators.smoother import lag_horizon, rts_smooth
 from lfgnss.constants import SPEED_OF_LIGHT_M_S
 from lfgnss.simulate import simulate_sequence
 
@@ -108,6 +111,28 @@ def test_restarts_split_the_run_and_empty_epochs_stay_empty():
     np.testing.assert_array_equal(mean[11], xs[11])                      # a segment's last epoch is its filter's
 
 
+def test_fixed_lag_is_the_whole_run_smoother_on_the_data_up_to_the_horizon():
+    system = _linear_system(3)
+    xs, ps, xp, pp = _kalman_filter(*system)
+    f = system[2]
+    restart = np.zeros(T, bool)
+    restart[[0, 20]] = True
+    full = rts_smooth(xs, ps, xp, pp, f, restart)
+    horizon = np.minimum(np.arange(T) + 4, T - 1)
+    lagged = rts_smooth(xs, ps, xp, pp, f, restart, horizon)
+    for k in (0, 7, 16, 17, 19, 20, 25, T - 1):
+        h = horizon[k] + 1
+        want = rts_smooth(xs[:h], ps[:h], xp[:h], pp[:h], f[:h], restart[:h])
+        np.testing.assert_allclose(lagged[0][k], want[0][k], rtol=1e-12, atol=1e-9)
+        np.testing.assert_allclose(lagged[1][k], want[1][k], rtol=1e-12, atol=1e-9)
+    for a, b in zip(rts_smooth(xs, ps, xp, pp, f, restart, np.full(T, T - 1)), full):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-9)                  # horizon at the end: the full run
+    for a, b in zip(rts_smooth(xs, ps, xp, pp, f, restart, np.arange(T)), (xs, ps)):
+        np.testing.assert_array_equal(a, b)                                      # no lag: the filter
+    np.testing.assert_array_equal(lag_horizon(np.array([0.0, 0.2, 0.4, 1.0, 3.0]), 0.5), [2, 2, 2, 3, 4])
+    np.testing.assert_array_equal(lag_horizon(np.arange(6) * 0.2, 0.6), [3, 4, 5, 5, 5, 5])   # 0.2 * 3 != 0.6
+
+
 def _err(sol, seq) -> np.ndarray:
     return np.linalg.norm(sol.pos_ecef_m - seq.truth_ecef_m, axis=1)
 
@@ -125,6 +150,12 @@ def test_smoothed_ekf_is_more_accurate_and_keeps_the_forward_run():
     assert (np.trace(smoothed.cov_ecef_m2[:-1], axis1=1, axis2=2) < np.trace(forward.cov_ecef_m2[:-1], axis1=1,
                                                                               axis2=2)).all()
     assert (np.linalg.eigvalsh(smoothed.cov_ecef_m2) > 0).all()
+    # a fixed lag lies in between: no lag is the filter, a lag longer than the run is the whole-run smoother
+    lags = {lag: create("plain-ekf", smooth=True, smooth_lag_s=lag).solve(seq) for lag in (0.0, 5.0, 1e6)}
+    np.testing.assert_array_equal(lags[0.0].pos_ecef_m, forward.pos_ecef_m)
+    np.testing.assert_allclose(lags[1e6].pos_ecef_m, smoothed.pos_ecef_m, rtol=0, atol=1e-6)
+    lag5 = float(np.sqrt(np.mean(_err(lags[5.0], seq)[10:] ** 2)))
+    assert rms[1] <= lag5 < rms[0]
 
 
 def test_smoothing_neither_smears_a_clock_jump_nor_crosses_a_reset():
@@ -169,3 +200,25 @@ def test_smoothing_helps_the_shipped_model_on_the_bundled_drive():
             for sol in (create("ekf", noise=noise).solve(seq), create("ekf", noise=noise, smooth=True).solve(seq))]
     assert rows[0]["availability"] == rows[1]["availability"] == 1.0
     assert rows[1]["rmse_3d_m"] < 0.9 * rows[0]["rmse_3d_m"] and rows[1]["rmse_2d_m"] < rows[0]["rmse_2d_m"]
+
+
+def test_lag_benchmark_script_on_a_validation_split(tmp_path):
+    """``benchmarks/smoothing_lag.py``: its forward column is the filter, its last the whole-run smoother."""
+    from lfgnss import datasets
+    from lfgnss.metrics import accuracy_table
+
+    if datasets.get("hk-tst-static-2020").missing():
+        pytest.skip(f"shared data missing ({datasets.get('hk-tst-static-2020').missing()[0]})")
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import smoothing_lag
+
+    rows = smoothing_lag.run(["hk-tst-static-2020"], "val")
+    assert len(rows) == 2 * len(smoothing_lag.LAGS_S) and all(r["availability"] == 1.0 for r in rows)
+    seq = datasets.load_split("hk-tst-static-2020", "val")[0]
+    for smooth, lag in ((False, 0.0), (True, float("inf"))):
+        sol = create("plain-ekf", smooth=smooth).solve(seq)
+        want = accuracy_table(sol.pos_ecef_m, seq.truth_ecef_m, sol.available)["rmse_3d_m"]
+        assert [r["rmse_3d_m"] for r in rows if r["filter"] == "plain EKF" and r["lag_s"] == lag] == [want]
+    page = smoothing_lag.markdown(rows, "val", "cmd")
+    assert "| forward | 1 s |" in page and "whole run |" in page and page.count("| plain EKF |") == 1
+    assert smoothing_lag.plot(rows, tmp_path / "lag.png", "val").stat().st_size > 10_000
