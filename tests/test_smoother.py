@@ -94,12 +94,16 @@ def test_smoother_matches_filterpy_without_inputs():
     np.testing.assert_allclose(cov, want_p, rtol=1e-9, atol=1e-9)
 
 
-def test_restarts_split_the_run_and_empty_epochs_stay_empty():
-    system = _linear_system(2)
-    xs, ps, xp, pp = _kalman_filter(*system)
-    f = system[2]
+def _filtered_run(seed: int, restarts: list[int]):
+    """A filter run of a random system: posteriors, priors, transitions and a restart mask."""
+    system = _linear_system(seed)
     restart = np.zeros(T, bool)
-    restart[[0, 12]] = True
+    restart[restarts] = True
+    return (*_kalman_filter(*system), system[2], restart)
+
+
+def test_restarts_split_the_run_and_empty_epochs_stay_empty():
+    xs, ps, xp, pp, f, restart = _filtered_run(2, [0, 12])
     xs[:3], ps[:3] = np.nan, np.nan                                      # no state yet
     restart[3] = True
     mean, cov = rts_smooth(xs, ps, xp, pp, f, restart)
@@ -112,11 +116,7 @@ def test_restarts_split_the_run_and_empty_epochs_stay_empty():
 
 
 def test_fixed_lag_is_the_whole_run_smoother_on_the_data_up_to_the_horizon():
-    system = _linear_system(3)
-    xs, ps, xp, pp = _kalman_filter(*system)
-    f = system[2]
-    restart = np.zeros(T, bool)
-    restart[[0, 20]] = True
+    xs, ps, xp, pp, f, restart = _filtered_run(3, [0, 20])
     full = rts_smooth(xs, ps, xp, pp, f, restart)
     horizon = np.minimum(np.arange(T) + 4, T - 1)
     lagged = rts_smooth(xs, ps, xp, pp, f, restart, horizon)
