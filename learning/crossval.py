@@ -12,7 +12,8 @@ EKF settings) on its held-out block, the bar the learned model has to clear.
 
 Reported per fold and pooled over folds (RMSE pooled by epochs): the plain EKF, the untrained network
 (epoch 0), the last epoch (the honest figure of a fixed schedule) and the best epoch (optimistic: it
-is picked on the held-out block itself). "untrained" has a random output head, so it is near, not equal
+is picked on the held-out block itself); and the plain EKF and the last epoch with the RTS smoother
+(``estimators.smoother``; training itself reads smoothed positions only with ``train.smooth``). "untrained" has a random output head, so it is near, not equal
 to, the plain EKF even for a recipe with the hand-set R prior. Writes ``crossval.csv`` and ``crossval.md``
 in ``--out`` and each fold's run (``log.csv``, ``curves.png``, ``best.pt``, ``last.pt``) in ``--out/fold<j>/``.
 """
@@ -35,7 +36,7 @@ from .train import (adopt_init, ekf_config, init_model, load_config, load_sequen
                     trained_datasets)
 
 COLUMNS = ["fold", "held_out_epochs", "plain_ekf_rmse_3d_m", "untrained_rmse_3d_m", "last_rmse_3d_m",
-           "best_rmse_3d_m", "best_epoch"]
+           "best_rmse_3d_m", "best_epoch", "plain_ekf_smoothed_rmse_3d_m", "last_smoothed_rmse_3d_m"]
 
 
 def fold_sequences(sequences: list[Sequence], folds: int, fold: int,
@@ -62,15 +63,27 @@ def fold_sequences(sequences: list[Sequence], folds: int, fold: int,
     return train, held
 
 
-def plain_ekf_rmse_3d_m(sequences: list[Sequence], config: dict) -> float:
-    """3D RMSE [m] of the plain EKF over the labelled epochs of ``sequences``, pooled."""
+def plain_ekf_rmse_3d_m(sequences: list[Sequence], config: dict, smooth: bool = False) -> float:
+    """3D RMSE [m] of the plain EKF (with ``smooth``, RTS-smoothed) over the labelled epochs of ``sequences``, pooled."""
     from estimators.ekf import PlainEkf
 
     rows = []
     for seq in sequences:
-        sol = PlainEkf(config=ekf_config(config)).solve(seq)
+        sol = PlainEkf(config=ekf_config(config), smooth=smooth).solve(seq)
         rows.append(accuracy_table(sol.pos_ecef_m, seq.truth_ecef_m, sol.available))
     return pooled_rmse([r["rmse_3d_m"] for r in rows], [r["n_solved"] for r in rows])
+
+
+def _smoothed_rmse(checkpoint: Path, config: dict, prep) -> float:
+    """3D RMSE [m] over the held-out block of a fold's saved (exported) weights, RTS-smoothed."""
+    import torch
+
+    from .train import build_model, evaluate
+
+    saved = torch.load(checkpoint, map_location="cpu", weights_only=False)
+    model = build_model(config, len(prep.feature_names), prep.normaliser)
+    model.load_state_dict(saved["model"])
+    return evaluate(model, prep.val_batches, n_systems=prep.n_systems, ekf_cfg=ekf_config(config), smooth=True)[0]
 
 
 def pooled_rmse(rmse: list[float], counts: list[int]) -> float:
@@ -102,14 +115,17 @@ def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = 
             return parts[ds][0] if split == data["train_split"] else parts[ds][1]
 
         held = [s for _, h in parts.values() for s in h]
-        history = train(copy.deepcopy(config), out / f"fold{j}", progress=progress,
-                        prepared=prepare(config, source), export=False)
+        prep = prepare(config, source)
+        history = train(copy.deepcopy(config), out / f"fold{j}", progress=progress, prepared=prep, export=False)
         best = min(history, key=lambda h: h["val_rmse_3d_m"])
         rows.append({"fold": j, "held_out_epochs": sum(len(s) for s in held),
                      "plain_ekf_rmse_3d_m": plain_ekf_rmse_3d_m(held, config),
                      "untrained_rmse_3d_m": history[0]["val_rmse_3d_m"], "last_rmse_3d_m": history[-1]["val_rmse_3d_m"],
-                     "best_rmse_3d_m": best["val_rmse_3d_m"], "best_epoch": best["epoch"]})
-    keys = ["plain_ekf_rmse_3d_m", "untrained_rmse_3d_m", "last_rmse_3d_m", "best_rmse_3d_m"]
+                     "best_rmse_3d_m": best["val_rmse_3d_m"], "best_epoch": best["epoch"],
+                     "plain_ekf_smoothed_rmse_3d_m": plain_ekf_rmse_3d_m(held, config, smooth=True),
+                     "last_smoothed_rmse_3d_m": _smoothed_rmse(out / f"fold{j}" / "last.pt", config, prep)})
+    keys = ["plain_ekf_rmse_3d_m", "untrained_rmse_3d_m", "last_rmse_3d_m", "best_rmse_3d_m",
+            "plain_ekf_smoothed_rmse_3d_m", "last_smoothed_rmse_3d_m"]
     rows.append({"fold": "pooled", "held_out_epochs": sum(r["held_out_epochs"] for r in rows),
                  **{k: pooled_rmse([r[k] for r in rows], [r["held_out_epochs"] for r in rows]) for k in keys},
                  "best_epoch": "-"})

@@ -20,6 +20,9 @@ realigned and gated again. The reset result is taken at the first epoch with a c
 farther than ``reset_distance_m`` from the coarse fix; in the rows that reset, satellites failing the
 post-fit check are dropped and the reset prior updated again. The gate decision (a hard mask) and
 the reset choice carry no gradient; everything else does.
+
+``rts_smooth`` runs the plug-in's RTS smoother (``estimators.smoother``) backwards over such a run, for
+training with ``train.smooth``.
 """
 from __future__ import annotations
 
@@ -58,6 +61,9 @@ class EkfOutput:
         Usable satellites rejected by the gate.
     n_doppler : (B, T) int64
         Dopplers used in the update.
+    prior_state, prior_cov, transition : (B, T, n), (B, T, n, n), (B, T, n, n)
+        The prior each epoch's normal update started from (after any clock realignment) and the transition
+        ``F`` from the epoch before, for the RTS smoother (``rts_smooth``); unused where an epoch reset.
     """
 
     pos_ecef_m: torch.Tensor
@@ -67,6 +73,9 @@ class EkfOutput:
     status: torch.Tensor
     n_gated: torch.Tensor
     n_doppler: torch.Tensor
+    prior_state: torch.Tensor
+    prior_cov: torch.Tensor
+    transition: torch.Tensor
 
 
 def geometric_range_m(sat_ecef_m: torch.Tensor, rcv_ecef_m: torch.Tensor) -> torch.Tensor:
@@ -243,7 +252,7 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor, vc_m: torch.Tensor, *, n_s
     P = P0.expand(b_len, n, n)
     started = torch.zeros(b_len, dtype=torch.bool, device=dev)
     prev_status = torch.full((b_len,), STATUS_NONE, dtype=torch.int64, device=dev)
-    xs, Ps, used_out, gated_out, status_out, dop_out = [], [], [], [], [], []
+    xs, Ps, used_out, gated_out, status_out, dop_out, priors, prior_Ps, Fs = [], [], [], [], [], [], [], [], []
     for k in range(t_len):
         dt = dt_all[:, k, None, None]
         F = eye + dt * A
@@ -271,6 +280,7 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor, vc_m: torch.Tensor, *, n_s
             if not config.gate_sigma > 0:
                 reset_g = torch.zeros_like(reset_g)
         n_used_n, n_rej_n, n_dop_n = n_used2[:b_len], n_rej2[:b_len], n_dop2[:b_len]
+        x_prior = x_pred
         if bool(reset_g.any()):
             # Mostly gated: a receiver clock jump if the median innovation is one (as the plug-in does).
             shift = _clock_shift(x_pred, sat_all[:, k], clock_rows_all[:, k], z_all[:, k], usable_all[:, k])
@@ -284,6 +294,7 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor, vc_m: torch.Tensor, *, n_s
             with torch.no_grad():
                 realigned = try_jump & ~(n_rej_c.to(f64) > config.reset_gated_fraction * n_usable.to(f64))
             x_n = torch.where(realigned[:, None], xc, x_n)
+            x_prior = torch.where(realigned[:, None], x_c, x_pred)
             P_n = torch.where(realigned[:, None, None], Pc, P_n)
             n_used_n = torch.where(realigned, n_used_c, n_used_n)
             n_rej_n = torch.where(realigned, n_rej_c, n_rej_n)
@@ -320,6 +331,9 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor, vc_m: torch.Tensor, *, n_s
         prev_status = status
         xs.append(x)
         Ps.append(P)
+        priors.append(x_prior)
+        prior_Ps.append(P_pred)
+        Fs.append(F.expand(b_len, n, n))
         status_out.append(status)
         used_out.append(torch.where(reset, n_used_r, torch.where(keep_n, n_used_n, 0)))
         gated_out.append(torch.where(reset, n_rej_r, torch.where(keep_n, n_rej_n, 0)))
@@ -330,7 +344,29 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor, vc_m: torch.Tensor, *, n_s
     pos = torch.where((status == STATUS_NONE)[..., None], torch.full((), float("nan"), dtype=f64, device=dev),
                       state[..., :3])
     return EkfOutput(pos_ecef_m=pos, state=state, cov=torch.stack(Ps, 1), n_used=torch.stack(used_out, 1),
-                     status=status, n_gated=torch.stack(gated_out, 1), n_doppler=torch.stack(dop_out, 1))
+                     status=status, n_gated=torch.stack(gated_out, 1), n_doppler=torch.stack(dop_out, 1),
+                     prior_state=torch.stack(priors, 1), prior_cov=torch.stack(prior_Ps, 1),
+                     transition=torch.stack(Fs, 1))
 
 
-__all__ = ["EkfOutput", "batch_ekf", "geometric_range_m"]
+def rts_smooth(out: EkfOutput) -> torch.Tensor:
+    """Smoothed positions (B, T, 3) [m] of a filter run: ``estimators.smoother.rts_smooth`` over each window.
+
+    Batched and differentiable; a reset ends a segment and epochs before the first fix stay NaN, as there.
+    """
+    status = out.status
+    started = status != STATUS_NONE
+    link = started[:, :-1] & started[:, 1:] & (status[:, 1:] != STATUS_RESET)    # epoch k+1 follows from k
+    t_len = status.shape[1]
+    smoothed = [out.state[:, -1]]
+    for k in range(t_len - 2, -1, -1):
+        f, pp = out.transition[:, k + 1], out.prior_cov[:, k + 1]
+        gain = torch.linalg.solve(pp, f @ out.cov[:, k]).transpose(-1, -2)        # P F^T Pp^-1, Pp symmetric
+        x = out.state[:, k] + (gain @ (smoothed[-1] - out.prior_state[:, k + 1])[..., None])[..., 0]
+        smoothed.append(torch.where(link[:, k, None], x, out.state[:, k]))
+    state = torch.stack(smoothed[::-1], 1)
+    return torch.where((status == STATUS_NONE)[..., None], torch.full((), float("nan"), dtype=state.dtype,
+                                                                      device=state.device), state[..., :3])
+
+
+__all__ = ["EkfOutput", "batch_ekf", "rts_smooth", "geometric_range_m"]

@@ -68,7 +68,7 @@ DEFAULT_CONFIG: dict[str, Any] = {
     "model": {"d_model": 64, "n_heads": 4, "hidden": [64, 128, 64], "r_floor_m2": 0.01, "r_scale_m2": 1.0,
               "r_init_m2": None, "r_prior": "none", "compensation": True},
     "train": {"epochs": 200, "batch_size": 16, "lr": 1.0e-3, "t_max": 50, "eta_min": 1.0e-4, "grad_clip": 0.0,
-              "weight_decay": 0.0, "select": "val", "ema_decay": 0.0, "init": ""},
+              "weight_decay": 0.0, "select": "val", "ema_decay": 0.0, "init": "", "smooth": False},
     "loss": {"kind": "hem", "alpha": 0.75, "gamma": 1.5, "lambda": 1.0},
     "ekf": {},
 }
@@ -132,6 +132,8 @@ def check_config(config: dict) -> dict:
         raise ValueError(f"train.ema_decay must be a number in [0, 1), got {ema!r}")
     if not isinstance(config["train"].get("init", ""), str):
         raise ValueError(f"train.init must be the path of a model file (a string), got {config['train']['init']!r}")
+    if not isinstance(config["train"].get("smooth", False), bool):
+        raise ValueError(f"train.smooth must be true or false, got {config['train']['smooth']!r}")
     if not isinstance(config["model"].get("compensation", True), bool):
         raise ValueError(f"model.compensation must be true or false, got {config['model']['compensation']!r}")
     return config
@@ -290,24 +292,26 @@ def build_model(config: dict, n_features: int, normaliser: Normaliser | None = N
                      compensation=bool(m.get("compensation", True)))
 
 
-def run_filter(model: LfgnssNet, batch: WindowBatch, *, n_systems: int, ekf_cfg) -> torch.Tensor:
-    """Filtered positions (B, T, 3) [m] with the network's R and v^c."""
-    from .torch_ekf import batch_ekf
+def run_filter(model: LfgnssNet, batch: WindowBatch, *, n_systems: int, ekf_cfg, smooth: bool = False
+               ) -> torch.Tensor:
+    """Filtered (or, with ``smooth``, RTS-smoothed) positions (B, T, 3) [m] with the network's R and v^c."""
+    from .torch_ekf import batch_ekf, rts_smooth
 
     r, vc = model(batch.features, batch.mask)
     out = batch_ekf(batch, r.to(torch.float64), vc.to(torch.float64), n_systems=n_systems, config=ekf_cfg)
-    return out.pos_ecef_m
+    return rts_smooth(out) if smooth else out.pos_ecef_m
 
 
 @torch.no_grad()
-def evaluate(model: LfgnssNet, batches: list[WindowBatch], *, n_systems: int, ekf_cfg) -> tuple[float, float]:
+def evaluate(model: LfgnssNet, batches: list[WindowBatch], *, n_systems: int, ekf_cfg, smooth: bool = False
+             ) -> tuple[float, float]:
     """(3D RMSE [m], availability) over the labelled epochs of whole-sequence batches."""
     was_training = model.training
     model.eval()
     try:
         sq, n_ok, n_lab = 0.0, 0, 0
         for batch in batches:
-            pos = run_filter(model, batch, n_systems=n_systems, ekf_cfg=ekf_cfg)
+            pos = run_filter(model, batch, n_systems=n_systems, ekf_cfg=ekf_cfg, smooth=smooth)
             n_lab += int(torch.isfinite(batch.truth_ecef_m).all(dim=-1).sum())
             L, _ = error_norm_m(pos, batch.truth_ecef_m)
             sq += float((L.double() ** 2).sum())
@@ -475,6 +479,7 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
     prep = prepared or prepare(config)
     ekf_cfg = ekf_config(config)
     tr = config["train"]
+    smooth = bool(tr.get("smooth", False))   # train and validate the RTS-smoothed positions (estimators.smoother)
     model = build_model(config, len(prep.feature_names), prep.normaliser)
     if prep.init is not None:
         if model.hyperparameters() != prep.init.metadata["model"]:
@@ -522,7 +527,7 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
         _set_rng_state(checkpoint["rng"])
     else:
         t0 = time.perf_counter()
-        val, avail = evaluate(kept, prep.val_batches, n_systems=prep.n_systems, ekf_cfg=ekf_cfg)
+        val, avail = evaluate(kept, prep.val_batches, n_systems=prep.n_systems, ekf_cfg=ekf_cfg, smooth=smooth)
         history.append({"epoch": 0, "train_loss": float("nan"), "val_rmse_3d_m": val, "val_availability": avail,
                         "lr": optimiser.param_groups[0]["lr"], "seconds": time.perf_counter() - t0})
         best = val
@@ -544,7 +549,7 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
             chunks = tqdm(chunks, desc=f"epoch {epoch}/{tr['epochs']}", leave=False, file=sys.stderr)
         for idx in chunks:
             batch = _index_batch(prep.train_batch, idx)
-            pos = run_filter(model, batch, n_systems=prep.n_systems, ekf_cfg=ekf_cfg)
+            pos = run_filter(model, batch, n_systems=prep.n_systems, ekf_cfg=ekf_cfg, smooth=smooth)
             loss = loss_fn(pos, batch.truth_ecef_m)
             if not torch.isfinite(loss):
                 raise FloatingPointError(f"epoch {epoch}: non-finite training loss {float(loss)}")
@@ -560,7 +565,7 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
         scheduler.step()
         if averaged is not None:
             averaged.update_parameters(model)
-        val, avail = evaluate(kept, prep.val_batches, n_systems=prep.n_systems, ekf_cfg=ekf_cfg)
+        val, avail = evaluate(kept, prep.val_batches, n_systems=prep.n_systems, ekf_cfg=ekf_cfg, smooth=smooth)
         history.append({"epoch": epoch, "train_loss": total / count, "val_rmse_3d_m": val, "val_availability": avail,
                         "lr": lr, "seconds": time.perf_counter() - t0})
         if val < best:

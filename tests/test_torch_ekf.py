@@ -12,7 +12,7 @@ from estimators.base import STATUS_NONE, STATUS_RESET, STATUS_UPDATED  # noqa: E
 from estimators.ekf import LfgnssEkf  # noqa: E402
 from estimators.models import EkfConfig  # noqa: E402
 from estimators.noise import FixedNoise  # noqa: E402
-from learning.torch_ekf import batch_ekf, geometric_range_m  # noqa: E402
+from learning.torch_ekf import batch_ekf, geometric_range_m, rts_smooth  # noqa: E402
 from learning.types import WindowBatch  # noqa: E402
 from lfgnss.constants import SPEED_OF_LIGHT_M_S  # noqa: E402
 from lfgnss.corrections import geometric_range_m as geometric_range_np  # noqa: E402
@@ -100,6 +100,21 @@ def test_matches_filterpy_plugin(cases):
     assert status[2, 70] == STATUS_UPDATED and status[2, 100] == STATUS_RESET  # clock realigned, divergence
     assert abs(out.state[2, 70, 6].item() - out.state[2, 69, 6].item() - out.state[2, 69, 7].item()
                - 1e-3 * SPEED_OF_LIGHT_M_S) < 10.0                                # clock + drift dt + jump
+
+
+def test_smoother_matches_the_plugins(cases):
+    """The torch RTS pass equals ``LfgnssEkf(smooth=True)`` through resets, a late start and a clock jump."""
+    seqs, r, vc = cases
+    r_t = torch.as_tensor(r).requires_grad_()
+    out = batch_ekf(to_batch(seqs), r_t, torch.as_tensor(vc), n_systems=2, config=CONFIG)
+    pos = rts_smooth(out)
+    for i, s in enumerate(seqs):
+        sol = LfgnssEkf(noise=FixedNoise(r[i], vc[i]), config=CONFIG, smooth=True).solve(s)
+        np.testing.assert_allclose(pos[i].detach().numpy(), sol.pos_ecef_m, rtol=0, atol=1e-6, equal_nan=True)
+        assert not np.allclose(sol.pos_ecef_m[5:], out.pos_ecef_m[i, 5:].detach().numpy(), rtol=0, atol=0.01)  # smoothed
+    loss = torch.nan_to_num(pos - torch.as_tensor(np.stack([s.truth_ecef_m for s in seqs]))).square().sum()
+    loss.backward()
+    assert torch.isfinite(r_t.grad).all() and r_t.grad[:, -1].abs().sum() > 0   # the last epoch reaches back
 
 
 def test_clock_jump_realigns_only_the_clock(cases):

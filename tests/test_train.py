@@ -270,3 +270,25 @@ def test_every_config_file_loads():
         init = cfg["train"]["init"]
         if init.startswith("lfgnss/"):
             assert Path(init).is_file(), f"{path}: train.init {init} is not bundled"
+
+
+def test_training_through_the_smoother(config, prepared, full_run, tmp_path):
+    """train.smooth = true: the loss and the validation read the RTS-smoothed positions (learning.torch_ekf)."""
+    import copy
+
+    from learning.train import evaluate
+
+    cfg = copy.deepcopy(config)
+    cfg["train"]["epochs"] = 1
+    cfg["train"]["smooth"] = True
+    history = train(cfg, tmp_path, progress=False, prepared=prepared, export=False)
+    torch.manual_seed(int(cfg["seed"]))
+    untrained = build_model(cfg, len(prepared.feature_names), prepared.normaliser)
+    for smooth, want in ((True, history[0]), (False, full_run[1][0])):
+        got, _ = evaluate(untrained, prepared.val_batches, n_systems=prepared.n_systems, ekf_cfg=ekf_config(cfg),
+                          smooth=smooth)
+        assert got == pytest.approx(want["val_rmse_3d_m"], rel=1e-12)
+    assert history[0]["val_rmse_3d_m"] != full_run[1][0]["val_rmse_3d_m"]
+    assert np.isfinite(history[1]["train_loss"]) and history[1]["train_loss"] != full_run[1][1]["train_loss"]
+    with pytest.raises(ValueError, match="train.smooth"):
+        load_config("learning/configs/default.toml", ["train.smooth='yes'"])
