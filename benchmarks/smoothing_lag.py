@@ -113,8 +113,7 @@ def main(argv: list[str] | None = None) -> int:
     warnings.simplefilter("ignore", FutureWarning)
     sys.path.insert(0, str(REPO))
     rows = run(args.datasets, args.split)
-    command = "python benchmarks/smoothing_lag.py" + (" " + " ".join(argv if argv is not None else sys.argv[1:])
-                                                       if (argv if argv is not None else sys.argv[1:]) else "")
+    command = " ".join(["python benchmarks/smoothing_lag.py", *(sys.argv[1:] if argv is None else argv)])
     text = markdown(rows, args.split, command)
     print(text)
     if args.write:

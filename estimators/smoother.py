@@ -57,8 +57,8 @@ def rts_smooth(x_post: np.ndarray, p_post: np.ndarray, x_prior: np.ndarray, p_pr
     if horizon is None:
         xs, ps = np.array(x_post, float), np.array(p_post, float)
         for k in m[::-1]:
-            one = np.array([k])
-            xs[k], ps[k] = (a[0] for a in step(one + 1, one, xs, ps))
+            x, p = step(np.array([k + 1]), np.array([k]), xs, ps)
+            xs[k], ps[k] = x[0], p[0]
         return xs, ps
 
     # Fixed lag: every epoch's backward pass at once, one step further back per iteration.

@@ -13,8 +13,9 @@ EKF settings) on its held-out block, the bar the learned model has to clear.
 Reported per fold and pooled over folds (RMSE pooled by epochs): the plain EKF, the untrained network
 (epoch 0), the last epoch (the honest figure of a fixed schedule) and the best epoch (optimistic: it
 is picked on the held-out block itself); and the plain EKF and the last epoch with the RTS smoother
-(``estimators.smoother``; training itself reads smoothed positions only with ``train.smooth``). "untrained" has a random output head, so it is near, not equal
-to, the plain EKF even for a recipe with the hand-set R prior. Writes ``crossval.csv`` and ``crossval.md``
+(``estimators.smoother``; training itself reads smoothed positions only with ``train.smooth``).
+"untrained" has a random output head, so it is near, not equal to, the plain EKF even for a recipe with
+the hand-set R prior. Writes ``crossval.csv`` and ``crossval.md``
 in ``--out`` and each fold's run (``log.csv``, ``curves.png``, ``best.pt``, ``last.pt``) in ``--out/fold<j>/``.
 """
 from __future__ import annotations
