@@ -148,7 +148,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", help="output folder (default: runs/cv-<config name>)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     args = p.parse_args(argv)
-    config = load_config(args.config, args.overrides)
+    try:
+        config = load_config(args.config, args.overrides)
+    except ValueError as exc:           # a setting of the wrong kind: one line, exit 2
+        p.error(str(exc))
     out = Path(args.out or Path("runs") / f"cv-{Path(args.config).stem if args.config else 'default'}")
     crossval(config, args.folds, out, progress=not args.no_progress)
     print((out / "crossval.md").read_text(), end="")

@@ -40,26 +40,38 @@ def resolve_feature_names(names: Iterable[str] | None = None, drop: Iterable[str
 
 @dataclass(frozen=True)
 class Window:
-    """Epochs ``start:start + length`` of ``sequences[seq_index]``."""
+    """Epochs ``start:start + length`` of ``sequences[seq_index]``; the first ``burn_in`` are not scored.
+
+    A window cut from the middle of a drive starts the filter cold, from the coarse fix, where the
+    filter it trains runs on from earlier epochs: its first epochs are a start-up transient that a
+    deployed filter only has at the start of a drive. ``burn_in`` epochs run the filter (and pass
+    gradients to later epochs) without their labels; a window at a sequence's start keeps all its
+    labels (``make_windows``), because there the cold start is real.
+    """
 
     seq_index: int
     start: int
     length: int
+    burn_in: int = 0
 
 
-def make_windows(sequences: Seq[Sequence], length: int, stride: int) -> list[Window]:
-    """All windows of ``length`` epochs every ``stride`` epochs that contain at least one label.
+def make_windows(sequences: Seq[Sequence], length: int, stride: int, burn_in: int = 0) -> list[Window]:
+    """All windows of ``length`` epochs every ``stride`` epochs that contain at least one scored label.
 
+    Windows that do not start a sequence leave their first ``burn_in`` epochs unscored (see ``Window``).
     A sequence shorter than ``length`` gives no window. Raises ValueError if no window results.
     """
     if length < 1 or stride < 1:
         raise ValueError(f"window length and stride must be >= 1, got {length}, {stride}")
+    if not 0 <= burn_in < length:
+        raise ValueError(f"burn_in must be >= 0 and shorter than the {length}-epoch window, got {burn_in}")
     out = []
     for i, seq in enumerate(sequences):
         labelled = seq.labelled
         for start in range(0, len(seq) - length + 1, stride):
-            if labelled[start:start + length].any():
-                out.append(Window(i, start, length))
+            skip = burn_in if start > 0 else 0
+            if labelled[start + skip:start + length].any():
+                out.append(Window(i, start, length, skip))
     if not out:
         raise ValueError(f"no labelled window of {length} epochs in {[s.name for s in sequences]}")
     return out
@@ -72,7 +84,7 @@ def collate(sequences: Seq[Sequence], windows: Seq[Window], normaliser: Normalis
     Satellite slots are padded to ``n_slots`` (default: the largest among the windows' sequences)
     and the clock columns to ``n_systems`` (default: the most constellations); padding is masked
     (slots) or zero (clock columns). Features are selected by ``normaliser.feature_names`` and
-    normalised. Geometry is float64, features float32.
+    normalised. Geometry is float64, features float32. A window's burn-in epochs get NaN truth (unscored).
     """
     if not windows:
         raise ValueError("collate: no window given")
@@ -98,7 +110,9 @@ def collate(sequences: Seq[Sequence], windows: Seq[Window], normaliser: Normalis
         parts["features"].append(normaliser.apply(select_features(seq, normaliser.feature_names), seq.mask))
         parts["coarse_ecef_m"].append(seq.coarse_ecef_m)
         parts["coarse_clock_m"].append(clock)
-        parts["truth_ecef_m"].append(seq.truth_ecef_m)
+        truth = seq.truth_ecef_m.copy()
+        truth[:w.burn_in] = np.nan
+        parts["truth_ecef_m"].append(truth)
         parts["prr_m_s"].append(seq.prr_m_s)
         parts["prr_mask"].append(seq.prr_mask)
         parts["sat_vel_ecef_m_s"].append(seq.sat_vel_ecef_m_s)

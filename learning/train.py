@@ -62,6 +62,7 @@ DEFAULT_CONFIG: dict[str, Any] = {
         "register": [],
         "window": 40,
         "stride": 5,
+        "burn_in": 0,
         "synthetic": {"n_epochs": 300, "sats_per_system": 7, "systems": ["G", "C"], "nlos_fraction": 0.2,
                       "train_seeds": [1, 2], "val_seeds": [101]},
     },
@@ -134,6 +135,10 @@ def check_config(config: dict) -> dict:
         raise ValueError(f"train.init must be the path of a model file (a string), got {config['train']['init']!r}")
     if not isinstance(config["train"].get("smooth", False), bool):
         raise ValueError(f"train.smooth must be true or false, got {config['train']['smooth']!r}")
+    burn_in, window = config["data"].get("burn_in", 0), config["data"]["window"]
+    if isinstance(burn_in, bool) or not isinstance(burn_in, int) or not 0 <= burn_in < window:
+        raise ValueError(f"data.burn_in must be a whole number of epochs >= 0 and below data.window ({window}), "
+                         f"got {burn_in!r}")
     if not isinstance(config["model"].get("compensation", True), bool):
         raise ValueError(f"model.compensation must be true or false, got {config['model']['compensation']!r}")
     return config
@@ -382,7 +387,7 @@ def prepare(config: dict, source=None) -> Prepared:
     # a fine-tuned network keeps the normalisation its weights were trained with
     normaliser = Normaliser.fit(train_seqs, names) if init is None else init.normaliser
     n_systems = max(len(s.systems) for s in train_seqs + val_seqs)
-    windows = make_windows(train_seqs, int(data["window"]), int(data["stride"]))
+    windows = make_windows(train_seqs, int(data["window"]), int(data["stride"]), int(data.get("burn_in", 0)))
     short = [f"{s.name} ({int(s.labelled.sum())} labelled epochs)" for s in train_seqs
              if s.labelled.any() and len(s) < data["window"]]
     if short:
@@ -595,7 +600,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     args = p.parse_args(argv)
-    config = load_config(args.config, args.overrides)
+    try:
+        config = load_config(args.config, args.overrides)
+    except ValueError as exc:           # a setting of the wrong kind: one line, exit 2
+        p.error(str(exc))
     out = args.out or str(Path("runs") / (Path(args.config).stem if args.config else "default"))
     history = train(config, out, resume=args.resume, overrides=args.overrides, progress=not args.no_progress)
     from .export import load_model

@@ -292,3 +292,50 @@ def test_training_through_the_smoother(config, prepared, full_run, tmp_path):
     assert np.isfinite(history[1]["train_loss"]) and history[1]["train_loss"] != full_run[1][1]["train_loss"]
     with pytest.raises(ValueError, match="train.smooth"):
         load_config("learning/configs/default.toml", ["train.smooth='yes'"])
+
+
+def test_burn_in_leaves_the_cold_start_of_mid_drive_windows_unscored(config, prepared, tmp_path):
+    """data.burn_in: windows cut mid-sequence run their first epochs unscored; a sequence's first window keeps all."""
+    import copy
+
+    from learning.data import make_windows
+
+    seqs = load_sequences("synthetic", "train", config)
+    plain, burnt = make_windows(seqs, 20, 10), make_windows(seqs, 20, 10, burn_in=8)
+    assert [(w.seq_index, w.start) for w in plain] == [(w.seq_index, w.start) for w in burnt]
+    assert all(w.burn_in == (8 if w.start else 0) for w in burnt) and any(w.start for w in burnt)
+    for bad in (-1, 20):
+        with pytest.raises(ValueError, match="burn_in"):
+            make_windows(seqs, 20, 10, burn_in=bad)
+        with pytest.raises(ValueError, match="data.burn_in must be"):
+            load_config("learning/configs/default.toml", SETTINGS + [f"data.burn_in={bad}"])
+    piece = seqs[0].subset(slice(0, 40))
+    piece.truth_ecef_m[12:] = np.nan                    # labels only in epochs 0-11
+    assert [w.start for w in make_windows([piece], 20, 10, burn_in=1)] == [0, 10]
+    assert [w.start for w in make_windows([piece], 20, 10, burn_in=2)] == [0]
+
+    cfg = copy.deepcopy(config)
+    cfg["data"]["burn_in"] = 8
+    cfg["train"]["epochs"] = 1
+    prep = prepare(cfg)
+    scored = torch.isfinite(prep.train_batch.truth_ecef_m).all(-1)
+    before = torch.isfinite(prepared.train_batch.truth_ecef_m).all(-1)
+    starts = torch.as_tensor([w.start for w in prep.windows])
+    assert not scored[starts > 0, :8].any() and torch.equal(scored[starts == 0], before[starts == 0])
+    assert torch.equal(scored[:, 8:], before[:, 8:])
+    assert torch.equal(prep.train_batch.pr_m, prepared.train_batch.pr_m)      # the filter still runs them
+    history = train(cfg, tmp_path, progress=False, prepared=prep, export=False)
+    assert np.isfinite(history[1]["train_loss"])
+
+
+def test_a_bad_setting_is_one_line_on_the_command_line(capsys):
+    """learning.train and learning.crossval name a wrong setting in one line and exit 2, before loading data."""
+    from learning.crossval import main as crossval_main
+
+    for entry in (main, crossval_main):
+        with pytest.raises(SystemExit) as exit_info:
+            entry(["--config", "learning/configs/default.toml", "--set", "data.burn_in=40"])
+        assert exit_info.value.code == 2
+        err = capsys.readouterr().err
+        assert "error: data.burn_in must be a whole number of epochs >= 0 and below data.window (40), got 40" in err
+        assert "Traceback" not in err
