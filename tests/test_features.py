@@ -100,3 +100,51 @@ def test_fill_from_nearest_epoch_is_forward_then_backward_fill():
     expected = np.array([[2.0, 1.0, nan], [2.0, 1.0, nan], [2.0, 1.0, nan], [3.0, 4.0, nan]])
     np.testing.assert_array_equal(fill_from_nearest_epoch(values), expected)
     assert fill_from_nearest_epoch(np.zeros((0, 2))).shape == (0, 2)
+
+
+def _moving_receiver(n_t: int = 6, n_s: int = 5, dt: float = 0.2):
+    """Pseudoranges whose change matches their (linearly changing) rates exactly, plus a receiver clock."""
+    t = 1.0e9 + dt * np.arange(n_t)
+    rate0 = np.linspace(-600.0, 500.0, n_s)                    # m/s
+    accel = np.linspace(-0.5, 0.4, n_s)                        # m/s^2
+    clock = 3.0e3 + 40.0 * (t - t[0])                          # receiver clock [m] drifting 40 m/s
+    pr = 2.2e7 + rate0 * (t - t[0])[:, None] + 0.5 * accel * (t - t[0])[:, None] ** 2 + clock[:, None]
+    prr = rate0 + accel * (t - t[0])[:, None] + 40.0
+    return t, pr, prr, np.ones((n_t, n_s), bool)
+
+
+def test_code_doppler_is_zero_when_code_follows_doppler_and_clock_jumps_cancel():
+    from lfgnss.features import CODE_DOPPLER_CAP_M, code_doppler_disagreement_m
+    t, pr, prr, ok = _moving_receiver()
+    pr[3:] += 299792.458                                       # a 1 ms receiver clock jump, common to all
+    d = code_doppler_disagreement_m(t, pr, prr, ok)
+    assert np.all(d[0] == CODE_DOPPLER_CAP_M)                  # nothing to compare the first epoch with
+    np.testing.assert_allclose(d[1:], 0.0, atol=1e-6)          # trapezoid rule is exact for a linear rate
+
+
+def test_code_doppler_shows_a_multipath_step_and_caps_what_it_cannot_compare():
+    from lfgnss.features import CODE_DOPPLER_CAP_M, CODE_DOPPLER_MAX_GAP_S, code_doppler_disagreement_m
+    t, pr, prr, ok = _moving_receiver()
+    pr[2:, 1] += 25.0                                          # satellite 1's code jumps 25 m, its Doppler does not
+    pr[4:, 3] += 500.0                                         # a step beyond the cap
+    ok[2, 4] = False                                           # satellite 4 lost for one epoch
+    d = code_doppler_disagreement_m(t, pr, prr, ok)
+    np.testing.assert_allclose(d[2, 1], 25.0, atol=1e-6)
+    np.testing.assert_allclose(d[[1, 3, 4, 5], 1], 0.0, atol=1e-6)   # only the epoch of the step
+    assert d[4, 3] == CODE_DOPPLER_CAP_M
+    assert d[2, 4] == CODE_DOPPLER_CAP_M and d[3, 4] == CODE_DOPPLER_CAP_M  # lost, and its first epoch back
+    t_gap = t.copy()
+    t_gap[5:] += CODE_DOPPLER_MAX_GAP_S                        # a gap in the recording
+    assert np.all(code_doppler_disagreement_m(t_gap, pr, prr, ok)[5] == CODE_DOPPLER_CAP_M)
+
+
+def test_code_doppler_feature_on_the_sample(sample):
+    from lfgnss.features import CODE_DOPPLER_CAP_M
+    meas, fix, seq = sample
+    with_cd = lfgnss.build_sequence(meas, fix, feature_names=DEFAULT_FEATURES + ("code_doppler",))
+    np.testing.assert_array_equal(with_cd.features[..., :8], seq.features)
+    f = with_cd.features[..., 8]
+    assert np.all(f[~with_cd.mask] == 0.0)
+    assert np.all((f >= 0.0) & (f <= np.log10(1.0 + CODE_DOPPLER_CAP_M)))
+    # an open-sky recording: code and Doppler agree within a few metres for most satellites
+    assert np.median(10 ** f[with_cd.mask] - 1.0) < 3.0
