@@ -33,8 +33,8 @@ from lfgnss.datasets import contiguous_runs
 from lfgnss.metrics import accuracy_table, markdown_table
 from lfgnss.sequence import Sequence
 
-from .train import (adopt_init, ekf_config, init_model, load_config, load_sequences, prepare, train,
-                    trained_datasets)
+from .train import (INPUT_ERRORS, adopt_init, ekf_config, exit_on_input_error, init_model, load_config,
+                    load_sequences, prepare, train, trained_datasets)
 
 COLUMNS = ["fold", "held_out_epochs", "plain_ekf_rmse_3d_m", "untrained_rmse_3d_m", "last_rmse_3d_m",
            "best_rmse_3d_m", "best_epoch", "plain_ekf_smoothed_rmse_3d_m", "last_smoothed_rmse_3d_m"]
@@ -148,12 +148,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", help="output folder (default: runs/cv-<config name>)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     args = p.parse_args(argv)
+    out = Path(args.out or Path("runs") / f"cv-{Path(args.config).stem if args.config else 'default'}")
     try:
         config = load_config(args.config, args.overrides)
-    except ValueError as exc:           # a setting of the wrong kind: one line, exit 2
-        p.error(str(exc))
-    out = Path(args.out or Path("runs") / f"cv-{Path(args.config).stem if args.config else 'default'}")
-    crossval(config, args.folds, out, progress=not args.no_progress)
+        crossval(config, args.folds, out, progress=not args.no_progress)
+    except INPUT_ERRORS as exc:
+        exit_on_input_error(p, exc)
     print((out / "crossval.md").read_text(), end="")
     return 0
 

@@ -41,6 +41,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from lfgnss.errors import LfgnssError
 from lfgnss.sequence import DEFAULT_FEATURES, Sequence
 
 from .data import Window, make_windows, collate, resolve_feature_names, sequence_batch
@@ -590,6 +591,17 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
     return history
 
 
+#: Bad input to the command lines (a setting, a path, a dataset id, missing data), reported in one line with exit
+#: status 2 as ``lfgnss.solve`` does.
+INPUT_ERRORS = (LfgnssError, FileNotFoundError, KeyError, ValueError)
+
+
+def exit_on_input_error(parser: argparse.ArgumentParser, exc: BaseException) -> None:
+    """Exit 2 with ``PROG: error: MESSAGE`` on one line (a KeyError's quotes and any line breaks removed)."""
+    message = " ".join(str(exc).strip("'\"").split()) or type(exc).__name__
+    parser.exit(2, f"{parser.prog}: error: {message}\n")
+
+
 def main(argv: list[str] | None = None) -> int:
     """Command-line entry point."""
     p = argparse.ArgumentParser(prog="python -m learning.train", description=__doc__.split("\n")[0])
@@ -600,12 +612,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     args = p.parse_args(argv)
+    out = args.out or str(Path("runs") / (Path(args.config).stem if args.config else "default"))
     try:
         config = load_config(args.config, args.overrides)
-    except ValueError as exc:           # a setting of the wrong kind: one line, exit 2
-        p.error(str(exc))
-    out = args.out or str(Path("runs") / (Path(args.config).stem if args.config else "default"))
-    history = train(config, out, resume=args.resume, overrides=args.overrides, progress=not args.no_progress)
+        history = train(config, out, resume=args.resume, overrides=args.overrides, progress=not args.no_progress)
+    except INPUT_ERRORS as exc:
+        exit_on_input_error(p, exc)
     from .export import load_model
 
     best = min(history, key=lambda h: h["val_rmse_3d_m"])

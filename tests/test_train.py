@@ -339,3 +339,20 @@ def test_a_bad_setting_is_one_line_on_the_command_line(capsys):
         err = capsys.readouterr().err
         assert "error: data.burn_in must be a whole number of epochs >= 0 and below data.window (40), got 40" in err
         assert "Traceback" not in err
+
+
+def test_bad_input_found_while_running_is_one_line_too(capsys, tmp_path):
+    """Errors that only show once training starts (no checkpoint, unknown dataset, missing model) are one line, exit 2."""
+    from learning.crossval import main as crossval_main
+
+    cases = [(main, ["--resume", "--out", str(tmp_path / "empty")], "last.pt: no checkpoint to resume from"),
+             (main, ["--set", 'data.datasets=["nope"]', "--out", str(tmp_path / "a")], "unknown dataset 'nope'; known:"),
+             (main, ["--set", f"train.init={tmp_path / 'none.npz'}", "--out", str(tmp_path / "b")], "no such model file"),
+             (crossval_main, ["--set", 'data.datasets=["nope"]', "--out", str(tmp_path / "c")], "unknown dataset 'nope'")]
+    for entry, argv, expected in cases:
+        with pytest.raises(SystemExit) as exit_info:
+            entry(argv)
+        assert exit_info.value.code == 2
+        err = capsys.readouterr().err
+        assert expected in err and "Traceback" not in err
+        assert len(err.strip().splitlines()) == 1, err
