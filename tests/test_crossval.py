@@ -61,8 +61,9 @@ def test_command_writes_per_fold_and_pooled_rows(tmp_path, capsys):
     for j in (0, 1):
         assert (tmp_path / f"fold{j}" / "log.csv").exists() and not (tmp_path / f"fold{j}" / "model.npz").exists()
     assert "| pooled |" in capsys.readouterr().out
-    with pytest.raises(ValueError, match="already holds a cross-validation"):
+    with pytest.raises(SystemExit) as exit_info:        # never over an earlier run: one line, exit 2
         main(args)
+    assert exit_info.value.code == 2 and "already holds a cross-validation" in capsys.readouterr().err
 
 
 def test_each_fold_trains_on_the_other_blocks_and_scores_the_held_out_one(monkeypatch, tmp_path):
