@@ -30,11 +30,12 @@ from pathlib import Path
 import numpy as np
 
 from lfgnss.datasets import contiguous_runs
+from lfgnss.errors import INPUT_ERRORS
 from lfgnss.metrics import accuracy_table, markdown_table
 from lfgnss.sequence import Sequence
 
-from .train import (INPUT_ERRORS, adopt_init, ekf_config, exit_on_input_error, init_model, load_config,
-                    load_sequences, prepare, train, trained_datasets)
+from .train import (adopt_init, ekf_config, exit_on_input_error, init_model, load_config, load_sequences, prepare,
+                    train, trained_datasets)
 
 COLUMNS = ["fold", "held_out_epochs", "plain_ekf_rmse_3d_m", "untrained_rmse_3d_m", "last_rmse_3d_m",
            "best_rmse_3d_m", "best_epoch", "plain_ekf_smoothed_rmse_3d_m", "last_smoothed_rmse_3d_m"]

@@ -41,7 +41,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from lfgnss.errors import LfgnssError
+from lfgnss.errors import INPUT_ERRORS, one_line
 from lfgnss.sequence import DEFAULT_FEATURES, Sequence
 
 from .data import Window, make_windows, collate, resolve_feature_names, sequence_batch
@@ -591,15 +591,9 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
     return history
 
 
-#: Bad input to the command lines (a setting, a path, a dataset id, missing data), reported in one line with exit
-#: status 2 as ``lfgnss.solve`` does.
-INPUT_ERRORS = (LfgnssError, FileNotFoundError, KeyError, ValueError)
-
-
 def exit_on_input_error(parser: argparse.ArgumentParser, exc: BaseException) -> None:
-    """Exit 2 with ``PROG: error: MESSAGE`` on one line (a KeyError's quotes and any line breaks removed)."""
-    message = " ".join(str(exc).strip("'\"").split()) or type(exc).__name__
-    parser.exit(2, f"{parser.prog}: error: {message}\n")
+    """Exit 2 with ``PROG: error: MESSAGE`` on one line, for bad input (``lfgnss.errors.INPUT_ERRORS``)."""
+    parser.exit(2, f"{parser.prog}: error: {one_line(exc)}\n")
 
 
 def main(argv: list[str] | None = None) -> int:

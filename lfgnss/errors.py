@@ -24,3 +24,12 @@ class InputError(LfgnssError):
         self.path, self.reason, self.line = str(path), reason, line
         where = f"{self.path}:{line}" if line is not None else self.path
         super().__init__(f"{where}: {reason}")
+
+
+#: What the command lines report as bad input (a file, a setting, a dataset id): one line, exit status 2.
+INPUT_ERRORS = (LfgnssError, FileNotFoundError, KeyError, ValueError)
+
+
+def one_line(exc: BaseException) -> str:
+    """The exception's message on one line (a KeyError's quotes and any line breaks removed)."""
+    return " ".join(str(exc).strip("'\"").split()) or type(exc).__name__

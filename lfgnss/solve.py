@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError, LfgnssError, RinexError
+from .errors import INPUT_ERRORS, InputError, LfgnssError, RinexError, one_line
 from .paths import bundled_data_dir
 
 SAMPLE_DIR = bundled_data_dir() / "berlin-potsdamer-platz"
@@ -190,9 +190,8 @@ def main(argv: list[str] | None = None) -> int:
         for w in caught[:10]:
             print(f"warning: {w.message}", file=sys.stderr)
         return code
-    except (LfgnssError, FileNotFoundError, KeyError, ValueError) as err:
-        message = " ".join(str(err).strip("'\"").split()) or type(err).__name__
-        print(f"error: {message}", file=sys.stderr)
+    except INPUT_ERRORS as err:
+        print(f"error: {one_line(err)}", file=sys.stderr)
         return 2
     except Exception as err:  # a bug, not bad input: still one line, no traceback, a distinct exit code
         message = " ".join(str(err).split())
