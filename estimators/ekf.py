@@ -17,6 +17,11 @@ right after a reset) with a median innovation of at least ``clock_jump_min_m`` a
 prior's clock was realigned to it (a receiver clock jump, ``models.realign_clock``), or when the
 updated position is farther than ``reset_distance_m`` from the coarse fix. ``learning.torch_ekf``
 implements exactly this logic, batched and differentiable.
+
+A noise model that is ``online`` (a model trained with ``model.innovation``) is asked epoch by epoch, after
+the predict step: ``noise.predict(features_k, mask_k, innovation_feature(pr - h(x^-) - median))``, with zero
+innovations where the epoch has no prior (start, re-initialisation after a gap). ``info["r_m2"]`` and
+``info["vc_m"]`` keep the noise every epoch used.
 """
 from __future__ import annotations
 
@@ -26,6 +31,7 @@ from dataclasses import fields
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 
+from lfgnss.features import innovation_feature
 from lfgnss.sequence import Sequence
 
 from . import models
@@ -115,6 +121,11 @@ class LfgnssEkf:
         if r.shape != usable.shape or vc.shape != usable.shape:
             raise ValueError(f"estimators/ekf.py: noise model gave shapes {r.shape}, {vc.shape} for sequence "
                              f"{sequence.name!r}, expected {usable.shape}")
+        return self._checked(sequence, usable, r, vc)
+
+    def _checked(self, sequence: Sequence, usable: np.ndarray, r: np.ndarray, vc: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+        """``(r, vc)`` with positive finite R and finite v^c on the usable slots (v^c 0 without compensation)."""
         if not (np.isfinite(r[usable]).all() and (r[usable] > 0).all()):
             raise ValueError(f"estimators/ekf.py: noise model gave non-positive or non-finite R on usable "
                              f"satellites of {sequence.name!r}")
@@ -138,8 +149,15 @@ class LfgnssEkf:
             raise ValueError(f"estimators/ekf.py: epoch times of {sequence.name!r} do not increase at epoch {k}")
 
         usable = usable_measurements(sequence)
-        r_all, vc_all = self.noise_arrays(sequence, usable)
-        z_all = compensated_pseudorange(np.where(usable, sequence.pr_m, 0.0), np.where(usable, vc_all, 0.0))
+        pr_all = np.where(usable, sequence.pr_m, 0.0)
+        online = bool(getattr(self.noise, "online", False))
+        if online:
+            features = self.noise.features(sequence)
+            r_all, vc_all = np.ones(usable.shape), np.zeros(usable.shape)
+        else:
+            r_all, vc_all = self.noise_arrays(sequence, usable)
+            vc_all = np.where(usable, vc_all, 0.0)
+        z_all = compensated_pseudorange(pr_all, vc_all)
         r_all = np.where(usable, r_all, 1.0)
         doppler_ok = usable & sequence.prr_mask if cfg.doppler_sigma_m_s > 0 else np.zeros_like(usable)
         prr_all = np.where(doppler_ok, sequence.prr_m_s, 0.0)
@@ -198,6 +216,17 @@ class LfgnssEkf:
                 h, H, z, r = (np.concatenate(part) for part in zip(*blocks))
                 ekf.update(z, _given, _given, R=np.diag(r), args=(H,), hx_args=(h,))
 
+        def ask_noise(k: int, idx: np.ndarray, prior_x: np.ndarray | None) -> None:
+            """Epoch k's R and v^c from an online noise model, given the prior state (None: no prior)."""
+            innovation = np.zeros(usable.shape[1])
+            if prior_x is not None:
+                innovation[idx] = models.prior_innovation_m(prior_x, sat_all[k, idx], sys_all[k, idx], pr_all[k, idx])
+            r, vc = self._checked(sequence, usable[k], *self.noise.predict(features[k], sequence.mask[k],
+                                                                             innovation_feature(innovation)))
+            r_all[k] = np.where(usable[k], r, 1.0)
+            vc_all[k] = np.where(usable[k], vc, 0.0)
+            z_all[k] = compensated_pseudorange(pr_all[k], vc_all[k])
+
         def mostly_gated(gated: tuple, idx: np.ndarray) -> bool:
             return idx.size - int(gated[0][-1].sum()) > cfg.reset_gated_fraction * idx.size
 
@@ -221,6 +250,8 @@ class LfgnssEkf:
             idx = np.flatnonzero(usable[k])
             jdx = np.flatnonzero(doppler_ok[k])
             if not started or (dt > cfg.max_gap_s and coarse_ok[k]):
+                if online:
+                    ask_noise(k, idx, None)
                 if not coarse_ok[k]:
                     continue
                 reset(k, idx, jdx)
@@ -231,6 +262,8 @@ class LfgnssEkf:
                 ekf.F, ekf.Q = cache[dt]
                 ekf.predict()
                 steps[k] = ekf.F
+                if online:
+                    ask_noise(k, idx, ekf.x)
                 gated = gate(k, idx, jdx)
                 inconsistent = False
                 if (gate_sigma > 0 and coarse_ok[k] and idx.size >= cfg.reset_min_sats
@@ -256,7 +289,8 @@ class LfgnssEkf:
             cov[k] = ekf.P
 
         info = {"n_gated": n_gated, "n_usable": usable.sum(1), "n_doppler": n_doppler,
-                "clock_realigned": clock_realigned, "config": cfg, "filtered_state": state}
+                "clock_realigned": clock_realigned, "config": cfg, "filtered_state": state, "r_m2": r_all,
+                "vc_m": vc_all}
         if self.smooth:
             horizon = lag_horizon(time, self.smooth_lag_s) if math.isfinite(self.smooth_lag_s) else None
             state, cov = rts_smooth(state, cov, prior, prior_cov, steps, status == STATUS_RESET, horizon)

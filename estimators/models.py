@@ -277,6 +277,15 @@ def measurement(x: np.ndarray, sat_pos_ecef_m: np.ndarray, system_index: np.ndar
     return h, H
 
 
+def prior_innovation_m(x: np.ndarray, sat_pos_ecef_m: np.ndarray, system_index: np.ndarray, pr_m: np.ndarray
+                       ) -> np.ndarray:
+    """(N,) innovations ``pr - h(x)`` of a prior state minus their lower median [m] (clock errors cancel)."""
+    if pr_m.size == 0:
+        return np.zeros(0)
+    v = pr_m - measurement(x, sat_pos_ecef_m, system_index)[0]
+    return v - lower_median(v)
+
+
 def doppler_measurement(x: np.ndarray, sat_pos_ecef_m: np.ndarray, sat_vel_ecef_m_s: np.ndarray
                         ) -> tuple[np.ndarray, np.ndarray]:
     """Predicted pseudorange rates [m/s] (N,) and their Jacobian (N, n) at state ``x`` (see module docstring).
@@ -293,4 +302,5 @@ def doppler_measurement(x: np.ndarray, sat_pos_ecef_m: np.ndarray, sat_vel_ecef_
 
 __all__ = ["EkfConfig", "n_states", "clock_column", "initial_covariance", "initial_state", "transition_generator",
            "transition", "process_noise_coefficients", "process_noise", "measurement", "doppler_measurement",
+           "prior_innovation_m",
            "lower_median", "realign_clock", "POS", "VEL", "CLOCK", "DRIFT", "ISB0"]

@@ -16,7 +16,9 @@ Format (``FORMAT_NAME`` version ``FORMAT_VERSION``), arrays in one uncompressed 
 
 ``load_model`` checks the file and returns an ``LfgnssModel`` whose ``predict`` re-implements the
 network's forward pass in numpy (float64), and whose ``__call__(sequence)`` makes it an
-``estimators.noise.NoiseModel``.
+``estimators.noise.NoiseModel``. A model trained with ``model.innovation`` reads the filter's prior
+innovations too (``online``): the EKF plug-in calls ``predict`` epoch by epoch with them, and
+``__call__`` runs that EKF and returns the noise it used (so the factor graph can take it).
 """
 from __future__ import annotations
 
@@ -148,18 +150,23 @@ class LfgnssModel:
         self.r_scale_m2 = float(m.get("r_scale_m2", 1.0))
         self.r_prior = m.get("r_prior")
         self.compensation = bool(m.get("compensation", True))
+        #: True: the network reads the EKF's prior innovations (``predict``'s ``innovation``), epoch by epoch.
+        self.online = bool(m.get("innovation", False))
         self.eps = float(metadata.get("layer_norm_eps", 1e-5))
 
     def __repr__(self) -> str:
         return f"LfgnssModel({self.path!r}, features={list(self.feature_names)})"
 
-    def predict(self, features: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def predict(self, features: np.ndarray, mask: np.ndarray, innovation: np.ndarray | None = None
+                ) -> tuple[np.ndarray, np.ndarray]:
         """Noise for raw (un-normalised) features.
 
         Parameters
         ----------
         features : (..., N, d) raw features in ``feature_names`` order
         mask : (..., N) bool, True for valid satellites
+        innovation : (..., N) ``lfgnss.features.innovation_feature`` of the prior innovations; required if and
+            only if the model is ``online``
 
         Returns
         -------
@@ -170,8 +177,14 @@ class LfgnssModel:
         d = len(self.feature_names)
         if features.shape[:-1] != mask.shape or features.shape[-1] != d:
             raise ValueError(f"{self.path}: features {features.shape} / mask {mask.shape} do not match (..., N, {d})")
+        if (innovation is not None) != self.online or (innovation is not None and np.shape(innovation) != mask.shape):
+            raise ValueError(f"{self.path}: this model {'needs' if self.online else 'takes no'} innovations shaped "
+                             f"like the mask {mask.shape}")
         lead, n = mask.shape[:-1], mask.shape[-1]
-        x = self.normaliser.apply(features, mask).reshape(-1, n, d)
+        x = self.normaliser.apply(features, mask)
+        if self.online:
+            x = np.concatenate([x, np.where(mask, innovation, 0.0)[..., None]], -1)
+        x = x.reshape(-1, n, d + self.online)
         m = mask.reshape(-1, n)
         p = self.params
         # h0 = x W_e^T + b_e
@@ -216,13 +229,21 @@ class LfgnssModel:
         vc = np.where(m, vc, 0.0).reshape(*lead, n)
         return r, vc
 
-    def __call__(self, sequence: Sequence) -> tuple[np.ndarray, np.ndarray]:
-        """(r_m2, vc_m), each (T, N), for ``sequence`` (features picked by name): a NoiseModel."""
+    def features(self, sequence: Sequence) -> np.ndarray:
+        """(T, N, d) raw features of ``sequence`` in ``feature_names`` order."""
         try:
-            feats = select_features(sequence, self.feature_names)
+            return select_features(sequence, self.feature_names)
         except ValueError as exc:
             raise ValueError(f"{self.path}: {exc}") from exc
-        return self.predict(feats, sequence.mask)
+
+    def __call__(self, sequence: Sequence) -> tuple[np.ndarray, np.ndarray]:
+        """(r_m2, vc_m), each (T, N), for ``sequence``: a NoiseModel (``online``: those its EKF run used)."""
+        if self.online:
+            from estimators.ekf import LfgnssEkf
+
+            info = LfgnssEkf(self).solve(sequence).info
+            return info["r_m2"], info["vc_m"]
+        return self.predict(self.features(sequence), sequence.mask)
 
 
 _REQUIRED_META = ("format", "format_version", "feature_names", "model", "parameters", "normaliser")
@@ -281,9 +302,10 @@ def load_model(path: str | Path, expected_features: Iterable[str] | None = None)
     absent = [k for k in needed if k not in params]
     if absent:
         raise ModelFileError(path, f"parameters {absent} missing")
-    if params["embed.weight"].shape[1] != len(normaliser.feature_names):
-        raise ModelFileError(path, f"embedding takes {params['embed.weight'].shape[1]} features but "
-                                   f"{len(normaliser.feature_names)} are named")
+    n_inputs = len(normaliser.feature_names) + bool(meta["model"].get("innovation", False))
+    if params["embed.weight"].shape[1] != n_inputs:
+        raise ModelFileError(path, f"embedding takes {params['embed.weight'].shape[1]} inputs but "
+                                   f"{n_inputs} are named")
     if expected_features is not None and tuple(expected_features) != tuple(normaliser.feature_names):
         raise ModelFileError(path, f"model features {list(normaliser.feature_names)} do not match the expected "
                                    f"{list(expected_features)}")

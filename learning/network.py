@@ -1,7 +1,9 @@
 """LF-GNSS noise network: per-satellite features -> pseudorange variance R and compensation v^c.
 
-The network never sees the filter; it maps normalised features ``(..., N, d)`` and a padding mask
-``(..., N)`` to ``r_m2`` and ``vc_m`` of shape ``(..., N)`` (LF-GNSS notes, step 3):
+It maps normalised features ``(..., N, d)`` and a padding mask ``(..., N)`` to ``r_m2`` and ``vc_m`` of
+shape ``(..., N)`` (LF-GNSS notes, step 3). With ``innovation=True`` it also reads the filter: one more
+input column, each satellite's innovation against the filter's prior (``lfgnss.features.innovation_feature``),
+so the network runs inside the filter, one epoch at a time (``learning.torch_ekf.batch_ekf``'s ``noise_step``):
 
     h0 = x W_e^T + b_e                               (embedding, d -> d_model)
     h1 = LayerNorm(h0 + MHA(h0, h0, h0; mask))       (self-attention over satellites, residual)
@@ -49,6 +51,8 @@ class LfgnssNet(nn.Module):
         If given, the R output bias is initialised so an all-zero input gives about this variance.
     compensation : bool
         Output the innovation compensation ``v^c`` (False: ``v^c = 0``, the network learns R only).
+    innovation : bool
+        Take the filter's prior innovation as input column ``d + 1`` (``forward``'s ``innovation``).
     r_prior : dict or None
         Prior variance model: ``cn0_index``, ``el_index`` (feature columns), ``cn0_mean``, ``cn0_std``,
         ``el_mean``, ``el_std`` (normaliser constants) and ``floor_m``, ``cn0_scale_m2``,
@@ -58,7 +62,7 @@ class LfgnssNet(nn.Module):
     def __init__(self, n_features: int, *, d_model: int = 64, n_heads: int = 4,
                  hidden: tuple[int, ...] = (64, 128, 64), r_floor_m2: float = 0.01,
                  r_scale_m2: float = 1.0, r_init_m2: float | None = None, r_prior: dict | None = None,
-                 compensation: bool = True) -> None:
+                 compensation: bool = True, innovation: bool = False) -> None:
         super().__init__()
         if n_features < 1 or d_model % n_heads != 0:
             raise ValueError(f"need n_features >= 1 and d_model % n_heads == 0, got {n_features}, {d_model}, {n_heads}")
@@ -69,9 +73,10 @@ class LfgnssNet(nn.Module):
         self.r_floor_m2 = float(r_floor_m2)
         self.r_scale_m2 = float(r_scale_m2)
         self.compensation = bool(compensation)
+        self.innovation = bool(innovation)
         self.r_prior = None if r_prior is None else {k: (int(v) if k.endswith("_index") else float(v))
                                                      for k, v in r_prior.items()}
-        self.embed = nn.Linear(self.n_features, self.d_model)
+        self.embed = nn.Linear(self.n_features + self.innovation, self.d_model)
         self.attention = nn.MultiheadAttention(self.d_model, self.n_heads, batch_first=True)
         self.norm = nn.LayerNorm(self.d_model)
         layers: list[nn.Module] = []
@@ -91,15 +96,18 @@ class LfgnssNet(nn.Module):
         """Constructor keyword arguments (for export / rebuild)."""
         return {"n_features": self.n_features, "d_model": self.d_model, "n_heads": self.n_heads,
                 "hidden": list(self.hidden), "r_floor_m2": self.r_floor_m2, "r_scale_m2": self.r_scale_m2,
-                "r_prior": self.r_prior, "compensation": self.compensation}
+                "r_prior": self.r_prior, "compensation": self.compensation,
+                "innovation": self.innovation}
 
-    def forward(self, features: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(self, features: torch.Tensor, mask: torch.Tensor, innovation: torch.Tensor | None = None
+                ) -> tuple[torch.Tensor, torch.Tensor]:
         """Noise for every slot.
 
         Parameters
         ----------
         features : (B, N, d) or (B, T, N, d) float tensor, normalised
         mask : (B, N) or (B, T, N) bool, True for valid satellites
+        innovation : like ``mask``, float; required if and only if the network was built with ``innovation``
 
         Returns
         -------
@@ -108,9 +116,14 @@ class LfgnssNet(nn.Module):
         if features.shape[:-1] != mask.shape or features.shape[-1] != self.n_features:
             raise ValueError(f"features {tuple(features.shape)} and mask {tuple(mask.shape)} do not match "
                              f"(..., N, {self.n_features}) / (..., N)")
+        if (innovation is not None) != self.innovation or (innovation is not None and innovation.shape != mask.shape):
+            raise ValueError(f"this network {'needs an' if self.innovation else 'takes no'} innovation input "
+                             f"(shaped like the mask {tuple(mask.shape)})")
         lead = mask.shape[:-1]
         n = mask.shape[-1]
-        x = features.reshape(-1, n, self.n_features)
+        if innovation is not None:
+            features = torch.cat([features, innovation[..., None].to(features.dtype)], -1)
+        x = features.reshape(-1, n, self.n_features + self.innovation)
         m = mask.reshape(-1, n).bool()
         # An epoch with no valid satellite would make every attention row -inf -> NaN; let such rows
         # attend to all (finite) slots; their outputs are overwritten below.

@@ -21,12 +21,17 @@ farther than ``reset_distance_m`` from the coarse fix; in the rows that reset, s
 post-fit check are dropped and the reset prior updated again. The gate decision (a hard mask) and
 the reset choice carry no gradient; everything else does.
 
+With ``noise_step`` the network runs inside the filter: at each epoch it is given every satellite's
+innovation against the normal prior (``prior_innovation``; 0 where the epoch has no prior) and returns
+that epoch's ``R`` and ``v^c``. The innovation input carries no gradient.
+
 ``rts_smooth`` runs the plug-in's RTS smoother (``estimators.smoother``) backwards over such a run, for
 training with ``train.smooth``.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import torch
 
@@ -180,8 +185,30 @@ def _clock_shift(x: torch.Tensor, sat: torch.Tensor, clock_rows: torch.Tensor, z
     return torch.nan_to_num(torch.nanmedian(v, dim=-1).values, nan=0.0)
 
 
-def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor, vc_m: torch.Tensor, *, n_systems: int,
-              config: EkfConfig) -> EkfOutput:
+def innovation_feature(innovation_m: torch.Tensor) -> torch.Tensor:
+    """Torch twin of ``lfgnss.features.innovation_feature``: ``sign(v) ln(1 + |v|)``."""
+    return torch.sign(innovation_m) * torch.log1p(innovation_m.abs())
+
+
+@torch.no_grad()
+def prior_innovation(x: torch.Tensor, sat: torch.Tensor, clock_rows: torch.Tensor, pr: torch.Tensor,
+                     usable: torch.Tensor, has_prior: torch.Tensor) -> torch.Tensor:
+    """(M, N) ``pr - h(x)`` minus its lower median over the usable slots [m]; 0 elsewhere and where not ``has_prior``.
+
+    Mirrors ``estimators.models.prior_innovation_m``.
+    """
+    h, _ = _measurement(x, sat, clock_rows)
+    v = torch.where(usable, pr - h, torch.full((), float("nan"), dtype=x.dtype, device=x.device))
+    v = v - torch.nan_to_num(torch.nanmedian(v, dim=-1, keepdim=True).values, nan=0.0)
+    return torch.where(usable & has_prior[:, None], v, torch.zeros((), dtype=x.dtype, device=x.device))
+
+
+#: ``noise_step(k, innovation_feature)`` -> (r_m2, vc_m), each (B, N), for epoch ``k`` of the window.
+NoiseStep = Callable[[int, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
+
+
+def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor | None, vc_m: torch.Tensor | None, *, n_systems: int,
+              config: EkfConfig, noise_step: NoiseStep | None = None) -> EkfOutput:
     """Run the EKF over B windows of T epochs, differentiably in ``r_m2`` and ``vc_m``.
 
     Each window starts un-initialised at its epoch 0 and initialises from its first coarse fix, as
@@ -199,8 +226,15 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor, vc_m: torch.Tensor, *, n_s
         Constellations C in the state (clock + C - 1 ISBs).
     config : EkfConfig
         The same settings the plug-in takes.
+    noise_step : NoiseStep or None
+        If given, ``r_m2`` and ``vc_m`` must be None: each epoch's noise comes from
+        ``noise_step(k, innovation_feature(prior_innovation))`` instead.
     """
     b_len, t_len, n_slots = batch.mask.shape
+    if (noise_step is None) == (r_m2 is None or vc_m is None):
+        raise ValueError("learning/torch_ekf.py: give either r_m2 and vc_m or noise_step")
+    if noise_step is not None:
+        r_m2 = vc_m = torch.ones(b_len, t_len, n_slots, dtype=torch.float64, device=batch.pr_m.device)
     if r_m2.shape != (b_len, t_len, n_slots) or vc_m.shape != (b_len, t_len, n_slots):
         raise ValueError(f"learning/torch_ekf.py: r_m2 {tuple(r_m2.shape)} and vc_m {tuple(vc_m.shape)} must be "
                          f"{(b_len, t_len, n_slots)}")
@@ -262,13 +296,20 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor, vc_m: torch.Tensor, *, n_s
         init_needed = ~started | ((dt_all[:, k] > config.max_gap_s) & coarse_ok)
         reset_a = init_needed & coarse_ok
         normal = started & ~reset_a
+        if noise_step is None:
+            z_k, r_k = z_all[:, k], r_all[:, k]
+        else:
+            innov = prior_innovation(x_pred, sat_all[:, k], clock_rows_all[:, k], pr[:, k], usable_all[:, k], normal)
+            r_net, vc_net = noise_step(k, innovation_feature(innov))
+            z_k = pr[:, k] + torch.where(usable_all[:, k], vc_net.to(f64), torch.zeros((), dtype=f64, device=dev))
+            r_k = torch.where(usable_all[:, k], r_net.to(f64), torch.ones((), dtype=f64, device=dev))
 
         # Both branches in one batched call: rows [0, B) normal prior, [B, 2B) reset prior.
         two = lambda a: torch.cat([a, a], 0)  # noqa: E731
         dop_k = (satvel_all[:, k], prr_all[:, k], dop_all[:, k]) if use_doppler else None
         xu, Pu, n_used2, n_rej2, n_usable2, n_dop2 = _gate_and_update(
             torch.cat([x_pred, x0_all[:, k]], 0), torch.cat([P_pred, P0.expand(b_len, n, n)], 0),
-            two(sat_all[:, k]), two(clock_rows_all[:, k]), two(z_all[:, k]), two(r_all[:, k]),
+            two(sat_all[:, k]), two(clock_rows_all[:, k]), two(z_k), two(r_k),
             two(usable_all[:, k]), torch.cat([normal, coarse_ok], 0), config,
             tuple(two(a) for a in dop_k) if use_doppler else None)
         x_n, x_r = xu[:b_len], xu[b_len:]
@@ -283,13 +324,13 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor, vc_m: torch.Tensor, *, n_s
         x_prior = x_pred
         if bool(reset_g.any()):
             # Mostly gated: a receiver clock jump if the median innovation is one (as the plug-in does).
-            shift = _clock_shift(x_pred, sat_all[:, k], clock_rows_all[:, k], z_all[:, k], usable_all[:, k])
+            shift = _clock_shift(x_pred, sat_all[:, k], clock_rows_all[:, k], z_k, usable_all[:, k])
             x_c = x_pred.clone()
             x_c[:, models.CLOCK] = x_c[:, models.CLOCK] + shift        # models.realign_clock
             with torch.no_grad():
                 try_jump = reset_g & (shift.abs() >= config.clock_jump_min_m)
             xc, Pc, n_used_c, n_rej_c, _, n_dop_c = _gate_and_update(
-                x_c, P_pred, sat_all[:, k], clock_rows_all[:, k], z_all[:, k], r_all[:, k], usable_all[:, k], try_jump,
+                x_c, P_pred, sat_all[:, k], clock_rows_all[:, k], z_k, r_k, usable_all[:, k], try_jump,
                 config, dop_k)
             with torch.no_grad():
                 realigned = try_jump & ~(n_rej_c.to(f64) > config.reset_gated_fraction * n_usable.to(f64))
@@ -313,13 +354,13 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor, vc_m: torch.Tensor, *, n_s
             # Post-fit check of the reset update (as the plug-in's reset): drop satellites beyond the gate.
             h_r, _ = _measurement(x_r, sat_all[:, k], clock_rows_all[:, k])
             with torch.no_grad():
-                ok = usable_all[:, k] & ((z_all[:, k] - h_r).abs() <= config.gate_sigma * torch.sqrt(r_all[:, k]))
+                ok = usable_all[:, k] & ((z_k - h_r).abs() <= config.gate_sigma * torch.sqrt(r_k))
                 n_ok, n_us = ok.sum(-1), usable_all[:, k].sum(-1)
                 redo = reset & (n_ok > 0) & (n_ok < n_us)
             if bool(redo.any()):
                 x2, P2, n_used_2, n_rej_2, _, n_dop_2 = _gate_and_update(
-                    x0_all[:, k], P0.expand(b_len, n, n), sat_all[:, k], clock_rows_all[:, k], z_all[:, k],
-                    r_all[:, k], ok, redo, config, dop_k)
+                    x0_all[:, k], P0.expand(b_len, n, n), sat_all[:, k], clock_rows_all[:, k], z_k,
+                    r_k, ok, redo, config, dop_k)
                 x_r = torch.where(redo[:, None], x2, x_r)
                 P_r = torch.where(redo[:, None, None], P2, P_r)
                 n_used_r = torch.where(redo, n_used_2, n_used_r)

@@ -68,7 +68,7 @@ DEFAULT_CONFIG: dict[str, Any] = {
                       "train_seeds": [1, 2], "val_seeds": [101]},
     },
     "model": {"d_model": 64, "n_heads": 4, "hidden": [64, 128, 64], "r_floor_m2": 0.01, "r_scale_m2": 1.0,
-              "r_init_m2": None, "r_prior": "none", "compensation": True},
+              "r_init_m2": None, "r_prior": "none", "compensation": True, "innovation": False},
     "train": {"epochs": 200, "batch_size": 16, "lr": 1.0e-3, "t_max": 50, "eta_min": 1.0e-4, "grad_clip": 0.0,
               "weight_decay": 0.0, "select": "val", "ema_decay": 0.0, "init": "", "smooth": False},
     "loss": {"kind": "hem", "alpha": 0.75, "gamma": 1.5, "lambda": 1.0},
@@ -140,8 +140,9 @@ def check_config(config: dict) -> dict:
     if isinstance(burn_in, bool) or not isinstance(burn_in, int) or not 0 <= burn_in < window:
         raise ValueError(f"data.burn_in must be a whole number of epochs >= 0 and below data.window ({window}), "
                          f"got {burn_in!r}")
-    if not isinstance(config["model"].get("compensation", True), bool):
-        raise ValueError(f"model.compensation must be true or false, got {config['model']['compensation']!r}")
+    for key in ("compensation", "innovation"):
+        if not isinstance(config["model"].get(key, True), bool):
+            raise ValueError(f"model.{key} must be true or false, got {config['model'][key]!r}")
     return config
 
 
@@ -295,16 +296,25 @@ def build_model(config: dict, n_features: int, normaliser: Normaliser | None = N
     return LfgnssNet(n_features, d_model=int(m["d_model"]), n_heads=int(m["n_heads"]), hidden=tuple(m["hidden"]),
                      r_floor_m2=float(m["r_floor_m2"]), r_scale_m2=float(m["r_scale_m2"]),
                      r_init_m2=None if m.get("r_init_m2") is None else float(m["r_init_m2"]), r_prior=prior,
-                     compensation=bool(m.get("compensation", True)))
+                     compensation=bool(m.get("compensation", True)), innovation=bool(m.get("innovation", False)))
 
 
 def run_filter(model: LfgnssNet, batch: WindowBatch, *, n_systems: int, ekf_cfg, smooth: bool = False
                ) -> torch.Tensor:
-    """Filtered (or, with ``smooth``, RTS-smoothed) positions (B, T, 3) [m] with the network's R and v^c."""
+    """Filtered (or, with ``smooth``, RTS-smoothed) positions (B, T, 3) [m] with the network's R and v^c.
+
+    A network with ``innovation`` runs inside the filter, one epoch at a time, on the prior's innovations.
+    """
     from .torch_ekf import batch_ekf, rts_smooth
 
-    r, vc = model(batch.features, batch.mask)
-    out = batch_ekf(batch, r.to(torch.float64), vc.to(torch.float64), n_systems=n_systems, config=ekf_cfg)
+    if model.innovation:
+        def step(k: int, innovation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            return model(batch.features[:, k], batch.mask[:, k], innovation)
+
+        out = batch_ekf(batch, None, None, n_systems=n_systems, config=ekf_cfg, noise_step=step)
+    else:
+        r, vc = model(batch.features, batch.mask)
+        out = batch_ekf(batch, r.to(torch.float64), vc.to(torch.float64), n_systems=n_systems, config=ekf_cfg)
     return rts_smooth(out) if smooth else out.pos_ecef_m
 
 
@@ -488,7 +498,7 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
     smooth = bool(tr.get("smooth", False))   # train and validate the RTS-smoothed positions (estimators.smoother)
     model = build_model(config, len(prep.feature_names), prep.normaliser)
     if prep.init is not None:
-        if model.hyperparameters() != prep.init.metadata["model"]:
+        if model.hyperparameters() != {"innovation": False} | prep.init.metadata["model"]:  # files before session 13
             raise ValueError(f"train.init: {prep.init.path} cannot be rebuilt from its training configuration "
                              f"({prep.init.metadata['model']} vs {model.hyperparameters()})")
         model.load_state_dict({k: torch.as_tensor(v) for k, v in prep.init.params.items()})

@@ -5,7 +5,8 @@ contribution (full minus leave-one-out GDOP, PDOP, HDOP, VDOP). Optional extras 
 name, so ablations are configuration only: ``residual_weighted``, the post-fit residual of the
 C/N0-elevation-weighted least-squares fix of the epoch (``lfgnss.weighted_fix``), ``code_doppler``, how far
 each pseudorange's change since the previous epoch disagrees with its Doppler (changing code multipath), and
-the constellation one-hot ``sys_G`` ....
+the constellation one-hot ``sys_G`` .... One more input is not packed here because it needs the filter:
+``innovation_feature``, each pseudorange's innovation against the filter's prior (``model.innovation``).
 """
 from __future__ import annotations
 
@@ -87,6 +88,19 @@ def code_doppler_disagreement_m(time_gps_s: np.ndarray, pr_m: np.ndarray, prr_m_
         warnings.simplefilter("ignore", RuntimeWarning)
         d -= np.nanmedian(d, axis=1, keepdims=True)
     return np.where(np.isfinite(d), np.minimum(np.abs(d), CODE_DOPPLER_CAP_M), CODE_DOPPLER_CAP_M)
+
+
+def innovation_feature(innovation_m: np.ndarray) -> np.ndarray:
+    """Network input from prior innovations whose epoch median is removed [m]: ``sign(v) ln(1 + |v|)``.
+
+    The filter's prior is metres off where the coarse fix is tens of metres off, so this separates
+    pseudoranges off by over 10 m (against the truth) far better than the coarse ``residual``: area under the
+    ROC curve 0.83-0.95 against 0.56-0.60 on berlin-pp train / val, 0.91 against 0.76 on hk-tst-2019 train
+    (prior of the plain EKF). The log keeps street-canyon outliers of hundreds of metres in the network's range.
+    ``learning.torch_ekf.innovation_feature`` is its torch twin.
+    """
+    v = np.asarray(innovation_m, float)
+    return np.sign(v) * np.log1p(np.abs(v))
 
 
 def pack_features(names: tuple[str, ...], *, cn0_dbhz, el_rad, az_rad, residual_m, dpc, system_index,

@@ -202,3 +202,27 @@ def test_r_only_network_outputs_no_compensation_and_exports(exported, tmp_path):
     assert model.metadata["model"]["compensation"] is False
     np.testing.assert_allclose(r_np[seq.mask], r.numpy()[seq.mask], rtol=1e-5)
     assert np.all(vc_np == 0.0)
+
+
+def test_online_model_file_needs_innovations(exported, tmp_path):
+    """A model trained with ``model.innovation`` is ``online``: ``predict`` requires the innovations."""
+    _, _, norm, seq = exported
+    net = LfgnssNet(len(DEFAULT_FEATURES), innovation=True)
+    ckpt = tmp_path / "best.pt"
+    torch.save({"model": net.state_dict(), "model_hparams": net.hyperparameters(), "normaliser": norm.to_dict(),
+                "config": {}, "epoch": 1, "history": []}, ckpt)
+    model = load_model(export_model(ckpt, tmp_path / "model.npz"))
+    raw = select_features(seq, model.feature_names)
+    assert model.online and not load_model(exported[0]).online
+    r0, _ = model.predict(raw, seq.mask, np.zeros(seq.mask.shape))
+    r1, _ = model.predict(raw, seq.mask, np.full(seq.mask.shape, 4.0))
+    assert r0.shape == seq.mask.shape and not np.allclose(r0[seq.mask], r1[seq.mask])
+    with pytest.raises(ValueError, match="needs innovations"):
+        model.predict(raw, seq.mask)
+    meta = json.loads(str(np.load(tmp_path / "model.npz")["metadata"]))
+    meta["model"]["innovation"] = False          # the embedding no longer fits the inputs the file names
+    arrays = dict(np.load(tmp_path / "model.npz"))
+    arrays["metadata"] = np.array(json.dumps(meta))
+    np.savez(tmp_path / "bad.npz", **arrays)
+    with pytest.raises(ModelFileError, match="embedding takes 9 inputs but 8"):
+        load_model(tmp_path / "bad.npz")

@@ -148,3 +148,11 @@ def test_code_doppler_feature_on_the_sample(sample):
     assert np.all((f >= 0.0) & (f <= np.log10(1.0 + CODE_DOPPLER_CAP_M)))
     # an open-sky recording: code and Doppler agree within a few metres for most satellites
     assert np.median(10 ** f[with_cd.mask] - 1.0) < 3.0
+
+
+def test_innovation_feature_is_a_signed_log():
+    """sign(v) ln(1 + |v|): 0 at 0, odd, e - 1 m -> 1; hundreds of metres stay below 7."""
+    from lfgnss.features import innovation_feature
+
+    v = np.array([0.0, np.e - 1.0, -(np.e - 1.0), 500.0, -1e3])
+    np.testing.assert_allclose(innovation_feature(v), [0.0, 1.0, -1.0, np.log(501.0), -np.log(1001.0)])

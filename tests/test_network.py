@@ -75,3 +75,18 @@ def test_bad_shapes_raise():
     net = LfgnssNet(8)
     with pytest.raises(ValueError):
         net(torch.zeros(2, 5, 7), torch.ones(2, 5, dtype=torch.bool))
+
+
+def test_innovation_input_is_one_more_column_and_required():
+    """``innovation=True``: the innovation enters as column d + 1, and must be given (and only then)."""
+    torch.manual_seed(0)
+    net = LfgnssNet(8, innovation=True)
+    x, mask = torch.randn(2, 5, 8), torch.ones(2, 5, dtype=torch.bool)
+    assert net.embed.in_features == 9 and net.hyperparameters()["innovation"] is True
+    r0, _ = net(x, mask, torch.zeros(2, 5))
+    r1, _ = net(x, mask, torch.full((2, 5), 3.0))
+    assert not torch.allclose(r0, r1)
+    with pytest.raises(ValueError, match="needs an innovation"):
+        net(x, mask)
+    with pytest.raises(ValueError, match="takes no innovation"):
+        LfgnssNet(8)(x, mask, torch.zeros(2, 5))

@@ -184,3 +184,86 @@ def test_shape_errors_raise(cases):
     seqs, r, vc = cases
     with pytest.raises(ValueError, match="must be"):
         batch_ekf(to_batch(seqs), torch.as_tensor(r[:, :5]), torch.as_tensor(vc), n_systems=2, config=CONFIG)
+
+
+def test_noise_step_given_fixed_noise_equals_the_arrays(cases):
+    """``noise_step`` is asked once per epoch with that epoch's innovations; fixed answers reproduce the arrays."""
+    seqs, r, vc = cases
+    batch = to_batch(seqs)
+    ref = batch_ekf(batch, torch.as_tensor(r), torch.as_tensor(vc), n_systems=2, config=CONFIG)
+    asked = []
+
+    def step(k, innovation):
+        asked.append((k, innovation))
+        return torch.as_tensor(r[:, k]), torch.as_tensor(vc[:, k])
+
+    got = batch_ekf(batch, None, None, n_systems=2, config=CONFIG, noise_step=step)
+    assert [k for k, _ in asked] == list(range(120))
+    assert torch.equal(torch.nan_to_num(got.pos_ecef_m), torch.nan_to_num(ref.pos_ecef_m))
+    assert torch.equal(got.status, ref.status)
+    inn = torch.stack([i for _, i in asked], 1)
+    assert torch.all(inn[~batch.mask] == 0) and torch.all(inn[1, :5] == 0)   # padded; seq 1 before its first fix
+    assert inn[0, 41].abs().max() > 0                                             # after a reset there is a prior
+    with pytest.raises(ValueError, match="either"):
+        batch_ekf(batch, torch.as_tensor(r), torch.as_tensor(vc), n_systems=2, config=CONFIG, noise_step=step)
+    with pytest.raises(ValueError, match="either"):
+        batch_ekf(batch, None, None, n_systems=2, config=CONFIG)
+
+
+def test_prior_innovation_twin(cases):
+    """``prior_innovation`` equals ``estimators.models.prior_innovation_m``; its feature, ``innovation_feature``."""
+    from estimators import models
+    from learning.torch_ekf import _clock_rows, innovation_feature, prior_innovation
+    from lfgnss.features import innovation_feature as innovation_feature_np
+
+    s = cases[0][1]
+    k = 30
+    x = models.initial_state(s.truth_ecef_m[k] + [5.0, -3.0, 8.0], s.coarse_clock_m[k] + [40.0, -7.0])
+    usable = s.mask[k].copy()
+    usable[:3] = False
+    idx = np.flatnonzero(usable)
+    want = np.zeros(s.mask.shape[1])
+    want[idx] = models.prior_innovation_m(x, s.sat_pos_ecef_m[k, idx], s.system_index[k, idx], s.pr_m[k, idx])
+    u = torch.as_tensor(usable)[None]
+    got = prior_innovation(torch.as_tensor(x)[None], torch.as_tensor(s.sat_pos_ecef_m[k])[None],
+                           _clock_rows(torch.as_tensor(s.system_index[k])[None], u, 9), torch.as_tensor(s.pr_m[k])[None],
+                           u, torch.tensor([True]))[0].numpy()
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-6)
+    assert np.sum(got[idx] < 0) in (idx.size // 2, (idx.size - 1) // 2)       # the lower median is removed
+    np.testing.assert_allclose(innovation_feature(torch.as_tensor(want)).numpy(), innovation_feature_np(want))
+
+
+def test_online_network_plugin_matches_torch(cases, tmp_path):
+    """A network that reads the prior innovations: the exported file in the numpy plug-in = the torch filter."""
+    from learning.export import export_model, load_model
+    from learning.network import LfgnssNet
+    from learning.normalise import Normaliser
+    from learning.train import run_filter
+    from lfgnss.sequence import DEFAULT_FEATURES
+
+    seqs = cases[0]
+    norm = Normaliser.fit(seqs, DEFAULT_FEATURES)
+    torch.manual_seed(0)
+    net = LfgnssNet(len(DEFAULT_FEATURES), r_init_m2=30.0, innovation=True)
+    with torch.no_grad():
+        for p in net.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    ckpt = tmp_path / "last.pt"
+    torch.save({"model": net.state_dict(), "model_hparams": net.hyperparameters(), "normaliser": norm.to_dict(),
+                "config": {}, "epoch": 1, "history": [], "ekf_config": vars(CONFIG)}, ckpt)
+    model = load_model(export_model(ckpt, tmp_path / "model.npz"))
+    assert model.online
+    batch = to_batch(seqs)
+    batch.features = torch.as_tensor(np.stack([norm.apply(s.features, s.mask) for s in seqs]))
+    net64 = LfgnssNet(**net.hyperparameters()).double().eval()
+    net64.load_state_dict(net.state_dict())
+    with torch.no_grad():
+        pos = run_filter(net64, batch, n_systems=2, ekf_cfg=CONFIG).numpy()
+    for i, s in enumerate(seqs):
+        sol = LfgnssEkf(model, config=CONFIG).solve(s)
+        np.testing.assert_allclose(pos[i], sol.pos_ecef_m, rtol=0, atol=1e-4, equal_nan=True)  # float32 weights
+        r, vc = model(s)                          # a NoiseModel too: the noise its own EKF run used
+        np.testing.assert_array_equal(r, sol.info["r_m2"])
+        assert np.all(r[s.mask] > 0) and np.any(vc[s.mask] != 0)
+    fixed = LfgnssEkf(FixedNoise(r, vc), config=CONFIG).solve(seqs[-1])   # the same filter given those arrays
+    np.testing.assert_array_equal(fixed.pos_ecef_m, sol.pos_ecef_m)
