@@ -177,12 +177,17 @@ def _gate_and_update(x: torch.Tensor, P: torch.Tensor, sat: torch.Tensor, clock_
     return x_new, P_new, used[:, :n_pr].sum(-1), n_usable - n_keep_pr, n_usable, used[:, n_pr:].sum(-1)
 
 
+def _lower_median(v: torch.Tensor, usable: torch.Tensor) -> torch.Tensor:
+    """(M,) lower median of ``v`` (M, N) over the usable slots (``estimators.models.lower_median``); 0 if none."""
+    v = torch.where(usable, v, torch.full((), float("nan"), dtype=v.dtype, device=v.device))
+    return torch.nan_to_num(torch.nanmedian(v, dim=-1).values, nan=0.0)
+
+
 def _clock_shift(x: torch.Tensor, sat: torch.Tensor, clock_rows: torch.Tensor, z: torch.Tensor,
                  usable: torch.Tensor) -> torch.Tensor:
-    """(M,) lower median innovation [m] of the usable pseudoranges (``estimators.models.lower_median``)."""
+    """(M,) lower median innovation [m] of the usable pseudoranges."""
     h, _ = _measurement(x, sat, clock_rows)
-    v = torch.where(usable, z - h, torch.full((), float("nan"), dtype=x.dtype, device=x.device))
-    return torch.nan_to_num(torch.nanmedian(v, dim=-1).values, nan=0.0)
+    return _lower_median(z - h, usable)
 
 
 def innovation_feature(innovation_m: torch.Tensor) -> torch.Tensor:
@@ -198,9 +203,17 @@ def prior_innovation(x: torch.Tensor, sat: torch.Tensor, clock_rows: torch.Tenso
     Mirrors ``estimators.models.prior_innovation_m``.
     """
     h, _ = _measurement(x, sat, clock_rows)
-    v = torch.where(usable, pr - h, torch.full((), float("nan"), dtype=x.dtype, device=x.device))
-    v = v - torch.nan_to_num(torch.nanmedian(v, dim=-1, keepdim=True).values, nan=0.0)
+    v = pr - h
+    v = v - _lower_median(v, usable)[:, None]
     return torch.where(usable & has_prior[:, None], v, torch.zeros((), dtype=x.dtype, device=x.device))
+
+
+def _measurement_noise(pr: torch.Tensor, r_m2: torch.Tensor, vc_m: torch.Tensor, usable: torch.Tensor
+                       ) -> tuple[torch.Tensor, torch.Tensor]:
+    """(z, R) float64, shaped like ``pr``: ``z = pr + v^c`` (the one place v^c enters) and R; 0 and 1 where unusable."""
+    f64 = torch.float64
+    z = pr + torch.where(usable, vc_m.to(f64), torch.zeros((), dtype=f64, device=pr.device))
+    return z, torch.where(usable, r_m2.to(f64), torch.ones((), dtype=f64, device=pr.device))
 
 
 #: ``noise_step(k, innovation_feature)`` -> (r_m2, vc_m), each (B, N), for epoch ``k`` of the window.
@@ -233,9 +246,7 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor | None, vc_m: torch.Tensor 
     b_len, t_len, n_slots = batch.mask.shape
     if (noise_step is None) == (r_m2 is None or vc_m is None):
         raise ValueError("learning/torch_ekf.py: give either r_m2 and vc_m or noise_step")
-    if noise_step is not None:
-        r_m2 = vc_m = torch.ones(b_len, t_len, n_slots, dtype=torch.float64, device=batch.pr_m.device)
-    if r_m2.shape != (b_len, t_len, n_slots) or vc_m.shape != (b_len, t_len, n_slots):
+    if noise_step is None and (r_m2.shape != (b_len, t_len, n_slots) or vc_m.shape != (b_len, t_len, n_slots)):
         raise ValueError(f"learning/torch_ekf.py: r_m2 {tuple(r_m2.shape)} and vc_m {tuple(vc_m.shape)} must be "
                          f"{(b_len, t_len, n_slots)}")
     if batch.coarse_clock_m.shape[-1] < n_systems:
@@ -244,8 +255,6 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor | None, vc_m: torch.Tensor 
     dev = batch.pr_m.device
     f64 = torch.float64
     n = models.n_states(n_systems)
-    r_m2 = r_m2.to(f64)
-    vc_m = vc_m.to(f64)
 
     time = batch.time_gps_s.to(f64)
     dt_all = torch.zeros_like(time)
@@ -260,9 +269,8 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor | None, vc_m: torch.Tensor 
     far = torch.tensor(_FAR_SAT_ECEF_M, dtype=f64, device=dev)
     sat_all = torch.where(usable_all[..., None], batch.sat_pos_ecef_m.to(f64), far)
     pr = torch.where(usable_all, batch.pr_m.to(f64), torch.zeros((), dtype=f64, device=dev))
-    vc = torch.where(usable_all, vc_m, torch.zeros((), dtype=f64, device=dev))
-    z_all = pr + vc                                  # z = pr + v^c: the one place v^c enters
-    r_all = torch.where(usable_all, r_m2, torch.ones((), dtype=f64, device=dev))
+    if noise_step is None:
+        z_all, r_all = _measurement_noise(pr, r_m2, vc_m, usable_all)
     clock_rows_all = _clock_rows(batch.system_index.long(), usable_all, n)
     use_doppler = config.doppler_sigma_m_s > 0
     dop_all = usable_all & batch.prr_mask if use_doppler else torch.zeros_like(usable_all)
@@ -300,9 +308,7 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor | None, vc_m: torch.Tensor 
             z_k, r_k = z_all[:, k], r_all[:, k]
         else:
             innov = prior_innovation(x_pred, sat_all[:, k], clock_rows_all[:, k], pr[:, k], usable_all[:, k], normal)
-            r_net, vc_net = noise_step(k, innovation_feature(innov))
-            z_k = pr[:, k] + torch.where(usable_all[:, k], vc_net.to(f64), torch.zeros((), dtype=f64, device=dev))
-            r_k = torch.where(usable_all[:, k], r_net.to(f64), torch.ones((), dtype=f64, device=dev))
+            z_k, r_k = _measurement_noise(pr[:, k], *noise_step(k, innovation_feature(innov)), usable_all[:, k])
 
         # Both branches in one batched call: rows [0, B) normal prior, [B, 2B) reset prior.
         two = lambda a: torch.cat([a, a], 0)  # noqa: E731
