@@ -31,11 +31,20 @@ from .time import glonass_to_gps_s
 if TYPE_CHECKING:
     import pandas as pd
 
-_PARSER_VERSION = 4
+_PARSER_VERSION = 5
 _GPS_EPOCH = dt.datetime(1980, 1, 6)
 _SV_RE = re.compile(r"^[GRECJSI][ 0-9][0-9]$")
 _V2_RECORD_LIKE = re.compile(r"^[ 0-9.\-]*[0-9][ 0-9.\-]*$")  # digits, blanks, points, signs only
 _V2_EPOCH_RE = re.compile(r"^ [ \d]\d [ \d]\d [ \d]\d [ \d]\d [ \d]\d [ \d]\d\.\d+ +[0-6][ \d]{3}")
+#: Character classes of an epoch line's first 19 characters, " yy mm dd hh mm ss.": a line that starts like
+#: them is a damaged epoch line, never a record line (whose first field is a right-aligned F14.3 or blank).
+_V2_EPOCH_START = (" ", " 0123456789", "0123456789") * 6 + (".",)
+
+
+def _v2_epoch_start(line: str) -> bool:
+    """True if ``line`` (at least 3 characters) begins like a RINEX 2 epoch line, e.g. one cut short."""
+    head = line.rstrip()[:len(_V2_EPOCH_START)]
+    return len(head) >= 3 and all(c in allowed for c, allowed in zip(head, _V2_EPOCH_START))
 
 #: Pseudorange code preference per constellation (single frequency, L1/E1/B1I/G1).
 CODES_V3 = {"G": ("C1C", "C1W", "C1P", "C1X"), "R": ("C1C", "C1P"), "E": ("C1C", "C1X", "C1B"),
@@ -340,7 +349,8 @@ def _cut_v2(body, n_header, path, info, problems):
         nxt = first + nsat * lines_per_sat
         while nxt < n and not body[nxt].strip():
             nxt += 1
-        if nxt < n and not _V2_EPOCH_RE.match(body[nxt]) and _V2_RECORD_LIKE.match(body[nxt]):
+        if (nxt < n and not _V2_EPOCH_RE.match(body[nxt]) and _V2_RECORD_LIKE.match(body[nxt])
+                and not _v2_epoch_start(body[nxt])):
             # one record line more than announced: a record was repeated or inserted, and since RINEX 2
             # records carry no satellite id, those after it would be matched to the wrong satellites
             problems.append(f"{path}:{lineno}: epoch followed by one record line more than its {nsat} "

@@ -136,6 +136,27 @@ def test_truncated_file_keeps_complete_epochs(tmp_path):
     assert any("truncated" in w for w in obs.warnings)
 
 
+@pytest.mark.parametrize("keep", [5, 12, 29], ids=lambda k: f"{k}chars")
+@pytest.mark.parametrize("where", ["end", "middle"])
+def test_epoch_line_cut_short_costs_no_complete_epoch(tmp_path, keep, where):
+    """A RINEX 2 epoch line cut short is not read as an extra record line of the epoch before it."""
+    text, path = _plain_sample(tmp_path)
+    lines = text.split("\n")
+    full = load_obs(SAMPLE_OBS)
+    epoch_lines = [k for k, ln in enumerate(lines) if ln.startswith(" 16  6  6 ")]
+    cut = epoch_lines[20]                              # 0-based index of the 21st epoch line
+    damaged = lines[:cut] + [lines[cut][:keep]] + (lines[cut + 1:] if where == "middle" else [])
+    path.write_text("\n".join(damaged))
+    with pytest.warns(RinexWarning):
+        obs = load_obs(path, cache=False)
+    assert obs.warnings[0].startswith(f"{path}:{cut + 1}: unreadable epoch line")
+    np.testing.assert_array_equal(obs.time_gps_s[:20], full.time_gps_s[:20])   # the 20 epochs before it stay
+    if where == "end":
+        assert len(obs) == 20
+    else:                                              # only the damaged epoch is lost
+        np.testing.assert_array_equal(obs.time_gps_s[20:], full.time_gps_s[21:len(obs) + 1])
+
+
 def test_crlf_line_endings(tmp_path):
     text, path = _plain_sample(tmp_path)
     path.write_bytes(text.replace("\n", "\r\n").encode())
