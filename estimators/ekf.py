@@ -37,7 +37,7 @@ from lfgnss.sequence import Sequence
 from . import models
 from .base import STATUS_COASTED, STATUS_NONE, STATUS_RESET, STATUS_UPDATED, Solution, register
 from .models import EkfConfig
-from .noise import HeuristicNoise, NoiseModel
+from .noise import HeuristicNoise, NoiseModel, default_noise
 from .smoother import lag_horizon, rts_smooth
 
 
@@ -78,14 +78,14 @@ def _given(_x: np.ndarray, value: np.ndarray) -> np.ndarray:
     return value
 
 
-@register("ekf")
 class LfgnssEkf:
     """EKF with per-satellite noise ``R`` and innovation compensation ``v^c`` from a noise model.
 
     Parameters
     ----------
     noise : NoiseModel
-        ``noise(sequence) -> (r_m2, vc_m)``, each (T, N); a learned model or ``HeuristicNoise``.
+        ``noise(sequence) -> (r_m2, vc_m)``, each (T, N); a learned model (``learning.export.load_model``) or
+        ``HeuristicNoise``, which None means here (the plain EKF). ``create("ekf")`` gives the bundled model.
     config : EkfConfig
         Process noise, initial covariance, gate and reset settings; default: those the noise model
         was trained with (``config_of``), else ``EkfConfig()``.
@@ -300,6 +300,12 @@ class LfgnssEkf:
                         info=info | {"state": state, "cov": cov})
 
 
+@register("ekf")
+def create_lfgnss_ekf(noise: NoiseModel | None = None, **options) -> LfgnssEkf:
+    """``create("ekf")``: the LF-GNSS EKF with ``noise``, by default the bundled model (as the command line)."""
+    return LfgnssEkf(noise=default_noise() if noise is None else noise, **options)
+
+
 @register("plain-ekf")
 class PlainEkf(LfgnssEkf):
     """The baseline: the same EKF, gate and resets with hand-set ``HeuristicNoise`` R and no v^c."""
@@ -310,4 +316,4 @@ class PlainEkf(LfgnssEkf):
                          use_compensation=False, smooth=smooth, smooth_lag_s=smooth_lag_s)
 
 
-__all__ = ["config_of", "LfgnssEkf", "PlainEkf", "compensated_pseudorange", "usable_measurements", "coarse_available"]
+__all__ = ["config_of", "LfgnssEkf", "create_lfgnss_ekf", "PlainEkf", "compensated_pseudorange", "usable_measurements", "coarse_available"]

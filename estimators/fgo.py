@@ -63,7 +63,7 @@ from lfgnss.sequence import Sequence
 from lfgnss.velocity import DopplerVelocity, doppler_velocity
 
 from .base import (STATUS_COASTED, STATUS_NONE, STATUS_UPDATED, Solution, register)
-from .noise import HeuristicNoise, NoiseModel
+from .noise import HeuristicNoise, NoiseModel, default_noise
 
 MODES = ("batch", "fixed-lag")
 ROBUST_KERNELS = ("huber", "cauchy")
@@ -167,14 +167,14 @@ def _coasted_position_covariance(joint: gtsam.JointMarginal, x_key: int, v_key: 
     return 0.5 * (out + out.T)
 
 
-@register("fgo")
 class LfgnssFgo:
     """gtsam factor-graph estimator with learned (or heuristic) per-satellite noise.
 
     Parameters
     ----------
     noise : NoiseModel
-        ``noise(sequence) -> (r_m2, vc_m)``, (T, N) each; sigma_i = sqrt(r_i), measurement pr + vc.
+        ``noise(sequence) -> (r_m2, vc_m)``, (T, N) each; sigma_i = sqrt(r_i), measurement pr + vc. None:
+        ``HeuristicNoise``; ``create("fgo")`` gives the bundled model.
     mode : {"batch", "fixed-lag"}
         Whole-trajectory smoothing, or causal fixed-lag estimation (filtered estimate per epoch).
     lag_s : float
@@ -524,5 +524,11 @@ class LfgnssFgo:
         return out
 
 
-__all__ = ["LfgnssFgo", "cv_motion_factor", "cv_process_covariance", "clock_key", "position_blind_epochs", "MODES",
+@register("fgo")
+def create_lfgnss_fgo(noise: NoiseModel | None = None, **options) -> LfgnssFgo:
+    """``create("fgo")``: the LF-GNSS factor graph with ``noise``, by default the bundled model (as the command line)."""
+    return LfgnssFgo(noise=default_noise() if noise is None else noise, **options)
+
+
+__all__ = ["LfgnssFgo", "create_lfgnss_fgo", "cv_motion_factor", "cv_process_covariance", "clock_key", "position_blind_epochs", "MODES",
            "ROBUST_KERNELS"]

@@ -6,11 +6,13 @@ Padded/masked slots may hold any finite value; estimators ignore them.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import Protocol
 
 import numpy as np
 
 from lfgnss import weighted_fix
+from lfgnss.paths import default_model_path
 from lfgnss.sequence import Sequence
 
 
@@ -19,6 +21,14 @@ class NoiseModel(Protocol):
 
     def __call__(self, sequence: Sequence) -> tuple[np.ndarray, np.ndarray]:
         ...
+
+
+@lru_cache(maxsize=1)
+def default_noise() -> NoiseModel:
+    """The bundled LF-GNSS model (``lfgnss.paths.default_model_path``), read once: what ``create("ekf")`` uses."""
+    from learning.export import load_model
+
+    return load_model(default_model_path())
 
 
 @dataclass(frozen=True)

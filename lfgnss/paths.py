@@ -19,6 +19,11 @@ def bundled_data_dir() -> Path:
     return PACKAGE_DIR / "data"
 
 
+def default_model_path() -> Path:
+    """The bundled LF-GNSS model file, which ``python -m lfgnss.solve`` and ``estimators.create("ekf")`` use."""
+    return bundled_data_dir() / "model" / "lfgnss-default.npz"
+
+
 def cache_dir() -> Path:
     """Cache for parsed RINEX and built datasets: $LFGNSS_CACHE, else ~/.cache/lfgnss."""
     env = os.environ.get("LFGNSS_CACHE")

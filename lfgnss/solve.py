@@ -14,13 +14,13 @@ from pathlib import Path
 import numpy as np
 
 from .errors import INPUT_ERRORS, InputError, LfgnssError, RinexError, one_line
-from .paths import bundled_data_dir
+from .paths import bundled_data_dir, default_model_path
 
 SAMPLE_DIR = bundled_data_dir() / "berlin-potsdamer-platz"
 SAMPLE_OBS = SAMPLE_DIR / "Berlin_Potsdamer_Platz.obs.gz"
 SAMPLE_NAV = (SAMPLE_DIR / "brdc1580.16n.gz", SAMPLE_DIR / "brdc1580.16g.gz")
 SAMPLE_TRUTH = SAMPLE_DIR / "Berlin_Potsdamer_Platz_GT.txt"
-DEFAULT_MODEL = bundled_data_dir() / "model" / "lfgnss-default.npz"
+DEFAULT_MODEL = default_model_path()
 LEARNED_BACKENDS = ("ekf", "fgo")
 SMOOTHABLE_BACKENDS = ("ekf", "plain-ekf")
 
@@ -66,8 +66,10 @@ def _noise(args):
     """The noise model for the backend: the model file, or the heuristic one (with the reason)."""
     from estimators.noise import HeuristicNoise
 
-    if args.no_model or args.backend not in LEARNED_BACKENDS:
-        return None, "hand-set C/N0 noise"
+    if args.backend not in LEARNED_BACKENDS:
+        return None, "hand-set C/N0 noise" if args.backend != "wls" else "equal weights"
+    if args.no_model:
+        return HeuristicNoise(), "hand-set C/N0 noise"
     path = args.model or DEFAULT_MODEL
     if args.model is None and not path.exists():
         return HeuristicNoise(), "hand-set C/N0 noise (no bundled model found)"

@@ -11,7 +11,7 @@ from estimators import models
 from estimators.base import STATUS_COASTED, STATUS_NONE, STATUS_RESET, STATUS_UPDATED, Estimator, create
 from estimators.ekf import LfgnssEkf, PlainEkf
 from estimators.models import EkfConfig
-from estimators.noise import FixedNoise, HeuristicNoise
+from estimators.noise import FixedNoise, HeuristicNoise, default_noise
 from lfgnss.constants import SPEED_OF_LIGHT_M_S
 from lfgnss.corrections import geometric_range_m
 from lfgnss.simulate import simulate_sequence
@@ -88,6 +88,9 @@ def test_registry_creates_both_filters():
     ekf = create("ekf", config=EkfConfig(gate_sigma=4.0))
     assert isinstance(ekf, LfgnssEkf) and isinstance(ekf, Estimator) and ekf.config.gate_sigma == 4.0
     assert isinstance(create("plain-ekf"), PlainEkf)
+    assert create("ekf").noise is default_noise()                  # the bundled model, as the command line
+    assert isinstance(create("ekf", noise=HeuristicNoise()).noise, HeuristicNoise)
+    assert isinstance(LfgnssEkf().noise, HeuristicNoise)
 
 
 def test_solution_contract(seq):
@@ -189,7 +192,7 @@ def test_compensation_enters_the_innovation(seq, clean_error):
                         config=EkfConfig(doppler_sigma_m_s=0.0)).solve(seq)
     assert _rms(_err(perfect, seq)) < 0.1 * _rms(clean_error)
     ignored = PlainEkf(noise=HeuristicNoise()).solve(seq)
-    np.testing.assert_array_equal(ignored.pos_ecef_m, create("ekf").solve(seq).pos_ecef_m)
+    np.testing.assert_array_equal(ignored.pos_ecef_m, LfgnssEkf(noise=HeuristicNoise()).solve(seq).pos_ecef_m)
     wrong_sign = LfgnssEkf(noise=FixedNoise(np.full_like(r, 1.0), error)).solve(seq)
     assert _rms(_err(wrong_sign, seq)) > _rms(clean_error)
 

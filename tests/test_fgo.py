@@ -13,6 +13,7 @@ from gtsam.utils.numerical_derivative import (numericalDerivative41, numericalDe
                                               numericalDerivative43, numericalDerivative44)
 
 from estimators.base import STATUS_COASTED, STATUS_NONE, STATUS_UPDATED, create  # noqa: E402
+from estimators.noise import HeuristicNoise, default_noise  # noqa: E402
 from estimators.fgo import (DEFAULT_KERNEL, LfgnssFgo, cv_motion_factor, cv_process_covariance,  # noqa: E402
                             position_blind_epochs)
 from lfgnss.constants import SPEED_OF_LIGHT_M_S  # noqa: E402
@@ -241,6 +242,8 @@ def test_epochs_before_first_coarse_fix_are_none():
 def test_registry_and_arguments():
     est = create("fgo", mode="fixed-lag")
     assert isinstance(est, LfgnssFgo) and est.mode == "fixed-lag" and est.name == "fgo"
+    assert est.noise is default_noise()                                 # the bundled model, as the command line
+    assert isinstance(LfgnssFgo().noise, HeuristicNoise)
     sol = est.solve(simulate_sequence(20, seed=9))
     assert sol.backend == "fgo" and sol.pos_ecef_m.shape == (20, 3)
     for bad in ({"mode": "smoother"}, {"robust": "tukey"}, {"lag_s": 0.0}, {"accel_psd_enu_m2_s3": (1.0, -1.0, 1.0)}):

@@ -19,6 +19,13 @@ def test_readme_library_example_runs(capsys):
     solution, seq = namespace["solution"], namespace["seq"]
     assert solution.available.all() and np.all(np.isfinite(solution.pos_ecef_m))
     assert len(solution.time_gps_s) == len(seq)
+    # create("ekf") is the LF-GNSS EKF with the bundled model, as on the command line, not the plain EKF
+    from estimators import LfgnssEkf
+    from learning.export import load_model
+    from lfgnss.solve import DEFAULT_MODEL
+
+    assert namespace["ekf"].noise.path == load_model(DEFAULT_MODEL).path
+    np.testing.assert_array_equal(solution.pos_ecef_m, LfgnssEkf(load_model(DEFAULT_MODEL)).solve(seq).pos_ecef_m)
 
 
 def test_default_solve_runs_on_bundled_data(tmp_path, capsys):
