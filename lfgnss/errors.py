@@ -31,5 +31,6 @@ INPUT_ERRORS = (LfgnssError, FileNotFoundError, KeyError, ValueError)
 
 
 def one_line(exc: BaseException) -> str:
-    """The exception's message on one line (a KeyError's quotes and any line breaks removed)."""
-    return " ".join(str(exc).strip("'\"").split()) or type(exc).__name__
+    """The exception's message on one line (without the quotes a KeyError adds, and without line breaks)."""
+    text = exc.args[0] if isinstance(exc, KeyError) and len(exc.args) == 1 and isinstance(exc.args[0], str) else str(exc)
+    return " ".join(text.split()) or type(exc).__name__

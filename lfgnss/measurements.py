@@ -119,17 +119,25 @@ def load(obs: str | Path | Observations, nav: str | Path | Iterable[str | Path] 
          cache: bool = True) -> Measurements:
     """Read observations and broadcast navigation, evaluate satellite states, run coarse QC.
 
-    ``systems`` restricts the constellations (letters G, C, E, R, J); default: all present.
+    ``systems`` restricts the constellations (letters G, C, E, R, J, either case); default: all present.
     """
     from .ephemeris import satellite_states
 
     observations = obs if isinstance(obs, Observations) else load_obs(obs, cache=cache)
     navigation = nav if isinstance(nav, Navigation) else load_nav(nav)
     notes = list(observations.warnings) + list(navigation.warnings)
-    wanted = tuple(s for s in SYSTEMS if systems is None or s in set(systems))
+    asked = None if systems is None else {s.upper() for s in systems}
+    if asked is not None and asked - set(SYSTEMS):
+        raise ValueError(f"unknown constellation letter(s) {''.join(sorted(asked - set(SYSTEMS)))} in the requested "
+                         f"systems; use {''.join(SYSTEMS)}")
+    present = {s[0] for s in observations.sv}
+    wanted = tuple(s for s in SYSTEMS if asked is None or s in asked)
+    for system in sorted((asked or set()) - present):
+        notes.append(f"{observations.path}: no {system} observations (requested)")
     observations = observations.select_systems(wanted)
     if observations.sv.size == 0:
-        raise RinexError(observations.path, f"no observations of the requested constellations {''.join(wanted)}")
+        raise RinexError(observations.path, f"no observations of the requested constellations {''.join(wanted)} "
+                                            f"(the file has {''.join(s for s in SYSTEMS if s in present) or 'none'})")
 
     # C/N0 of 0 (written by converters for "not recorded"), negative or absurd (damaged field): missing
     cn0 = observations.cn0_dbhz.copy()

@@ -48,10 +48,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-model", action="store_true", help="use the hand-set C/N0 noise model instead")
     p.add_argument("--systems", default=None, help="constellations to use, e.g. GC (default: all present)")
     p.add_argument("--truth", type=Path, help="ground-truth file, for an accuracy table and error plots")
-    p.add_argument("--truth-format", default="urbannav", help="urbannav | smartloc | static | ecef-csv")
+    p.add_argument("--truth-format", default=None,
+                   help="urbannav | smartloc | static | ecef-csv (default: urbannav; with no --truth and no --obs, "
+                        "the bundled sample's smartloc truth)")
     p.add_argument("--truth-origin", type=float, default=None,
                    help="GPS seconds of t=0 for smartloc truth (default: first epoch)")
-    p.add_argument("--mode", default="batch", choices=("batch", "fixed-lag"), help="fgo mode")
+    p.add_argument("--mode", default=None, choices=("batch", "fixed-lag"), help="fgo mode (default: batch)")
     p.add_argument("--smooth", action="store_true",
                    help="ekf, plain-ekf: smooth the filter's run backwards (Rauch-Tung-Striebel; post-processing)")
     p.add_argument("--smooth-lag", type=float, default=None, metavar="SECONDS",
@@ -100,13 +102,28 @@ def run(args) -> int:
     if args.smooth and args.backend not in SMOOTHABLE_BACKENDS:
         raise ValueError(f"--smooth applies to --backend {' and '.join(SMOOTHABLE_BACKENDS)}, not {args.backend} "
                          f"(the factor graph's batch mode already uses every epoch)")
+    if (args.model is not None or args.no_model) and args.backend not in LEARNED_BACKENDS:
+        raise ValueError(f"--{'model' if args.model is not None else 'no-model'} applies to --backend "
+                         f"{' and '.join(LEARNED_BACKENDS)}, not {args.backend} (which has no learned noise)")
+    if args.model is not None and args.no_model:
+        raise ValueError("--model and --no-model contradict each other")
+    if args.mode is not None and args.backend != "fgo":
+        raise ValueError(f"--mode applies to --backend fgo, not {args.backend}")
     sample = args.obs is None
+    if sample and args.nav:
+        raise ValueError("--nav needs --obs (without --obs the bundled sample is solved with its own navigation files)")
+    for option, value in (("--truth-format", args.truth_format), ("--truth-origin", args.truth_origin)):
+        if value is not None and args.truth is None:
+            raise ValueError(f"{option} applies to a --truth file, and none was given")
+    if args.truth_origin is not None and args.truth_format != "smartloc":
+        raise ValueError("--truth-origin applies to --truth-format smartloc only")
     obs = SAMPLE_OBS if sample else args.obs
     nav = list(SAMPLE_NAV) if sample else (args.nav or [])
     if not nav:
         raise InputError(obs, "no navigation file given (--nav)")
     truth_path = SAMPLE_TRUTH if (sample and args.truth is None) else args.truth
-    truth_format = "smartloc" if (sample and args.truth is None) else args.truth_format
+    truth_format = "smartloc" if (sample and args.truth is None) else (args.truth_format or "urbannav")
+    _make_output_folder(args.out)
 
     noise, noise_text = _noise(args)
     feature_names = tuple(noise.feature_names) if hasattr(noise, "feature_names") else None
@@ -125,6 +142,11 @@ def run(args) -> int:
             print(f"warning: {line}", file=sys.stderr)
         if len(bad) > 5:
             print(f"warning: {truth_path}: {len(bad)} unreadable truth lines skipped in all", file=sys.stderr)
+        if not np.isfinite(truth).all(axis=1).any():
+            hint = " and --truth-origin (GPS seconds of its t = 0)" if truth_format == "smartloc" else ""
+            print(f"warning: {truth_path}: no truth epoch matches an epoch of {obs}; no accuracy table or plots "
+                  f"(check --truth-format {truth_format}{hint})", file=sys.stderr)
+            truth = None
     from .sequence import DEFAULT_FEATURES
 
     try:
@@ -136,7 +158,7 @@ def run(args) -> int:
         raise InputError(obs, str(err)) from None
     options = {"noise": noise} if noise is not None else {}
     if args.backend == "fgo":
-        options["mode"] = args.mode
+        options["mode"] = args.mode or "batch"
     label = args.backend
     if args.smooth:
         options["smooth"] = True
@@ -148,7 +170,6 @@ def run(args) -> int:
     estimator.name = label
     solution = estimator.solve(seq)
 
-    args.out.mkdir(parents=True, exist_ok=True)
     stem = args.out / Path(obs).name.split(".")[0]
     written = [write_pos(f"{stem}.pos", solution), write_csv(f"{stem}.csv", solution, truth),
                write_geojson(f"{stem}.geojson", solution), write_kml(f"{stem}.kml", solution)]
@@ -171,6 +192,16 @@ def run(args) -> int:
                 accuracy_table(solution.pos_ecef_m, truth, solution.available, method=label)]
         print(format_text(rows))
     return 0
+
+
+def _make_output_folder(out: Path) -> None:
+    """Create ``--out`` before any work, so that a folder that cannot be made costs no solve."""
+    if out.exists() and not out.is_dir():
+        raise InputError(out, "--out is a file, not a folder")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise InputError(out, f"cannot create the output folder ({err.strerror})") from None
 
 
 def _coarse(seq):

@@ -1,0 +1,67 @@
+"""Command-line options of ``python -m lfgnss.solve`` that do not apply, or cannot work, say so in one line."""
+from __future__ import annotations
+
+import pytest
+
+from lfgnss.errors import one_line
+from lfgnss.measurements import load
+from lfgnss.solve import SAMPLE_NAV, SAMPLE_OBS, SAMPLE_TRUTH, main
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--nav", str(SAMPLE_NAV[0])], "--nav needs --obs"),
+    (["--truth-format", "smartloc"], "--truth-format applies to a --truth file"),
+    (["--truth-origin", "5"], "--truth-origin applies to a --truth file"),
+    (["--obs", str(SAMPLE_OBS), "--nav", *map(str, SAMPLE_NAV), "--truth", str(SAMPLE_TRUTH), "--truth-origin", "5"],
+     "--truth-origin applies to --truth-format smartloc only"),
+    (["--systems", "GX"], "unknown constellation letter(s) X"),
+    (["--backend", "plain-ekf", "--model", "m.npz"], "--model applies to --backend ekf and fgo, not plain-ekf"),
+    (["--backend", "wls", "--no-model"], "--no-model applies to --backend ekf and fgo, not wls"),
+    (["--model", "m.npz", "--no-model"], "--model and --no-model contradict each other"),
+    (["--backend", "ekf", "--mode", "fixed-lag"], "--mode applies to --backend fgo, not ekf"),
+])
+def test_misused_option_is_one_line_before_any_work(tmp_path, capsys, extra, message):
+    out = tmp_path / "out"
+    assert main(["--out", str(out), *extra]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and message in err, err
+    assert not any(out.glob("*.csv"))
+
+
+@pytest.mark.parametrize("make, message", [
+    (lambda p: p.write_text(""), "--out is a file, not a folder"),
+    (lambda p: (p.parent / "blocker").write_text("") or None, "cannot create the output folder"),
+])
+def test_unusable_output_folder_is_one_line_before_solving(tmp_path, capsys, make, message):
+    out = tmp_path / "out"
+    make(out)
+    target = out if out.exists() else tmp_path / "blocker" / "out"      # a folder inside a file
+    assert main(["--out", str(target), "--quiet"]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == "" and captured.err.count("\n") == 1 and message in captured.err, captured.err
+    assert str(target) in captured.err
+
+
+def test_truth_matching_no_epoch_warns_and_skips_the_table(tmp_path, capsys):
+    args = ["--obs", str(SAMPLE_OBS), "--nav", *map(str, SAMPLE_NAV), "--truth", str(SAMPLE_TRUTH),
+            "--truth-format", "smartloc", "--truth-origin", "0", "--out", str(tmp_path)]
+    assert main(args) == 0
+    captured = capsys.readouterr()
+    assert "no truth epoch matches an epoch" in captured.err and "--truth-origin" in captured.err
+    assert "RMSE" not in captured.out and not list(tmp_path.glob("*.png"))
+    assert (tmp_path / "Berlin_Potsdamer_Platz.csv").exists()          # the solution is still written
+
+
+def test_systems_are_case_blind_and_absent_ones_are_reported():
+    lower = load(SAMPLE_OBS, SAMPLE_NAV, systems="gr")
+    assert lower.systems == load(SAMPLE_OBS, SAMPLE_NAV, systems="GR").systems == ("G", "R")
+    with_e = load(SAMPLE_OBS, SAMPLE_NAV, systems="GE")
+    assert with_e.systems == ("G",) and any("no E observations (requested)" in w for w in with_e.warnings)
+
+
+def test_one_line_keeps_quotes_of_the_message():
+    assert one_line(KeyError("unknown dataset 'x'")) == "unknown dataset 'x'"
+    assert one_line(ValueError("unknown truth format 'foo'")) == "unknown truth format 'foo'"
+    assert one_line(FileNotFoundError(2, "No such file or directory", "/a b")) == \
+        "[Errno 2] No such file or directory: '/a b'"
+    assert one_line(ValueError("two\nlines")) == "two lines"
