@@ -136,8 +136,11 @@ def get(dataset_id: str) -> DatasetSpec:
 
 # -- ground truth -------------------------------------------------------------------------------------------
 
-def _numeric_rows(path: Path, n_cols: int, sep: str, skip_prefix: str | None = None) -> tuple[np.ndarray, list[str]]:
-    """Rows of at least n_cols numbers; bad lines are reported as 'PATH:LINE: reason' and skipped."""
+def _numeric_rows(path: Path, n_cols: int, sep: str, record_word: str | None = None) -> tuple[np.ndarray, list[str]]:
+    """Rows of at least n_cols numbers; bad lines are reported as 'PATH:LINE: reason' and skipped.
+
+    With ``record_word`` only lines starting with that word are rows; others are reported, '#' comments aside.
+    """
     rows, bad = [], []
     try:
         lines = path.read_text(errors="replace").splitlines()
@@ -147,8 +150,11 @@ def _numeric_rows(path: Path, n_cols: int, sep: str, skip_prefix: str | None = N
         if not line.strip():
             continue
         parts = line.replace(",", " ").split() if sep == "any" else line.split(sep)
-        if skip_prefix is not None:
-            if not parts or parts[0] != skip_prefix:
+        if record_word is not None:
+            if parts[0].startswith("#"):
+                continue
+            if parts[0] != record_word:
+                bad.append(f"{path}:{i}: not a {record_word} record, skipped")
                 continue
             parts = parts[1:]
         try:
@@ -172,7 +178,7 @@ def read_urbannav(path: Path, spec: DatasetSpec) -> tuple[np.ndarray, np.ndarray
 
 def read_smartloc(path: Path, spec: DatasetSpec) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """libRSF ``point3`` rows: t [s since the first epoch], ECEF X Y Z [m]."""
-    rows, bad = _numeric_rows(path, 4, "any", skip_prefix="point3")
+    rows, bad = _numeric_rows(path, 4, "any", record_word="point3")
     return spec.time_origin_gps_s + rows[:, 0], rows[:, 1:4], bad
 
 

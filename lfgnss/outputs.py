@@ -276,7 +276,7 @@ CSV_TRUTH_COLUMNS = ("err_e_m", "err_n_m", "err_u_m", "err_2d_m", "err_3d_m")
 def write_csv(path: str | Path, solution: Solution, truth_ecef_m: np.ndarray | None = None) -> Path:
     """One CSV row per epoch: time, ECEF, geodetic, ENU standard deviations, n_used, status.
 
-    Columns :data:`CSV_COLUMNS` (``time_gpst`` as ``yyyy/mm/dd hh:mm:ss.sss`` GPST; ``sd_*`` from the
+    Columns :data:`CSV_COLUMNS` (``time_gpst`` as ``yyyy/mm/dd hh:mm:ss.sss`` GPST; WGS84 ``h_m`` ellipsoidal; ``sd_*`` from the
     position covariance rotated to the local ENU frame), plus :data:`CSV_TRUTH_COLUMNS` [m] when
     ``truth_ecef_m`` (T, 3) is given (empty where the epoch is unlabelled). Epochs without a position
     have empty numeric fields and status ``none``.

@@ -64,7 +64,7 @@ else:
 ], "notebooks/estimator_comparison.ipynb")
 
 nb([
-("md", "# Training walk-through\n\nThe LF-GNSS network is trained end to end through a differentiable EKF (`learning.torch_ekf`). This notebook trains a small model for a few epochs on simulated urban drives (seconds on a laptop), exports it to a model file and uses it in the filterpy EKF plug-in. For the real benchmark data use `python -m learning.train --config learning/configs/shipped.toml` (see `docs/results.md` for the command that made the shipped model)."),
+("md", "# Training walk-through\n\nThe LF-GNSS network is trained end to end through a differentiable EKF (`learning.torch_ekf`). This notebook trains a small model for a few epochs on simulated urban drives (seconds on a laptop), exports it to a model file and uses it in the filterpy EKF plug-in. For the real benchmark data use `python -m learning.train --config learning/configs/shipped.toml` (`lfgnss/data/model/README.md` gives the command and configuration behind each shipped model)."),
 ("code", """import tempfile, warnings
 from pathlib import Path
 warnings.simplefilter("ignore", FutureWarning)

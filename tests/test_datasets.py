@@ -80,12 +80,13 @@ def test_truth_file_with_bad_lines(tmp_path):
     lines = (SAMPLE_DIR / "Berlin_Potsdamer_Platz_GT.txt").read_text().splitlines()
     lines[2] = "point3 0.5 37851x5.7 899901.8 5037236.1 0 0 0"
     lines[5] = "garbage"
+    lines[6] = "# a comment"
     bad = tmp_path / "gt.txt"
     bad.write_text("\n".join(lines))
     spec = datasets.register_toml(_user_toml(tmp_path, "gt.txt"))
     t = spec.time_origin_gps_s + np.array([0.0, 0.5, 0.7])
     truth, notes = datasets.align_truth(t, spec)
-    assert notes == [f"{bad}:3: unreadable truth line, skipped"]   # 'garbage' is not a point3 row: ignored
+    assert notes == [f"{bad}:3: unreadable truth line, skipped", f"{bad}:6: not a point3 record, skipped"]
     assert np.all(np.isfinite(truth[0])) and np.all(np.isnan(truth[1])) and np.all(np.isfinite(truth[2]))
 
 
