@@ -157,15 +157,17 @@ def run(args) -> int:
             raise
         raise InputError(obs, str(err)) from None
     options = {"noise": noise} if noise is not None else {}
+    label = args.backend
     if args.backend == "fgo":
         options["mode"] = args.mode or "batch"
-    label = args.backend
+        label += " fixed-lag" if options["mode"] == "fixed-lag" else ""
     if args.smooth:
         options["smooth"] = True
         label += "+rts"
         if args.smooth_lag is not None:
             options["smooth_lag_s"] = args.smooth_lag
             label += f" (lag {args.smooth_lag:g} s)"
+    label += " (hand-set noise)" if args.no_model else ""
     estimator = estimators.create(args.backend, **options)
     estimator.name = label
     solution = estimator.solve(seq)

@@ -52,6 +52,11 @@ def test_truth_matching_no_epoch_warns_and_skips_the_table(tmp_path, capsys):
     assert (tmp_path / "Berlin_Potsdamer_Platz.csv").exists()          # the solution is still written
 
 
+def test_table_label_names_hand_set_noise_and_fixed_lag(tmp_path, capsys):
+    assert main(["--out", str(tmp_path), "--no-plots", "--backend", "fgo", "--mode", "fixed-lag", "--no-model"]) == 0
+    assert "fgo fixed-lag (hand-set noise) " in capsys.readouterr().out
+
+
 def test_systems_are_case_blind_and_absent_ones_are_reported():
     lower = load(SAMPLE_OBS, SAMPLE_NAV, systems="gr")
     assert lower.systems == load(SAMPLE_OBS, SAMPLE_NAV, systems="GR").systems == ("G", "R")
