@@ -142,7 +142,7 @@ class LfgnssModel:
         self.normaliser = normaliser
         self.metadata = metadata
         self.feature_names = tuple(normaliser.feature_names)
-        m = metadata["model"]
+        m = model_settings(metadata)
         self.n_heads = int(m["n_heads"])
         self.d_model = int(m["d_model"])
         self.n_hidden = len(m["hidden"])
@@ -151,7 +151,7 @@ class LfgnssModel:
         self.r_prior = m.get("r_prior")
         self.compensation = bool(m.get("compensation", True))
         #: True: the network reads the EKF's prior innovations (``predict``'s ``innovation``), epoch by epoch.
-        self.online = bool(m.get("innovation", False))
+        self.online = bool(m["innovation"])
         self.eps = float(metadata.get("layer_norm_eps", 1e-5))
 
     def __repr__(self) -> str:
@@ -246,6 +246,15 @@ class LfgnssModel:
         return self.predict(self.features(sequence), sequence.mask)
 
 
+#: Model settings added after files were first written, with the value older files were trained with.
+OLD_FILE_MODEL_DEFAULTS = {"innovation": False}   # model.innovation, session 13
+
+
+def model_settings(metadata: dict) -> dict:
+    """A model file's ``model`` settings (``LfgnssNet.hyperparameters``), older files' missing ones filled in."""
+    return OLD_FILE_MODEL_DEFAULTS | metadata["model"]
+
+
 _REQUIRED_META = ("format", "format_version", "feature_names", "model", "parameters", "normaliser")
 
 
@@ -302,7 +311,7 @@ def load_model(path: str | Path, expected_features: Iterable[str] | None = None)
     absent = [k for k in needed if k not in params]
     if absent:
         raise ModelFileError(path, f"parameters {absent} missing")
-    n_inputs = len(normaliser.feature_names) + bool(meta["model"].get("innovation", False))
+    n_inputs = len(normaliser.feature_names) + bool(model_settings(meta)["innovation"])
     if params["embed.weight"].shape[1] != n_inputs:
         raise ModelFileError(path, f"embedding takes {params['embed.weight'].shape[1]} inputs but "
                                    f"{n_inputs} are named")

@@ -45,6 +45,7 @@ from lfgnss.errors import INPUT_ERRORS, one_line
 from lfgnss.sequence import DEFAULT_FEATURES, Sequence
 
 from .data import Window, make_windows, collate, resolve_feature_names, sequence_batch
+from .export import model_settings
 from .loss import error_norm_m, make_loss
 from .network import LfgnssNet
 from .normalise import Normaliser
@@ -498,7 +499,7 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
     smooth = bool(tr.get("smooth", False))   # train and validate the RTS-smoothed positions (estimators.smoother)
     model = build_model(config, len(prep.feature_names), prep.normaliser)
     if prep.init is not None:
-        if model.hyperparameters() != {"innovation": False} | prep.init.metadata["model"]:  # files before session 13
+        if model.hyperparameters() != model_settings(prep.init.metadata):
             raise ValueError(f"train.init: {prep.init.path} cannot be rebuilt from its training configuration "
                              f"({prep.init.metadata['model']} vs {model.hyperparameters()})")
         model.load_state_dict({k: torch.as_tensor(v) for k, v in prep.init.params.items()})
