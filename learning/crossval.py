@@ -13,7 +13,8 @@ EKF settings) on its held-out block, the bar the learned model has to clear.
 Reported per fold and pooled over folds (RMSE pooled by epochs): the plain EKF, the untrained network
 (epoch 0), the last epoch (the honest figure of a fixed schedule) and the best epoch (optimistic: it
 is picked on the held-out block itself); and the plain EKF and the last epoch with the RTS smoother
-(``estimators.smoother``; training itself reads smoothed positions only with ``train.smooth``).
+(``estimators.smoother``; training itself reads smoothed positions only with ``train.smooth``); and the 2D
+(horizontal) RMSE of the plain EKF and of the last epoch.
 "untrained" has a random output head, so it is near, not equal to, the plain EKF even for a recipe with
 the hand-set R prior. Writes ``crossval.csv`` and ``crossval.md``
 in ``--out`` and each fold's run (``log.csv``, ``curves.png``, ``best.pt``, ``last.pt``) in ``--out/fold<j>/``.
@@ -38,7 +39,8 @@ from .train import (adopt_init, ekf_config, exit_on_input_error, init_model, loa
                     train, trained_datasets)
 
 COLUMNS = ["fold", "held_out_epochs", "plain_ekf_rmse_3d_m", "untrained_rmse_3d_m", "last_rmse_3d_m",
-           "best_rmse_3d_m", "best_epoch", "plain_ekf_smoothed_rmse_3d_m", "last_smoothed_rmse_3d_m"]
+           "best_rmse_3d_m", "best_epoch", "plain_ekf_smoothed_rmse_3d_m", "last_smoothed_rmse_3d_m",
+           "plain_ekf_rmse_2d_m", "last_rmse_2d_m"]
 
 
 def fold_sequences(sequences: list[Sequence], folds: int, fold: int,
@@ -65,27 +67,39 @@ def fold_sequences(sequences: list[Sequence], folds: int, fold: int,
     return train, held
 
 
-def plain_ekf_rmse_3d_m(sequences: list[Sequence], config: dict, smooth: bool = False) -> float:
-    """3D RMSE [m] of the plain EKF (with ``smooth``, RTS-smoothed) over the labelled epochs of ``sequences``, pooled."""
+def plain_ekf_rmse_m(sequences: list[Sequence], config: dict, smooth: bool = False) -> tuple[float, float]:
+    """(3D, 2D) RMSE [m] of the plain EKF (``smooth``: RTS-smoothed) over the labelled epochs of ``sequences``, pooled."""
     from estimators.ekf import PlainEkf
 
     rows = []
     for seq in sequences:
         sol = PlainEkf(config=ekf_config(config), smooth=smooth).solve(seq)
         rows.append(accuracy_table(sol.pos_ecef_m, seq.truth_ecef_m, sol.available))
-    return pooled_rmse([r["rmse_3d_m"] for r in rows], [r["n_solved"] for r in rows])
+    counts = [r["n_solved"] for r in rows]
+    return tuple(pooled_rmse([r[k] for r in rows], counts) for k in ("rmse_3d_m", "rmse_2d_m"))
 
 
-def _smoothed_rmse(checkpoint: Path, config: dict, prep) -> float:
-    """3D RMSE [m] over the held-out block of a fold's saved (exported) weights, RTS-smoothed."""
+def _saved_rmse_m(checkpoint: Path, config: dict, prep, smooth: bool) -> tuple[float, float]:
+    """(3D, 2D) RMSE [m] over the held-out block of a fold's saved (exported) weights (``smooth``: RTS-smoothed)."""
     import torch
 
-    from .train import build_model, evaluate
+    from .loss import error_norm_m
+    from .train import build_model, run_filter
 
     saved = torch.load(checkpoint, map_location="cpu", weights_only=False)
     model = build_model(config, len(prep.feature_names), prep.normaliser)
     model.load_state_dict(saved["model"])
-    return evaluate(model, prep.val_batches, n_systems=prep.n_systems, ekf_cfg=ekf_config(config), smooth=True)[0]
+    model.eval()
+    sq = np.zeros(2)
+    n = 0
+    with torch.no_grad():
+        for batch in prep.val_batches:
+            pos = run_filter(model, batch, n_systems=prep.n_systems, ekf_cfg=ekf_config(config), smooth=smooth)
+            for i, up_weight in enumerate((1.0, 0.0)):
+                L, _ = error_norm_m(pos, batch.truth_ecef_m, up_weight=up_weight)
+                sq[i] += float((L.double() ** 2).sum())
+            n += int(L.numel())
+    return tuple(math.sqrt(v / n) if n else float("nan") for v in sq)
 
 
 def pooled_rmse(rmse: list[float], counts: list[int]) -> float:
@@ -120,14 +134,17 @@ def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = 
         prep = prepare(config, source)
         history = train(copy.deepcopy(config), out / f"fold{j}", progress=progress, prepared=prep, export=False)
         best = min(history, key=lambda h: h["val_rmse_3d_m"])
+        plain_3d, plain_2d = plain_ekf_rmse_m(held, config)
+        last = out / f"fold{j}" / "last.pt"
         rows.append({"fold": j, "held_out_epochs": sum(len(s) for s in held),
-                     "plain_ekf_rmse_3d_m": plain_ekf_rmse_3d_m(held, config),
+                     "plain_ekf_rmse_3d_m": plain_3d,
                      "untrained_rmse_3d_m": history[0]["val_rmse_3d_m"], "last_rmse_3d_m": history[-1]["val_rmse_3d_m"],
                      "best_rmse_3d_m": best["val_rmse_3d_m"], "best_epoch": best["epoch"],
-                     "plain_ekf_smoothed_rmse_3d_m": plain_ekf_rmse_3d_m(held, config, smooth=True),
-                     "last_smoothed_rmse_3d_m": _smoothed_rmse(out / f"fold{j}" / "last.pt", config, prep)})
+                     "plain_ekf_smoothed_rmse_3d_m": plain_ekf_rmse_m(held, config, smooth=True)[0],
+                     "last_smoothed_rmse_3d_m": _saved_rmse_m(last, config, prep, smooth=True)[0],
+                     "plain_ekf_rmse_2d_m": plain_2d, "last_rmse_2d_m": _saved_rmse_m(last, config, prep, smooth=False)[1]})
     keys = ["plain_ekf_rmse_3d_m", "untrained_rmse_3d_m", "last_rmse_3d_m", "best_rmse_3d_m",
-            "plain_ekf_smoothed_rmse_3d_m", "last_smoothed_rmse_3d_m"]
+            "plain_ekf_smoothed_rmse_3d_m", "last_smoothed_rmse_3d_m", "plain_ekf_rmse_2d_m", "last_rmse_2d_m"]
     rows.append({"fold": "pooled", "held_out_epochs": sum(r["held_out_epochs"] for r in rows),
                  **{k: pooled_rmse([r[k] for r in rows], [r["held_out_epochs"] for r in rows]) for k in keys},
                  "best_epoch": "-"})

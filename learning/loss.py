@@ -3,6 +3,7 @@
 Samples are the labelled epochs of every window in the batch. Per sample (paper eqs. for L_dhem):
 
     L = ||e||_2                          e = x_pred - x_true (ENU; the norm is the same in ECEF)
+                                         (``up_weight`` u != 1: L = sqrt(e_E^2 + e_N^2 + u^2 e_U^2))
     w = (1 - sqrt(L / max L)) ** (gamma * exp(-lambda * L))     max over the batch, detached
     l = alpha * w * L
     loss = sqrt(mean(l ** 2))
@@ -12,17 +13,31 @@ label) or whose estimate is not finite are left out of both.
 """
 from __future__ import annotations
 
+import math
+
 import torch
 
+from lfgnss.constants import WGS84_A_M, WGS84_F
+
 _TINY = 1e-12
+_B_OVER_A_SQ = (1.0 - WGS84_F) ** 2
 
 
-def error_norm_m(pos_m: torch.Tensor, truth_m: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Position error norms of the labelled samples.
+def up_unit(ecef_m: torch.Tensor) -> torch.Tensor:
+    """Local up (ellipsoid normal) unit vectors (..., 3) at ECEF points ``ecef_m`` (..., 3) [m]."""
+    n = ecef_m * ecef_m.new_tensor([1.0, 1.0, 1.0 / _B_OVER_A_SQ])
+    return n / torch.linalg.vector_norm(n, dim=-1, keepdim=True)
+
+
+def error_norm_m(pos_m: torch.Tensor, truth_m: torch.Tensor, *, up_weight: float = 1.0
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Position error norms of the labelled samples, the up component scaled by ``up_weight``.
 
     Parameters
     ----------
-    pos_m, truth_m : (..., 3) estimated and true positions [m] (ECEF or ENU; truth NaN = unlabelled)
+    pos_m, truth_m : (..., 3) estimated and true ECEF positions [m] (truth NaN = unlabelled); with the
+        default ``up_weight`` 1 any frame will do (the norm is frame-free)
+    up_weight : factor on the vertical error (0: horizontal error only)
 
     Returns
     -------
@@ -33,6 +48,9 @@ def error_norm_m(pos_m: torch.Tensor, truth_m: torch.Tensor) -> tuple[torch.Tens
         raise ValueError(f"positions {tuple(pos_m.shape)} and truth {tuple(truth_m.shape)} must both be (..., 3)")
     valid = torch.isfinite(truth_m).all(dim=-1) & torch.isfinite(pos_m).all(dim=-1)
     e = pos_m[valid] - truth_m[valid]
+    if up_weight != 1.0:
+        u = up_unit(truth_m[valid])
+        e = e + (up_weight - 1.0) * (e * u).sum(dim=-1, keepdim=True) * u
     return torch.sqrt(torch.clamp((e * e).sum(dim=-1), min=_TINY)), valid
 
 
@@ -52,37 +70,40 @@ def hem_weights(L: torch.Tensor, *, gamma: float, lam: float) -> torch.Tensor:
 
 
 def hem_loss(pos_m: torch.Tensor, truth_m: torch.Tensor, *, alpha: float = 0.75, gamma: float = 1.5,
-             lam: float = 1.0) -> torch.Tensor:
+             lam: float = 1.0, up_weight: float = 1.0) -> torch.Tensor:
     """Dynamic hard-example-mining loss over all labelled samples.
 
     Parameters
     ----------
     pos_m, truth_m : (..., 3) estimated and true positions [m]; truth NaN where unlabelled.
     alpha, gamma, lam : loss scale, initial difficulty exponent, exponent decay rate [1/m].
+    up_weight : factor on the vertical error (``error_norm_m``).
 
     Returns
     -------
     scalar tensor; raises ValueError when no sample is labelled.
     """
-    L, _ = error_norm_m(pos_m, truth_m)
+    L, _ = error_norm_m(pos_m, truth_m, up_weight=up_weight)
     if L.numel() == 0:
         raise ValueError("hem_loss: no labelled sample with a finite estimate in the batch")
     sample = alpha * hem_weights(L, gamma=gamma, lam=lam) * L
     return torch.sqrt(torch.mean(sample ** 2))
 
 
-def rmse_loss(pos_m: torch.Tensor, truth_m: torch.Tensor) -> torch.Tensor:
+def rmse_loss(pos_m: torch.Tensor, truth_m: torch.Tensor, *, up_weight: float = 1.0) -> torch.Tensor:
     """sqrt(mean(L ** 2)) over the labelled samples (the "w/o HEM" ablation); (..., 3) inputs."""
-    L, _ = error_norm_m(pos_m, truth_m)
+    L, _ = error_norm_m(pos_m, truth_m, up_weight=up_weight)
     if L.numel() == 0:
         raise ValueError("rmse_loss: no labelled sample with a finite estimate in the batch")
     return torch.sqrt(torch.mean(L ** 2))
 
 
-def make_loss(kind: str, *, alpha: float = 0.75, gamma: float = 1.5, lam: float = 1.0):
+def make_loss(kind: str, *, alpha: float = 0.75, gamma: float = 1.5, lam: float = 1.0, up_weight: float = 1.0):
     """The configured loss as ``fn(pos_m, truth_m) -> scalar``; ``kind`` is ``"hem"`` or ``"rmse"``."""
+    if up_weight < 0 or not math.isfinite(up_weight):
+        raise ValueError(f"loss up_weight must be a finite number >= 0, got {up_weight}")
     if kind == "hem":
-        return lambda pos, truth: hem_loss(pos, truth, alpha=alpha, gamma=gamma, lam=lam)
+        return lambda pos, truth: hem_loss(pos, truth, alpha=alpha, gamma=gamma, lam=lam, up_weight=up_weight)
     if kind == "rmse":
-        return rmse_loss
+        return lambda pos, truth: rmse_loss(pos, truth, up_weight=up_weight)
     raise ValueError(f"unknown loss kind {kind!r}; expected 'hem' or 'rmse'")

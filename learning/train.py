@@ -72,7 +72,7 @@ DEFAULT_CONFIG: dict[str, Any] = {
               "r_init_m2": None, "r_prior": "none", "compensation": True, "innovation": False},
     "train": {"epochs": 200, "batch_size": 16, "lr": 1.0e-3, "t_max": 50, "eta_min": 1.0e-4, "grad_clip": 0.0,
               "weight_decay": 0.0, "select": "val", "ema_decay": 0.0, "init": "", "smooth": False},
-    "loss": {"kind": "hem", "alpha": 0.75, "gamma": 1.5, "lambda": 1.0},
+    "loss": {"kind": "hem", "alpha": 0.75, "gamma": 1.5, "lambda": 1.0, "up_weight": 1.0},
     "ekf": {},
 }
 
@@ -515,7 +515,8 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
         model, multi_avg_fn=torch.optim.swa_utils.get_ema_multi_avg_fn(ema_decay)) if ema_decay > 0 else None)
     kept = model if averaged is None else averaged.module       # the weights validated, saved and exported
     lc = config["loss"]
-    loss_fn = make_loss(lc["kind"], alpha=float(lc["alpha"]), gamma=float(lc["gamma"]), lam=float(lc["lambda"]))
+    loss_fn = make_loss(lc["kind"], alpha=float(lc["alpha"]), gamma=float(lc["gamma"]), lam=float(lc["lambda"]),
+                        up_weight=float(lc["up_weight"]))
     history: list[dict] = []
     best = float("inf")
     start_epoch = 1

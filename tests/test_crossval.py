@@ -50,9 +50,11 @@ def test_command_writes_per_fold_and_pooled_rows(tmp_path, capsys):
     assert [r["fold"] for r in rows] == ["0", "1", "pooled"]
     for r in rows:
         for key in ("plain_ekf_rmse_3d_m", "untrained_rmse_3d_m", "last_rmse_3d_m", "best_rmse_3d_m",
-                    "plain_ekf_smoothed_rmse_3d_m", "last_smoothed_rmse_3d_m"):
+                    "plain_ekf_smoothed_rmse_3d_m", "last_smoothed_rmse_3d_m", "plain_ekf_rmse_2d_m", "last_rmse_2d_m"):
             assert math.isfinite(float(r[key])) and float(r[key]) > 0
         assert float(r["best_rmse_3d_m"]) <= float(r["last_rmse_3d_m"]) + 1e-12
+        for what in ("plain_ekf", "last"):                              # horizontal part of the same positions
+            assert float(r[f"{what}_rmse_2d_m"]) < float(r[f"{what}_rmse_3d_m"])
         assert float(r["last_smoothed_rmse_3d_m"]) != float(r["last_rmse_3d_m"])          # the RTS pass ran
     n = [int(r["held_out_epochs"]) for r in rows]
     assert n[2] == n[0] + n[1] == 3 * 60                                # two train seeds + one val seed, 60 epochs each
@@ -82,7 +84,7 @@ def test_each_fold_trains_on_the_other_blocks_and_scores_the_held_out_one(monkey
 
     monkeypatch.setattr(cv, "prepare", spy_prepare)
     monkeypatch.setattr(cv, "train", lambda *a, **k: [{"epoch": 0, "val_rmse_3d_m": 1.0}])
-    monkeypatch.setattr(cv, "_smoothed_rmse", lambda *a: 1.0)
+    monkeypatch.setattr(cv, "_saved_rmse_m", lambda *a, **k: (1.0, 0.5))
     rows = cv.crossval(config, 3, tmp_path, progress=False)
     for j, (train, held) in enumerate(seen):
         assert all("/cv-train" in s.name for s in train) and all("/cv-held-out" in s.name for s in held)

@@ -56,3 +56,21 @@ def test_max_detached_and_batched_shapes():
     assert torch.isfinite(pos.grad).all()
     with pytest.raises(ValueError):
         make_loss("huber")
+
+
+def test_up_weight_scales_the_vertical_error_in_the_local_frame():
+    """Errors made in ENU (lfgnss.frames, geodetic) at Hong Kong: up_weight 0 leaves the 2D error, 0.5 halves U."""
+    import numpy as np
+
+    from lfgnss.frames import enu_to_ecef, lla_to_ecef
+
+    truth = lla_to_ecef(np.radians(22.30), np.radians(114.18), 10.0) * np.ones((3, 1))
+    enu = np.array([[3.0, 4.0, 0.0], [0.0, 0.0, 8.0], [1.0, 2.0, 2.0]])
+    pos = np.stack([enu_to_ecef(e, t) for e, t in zip(enu, truth)])
+    pos_t, truth_t = torch.tensor(pos), torch.tensor(truth)
+    for w in (0.0, 0.5, 1.0):
+        expect = math.sqrt(np.mean(enu[:, 0] ** 2 + enu[:, 1] ** 2 + (w * enu[:, 2]) ** 2))
+        assert float(make_loss("rmse", up_weight=w)(pos_t, truth_t)) == pytest.approx(expect, abs=1e-6)
+    assert float(make_loss("hem", up_weight=0.0)(pos_t, truth_t)) < float(make_loss("hem")(pos_t, truth_t))
+    with pytest.raises(ValueError, match="up_weight"):
+        make_loss("rmse", up_weight=-1.0)
