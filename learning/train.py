@@ -133,6 +133,11 @@ def check_config(config: dict) -> dict:
     ema = config["train"].get("ema_decay", 0.0)
     if isinstance(ema, bool) or not isinstance(ema, (int, float)) or not 0.0 <= ema < 1.0:
         raise ValueError(f"train.ema_decay must be a number in [0, 1), got {ema!r}")
+    register = config["data"].get("register", [])
+    if isinstance(register, str):                          # --set data.register=my.toml: one file
+        config["data"]["register"] = register = [register]
+    if not isinstance(register, list) or not all(isinstance(r, str) for r in register):
+        raise ValueError(f"data.register must be a list of dataset TOML files, got {register!r}")
     if not isinstance(config["train"].get("init", ""), str):
         raise ValueError(f"train.init must be the path of a model file (a string), got {config['train']['init']!r}")
     if not isinstance(config["train"].get("smooth", False), bool):
@@ -147,13 +152,31 @@ def check_config(config: dict) -> dict:
     return config
 
 
+def _beside(path: Path, name: object) -> object:
+    """``name`` read next to the configuration file ``path`` when it is a relative path found there, else as given."""
+    if isinstance(name, str) and name and not Path(name).is_absolute() and (path.parent / name).exists():
+        return str(path.parent / name)
+    return name
+
+
 def _read_toml(path: Path, depth: int = 0) -> dict:
-    """A TOML file; a top-level ``base = "other.toml"`` (relative to it) is read first and updated."""
+    """A TOML file; a top-level ``base = "other.toml"`` (relative to it) is read first and updated.
+
+    Like ``base``, the relative files it names (``data.register``, ``train.init``) are looked for next to it
+    first, then in the current folder (where the shipped configurations' paths, from the repository root, are).
+    """
     try:
         with open(path, "rb") as fh:
             data = tomllib.load(fh)
     except (OSError, tomllib.TOMLDecodeError) as exc:
         raise ValueError(f"{path}: cannot read configuration: {exc}") from exc
+    register = data.get("data", {}).get("register")
+    if isinstance(register, list):
+        data["data"]["register"] = [_beside(path, r) for r in register]
+    elif register is not None:
+        data["data"]["register"] = _beside(path, register)
+    if "init" in data.get("train", {}):
+        data["train"]["init"] = _beside(path, data["train"]["init"])
     base = data.pop("base", None)
     if base is None:
         return data
@@ -630,6 +653,10 @@ def main(argv: list[str] | None = None) -> int:
     exported = load_model(Path(out) / "model.npz").metadata     # the run's own config decides (--resume)
     print(f"{out}: best validation 3D RMSE {best['val_rmse_3d_m']:.3f} m at epoch {best['epoch']}; model "
           f"{Path(out) / 'model.npz'} is epoch {exported['epoch']} (validation {exported['val_rmse_3d_m']:.3f} m)")
+    if exported["epoch"] == 0:
+        print(f"warning: no training epoch beat the untrained network on validation, so {Path(out) / 'model.npz'} "
+              "holds no training (a network that starts from train.init is that model); train longer, change the "
+              "recipe, or set train.select = \"last\"", file=sys.stderr)
     return 0
 
 

@@ -100,8 +100,8 @@ def run(args) -> int:
     if args.smooth_lag is not None and not (args.smooth and args.smooth_lag >= 0):
         raise ValueError(f"--smooth-lag needs --smooth and a lag >= 0 seconds, got {args.smooth_lag}")
     if args.smooth and args.backend not in SMOOTHABLE_BACKENDS:
-        raise ValueError(f"--smooth applies to --backend {' and '.join(SMOOTHABLE_BACKENDS)}, not {args.backend} "
-                         f"(the factor graph's batch mode already uses every epoch)")
+        raise ValueError(f"--smooth applies to --backend {' and '.join(SMOOTHABLE_BACKENDS)}, not {args.backend}"
+                         + (" (the factor graph's batch mode already uses every epoch)" if args.backend == "fgo" else ""))
     if (args.model is not None or args.no_model) and args.backend not in LEARNED_BACKENDS:
         raise ValueError(f"--{'model' if args.model is not None else 'no-model'} applies to --backend "
                          f"{' and '.join(LEARNED_BACKENDS)}, not {args.backend} (which has no learned noise)")
@@ -172,11 +172,13 @@ def run(args) -> int:
     estimator.name = label
     solution = estimator.solve(seq)
 
-    stem = args.out / Path(obs).name.split(".")[0]
+    name = f"{Path(obs).name.split('.')[0]}_{_run_tag(args, options)}"
+    stem = args.out / name
     written = [write_pos(f"{stem}.pos", solution), write_csv(f"{stem}.csv", solution, truth),
                write_geojson(f"{stem}.geojson", solution), write_kml(f"{stem}.kml", solution)]
     if truth is not None and not args.no_plots:
-        written += plot_solution(args.out, solution, truth, extra_solutions={"least squares": _coarse(seq)})
+        written += plot_solution(args.out, solution, truth, extra_solutions={"least squares": _coarse(seq)},
+                                 prefix=f"{name}_")
 
     if not args.quiet:
         summary = fix.summary()
@@ -194,6 +196,15 @@ def run(args) -> int:
                 accuracy_table(solution.pos_ecef_m, truth, solution.available, method=label)]
         print(format_text(rows))
     return 0
+
+
+def _run_tag(args: argparse.Namespace, options: dict) -> str:
+    """What tells this run's output files from another back end's or variant's in the same ``--out``: ``ekf-rts``."""
+    tag = args.backend
+    tag += "-fixed-lag" if options.get("mode") == "fixed-lag" else ""
+    tag += "-rts" if args.smooth else ""
+    tag += f"-lag{args.smooth_lag:g}s" if args.smooth_lag is not None else ""
+    return tag + ("-hand-set" if args.no_model else "")
 
 
 def _make_output_folder(out: Path) -> None:

@@ -32,6 +32,6 @@ def test_default_solve_runs_on_bundled_data(tmp_path, capsys):
     assert main(["--out", str(tmp_path), "--no-plots"]) == 0
     out = capsys.readouterr().out
     assert "least squares (coarse)" in out and "ekf" in out
-    csv = (tmp_path / "Berlin_Potsdamer_Platz.csv").read_text()
+    csv = (tmp_path / "Berlin_Potsdamer_Platz_ekf.csv").read_text()
     assert "nan" not in csv.lower() and "inf" not in csv.lower()
     assert len(csv.splitlines()) == 1376

@@ -49,12 +49,27 @@ def test_truth_matching_no_epoch_warns_and_skips_the_table(tmp_path, capsys):
     captured = capsys.readouterr()
     assert "no truth epoch matches an epoch" in captured.err and "--truth-origin" in captured.err
     assert "RMSE" not in captured.out and not list(tmp_path.glob("*.png"))
-    assert (tmp_path / "Berlin_Potsdamer_Platz.csv").exists()          # the solution is still written
+    assert (tmp_path / "Berlin_Potsdamer_Platz_ekf.csv").exists()          # the solution is still written
 
 
 def test_table_label_names_hand_set_noise_and_fixed_lag(tmp_path, capsys):
     assert main(["--out", str(tmp_path), "--no-plots", "--backend", "fgo", "--mode", "fixed-lag", "--no-model"]) == 0
     assert "fgo fixed-lag (hand-set noise) " in capsys.readouterr().out
+    assert (tmp_path / "Berlin_Potsdamer_Platz_fgo-fixed-lag-hand-set.pos").exists()
+
+
+def test_back_ends_compared_in_one_folder_keep_their_own_outputs(tmp_path, capsys):
+    """Each run's files carry its back end and variant, so a second run does not overwrite the first."""
+    for extra in ([], ["--smooth", "--smooth-lag", "2"], ["--backend", "wls"]):
+        assert main(["--out", str(tmp_path), "--quiet", *extra]) == 0
+    stems = {"ekf", "ekf-rts-lag2s", "wls"}
+    for tag in stems:
+        for suffix in (".pos", ".csv", ".geojson", ".kml", "_track.png", "_errors.png", "_cdf.png"):
+            assert (tmp_path / f"Berlin_Potsdamer_Platz_{tag}{suffix}").exists(), (tag, suffix)
+    assert len(list(tmp_path.iterdir())) == 7 * len(stems)
+    capsys.readouterr()
+    assert main(["--out", str(tmp_path), "--backend", "wls", "--smooth"]) == 2
+    assert capsys.readouterr().err.rstrip().endswith("not wls")        # the factor graph's reason is fgo's alone
 
 
 def test_systems_are_case_blind_and_absent_ones_are_reported():

@@ -1,5 +1,6 @@
 """End-to-end training on simulated sequences: learning, resume, reproducibility, gradients."""
 import csv
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -356,3 +357,32 @@ def test_bad_input_found_while_running_is_one_line_too(capsys, tmp_path):
         err = capsys.readouterr().err
         assert expected in err and "Traceback" not in err
         assert len(err.strip().splitlines()) == 1, err
+
+
+def test_cli_warns_when_the_exported_model_is_the_untrained_network(tmp_path, capsys):
+    """lr 0: no epoch beats epoch 0, so model.npz (best on validation) holds no training; the user is told."""
+    args = ["--config", "learning/configs/default.toml", "--out", str(tmp_path), "--no-progress"]
+    settings = [s for s in SETTINGS if not s.startswith(("train.epochs", "train.lr", "train.eta_min"))]
+    settings += ["train.epochs=1", "train.lr=0.0", "train.eta_min=0.0"]
+    assert main(args + [x for s in settings for x in ("--set", s)]) == 0
+    err = capsys.readouterr().err
+    assert "holds no training" in err and str(tmp_path / "model.npz") in err
+    assert load_model(tmp_path / "model.npz").metadata["epoch"] == 0
+
+
+def test_config_file_paths_are_read_next_to_it_then_from_the_current_folder(tmp_path, monkeypatch):
+    """data.register and train.init, like base, are found beside the config; the shipped ones stay cwd-relative."""
+    folder = tmp_path / "configs"
+    folder.mkdir()
+    (folder / "my-drive.toml").write_text('id = "x"\n')
+    (folder / "mine.toml").write_text(f'base = "{Path("learning/configs/default.toml").resolve()}"\n'
+                                      '[data]\nregister = ["my-drive.toml", "elsewhere.toml"]\n'
+                                      '[train]\ninit = "lfgnss/data/model/lfgnss-transfer-base.npz"\n')
+    config = load_config(folder / "mine.toml")
+    assert config["data"]["register"] == [str(folder / "my-drive.toml"), "elsewhere.toml"]
+    assert config["train"]["init"] == "lfgnss/data/model/lfgnss-transfer-base.npz"     # not beside it: as given
+    assert load_config("learning/configs/hk_finetune.toml")["train"]["init"] == \
+        "lfgnss/data/model/lfgnss-transfer-base.npz"
+    assert load_config(None, ["data.register=my.toml"])["data"]["register"] == ["my.toml"]   # one file, not letters
+    with pytest.raises(ValueError, match="data.register"):
+        load_config(None, ["data.register=[1, 2]"])
