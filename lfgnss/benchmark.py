@@ -7,10 +7,15 @@ plain EKF, the LF-GNSS EKF and factor graph with the shipped (joint) model, the 
 LF-GNSS EKFs also run with the RTS smoother (``estimators.smoother``, post-processing) as rows of their own.
 Writes a Markdown results table (all test epochs, and the epochs RTKLIB solved, and each learned row against the
 targets and yardstick of BENCHMARK.md), CDF and track PNGs per dataset.
+
+``--models`` names another folder of such files, or one model file (a training run's ``model.npz``), which then
+takes the shipped model's rows on every dataset; ``--register my-drive.toml`` adds a user's dataset
+(``lfgnss.datasets.register_toml``) to the run.
 """
 from __future__ import annotations
 
 import argparse
+import sys
 import tempfile
 import time
 import warnings
@@ -20,12 +25,17 @@ from pathlib import Path
 import numpy as np
 
 from . import datasets
-from .metrics import accuracy_table, format_markdown, format_text, markdown_table
+from .errors import INPUT_ERRORS, InputError, one_line
+from .metrics import METRIC_COLUMNS, accuracy_table, format_markdown, format_text, markdown_table
 from .paths import bundled_data_dir
 
 MODEL_DIR = bundled_data_dir() / "model"
 ABLATIONS = {"LF-GNSS EKF w/o DPC": "lfgnss-no_dpc.npz", "LF-GNSS EKF w/o HEM": "lfgnss-no_hem.npz",
              "LF-GNSS EKF w/o both": "lfgnss-no_dpc_no_hem.npz"}
+DEFAULT_MODEL = "lfgnss-default.npz"
+#: Files of the bundled model folder that are on purpose no benchmark row (the start of the hk fine-tuning).
+BUNDLED_NOT_ROWS = frozenset({"lfgnss-transfer-base.npz"})
+DEFAULT_DATASETS = ("hk-tst-2019", "berlin-pp", "hk-tst-static-2020")
 
 
 #: Targets for the learned EKF and the independent yardstick's figures (3D, 2D RMSE [m], test splits), quoted
@@ -61,13 +71,20 @@ class Method:
 
 
 def methods(model_dir: Path = MODEL_DIR, dataset_id: str | None = None) -> list[Method]:
-    """Baselines always; learned rows where their model file exists (per-dataset ones for ``dataset_id``)."""
+    """Baselines always; learned rows where their model file exists (per-dataset ones for ``dataset_id``).
+
+    ``model_dir`` is a folder of ``lfgnss-*.npz`` files, or one model file that takes the rows of the shipped
+    (joint) model on every dataset.
+    """
     rows = [Method("least squares (equal weight)", "wls"), Method("least squares (C/N0-weighted)", "wls-weighted"),
             Method(PLAIN, "plain-ekf"), Method(PLAIN_RTS, "plain-ekf", options={"smooth": True})]
-    default = model_dir / "lfgnss-default.npz"
-    if default.exists():
+    model_dir = Path(model_dir)
+    default = model_dir if model_dir.is_file() else model_dir / DEFAULT_MODEL
+    if default.is_file():
         rows += [Method("LF-GNSS EKF", "ekf", default), Method("LF-GNSS EKF" + RTS, "ekf", default, {"smooth": True}),
                  Method("LF-GNSS FGO", "fgo", default)]
+    if not model_dir.is_dir():
+        return rows
     rows += [Method(name, "ekf", model_dir / f) for name, f in ABLATIONS.items() if (model_dir / f).exists()]
     own = model_dir / f"lfgnss-{dataset_id}.npz"
     if dataset_id is not None and own.exists():
@@ -75,6 +92,58 @@ def methods(model_dir: Path = MODEL_DIR, dataset_id: str | None = None) -> list[
                  Method(f"LF-GNSS EKF{RTS}, per-dataset model", "ekf", own, {"smooth": True}),
                  Method("LF-GNSS FGO, per-dataset model", "fgo", own)]
     return rows
+
+
+def expected_model_names(dataset_ids) -> list[str]:
+    """The file names a models folder is read for: the joint model, the ablations and one per dataset id."""
+    return [DEFAULT_MODEL, *ABLATIONS.values(), *(f"lfgnss-{d}.npz" for d in dataset_ids)]
+
+
+def check_models(models: Path, dataset_ids: list[str]) -> list[str]:
+    """Warnings about ``--models`` (unused ``.npz`` files of a folder); InputError if it gives these datasets no model.
+
+    Every model file the run will use is loaded once here, so a bad one stops the run before it starts.
+    """
+    from learning.export import load_model
+
+    models = Path(models)
+    if not models.exists():
+        raise InputError(models, "no such model file or folder (--models)")
+    if models.is_file():
+        used = [models]
+    else:
+        used = sorted({m.model for d in dataset_ids for m in methods(models, d) if m.model is not None})
+    for path in used:
+        load_model(path)
+    if models.is_file():
+        return []
+    known = set(expected_model_names(datasets.registered()))
+    if models.resolve() == MODEL_DIR.resolve():
+        known |= BUNDLED_NOT_ROWS
+    unused = sorted(p.name for p in models.glob("*.npz") if p not in used and p.name not in known)
+    expected = (f"expected {DEFAULT_MODEL} (every dataset), {', '.join(ABLATIONS.values())} (ablations) or "
+                f"lfgnss-<dataset id>.npz ({', '.join(f'lfgnss-{d}.npz' for d in dataset_ids)})")
+    hint = f"; to use one model file for every dataset, give the file itself: --models {models / unused[0]}" \
+        if unused else ""
+    if not used:
+        found = f"; it holds only {', '.join(unused)}" if unused else ""
+        raise InputError(models, f"no model file for {', '.join(dataset_ids)} in this folder: {expected}{found}{hint}")
+    return [f"{models}: not using {', '.join(unused)}: {expected}{hint}"] if unused else []
+
+
+def resolve_datasets(ids: list[str], toml_files: list[str | Path] = ()) -> list[str]:
+    """Register the TOML datasets, then the ids to run: those given plus the registered ones (default: the three).
+
+    Raises KeyError (listing the known ids) for an unknown id, and InputError for an unusable TOML file.
+    """
+    registered = [datasets.register_toml(path).id for path in toml_files]
+    out = list(dict.fromkeys([*ids, *registered])) or list(DEFAULT_DATASETS)
+    for dataset_id in out:
+        try:
+            datasets.get(dataset_id)
+        except KeyError as err:
+            raise KeyError(f"{one_line(err)} (a dataset of your own: --register FILE.toml)") from None
+    return out
 
 
 def _features_for(plugins) -> tuple[str, ...]:
@@ -154,11 +223,11 @@ def _trained_on(noise) -> str:
     return trained if not init else f"{trained}, fine-tuned from {'+'.join(init.get('datasets', []))} (train)"
 
 
-_COLUMNS = ("dataset", "method", "trained_on", "n_labelled", "availability", "rmse_e_m", "rmse_n_m", "rmse_u_m",
-            "rmse_2d_m", "rmse_3d_m", "p50_2d_m", "p95_2d_m", "p50_3d_m", "p95_3d_m", "epochs_per_s")
+_COLUMNS = ("dataset", "method", "trained_on", *METRIC_COLUMNS, "epochs_per_s")
 
 
 def _select(rows: list[dict]) -> list[dict]:
+    """The rows cut to the columns of the results tables (every metric of ``accuracy_table``)."""
     return [{k: r[k] for k in _COLUMNS if k in r} for r in rows]
 
 
@@ -232,15 +301,28 @@ def write_report(path: Path, all_rows: list[dict], rtk_rows: list[dict], command
 def main(argv: list[str] | None = None) -> int:
     """Run the benchmark and write the results file."""
     p = argparse.ArgumentParser(prog="python -m lfgnss.benchmark", description=__doc__.split("\n\n")[0])
-    p.add_argument("datasets", nargs="*", default=["hk-tst-2019", "berlin-pp", "hk-tst-static-2020"],
-                   help="dataset ids (default: all three of shared/BENCHMARK.md)")
+    p.add_argument("datasets", nargs="*", default=[],
+                   help="dataset ids (default: all three of shared/BENCHMARK.md, or only the --register'ed ones)")
+    p.add_argument("--register", action="append", default=[], metavar="FILE.toml",
+                   help="a dataset of your own (lfgnss.datasets TOML), run too; repeatable")
     p.add_argument("--models", type=Path, default=MODEL_DIR,
-                   help="folder with lfgnss-*.npz model files (default: the bundled models)")
+                   help="folder with lfgnss-*.npz model files, or one model file used for every dataset "
+                        "(default: the bundled models)")
     p.add_argument("--out", type=Path, default=Path("docs"), help="folder for results.md and figures/ (default: docs)")
     p.add_argument("--no-plots", action="store_true", help="skip the CDF, track and error PNGs")
     args = p.parse_args(argv)
     warnings.simplefilter("ignore", FutureWarning)
-    all_rows, rtk_rows = run(args.datasets, model_dir=args.models, out_dir=args.out, plots=not args.no_plots)
+    try:
+        ids = resolve_datasets(args.datasets, args.register)
+        for message in check_models(args.models, ids):
+            print(f"warning: {message}", file=sys.stderr)
+        ids = datasets.present(ids)
+        if not ids:
+            raise InputError(args.out / "results.md", "not written: no dataset has all its files")
+        all_rows, rtk_rows = run(ids, model_dir=args.models, out_dir=args.out, plots=not args.no_plots)
+    except INPUT_ERRORS as err:
+        print(f"error: {one_line(err)}", file=sys.stderr)
+        return 2
     print(format_text(_select(all_rows)))
     if rtk_rows:
         print("\nOn the epochs RTKLIB solved:")

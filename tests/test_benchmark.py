@@ -1,10 +1,17 @@
-"""Benchmark rows (methods) and the targets table (target_rows): which estimators run, against which bars."""
+"""Benchmark rows (methods), the targets table (target_rows), its columns and its command line (models, datasets)."""
 import shutil
 from types import SimpleNamespace
 
-from lfgnss.benchmark import MODEL_DIR, PLAIN, PLAIN_RTS, RTKLIB, _features_for, methods, target_rows
-from lfgnss.metrics import markdown_table
+import numpy as np
+import pytest
+
+from lfgnss import datasets
+from lfgnss.benchmark import (DEFAULT_DATASETS, MODEL_DIR, PLAIN, PLAIN_RTS, RTKLIB, _features_for, _select,
+                              _trained_on, check_models, main, methods, resolve_datasets, target_rows)
+from lfgnss.errors import InputError
+from lfgnss.metrics import accuracy_table, format_markdown, markdown_table
 from lfgnss.sequence import DEFAULT_FEATURES
+from lfgnss.solve import SAMPLE_DIR
 
 
 def test_rows_follow_the_model_files(tmp_path):
@@ -56,3 +63,108 @@ def test_target_rows_compare_each_learned_row_with_its_bars():
     rts = rows["LF-GNSS EKF + RTS smoother"]                                # a smoother: against smoothers
     assert rts["3D vs plain EKF"] == "7.00 vs 8.00 (yes)" and rts["3D vs yardstick"] == "7.00 vs 12.20 (yes)"
     assert "| 3D vs target |" in markdown_table(list(rows.values()))
+
+
+def test_the_solved_column_counts_the_solved_labelled_epochs():
+    truth = np.zeros((4, 3)) + 6.4e6
+    row = accuracy_table(truth + 1.0, truth, np.array([True, True, False, True]), dataset="d", method="m")
+    kept = _select([row | {"trained_on": "-", "epochs_per_s": 1.0}])[0]
+    assert kept["n_solved"] == 3 and kept["n_labelled"] == 4
+    header, _, cells = format_markdown([kept]).splitlines()
+    assert dict(zip(header.split(" | "), cells.split(" | ")))["solved"] == "3"
+
+
+def test_a_model_file_takes_the_shipped_models_rows_on_every_dataset(tmp_path):
+    model = tmp_path / "model.npz"
+    shutil.copy(MODEL_DIR / "lfgnss-hk-tst-2019.npz", model)       # a fine-tuned model: trained_on says so
+    for dataset_id in ("berlin-pp", "my-drive"):
+        rows = {m.name: m for m in methods(model, dataset_id)}
+        learned = {n: m for n, m in rows.items() if m.model is not None}
+        assert set(learned) == {"LF-GNSS EKF", "LF-GNSS EKF + RTS smoother", "LF-GNSS FGO"}
+        assert {m.model for m in learned.values()} == {model}
+    trained = _trained_on(rows["LF-GNSS EKF"].create().noise)
+    assert trained.startswith("hk-tst-2019 (train), fine-tuned from")
+    assert check_models(model, ["berlin-pp"]) == []
+
+
+def test_a_models_folder_names_what_it_does_not_use(tmp_path):
+    shutil.copy(MODEL_DIR / "lfgnss-default.npz", tmp_path / "model.npz")
+    with pytest.raises(InputError, match=r"no model file for berlin-pp.*lfgnss-default\.npz.*holds only model\.npz"
+                                         r".*--models .*model\.npz"):
+        check_models(tmp_path, ["berlin-pp"])
+    shutil.copy(MODEL_DIR / "lfgnss-default.npz", tmp_path / "lfgnss-default.npz")
+    shutil.copy(MODEL_DIR / "lfgnss-default.npz", tmp_path / "lfgnss-hk-tst-2019.npz")   # a known id: not warned
+    warned = check_models(tmp_path, ["berlin-pp"])
+    assert len(warned) == 1 and "not using model.npz" in warned[0] and "lfgnss-berlin-pp.npz" in warned[0]
+    assert check_models(MODEL_DIR, list(DEFAULT_DATASETS)) == []    # the bundled folder: as before, no warning
+    with pytest.raises(InputError, match="no such model file or folder"):
+        check_models(tmp_path / "nope", ["berlin-pp"])
+    (tmp_path / "lfgnss-no_hem.npz").write_bytes(b"not a model")
+    with pytest.raises(ValueError, match="lfgnss-no_hem.npz"):     # a bad model file stops the run before it starts
+        check_models(tmp_path, ["berlin-pp"])
+
+
+def test_the_command_line_refuses_a_folder_without_a_model(tmp_path, capsys):
+    (tmp_path / "ft").mkdir()
+    shutil.copy(MODEL_DIR / "lfgnss-default.npz", tmp_path / "ft" / "model.npz")
+    assert main(["berlin-pp", "--models", str(tmp_path / "ft"), "--out", str(tmp_path / "out"), "--no-plots"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("error: ") and "model.npz" in err
+    assert not (tmp_path / "out").exists()
+
+
+def _toml(tmp_path, dataset_id: str, test_split=(180, 200)):
+    path = tmp_path / f"{dataset_id}.toml"
+    path.write_text(f"""
+id = "{dataset_id}"
+obs = ["{SAMPLE_DIR / 'Berlin_Potsdamer_Platz.obs.gz'}"]
+nav = ["{SAMPLE_DIR / 'brdc1580.16n.gz'}", "{SAMPLE_DIR / 'brdc1580.16g.gz'}"]
+systems = ["G", "R"]
+[truth]
+file = "{SAMPLE_DIR / 'Berlin_Potsdamer_Platz_GT.txt'}"
+format = "smartloc"
+time_origin_gps_s = {1900 * 604800 + 126641.7}
+[splits]
+axis = "relative_s"
+train = [0, 150]
+val = [150, 180]
+test = {list(test_split)}
+""")
+    return path
+
+
+def test_datasets_of_ones_own_are_registered_and_unknown_ids_refused(tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(datasets, "_REGISTRY", {}, raising=False)   # leave no registration behind
+    assert main(["my-drive", "--out", str(tmp_path / "out"), "--no-plots"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "unknown dataset 'my-drive'" in err and "berlin-pp" in err and "--register" in err
+    toml = _toml(tmp_path, "my-drive")
+    assert resolve_datasets([]) == list(DEFAULT_DATASETS)
+    assert resolve_datasets(["my-drive"], [toml]) == ["my-drive"]
+    assert resolve_datasets(["berlin-pp"], [toml]) == ["berlin-pp", "my-drive"]   # a registered set runs too
+    with pytest.raises(InputError, match="nope.toml"):
+        resolve_datasets([], [tmp_path / "nope.toml"])
+
+
+def test_the_benchmark_runs_a_users_dataset_with_a_users_model(tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(datasets, "_REGISTRY", {}, raising=False)
+    shutil.copy(MODEL_DIR / "lfgnss-default.npz", tmp_path / "model.npz")
+    out = tmp_path / "out"
+    assert main(["my-drive", "--register", str(_toml(tmp_path, "my-drive")), "--models", str(tmp_path / "model.npz"),
+                 "--out", str(out), "--no-plots"]) == 0
+    assert capsys.readouterr().err == ""
+    table = (out / "results.md").read_text().split("## All labelled test epochs")[1].split("##")[0]
+    rows = [line.split(" | ") for line in table.splitlines() if line.startswith("| my-drive")]
+    head = table.strip().splitlines()[0].split(" | ")
+    ekf = next(dict(zip(head, r)) for r in rows if r[1] == "LF-GNSS EKF")
+    assert ekf["trained_on"] == "hk-tst-2019+berlin-pp+hk-tst-static-2020 (train)"
+    assert int(ekf["solved"]) > 0 and int(ekf["solved"]) <= int(ekf["labelled"])
+
+
+def test_no_dataset_with_its_files_writes_no_results(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("LFGNSS_SHARED_DATA", str(tmp_path / "no-data"))
+    assert main(["berlin-pp", "--out", str(tmp_path / "out"), "--no-plots"]) == 2
+    captured = capsys.readouterr()
+    assert "berlin-pp: skipped, missing" in captured.out
+    assert captured.err.count("\n") == 1 and "no dataset has all its files" in captured.err
+    assert not (tmp_path / "out" / "results.md").exists()          # an empty table never replaces docs/results.md
