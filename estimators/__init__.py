@@ -3,9 +3,11 @@
 Importing this package registers the back ends: ``create("ekf")``, ``create("plain-ekf")``,
 ``create("fgo")``, ``create("wls")``, ``create("wls-weighted")``; ``fgo`` (gtsam) is imported on first use.
 ``create("ekf", smooth=True)`` (or ``plain-ekf``) adds the Rauch-Tung-Striebel smoother (``estimators.smoother``).
+An option a backend does not take is a TypeError naming both (``backend_options(name)`` lists its options);
+``noise`` may be a model file path (``create("ekf", noise="my.npz")``), read as ``--model`` is.
 """
 from .base import (STATUS_COASTED, STATUS_NAMES, STATUS_NONE, STATUS_RESET, STATUS_UPDATED, Estimator, Solution,
-                   available, create, register)
+                   available, backend_options, create, register)
 from .models import EkfConfig
 from .noise import FixedNoise, HeuristicNoise, NoiseModel
 from .ekf import LfgnssEkf, PlainEkf
@@ -20,6 +22,6 @@ def __getattr__(name: str):
         return LfgnssFgo
     raise AttributeError(f"module 'estimators' has no attribute {name!r}")
 
-__all__ = ["Estimator", "Solution", "available", "create", "register", "STATUS_NONE", "STATUS_UPDATED",
-           "STATUS_COASTED", "STATUS_RESET", "STATUS_NAMES", "EkfConfig", "NoiseModel", "HeuristicNoise",
-           "FixedNoise", "LfgnssEkf", "LfgnssFgo", "PlainEkf"]
+__all__ = ["Estimator", "Solution", "available", "backend_options", "create", "register", "STATUS_NONE",
+           "STATUS_UPDATED", "STATUS_COASTED", "STATUS_RESET", "STATUS_NAMES", "EkfConfig", "NoiseModel",
+           "HeuristicNoise", "FixedNoise", "LfgnssEkf", "LfgnssFgo", "PlainEkf"]

@@ -1,6 +1,7 @@
 """Per-epoch least-squares baselines as plug-ins: equal-weight (``wls``) and noise-weighted (``wls-weighted``)."""
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -10,7 +11,7 @@ from lfgnss.sequence import Sequence
 from lfgnss.weighted_fix import weighted_least_squares
 
 from .base import STATUS_NONE, STATUS_UPDATED, Solution, register
-from .noise import HeuristicNoise, NoiseModel
+from .noise import HeuristicNoise, NoiseModel, resolve_noise
 
 
 @dataclass
@@ -34,12 +35,13 @@ class _LeastSquares:
 
 
 @register("wls")
-def equal_weight_least_squares(**_: object) -> _LeastSquares:
-    """Equal-weight least squares per epoch (the coarse fix of LF-GNSS step 1)."""
+def equal_weight_least_squares() -> _LeastSquares:
+    """Equal-weight least squares per epoch (the coarse fix of LF-GNSS step 1); it takes no options."""
     return _LeastSquares("wls", None)
 
 
 @register("wls-weighted")
-def weighted_baseline(noise: NoiseModel | None = None, **_: object) -> _LeastSquares:
-    """Least squares per epoch weighted by the C/N0- and elevation-based noise model."""
-    return _LeastSquares("wls-weighted", noise or HeuristicNoise())
+def weighted_baseline(noise: NoiseModel | str | os.PathLike | None = None) -> _LeastSquares:
+    """Least squares per epoch weighted by ``noise``'s R (a model, or a model file), default ``HeuristicNoise``."""
+    noise = resolve_noise(noise, "wls-weighted")
+    return _LeastSquares("wls-weighted", HeuristicNoise() if noise is None else noise)

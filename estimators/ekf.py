@@ -26,6 +26,8 @@ innovations where the epoch has no prior (start, re-initialisation after a gap).
 from __future__ import annotations
 
 import math
+import numbers
+import os
 from dataclasses import fields
 
 import numpy as np
@@ -35,9 +37,9 @@ from lfgnss.features import innovation_feature
 from lfgnss.sequence import Sequence
 
 from . import models
-from .base import STATUS_COASTED, STATUS_NONE, STATUS_RESET, STATUS_UPDATED, Solution, register
+from .base import STATUS_COASTED, STATUS_NONE, STATUS_RESET, STATUS_UPDATED, Solution, options_of, register
 from .models import EkfConfig
-from .noise import HeuristicNoise, NoiseModel, default_noise
+from .noise import HeuristicNoise, NoiseModel, default_noise, resolve_noise
 from .smoother import lag_horizon, rts_smooth
 
 
@@ -83,9 +85,10 @@ class LfgnssEkf:
 
     Parameters
     ----------
-    noise : NoiseModel
-        ``noise(sequence) -> (r_m2, vc_m)``, each (T, N); a learned model (``learning.export.load_model``) or
-        ``HeuristicNoise``, which None means here (the plain EKF). ``create("ekf")`` gives the bundled model.
+    noise : NoiseModel, str or Path
+        ``noise(sequence) -> (r_m2, vc_m)``, each (T, N); a learned model (``learning.export.load_model``, or the
+        path of its file, read with it) or ``HeuristicNoise``, which None means here (the plain EKF).
+        ``create("ekf")`` gives the bundled model.
     config : EkfConfig
         Process noise, initial covariance, gate and reset settings; default: those the noise model
         was trained with (``config_of``), else ``EkfConfig()``.
@@ -99,18 +102,29 @@ class LfgnssEkf:
         statuses are the forward filter's; ``info["filtered_state"]`` keeps its states.
     smooth_lag_s : float
         With ``smooth``: use only the epochs up to this many seconds later (a fixed-lag smoother, whose
-        estimate of an epoch is ready that much later); ``inf``: the whole run.
+        estimate of an epoch is ready that much later); ``inf``: the whole run. Without ``smooth`` only 0
+        (the forward filter, which a zero lag is) or ``inf``; another lag is a ValueError, as ``--smooth-lag``
+        without ``--smooth``.
     """
 
-    def __init__(self, noise: NoiseModel | None = None, config: EkfConfig | None = None, name: str = "ekf",
-                 use_compensation: bool = True, smooth: bool = False, smooth_lag_s: float = math.inf) -> None:
+    def __init__(self, noise: NoiseModel | str | os.PathLike | None = None, config: EkfConfig | None = None,
+                 name: str = "ekf", use_compensation: bool = True, smooth: bool = False,
+                 smooth_lag_s: float = math.inf) -> None:
+        if not isinstance(smooth, (bool, np.bool_)):
+            raise TypeError(f"{type(self).__name__}: smooth must be True or False, got {smooth!r}")
+        if isinstance(smooth_lag_s, bool) or not isinstance(smooth_lag_s, numbers.Real):
+            raise TypeError(f"{type(self).__name__}: smooth_lag_s must be a number of seconds, got {smooth_lag_s!r}")
         if not smooth_lag_s >= 0:
-            raise ValueError(f"estimators/ekf.py: smooth_lag_s must be >= 0, got {smooth_lag_s}")
+            raise ValueError(f"{type(self).__name__}: smooth_lag_s must be >= 0, got {smooth_lag_s}")
+        if not smooth and 0 < smooth_lag_s < math.inf:
+            raise ValueError(f"{type(self).__name__}: smooth_lag_s={float(smooth_lag_s):g} needs smooth=True (without "
+                             f"it the forward filter runs, whose lag is 0)")
+        noise = resolve_noise(noise, type(self).__name__)
         self.noise = HeuristicNoise() if noise is None else noise
         self.config = config_of(self.noise) if config is None else config
         self.name = name
         self.use_compensation = use_compensation
-        self.smooth = smooth
+        self.smooth = bool(smooth)
         self.smooth_lag_s = float(smooth_lag_s)
 
     def noise_arrays(self, sequence: Sequence, usable: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -119,7 +133,7 @@ class LfgnssEkf:
         r = np.asarray(r, float)
         vc = np.asarray(vc, float)
         if r.shape != usable.shape or vc.shape != usable.shape:
-            raise ValueError(f"estimators/ekf.py: noise model gave shapes {r.shape}, {vc.shape} for sequence "
+            raise ValueError(f"{type(self).__name__}: noise model gave shapes {r.shape}, {vc.shape} for sequence "
                              f"{sequence.name!r}, expected {usable.shape}")
         return self._checked(sequence, usable, r, vc)
 
@@ -127,12 +141,12 @@ class LfgnssEkf:
                  ) -> tuple[np.ndarray, np.ndarray]:
         """``(r, vc)`` with positive finite R and finite v^c on the usable slots (v^c 0 without compensation)."""
         if not (np.isfinite(r[usable]).all() and (r[usable] > 0).all()):
-            raise ValueError(f"estimators/ekf.py: noise model gave non-positive or non-finite R on usable "
+            raise ValueError(f"{type(self).__name__}: noise model gave non-positive or non-finite R on usable "
                              f"satellites of {sequence.name!r}")
         if not self.use_compensation:
             vc = np.zeros_like(r)
         elif not np.isfinite(vc[usable]).all():
-            raise ValueError(f"estimators/ekf.py: noise model gave non-finite v^c on usable satellites of "
+            raise ValueError(f"{type(self).__name__}: noise model gave non-finite v^c on usable satellites of "
                              f"{sequence.name!r}")
         return r, vc
 
@@ -146,7 +160,7 @@ class LfgnssEkf:
         dt_all = np.diff(time)
         if np.any(~(dt_all > 0)):
             k = int(np.nonzero(~(dt_all > 0))[0][0]) + 1
-            raise ValueError(f"estimators/ekf.py: epoch times of {sequence.name!r} do not increase at epoch {k}")
+            raise ValueError(f"{type(self).__name__}: epoch times of {sequence.name!r} do not increase at epoch {k}")
 
         usable = usable_measurements(sequence)
         pr_all = np.where(usable, sequence.pr_m, 0.0)
@@ -301,8 +315,9 @@ class LfgnssEkf:
 
 
 @register("ekf")
-def create_lfgnss_ekf(noise: NoiseModel | None = None, **options) -> LfgnssEkf:
-    """``create("ekf")``: the LF-GNSS EKF with ``noise``, by default the bundled model (as the command line)."""
+@options_of(LfgnssEkf)
+def create_lfgnss_ekf(noise: NoiseModel | str | os.PathLike | None = None, **options) -> LfgnssEkf:
+    """``create("ekf")``: the LF-GNSS EKF with ``noise`` (a model or its file), by default the bundled model."""
     return LfgnssEkf(noise=default_noise() if noise is None else noise, **options)
 
 

@@ -50,6 +50,7 @@ whose snapshot is rank deficient the previous covariance propagated by the motio
 """
 from __future__ import annotations
 
+import os
 import time
 
 import gtsam
@@ -62,8 +63,8 @@ from lfgnss.frames import ecef_to_lla, enu_rotation
 from lfgnss.sequence import Sequence
 from lfgnss.velocity import DopplerVelocity, doppler_velocity
 
-from .base import (STATUS_COASTED, STATUS_NONE, STATUS_UPDATED, Solution, register)
-from .noise import HeuristicNoise, NoiseModel, default_noise
+from .base import (STATUS_COASTED, STATUS_NONE, STATUS_UPDATED, Solution, options_of, register)
+from .noise import HeuristicNoise, NoiseModel, default_noise, resolve_noise
 
 MODES = ("batch", "fixed-lag")
 ROBUST_KERNELS = ("huber", "cauchy")
@@ -172,9 +173,10 @@ class LfgnssFgo:
 
     Parameters
     ----------
-    noise : NoiseModel
-        ``noise(sequence) -> (r_m2, vc_m)``, (T, N) each; sigma_i = sqrt(r_i), measurement pr + vc. None:
-        ``HeuristicNoise``; ``create("fgo")`` gives the bundled model.
+    noise : NoiseModel, str or Path
+        ``noise(sequence) -> (r_m2, vc_m)``, (T, N) each; sigma_i = sqrt(r_i), measurement pr + vc; or the path
+        of a model file (read with ``learning.export.load_model``). None: ``HeuristicNoise``; ``create("fgo")``
+        gives the bundled model.
     mode : {"batch", "fixed-lag"}
         Whole-trajectory smoothing, or causal fixed-lag estimation (filtered estimate per epoch).
     lag_s : float
@@ -209,7 +211,7 @@ class LfgnssFgo:
 
     name = "fgo"
 
-    def __init__(self, *, noise: NoiseModel | None = None, mode: str = "batch", lag_s: float = 10.0,
+    def __init__(self, *, noise: NoiseModel | str | os.PathLike | None = None, mode: str = "batch", lag_s: float = 10.0,
                  robust: str | None = "auto", robust_k: float | None = None,
                  accel_psd_enu_m2_s3: tuple[float, float, float] = (1.0, 1.0, 0.1),
                  prior_pos_sigma_m: float = 100.0, prior_vel_sigma_m_s: float = 10.0,
@@ -232,6 +234,7 @@ class LfgnssFgo:
         psd = np.asarray(accel_psd_enu_m2_s3, float)
         if psd.shape != (3,) or np.any(psd <= 0):
             raise ValueError(f"estimators/fgo.py: accel_psd_enu_m2_s3 must be 3 positive numbers, got {psd}")
+        noise = resolve_noise(noise, type(self).__name__)
         self.noise = noise if noise is not None else HeuristicNoise()
         self.mode = mode
         self.lag_s = float(lag_s)
@@ -525,8 +528,9 @@ class LfgnssFgo:
 
 
 @register("fgo")
-def create_lfgnss_fgo(noise: NoiseModel | None = None, **options) -> LfgnssFgo:
-    """``create("fgo")``: the LF-GNSS factor graph with ``noise``, by default the bundled model (as the command line)."""
+@options_of(LfgnssFgo)
+def create_lfgnss_fgo(noise: NoiseModel | str | os.PathLike | None = None, **options) -> LfgnssFgo:
+    """``create("fgo")``: the LF-GNSS factor graph with ``noise`` (a model or its file), default the bundled model."""
     return LfgnssFgo(noise=default_noise() if noise is None else noise, **options)
 
 

@@ -5,6 +5,7 @@ Padded/masked slots may hold any finite value; estimators ignore them.
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import Protocol
@@ -29,6 +30,21 @@ def default_noise() -> NoiseModel:
     from learning.export import load_model
 
     return load_model(default_model_path())
+
+
+def resolve_noise(noise: object, owner: str) -> NoiseModel | None:
+    """``noise`` as a NoiseModel: a model file path (str or Path) is read as ``--model`` is; None stays None."""
+    if noise is None:
+        return None
+    if isinstance(noise, (str, os.PathLike)):
+        from learning.export import load_model   # numpy only, as default_noise; raises ModelFileError naming the file
+
+        return load_model(noise)
+    if isinstance(noise, type) or not callable(noise):
+        what = f"the class {noise.__name__} (pass an instance)" if isinstance(noise, type) else type(noise).__name__
+        raise TypeError(f"{owner}: noise must be a noise model (sequence -> (r_m2, vc_m)) or a model file path, "
+                        f"got {what}")
+    return noise
 
 
 @dataclass(frozen=True)

@@ -93,6 +93,43 @@ def test_registry_creates_both_filters():
     assert isinstance(LfgnssEkf().noise, HeuristicNoise)
 
 
+@pytest.mark.parametrize("make", [lambda **k: create("ekf", **k), lambda **k: create("plain-ekf", **k), LfgnssEkf,
+                                  PlainEkf])
+def test_a_smoothing_lag_without_smooth_is_refused(make):
+    """As ``--smooth-lag`` without ``--smooth``: a lag would otherwise be dropped for the forward filter."""
+    with pytest.raises(ValueError, match=r"smooth_lag_s=5 needs smooth=True"):
+        make(smooth_lag_s=5.0)
+    assert make(smooth=True, smooth_lag_s=5.0).smooth_lag_s == 5.0
+    assert not make(smooth_lag_s=0.0).smooth            # a zero lag is the forward filter: nothing dropped
+    with pytest.raises(TypeError, match="smooth_lag_s must be a number"):
+        make(smooth=True, smooth_lag_s="5")
+    with pytest.raises(TypeError, match="smooth must be True or False"):
+        make(smooth="no")
+
+
+def test_noise_may_be_a_model_file_and_anything_else_is_refused_at_construction():
+    """``noise`` takes a model file path, as ``--model``; a wrong type fails at construction, not in ``solve``."""
+    from pathlib import Path
+
+    from lfgnss.errors import InputError
+    from lfgnss.paths import default_model_path
+
+    small = simulate_sequence(60, seed=9)
+    want = create("ekf").solve(small).pos_ecef_m
+    for path in (str(default_model_path()), Path(default_model_path())):
+        ekf = create("ekf", noise=path)
+        assert ekf.noise.metadata == default_noise().metadata and ekf.config == create("ekf").config
+        np.testing.assert_array_equal(ekf.solve(small).pos_ecef_m, want)
+        assert LfgnssEkf(noise=path).noise.metadata == default_noise().metadata
+    with pytest.raises(InputError, match="my.npz: no such model file"):
+        create("ekf", noise="my.npz")
+    for bad, what in ((3, "int"), (HeuristicNoise, "the class HeuristicNoise")):
+        with pytest.raises(TypeError, match=f"noise must be a noise model .* or a model file path, got {what}"):
+            create("ekf", noise=bad)
+        with pytest.raises(TypeError, match="noise must be"):
+            PlainEkf(noise=bad)
+
+
 def test_solution_contract(seq):
     late = replace(seq, coarse_ecef_m=seq.coarse_ecef_m.copy())
     late.coarse_ecef_m[:3] = np.nan
@@ -247,4 +284,10 @@ def test_learned_model_runs_in_the_filter_it_was_trained_with():
     assert config_of(trained) == EkfConfig(gate_sigma=2.5, doppler_sigma_m_s=1.0)
     older = SimpleNamespace(metadata={"ekf_config": {"gate_sigma": 3.0}})      # before Doppler support
     assert config_of(older).doppler_sigma_m_s == 0.0
-    assert LfgnssEkf(noise=trained).config.gate_sigma == 2.5
+
+    class Trained(HeuristicNoise):
+        """A callable noise model (the filter refuses anything else) carrying the trained model's metadata."""
+
+        metadata = trained.metadata
+
+    assert LfgnssEkf(noise=Trained()).config.gate_sigma == 2.5

@@ -1,0 +1,89 @@
+"""The estimator registry: ``create`` refuses options a backend does not take instead of dropping them."""
+from __future__ import annotations
+
+import inspect
+
+import numpy as np
+import pytest
+
+import estimators
+from estimators import base
+from estimators.base import backend_options, create
+from estimators.ekf import LfgnssEkf, PlainEkf
+from estimators.noise import HeuristicNoise, default_noise
+from lfgnss.paths import default_model_path
+from lfgnss.simulate import simulate_sequence
+
+
+@pytest.mark.parametrize("backend", estimators.available())
+def test_every_backend_refuses_a_typo(backend):
+    with pytest.raises(TypeError, match=rf"backend '{backend}' has no option 'smoth'"):
+        create(backend, smoth=True)
+
+
+@pytest.mark.parametrize("option", [{"noise": HeuristicNoise()}, {"smooth": True}, {"mode": "fixed-lag"},
+                                    {"smoth": True}])
+def test_equal_weight_least_squares_takes_no_options(option):
+    (name,) = option
+    with pytest.raises(TypeError, match=rf"create\('wls'\): backend 'wls' has no option '{name}'.*takes no options"):
+        create("wls", **option)
+
+
+@pytest.mark.parametrize("backend, option, owners", [
+    ("wls-weighted", {"smooth": True}, "ekf, plain-ekf"),
+    ("wls-weighted", {"mode": "fixed-lag"}, "fgo"),
+    ("fgo", {"smooth": True}, "ekf, plain-ekf"),
+    ("ekf", {"mode": "batch"}, "fgo"),
+    ("plain-ekf", {"use_compensation": True}, "ekf"),
+])
+def test_an_option_of_another_backend_is_refused_and_its_owners_named(backend, option, owners):
+    (name,) = option
+    with pytest.raises(TypeError, match=rf"backend '{backend}' has no option '{name}' \(an option of {owners}\)"):
+        create(backend, **option)
+
+
+def test_a_typo_gets_a_suggestion():
+    with pytest.raises(TypeError, match=r"'smoth' \(did you mean 'smooth'\?\)"):
+        create("ekf", smoth=True)
+    with pytest.raises(TypeError, match=r"'smoth' \(did you mean 'smooth', an option of ekf, plain-ekf\?\)"):
+        create("wls", smoth=True)
+
+
+def test_the_options_of_each_backend_are_those_of_its_class():
+    assert backend_options("wls") == []
+    assert backend_options("wls-weighted") == ["noise"]
+    assert backend_options("ekf") == list(inspect.signature(LfgnssEkf).parameters)
+    assert backend_options("plain-ekf") == list(inspect.signature(PlainEkf).parameters)
+    assert backend_options("fgo") == list(inspect.signature(estimators.LfgnssFgo).parameters)
+
+
+def test_what_the_command_line_passes_is_accepted():
+    """The option sets lfgnss.solve builds for each backend (noise only for ekf and fgo, smoothing for the EKFs)."""
+    noise = HeuristicNoise()
+    create("wls")
+    create("wls-weighted")
+    create("plain-ekf", smooth=True, smooth_lag_s=5.0)
+    assert create("ekf", noise=noise, smooth=True, smooth_lag_s=5.0).smooth_lag_s == 5.0
+    assert create("fgo", noise=noise, mode="fixed-lag").mode == "fixed-lag"
+
+
+def test_weighted_least_squares_noise_is_checked_and_may_be_a_model_file():
+    with pytest.raises(TypeError, match="wls-weighted: noise must be a noise model .* got int"):
+        create("wls-weighted", noise=3)
+    seq = simulate_sequence(20, seed=9)
+    from_file = create("wls-weighted", noise=default_model_path()).solve(seq)
+    from_model = create("wls-weighted", noise=default_noise()).solve(seq)
+    np.testing.assert_array_equal(from_file.pos_ecef_m, from_model.pos_ecef_m)
+
+
+def test_a_factory_that_takes_any_keyword_checks_them_itself(monkeypatch):
+    seen = {}
+
+    def factory(**options):
+        seen.update(options)
+        return create("wls")
+
+    monkeypatch.setitem(base._REGISTRY, "third-party", factory)
+    assert backend_options("third-party") is None
+    create("third-party", anything=1)
+    assert seen == {"anything": 1}
