@@ -4,12 +4,17 @@ The three datasets of ``shared/BENCHMARK.md`` are registered by id; users add th
 file (``register_toml``)::
 
     id = "my-drive"
-    obs = ["rover.obs"]               # paths relative to this file
+    obs = ["rover.obs"]               # paths relative to this file; several files of one receiver are
+                                      # joined in time order (they must not overlap in time)
     nav = ["brdc.nav"]
     systems = ["G", "C"]              # optional
     [truth]
     file = "truth.csv"
     format = "urbannav"               # urbannav | smartloc | static | ecef-csv
+    match_tolerance_s = 0.5           # optional: an epoch gets the nearest truth row this close [s];
+                                      # default 0.05 for smartloc, else 0.5 (as python -m lfgnss.solve)
+    time_origin_gps_s = 1149246641.7  # optional, smartloc: GPS seconds of the truth's t = 0, also the 0 of
+                                      # relative_s splits; default the first observation epoch (as --truth-origin)
     [splits]                          # [start, stop) on the split axis
     axis = "tow"                      # tow | relative_s | epoch
     train = [46701, 46941]
@@ -21,8 +26,10 @@ from __future__ import annotations
 import hashlib
 import json
 import tomllib
-from dataclasses import dataclass, field
+import warnings
+from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -32,13 +39,28 @@ from .paths import cache_dir, shared_data_dir
 from .sequence import DEFAULT_FEATURES, Sequence, load_sequence, save_sequence
 from .time import gps_s_to_week_tow, week_tow_to_gps_s
 
-_BUILD_VERSION = 5
+if TYPE_CHECKING:
+    from .observations import Observations
+
+_BUILD_VERSION = 6                 # 6: several obs files joined (5 read only the first)
 SPLITS = ("train", "val", "test")
+SPLIT_AXES = ("tow", "relative_s", "epoch")
+#: Rows of a ``static`` truth file farther than this from its first row are not one point [m].
+STATIC_SPREAD_M = 5.0
+
+
+def default_match_tolerance_s(truth_format: str) -> float:
+    """Truth matching tolerance [s] when none is given: 0.05 for smartloc (5 Hz), else 0.5 (as the CLI)."""
+    return 0.05 if truth_format == "smartloc" else 0.5
 
 
 @dataclass(frozen=True)
 class DatasetSpec:
-    """Where a dataset's files are and how its truth and splits line up in time."""
+    """Where a dataset's files are and how its truth and splits line up in time.
+
+    Paths may be given as str. Several ``obs`` files are joined in time order. ``match_tolerance_s`` None:
+    ``default_match_tolerance_s(truth_format)``; ``time_origin_gps_s`` None: the first observation epoch.
+    """
 
     id: str
     obs: tuple[Path, ...]
@@ -48,9 +70,19 @@ class DatasetSpec:
     splits: dict = field(default_factory=dict)   # name -> (start, stop) on split_axis, stop exclusive
     split_axis: str = "tow"                       # tow | relative_s | epoch
     systems: tuple[str, ...] | None = None
-    match_tolerance_s: float = 0.05
-    time_origin_gps_s: float = 0.0                # smartLoc truth time stamps and relative_s splits start here
+    match_tolerance_s: float | None = None        # [s]; None: 0.05 for smartloc, else 0.5
+    time_origin_gps_s: float | None = None        # [GPS s] smartLoc t = 0 and relative_s 0; None: first epoch
     description: str = ""
+
+    def __post_init__(self) -> None:
+        def paths(value) -> tuple[Path, ...]:
+            return (Path(value),) if isinstance(value, (str, Path)) else tuple(Path(p) for p in value)
+
+        object.__setattr__(self, "obs", paths(self.obs))
+        object.__setattr__(self, "nav", paths(self.nav))
+        object.__setattr__(self, "truth", Path(self.truth))
+        if self.match_tolerance_s is None:
+            object.__setattr__(self, "match_tolerance_s", default_match_tolerance_s(self.truth_format))
 
     def files(self) -> list[Path]:
         """Every input file of the dataset."""
@@ -107,18 +139,26 @@ def register_toml(path: str | Path) -> DatasetSpec:
     try:
         cfg = tomllib.loads(path.read_text())
     except (OSError, tomllib.TOMLDecodeError) as err:
-        raise InputError(path, f"unreadable dataset config ({err})") from None
+        raise InputError(path, f"unreadable dataset config ({getattr(err, 'strerror', None) or err})") from None
     base = path.parent
+    axis = cfg.get("splits", {}).get("axis", "tow") if isinstance(cfg.get("splits", {}), dict) else "tow"
+    if axis not in SPLIT_AXES:
+        raise InputError(path, f"unknown split axis {axis!r} in [splits]; use one of {', '.join(SPLIT_AXES)}")
+    for key in ("obs", "nav"):
+        if isinstance(cfg.get(key), str):
+            cfg[key] = [cfg[key]]                      # one file may be given without a list
+        if key in cfg and not cfg[key]:
+            raise InputError(path, f"dataset config lists no {key} file")
     try:
         truth = cfg["truth"]
         splits = {k: tuple(v) for k, v in cfg.get("splits", {}).items() if k in SPLITS}
+        tolerance, origin = truth.get("match_tolerance_s"), truth.get("time_origin_gps_s")
         spec = DatasetSpec(
             id=str(cfg["id"]), obs=tuple(base / p for p in cfg["obs"]), nav=tuple(base / p for p in cfg["nav"]),
             truth=base / truth["file"], truth_format=str(truth.get("format", "urbannav")), splits=splits,
-            split_axis=str(cfg.get("splits", {}).get("axis", "tow")),
-            systems=tuple(cfg["systems"]) if "systems" in cfg else None,
-            match_tolerance_s=float(truth.get("match_tolerance_s", 0.05)),
-            time_origin_gps_s=float(truth.get("time_origin_gps_s", 0.0)), description=str(cfg.get("description", "")))
+            split_axis=str(axis), systems=tuple(cfg["systems"]) if "systems" in cfg else None,
+            match_tolerance_s=None if tolerance is None else float(tolerance),
+            time_origin_gps_s=None if origin is None else float(origin), description=str(cfg.get("description", "")))
     except (KeyError, TypeError, ValueError) as err:
         raise InputError(path, f"dataset config lacks or misuses {err}") from None
     if spec.truth_format not in TRUTH_READERS:
@@ -177,16 +217,25 @@ def read_urbannav(path: Path, spec: DatasetSpec) -> tuple[np.ndarray, np.ndarray
 
 
 def read_smartloc(path: Path, spec: DatasetSpec) -> tuple[np.ndarray, np.ndarray, list[str]]:
-    """libRSF ``point3`` rows: t [s since the first epoch], ECEF X Y Z [m]."""
+    """libRSF ``point3`` rows: t [s since spec.time_origin_gps_s, which align_truth fills in], ECEF X Y Z [m]."""
+    if spec.time_origin_gps_s is None:
+        raise ValueError(f"dataset {spec.id}: smartloc truth needs time_origin_gps_s (align_truth sets it)")
     rows, bad = _numeric_rows(path, 4, "any", record_word="point3")
     return spec.time_origin_gps_s + rows[:, 0], rows[:, 1:4], bad
 
 
 def read_static(path: Path, spec: DatasetSpec) -> tuple[np.ndarray, np.ndarray, list[str]]:
-    """One static point: rows of TOW, TOW, latitude, longitude [deg], height [m]; labels every epoch."""
+    """One static point: rows of TOW, TOW, latitude, longitude [deg], height [m]; labels every epoch.
+
+    The first row is the point; rows farther than ``STATIC_SPREAD_M`` from it give a warning (not one point).
+    """
     rows, bad = _numeric_rows(path, 5, "any")
-    point = lla_to_ecef(np.radians(rows[0, 2]), np.radians(rows[0, 3]), rows[0, 4])
-    return np.array([-np.inf]), point[None, :], bad
+    xyz = lla_to_ecef(np.radians(rows[:, 2]), np.radians(rows[:, 3]), rows[:, 4])
+    spread_m = float(np.max(np.linalg.norm(xyz - xyz[0], axis=1)))
+    if spread_m > STATIC_SPREAD_M:
+        warnings.warn(f"{path}: static truth rows lie up to {spread_m:.0f} m from the first, not one point; that row "
+                      f"labels every epoch (for a moving receiver use format urbannav or ecef-csv)", stacklevel=2)
+    return np.array([-np.inf]), xyz[:1], bad
 
 
 def read_ecef_csv(path: Path, spec: DatasetSpec) -> tuple[np.ndarray, np.ndarray, list[str]]:
@@ -199,7 +248,13 @@ TRUTH_READERS = {"urbannav": read_urbannav, "smartloc": read_smartloc, "static":
 
 
 def align_truth(time_gps_s: np.ndarray, spec: DatasetSpec) -> tuple[np.ndarray, list[str]]:
-    """(T, 3) ground truth for epoch times [s] (NaN where none within the tolerance) and reader notes."""
+    """(T, 3) ground truth for epoch times [s] (NaN where none within the tolerance) and reader notes.
+
+    A spec without ``time_origin_gps_s`` counts smartloc truth times from the first epoch, ``time_gps_s[0]``.
+    """
+    time_gps_s = np.asarray(time_gps_s, dtype=float)
+    if spec.time_origin_gps_s is None:
+        spec = replace(spec, time_origin_gps_s=float(time_gps_s[0]) if time_gps_s.size else 0.0)
     t_truth, xyz, bad = TRUTH_READERS[spec.truth_format](spec.truth, spec)
     if spec.truth_format == "static":
         return np.broadcast_to(xyz[0], (time_gps_s.size, 3)).copy(), bad
@@ -223,10 +278,58 @@ def _fingerprint(spec: DatasetSpec, feature_names: tuple[str, ...]) -> str:
     return h.hexdigest()[:24]
 
 
+def join_observations(parts: list[Observations]) -> Observations:
+    """The epochs of several observation files of one receiver, in time order; files overlapping in time are refused."""
+    from .observations import Observations
+
+    parts = sorted(parts, key=lambda o: o.time_gps_s[0])
+    for before, after in zip(parts, parts[1:]):
+        if after.time_gps_s[0] <= before.time_gps_s[-1]:
+            raise InputError(after.path, f"overlaps {before.path} in time (GPS {after.time_gps_s[0]:.1f} s to "
+                                         f"{after.time_gps_s[-1]:.1f} s against {before.time_gps_s[0]:.1f} s to "
+                                         f"{before.time_gps_s[-1]:.1f} s); the obs files of a dataset are joined in "
+                                         f"time order and must not overlap")
+        for system in set(before.codes) & set(after.codes):
+            if before.codes[system] != after.codes[system]:
+                raise InputError(after.path, f"{system} pseudoranges are {after.codes[system]}, in {before.path} "
+                                             f"{before.codes[system]}; the obs files of a dataset must use one signal")
+    sv = np.unique(np.concatenate([o.sv for o in parts]))
+    n_t = sum(len(o) for o in parts)
+    arrays = {key: np.full((n_t, sv.size), np.nan) for key in ("pr_m", "cn0_dbhz", "doppler_hz")}
+    start = 0
+    for o in parts:
+        rows, cols = slice(start, start + len(o)), np.searchsorted(sv, o.sv)
+        for key, joined in arrays.items():
+            joined[rows, cols] = getattr(o, key)
+        start += len(o)
+    return Observations(" + ".join(o.path for o in parts), parts[0].version,
+                        np.concatenate([o.time_gps_s for o in parts]), sv,
+                        codes={k: v for o in parts for k, v in o.codes.items()}, approx_ecef_m=parts[0].approx_ecef_m,
+                        warnings=tuple(w for o in parts for w in o.warnings), **arrays)
+
+
+def _warn_truth(spec: DatasetSpec, seq: Sequence, notes: list[str]) -> None:
+    """Warn of skipped truth lines (the first five, then a count) and of a truth that labels no epoch."""
+    for note in notes[:5]:
+        warnings.warn(note, stacklevel=3)
+    if len(notes) > 5:
+        warnings.warn(f"{spec.truth}: {len(notes)} unreadable truth lines skipped in all", stacklevel=3)
+    if not seq.labelled.any():
+        origin = " and [truth] time_origin_gps_s (GPS seconds of its t = 0)" if spec.truth_format == "smartloc" else ""
+        warnings.warn(f"dataset {spec.id}: no truth time in {spec.truth} lies within {spec.match_tolerance_s:g} s of "
+                      f"an epoch of {', '.join(map(str, spec.obs))}; check [truth] format = {spec.truth_format!r}, "
+                      f"match_tolerance_s{origin}", stacklevel=3)
+
+
 def build(dataset_id: str, *, feature_names: tuple[str, ...] = DEFAULT_FEATURES, cache: bool = True) -> Sequence:
-    """The whole dataset as one Sequence with aligned truth, built once and cached by content."""
+    """The whole dataset as one Sequence with aligned truth, built once and cached by content.
+
+    Several obs files are joined in time order (``join_observations``). Skipped truth lines and a truth that
+    labels no epoch are reported as warnings.
+    """
     from .features import build_sequence, check_feature_names
     from .measurements import load
+    from .rinex import load_obs
     from .spp import spp
 
     spec = get(dataset_id)
@@ -235,18 +338,24 @@ def build(dataset_id: str, *, feature_names: tuple[str, ...] = DEFAULT_FEATURES,
         raise FileNotFoundError(f"dataset {dataset_id}: missing {', '.join(map(str, missing))}")
     feature_names = check_feature_names(feature_names)
     target = cache_dir() / "sequences" / f"{dataset_id}-{_fingerprint(spec, feature_names)}.npz"
+    seq = None
     if cache and target.exists():
         try:
-            return load_sequence(target)
+            seq = load_sequence(target)
         except Exception:
             target.unlink(missing_ok=True)
-    meas = load(spec.obs[0], spec.nav, systems=spec.systems)
-    fix = spp(meas)
-    truth, _ = align_truth(meas.time_gps_s, spec)
-    seq = build_sequence(meas, fix, feature_names=feature_names, name=dataset_id, truth_ecef_m=truth)
-    if cache:
-        target.parent.mkdir(parents=True, exist_ok=True)
-        save_sequence(target, seq)
+    if seq is not None:
+        notes = align_truth(seq.time_gps_s, spec)[1]    # a cached build warns as the first one did
+    else:
+        obs = spec.obs[0] if len(spec.obs) == 1 else join_observations([load_obs(p) for p in spec.obs])
+        meas = load(obs, spec.nav, systems=spec.systems)
+        fix = spp(meas)
+        truth, notes = align_truth(meas.time_gps_s, spec)
+        seq = build_sequence(meas, fix, feature_names=feature_names, name=dataset_id, truth_ecef_m=truth)
+        if cache:
+            target.parent.mkdir(parents=True, exist_ok=True)
+            save_sequence(target, seq)
+    _warn_truth(spec, seq, notes)
     return seq
 
 
@@ -260,7 +369,8 @@ def split_index(seq: Sequence, spec: DatasetSpec, split: str) -> np.ndarray:
         axis = gps_s_to_week_tow(seq.time_gps_s)[1]
         axis = np.round(axis, 1)
     elif spec.split_axis == "relative_s":
-        axis = np.round(seq.time_gps_s - spec.time_origin_gps_s, 1)
+        origin = seq.time_gps_s[0] if spec.time_origin_gps_s is None else spec.time_origin_gps_s
+        axis = np.round(seq.time_gps_s - origin, 1)
     elif spec.split_axis == "epoch":
         axis = np.where(labelled, np.cumsum(labelled) - 1, -1)
     else:
@@ -312,6 +422,10 @@ def alignment_report(dataset_ids: list[str] | None = None) -> str:
                      f"{''.join(seq.systems)}; {spec.description}")
         for split in spec.splits:
             idx = split_index(seq, spec, split)
+            if not idx.any():
+                lines.append(f"  {split:5s}     0 matched epochs (check [splits] axis = {spec.split_axis!r} "
+                             f"and the bounds)")
+                continue
             has_fix = np.all(np.isfinite(seq.coarse_ecef_m), axis=1)
             row = accuracy_table(seq.coarse_ecef_m[idx], seq.truth_ecef_m[idx], has_fix[idx])
             lines.append(f"  {split:5s} {int(idx.sum()):5d} matched epochs, coarse fix for {row['availability']:.1%}: "
@@ -321,17 +435,41 @@ def alignment_report(dataset_ids: list[str] | None = None) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m lfgnss.datasets [ID ...]``: build datasets and print the alignment report."""
-    import argparse
+    """``python -m lfgnss.datasets [ID ...]``: build datasets and print the alignment report.
 
-    parser = argparse.ArgumentParser(prog="python -m lfgnss.datasets", description=main.__doc__)
+    Bad input (a config, an id, a file) ends in one line ``error: ...`` and exit code 2, as does a dataset
+    asked for by id or ``--register`` whose files are missing; the default benchmark sets are skipped quietly.
+    """
+    import argparse
+    import sys
+
+    from .errors import INPUT_ERRORS, one_line
+
+    parser = argparse.ArgumentParser(prog="python -m lfgnss.datasets", description=main.__doc__.split("\n")[0])
     parser.add_argument("ids", nargs="*", help=f"dataset ids (default: {', '.join(sorted(_builtin()))})")
     parser.add_argument("--register", action="append", default=[], metavar="TOML", help="user dataset config")
     args = parser.parse_args(argv)
-    for path in args.register:
-        args.ids.append(register_toml(path).id)
-    print(alignment_report(args.ids or None))
-    return 0
+    warnings.simplefilter("ignore", FutureWarning)
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", UserWarning)
+            ids = list(dict.fromkeys([*args.ids, *(register_toml(path).id for path in args.register)]))
+            unbuilt = [f"{i}: missing {get(i).missing()[0]}" for i in ids if get(i).missing()]
+            report = alignment_report(ids or None)
+        for message in dict.fromkeys(str(w.message) for w in caught):
+            print(f"warning: {message}", file=sys.stderr)
+        print(report)
+        if unbuilt:
+            print(f"error: dataset not built: {'; '.join(unbuilt)}", file=sys.stderr)
+            return 2
+        return 0
+    except INPUT_ERRORS as err:
+        print(f"error: {one_line(err)}", file=sys.stderr)
+        return 2
+    except Exception as err:  # a bug, not bad input: still one line, no traceback, a distinct exit code
+        print(f"error: internal error while building datasets ({type(err).__name__}: {one_line(err)}); "
+              f"please report it", file=sys.stderr)
+        return 3
 
 
 if __name__ == "__main__":

@@ -1,4 +1,6 @@
 """Dataset layer: benchmark splits and truth alignment on shared data, user TOML datasets, bad truth lines."""
+import warnings
+
 import numpy as np
 import pytest
 
@@ -109,3 +111,166 @@ def test_present_reports_each_dataset_with_missing_files(tmp_path, monkeypatch):
     lines.clear()
     assert datasets.present(["hk-tst-2019", "berlin-pp"], lines.append) == ["berlin-pp"]
     assert len(lines) == 1 and lines[0].startswith("hk-tst-2019: skipped")
+
+
+# -- user review 15: several obs files, truth defaults as the CLI, static spread, the CLI, str paths --------
+
+BERLIN_ORIGIN_GPS_S = 1900 * 604800 + 126641.7      # first epoch of the bundled Berlin sample
+
+
+def _toml(tmp_path, name, obs, truth, truth_keys="", dataset_id=None):
+    """A smartloc dataset config over the bundled Berlin navigation files."""
+    cfg = tmp_path / f"{name}.toml"
+    obs_list = ", ".join(f'"{o}"' for o in obs)
+    cfg.write_text(f'''id = "{dataset_id or name}"
+obs = [{obs_list}]
+nav = ["{SAMPLE_DIR / 'brdc1580.16n.gz'}", "{SAMPLE_DIR / 'brdc1580.16g.gz'}"]
+systems = ["G", "R"]
+[truth]
+file = "{truth}"
+format = "smartloc"
+{truth_keys}
+[splits]
+axis = "relative_s"
+train = [0, 100]
+test = [100, 300]
+''')
+    return cfg
+
+
+def _split_sample_obs(tmp_path, parts):
+    """RINEX 2 files of the bundled sample's epochs [start, stop) per (name, start, stop), each with the header."""
+    import gzip
+    import re
+
+    lines = gzip.open(SAMPLE_DIR / "Berlin_Potsdamer_Platz.obs.gz", "rt").read().splitlines(keepends=True)
+    head = next(i for i, line in enumerate(lines) if "END OF HEADER" in line) + 1
+    starts = [i for i in range(head, len(lines))
+              if re.match(r" \d\d [ \d]\d [ \d]\d [ \d]\d [ \d]\d [ \d]\d\.\d{7}  \d", lines[i])] + [len(lines)]
+    for name, start, stop in parts:
+        (tmp_path / name).write_text("".join(lines[:head] + lines[starts[start]:starts[min(stop, len(starts) - 1)]]))
+
+
+@pytest.fixture
+def clean_registry(tmp_path, monkeypatch):
+    monkeypatch.setenv("LFGNSS_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setattr(datasets, "_REGISTRY", {})
+
+
+def test_several_obs_files_are_joined_in_time_order(tmp_path, clean_registry):
+    """Defect: only obs[0] was read. Two halves listed out of order build the same Sequence as the whole file."""
+    _split_sample_obs(tmp_path, [("a.obs", 0, 700), ("b.obs", 700, 10**6), ("c.obs", 650, 10**6)])
+    truth = SAMPLE_DIR / "Berlin_Potsdamer_Platz_GT.txt"
+    whole_obs = SAMPLE_DIR / "Berlin_Potsdamer_Platz.obs.gz"
+    whole = datasets.build(datasets.register_toml(_toml(tmp_path, "whole", [whole_obs], truth)).id)
+    joined = datasets.build(datasets.register_toml(_toml(tmp_path, "joined", ["b.obs", "a.obs"], truth)).id)
+    assert len(whole) == 1375 and len(joined) == len(whole)
+    np.testing.assert_array_equal(joined.time_gps_s, whole.time_gps_s)
+    np.testing.assert_array_equal(joined.truth_ecef_m, whole.truth_ecef_m)
+    np.testing.assert_array_equal(joined.pr_m, whole.pr_m)
+    np.testing.assert_array_equal(joined.features, whole.features)
+    overlapping = datasets.register_toml(_toml(tmp_path, "overlap", ["a.obs", "c.obs"], truth)).id
+    with pytest.raises(InputError, match=r"c\.obs: overlaps .*a\.obs in time"):
+        datasets.build(overlapping)
+
+
+def test_toml_truth_defaults_are_the_command_line_ones(tmp_path, clean_registry):
+    """Defect: a smartloc TOML without time_origin_gps_s counted from 1980 and matched 0 epochs, silently."""
+    obs, truth = SAMPLE_DIR / "Berlin_Potsdamer_Platz.obs.gz", SAMPLE_DIR / "Berlin_Potsdamer_Platz_GT.txt"
+    spec = datasets.register_toml(_toml(tmp_path, "no-origin", [obs], truth))
+    assert spec.time_origin_gps_s is None and spec.match_tolerance_s == 0.05
+    seq = datasets.build(spec.id)
+    assert int(seq.labelled.sum()) == 1372                    # as python -m lfgnss.solve on these files
+    explicit = datasets.register_toml(
+        _toml(tmp_path, "origin", [obs], truth, f"time_origin_gps_s = {BERLIN_ORIGIN_GPS_S}")).id
+    np.testing.assert_array_equal(seq.truth_ecef_m, datasets.build(explicit).truth_ecef_m)
+    train = datasets.load_split(spec.id, "train")             # relative_s counts from the first epoch too
+    assert len(train) == 1 and len(train[0]) == len(datasets.load_split(explicit, "train")[0]) > 450
+    # tolerance: 0.5 s as the CLI for every format but smartloc; the built-in specs keep their own
+    assert datasets.DatasetSpec("u", ("r.obs",), ("n",), "t.csv", "urbannav").match_tolerance_s == 0.5
+    assert {i: (s.match_tolerance_s, s.time_origin_gps_s) for i, s in datasets._builtin().items()} == {
+        "hk-tst-2019": (0.5, None), "berlin-pp": (0.05, BERLIN_ORIGIN_GPS_S), "hk-tst-static-2020": (0.5, None)}
+
+
+def test_truth_matching_no_epoch_warns_with_the_keys_to_check(tmp_path, clean_registry):
+    spec = datasets.register_toml(_toml(tmp_path, "origin-zero", [SAMPLE_DIR / "Berlin_Potsdamer_Platz.obs.gz"],
+                                        SAMPLE_DIR / "Berlin_Potsdamer_Platz_GT.txt", "time_origin_gps_s = 0"))
+    for _ in range(2):                                        # built, then from the cache
+        with pytest.warns(UserWarning, match="dataset origin-zero: no truth time .* within 0.05 s .* "
+                                             "match_tolerance_s and \\[truth\\] time_origin_gps_s"):
+            assert not datasets.build(spec.id).labelled.any()
+
+
+def test_urbannav_truth_half_a_second_off_matches_by_default(tmp_path):
+    truth = tmp_path / "truth.csv"
+    truth.write_text("2051,46701.0,22.3,114.17,6.5\n2051,46702.0,22.3,114.17,6.5\n")
+    spec = datasets.DatasetSpec("u", (tmp_path / "r.obs",), (tmp_path / "n",), truth, "urbannav")
+    t = 2051 * 604800 + np.array([46701.3, 46702.6])
+    labelled = np.isfinite(datasets.align_truth(t, spec)[0]).all(axis=1)
+    assert labelled.tolist() == [True, False]
+
+
+def test_build_warns_of_unreadable_truth_lines(tmp_path, clean_registry):
+    """Defect: build() threw the reader's notes away; the CLI prints them."""
+    lines = (SAMPLE_DIR / "Berlin_Potsdamer_Platz_GT.txt").read_text().splitlines()
+    lines[2] = "point3 0.4 37851x5.7 899901.8 5037236.1 0 0 0"
+    (tmp_path / "gt.txt").write_text("\n".join(lines))
+    spec = datasets.register_toml(_user_toml(tmp_path, "gt.txt"))
+    for _ in range(2):                                        # built, then from the cache
+        with pytest.warns(UserWarning, match=f"{tmp_path / 'gt.txt'}:3: unreadable truth line, skipped"):
+            datasets.build(spec.id)
+
+
+def test_static_truth_that_is_not_one_point_warns(tmp_path, capsys):
+    """Defect: a moving trajectory read as --truth-format static gave hundreds of metres of error, silently."""
+    from lfgnss.solve import main
+
+    spec = datasets.DatasetSpec("st", (tmp_path / "r.obs",), (tmp_path / "n",), tmp_path / "one.csv", "static")
+    (tmp_path / "one.csv").write_text("270149,270149,22.299915404,114.177707462,4.89\n"
+                                      "270150,270150,22.299915410,114.177707462,4.90\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        truth, _ = datasets.align_truth(np.array([0.0, 1.0]), spec)     # one point (1 mm apart): no warning
+    assert np.isfinite(truth).all()
+    moving = tmp_path / "moving.csv"
+    moving.write_text("46701,46701,22.3000,114.1770,6.5\n46702,46702,22.3090,114.1770,6.5\n")   # 1 km north
+    with pytest.warns(UserWarning, match=f"{moving}: static truth rows lie up to 99\\d m from the first, not one"):
+        datasets.align_truth(np.array([0.0]), datasets.DatasetSpec("st", "r.obs", "n", moving, "static"))
+    code = main(["--backend", "wls", "--truth", str(moving), "--truth-format", "static",
+                 "--out", str(tmp_path / "o"), "--no-plots", "--quiet"])
+    assert code == 0 and f"warning: {moving}: static truth rows lie up to" in capsys.readouterr().err
+
+
+def test_spec_with_str_paths(tmp_path):
+    """Defect: str paths reached Path-only code (AttributeError: 'str' object has no attribute 'read_text')."""
+    spec = datasets.DatasetSpec("mine", (str(SAMPLE_DIR / "Berlin_Potsdamer_Platz.obs.gz"),),
+                                (str(SAMPLE_DIR / "brdc1580.16n.gz"), str(SAMPLE_DIR / "brdc1580.16g.gz")),
+                                str(SAMPLE_DIR / "Berlin_Potsdamer_Platz_GT.txt"), "smartloc")
+    assert all(isinstance(p, type(SAMPLE_DIR)) for p in spec.files()) and spec.missing() == []
+    truth, notes = datasets.align_truth(BERLIN_ORIGIN_GPS_S + np.array([0.0, 0.3]), spec)
+    assert np.isfinite(truth).all() and notes == []
+
+
+@pytest.mark.parametrize("case", ["no-file", "unknown-id", "bad-axis", "missing-truth"], ids=str)
+def test_datasets_cli_bad_input_is_one_line(tmp_path, clean_registry, capsys, case):
+    """Defect: tracebacks, a split axis checked only after building, exit 0 when an asked dataset was not built."""
+    cfg = _toml(tmp_path, "cli", [SAMPLE_DIR / "Berlin_Potsdamer_Platz.obs.gz"], "truht.csv")
+    argv, message = {
+        "no-file": (["--register", str(tmp_path / "no.toml")], f"{tmp_path / 'no.toml'}: unreadable dataset config"),
+        "unknown-id": (["no-such-id"], "unknown dataset 'no-such-id'; known: "),
+        "bad-axis": (["--register", str(cfg)], f"{cfg}: unknown split axis 'gps' in [splits]"),
+        "missing-truth": (["--register", str(cfg)], f"dataset not built: cli: missing {tmp_path / 'truht.csv'}"),
+    }[case]
+    if case == "bad-axis":
+        cfg.write_text(cfg.read_text().replace('axis = "relative_s"', 'axis = "gps"'))
+    assert datasets.main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {message}") and err.count("\n") == 1      # one line, no traceback
+
+
+def test_datasets_cli_reports_a_dataset_named_twice_once(tmp_path, clean_registry, capsys):
+    cfg = _user_toml(tmp_path)
+    (tmp_path / "Berlin_Potsdamer_Platz_GT.txt").write_text((SAMPLE_DIR / "Berlin_Potsdamer_Platz_GT.txt").read_text())
+    assert datasets.main(["--register", str(cfg), "my-berlin"]) == 0
+    out = capsys.readouterr().out
+    assert out.count("my-berlin: 1375 epochs, 1372 with truth") == 1
