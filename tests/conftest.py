@@ -31,3 +31,32 @@ def rnx2rtkp() -> Path:
     if exe is None:
         pytest.skip("RTKLIB rnx2rtkp not on PATH (Debian package 'rtklib')")
     return Path(exe)
+
+
+@pytest.fixture
+def sample_toml(tmp_path):
+    """``sample_toml(dataset_id, truth=..., splits=...)`` -> a dataset TOML in ``tmp_path`` for the bundled Berlin drive."""
+    from lfgnss.solve import SAMPLE_DIR
+
+    def write(dataset_id: str, truth: str | Path = SAMPLE_DIR / "Berlin_Potsdamer_Platz_GT.txt",
+              splits: tuple = ((0, 150), (150, 180), (180, 200))) -> Path:
+        train, val, test = (list(s) for s in splits)
+        path = tmp_path / f"{dataset_id}.toml"
+        path.write_text(f"""
+id = "{dataset_id}"
+obs = ["{SAMPLE_DIR / 'Berlin_Potsdamer_Platz.obs.gz'}"]
+nav = ["{SAMPLE_DIR / 'brdc1580.16n.gz'}", "{SAMPLE_DIR / 'brdc1580.16g.gz'}"]
+systems = ["G", "R"]
+[truth]
+file = "{truth}"
+format = "smartloc"
+time_origin_gps_s = {1900 * 604800 + 126641.7}
+[splits]
+axis = "relative_s"
+train = {train}
+val = {val}
+test = {test}
+""")
+        return path
+
+    return write

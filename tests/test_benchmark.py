@@ -113,32 +113,12 @@ def test_the_command_line_refuses_a_folder_without_a_model(tmp_path, capsys):
     assert not (tmp_path / "out").exists()
 
 
-def _toml(tmp_path, dataset_id: str, test_split=(180, 200)):
-    path = tmp_path / f"{dataset_id}.toml"
-    path.write_text(f"""
-id = "{dataset_id}"
-obs = ["{SAMPLE_DIR / 'Berlin_Potsdamer_Platz.obs.gz'}"]
-nav = ["{SAMPLE_DIR / 'brdc1580.16n.gz'}", "{SAMPLE_DIR / 'brdc1580.16g.gz'}"]
-systems = ["G", "R"]
-[truth]
-file = "{SAMPLE_DIR / 'Berlin_Potsdamer_Platz_GT.txt'}"
-format = "smartloc"
-time_origin_gps_s = {1900 * 604800 + 126641.7}
-[splits]
-axis = "relative_s"
-train = [0, 150]
-val = [150, 180]
-test = {list(test_split)}
-""")
-    return path
-
-
-def test_datasets_of_ones_own_are_registered_and_unknown_ids_refused(tmp_path, monkeypatch, capsys):
+def test_datasets_of_ones_own_are_registered_and_unknown_ids_refused(tmp_path, monkeypatch, capsys, sample_toml):
     monkeypatch.setattr(datasets, "_REGISTRY", {}, raising=False)   # leave no registration behind
     assert main(["my-drive", "--out", str(tmp_path / "out"), "--no-plots"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "unknown dataset 'my-drive'" in err and "berlin-pp" in err and "--register" in err
-    toml = _toml(tmp_path, "my-drive")
+    toml = sample_toml("my-drive")
     assert resolve_datasets([]) == list(DEFAULT_DATASETS)
     assert resolve_datasets(["my-drive"], [toml]) == ["my-drive"]
     assert resolve_datasets(["berlin-pp"], [toml]) == ["berlin-pp", "my-drive"]   # a registered set runs too
@@ -146,11 +126,11 @@ def test_datasets_of_ones_own_are_registered_and_unknown_ids_refused(tmp_path, m
         resolve_datasets([], [tmp_path / "nope.toml"])
 
 
-def test_the_benchmark_runs_a_users_dataset_with_a_users_model(tmp_path, monkeypatch, capsys):
+def test_the_benchmark_runs_a_users_dataset_with_a_users_model(tmp_path, monkeypatch, capsys, sample_toml):
     monkeypatch.setattr(datasets, "_REGISTRY", {}, raising=False)
     shutil.copy(MODEL_DIR / "lfgnss-default.npz", tmp_path / "model.npz")
     out = tmp_path / "out"
-    assert main(["my-drive", "--register", str(_toml(tmp_path, "my-drive")), "--models", str(tmp_path / "model.npz"),
+    assert main(["my-drive", "--register", str(sample_toml("my-drive")), "--models", str(tmp_path / "model.npz"),
                  "--out", str(out), "--no-plots"]) == 0
     assert capsys.readouterr().err == ""
     table = (out / "results.md").read_text().split("## All labelled test epochs")[1].split("##")[0]

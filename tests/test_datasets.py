@@ -31,30 +31,14 @@ def test_benchmark_split_alignment(dataset_id):
     assert np.all(np.isfinite(test[0].truth_ecef_m))
 
 
-def _user_toml(tmp_path, truth_name="Berlin_Potsdamer_Platz_GT.txt"):
-    cfg = tmp_path / "mine.toml"
-    cfg.write_text(f'''
-id = "my-berlin"
-obs = ["{SAMPLE_DIR / 'Berlin_Potsdamer_Platz.obs.gz'}"]
-nav = ["{SAMPLE_DIR / 'brdc1580.16n.gz'}", "{SAMPLE_DIR / 'brdc1580.16g.gz'}"]
-systems = ["G", "R"]
-[truth]
-file = "{truth_name}"
-format = "smartloc"
-time_origin_gps_s = {1900 * 604800 + 126641.7}
-[splits]
-axis = "relative_s"
-train = [0, 100]
-val = [100, 120]
-test = [120, 300]
-''')
-    return cfg
+def _user_toml(sample_toml, truth_name="Berlin_Potsdamer_Platz_GT.txt"):
+    return sample_toml("my-berlin", truth=truth_name, splits=((0, 100), (100, 120), (120, 300)))
 
 
-def test_user_dataset_from_toml(tmp_path, monkeypatch):
+def test_user_dataset_from_toml(tmp_path, monkeypatch, sample_toml):
     monkeypatch.setenv("LFGNSS_CACHE", str(tmp_path / "cache"))
     (tmp_path / "Berlin_Potsdamer_Platz_GT.txt").write_text((SAMPLE_DIR / "Berlin_Potsdamer_Platz_GT.txt").read_text())
-    spec = datasets.register_toml(_user_toml(tmp_path))
+    spec = datasets.register_toml(_user_toml(sample_toml))
     assert spec.id in datasets.registered()
     train = datasets.load_split("my-berlin", "train")
     test = datasets.load_split("my-berlin", "test")
@@ -65,27 +49,27 @@ def test_user_dataset_from_toml(tmp_path, monkeypatch):
     assert list((tmp_path / "cache" / "sequences").glob("my-berlin-*.npz"))
 
 
-def test_training_registers_user_datasets_named_in_its_config(tmp_path, monkeypatch):
+def test_training_registers_user_datasets_named_in_its_config(tmp_path, monkeypatch, sample_toml):
     """learning.train's data.register lets the trainer (and its CLI) load a user dataset by id."""
     from learning.train import load_config, load_sequences
 
     monkeypatch.setenv("LFGNSS_CACHE", str(tmp_path / "cache"))
     monkeypatch.setattr(datasets, "_REGISTRY", {})
     (tmp_path / "Berlin_Potsdamer_Platz_GT.txt").write_text((SAMPLE_DIR / "Berlin_Potsdamer_Platz_GT.txt").read_text())
-    config = load_config(None, [f'data.register=["{_user_toml(tmp_path)}"]', 'data.datasets=["my-berlin"]'])
+    config = load_config(None, [f'data.register=["{_user_toml(sample_toml)}"]', 'data.datasets=["my-berlin"]'])
     assert "my-berlin" not in datasets.registered()
     val = load_sequences("my-berlin", "val", config)
     assert "my-berlin" in datasets.registered() and len(val) == 1 and 90 < len(val[0]) < 110
 
 
-def test_truth_file_with_bad_lines(tmp_path):
+def test_truth_file_with_bad_lines(tmp_path, sample_toml):
     lines = (SAMPLE_DIR / "Berlin_Potsdamer_Platz_GT.txt").read_text().splitlines()
     lines[2] = "point3 0.5 37851x5.7 899901.8 5037236.1 0 0 0"
     lines[5] = "garbage"
     lines[6] = "# a comment"
     bad = tmp_path / "gt.txt"
     bad.write_text("\n".join(lines))
-    spec = datasets.register_toml(_user_toml(tmp_path, "gt.txt"))
+    spec = datasets.register_toml(_user_toml(sample_toml, "gt.txt"))
     t = spec.time_origin_gps_s + np.array([0.0, 0.5, 0.7])
     truth, notes = datasets.align_truth(t, spec)
     assert notes == [f"{bad}:3: unreadable truth line, skipped", f"{bad}:6: not a point3 record, skipped"]
@@ -210,12 +194,12 @@ def test_urbannav_truth_half_a_second_off_matches_by_default(tmp_path):
     assert labelled.tolist() == [True, False]
 
 
-def test_build_warns_of_unreadable_truth_lines(tmp_path, clean_registry):
+def test_build_warns_of_unreadable_truth_lines(tmp_path, clean_registry, sample_toml):
     """Defect: build() threw the reader's notes away; the CLI prints them."""
     lines = (SAMPLE_DIR / "Berlin_Potsdamer_Platz_GT.txt").read_text().splitlines()
     lines[2] = "point3 0.4 37851x5.7 899901.8 5037236.1 0 0 0"
     (tmp_path / "gt.txt").write_text("\n".join(lines))
-    spec = datasets.register_toml(_user_toml(tmp_path, "gt.txt"))
+    spec = datasets.register_toml(_user_toml(sample_toml, "gt.txt"))
     for _ in range(2):                                        # built, then from the cache
         with pytest.warns(UserWarning, match=f"{tmp_path / 'gt.txt'}:3: unreadable truth line, skipped"):
             datasets.build(spec.id)
@@ -268,8 +252,8 @@ def test_datasets_cli_bad_input_is_one_line(tmp_path, clean_registry, capsys, ca
     assert err.startswith(f"error: {message}") and err.count("\n") == 1      # one line, no traceback
 
 
-def test_datasets_cli_reports_a_dataset_named_twice_once(tmp_path, clean_registry, capsys):
-    cfg = _user_toml(tmp_path)
+def test_datasets_cli_reports_a_dataset_named_twice_once(tmp_path, clean_registry, capsys, sample_toml):
+    cfg = _user_toml(sample_toml)
     (tmp_path / "Berlin_Potsdamer_Platz_GT.txt").write_text((SAMPLE_DIR / "Berlin_Potsdamer_Platz_GT.txt").read_text())
     assert datasets.main(["--register", str(cfg), "my-berlin"]) == 0
     out = capsys.readouterr().out
