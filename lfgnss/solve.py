@@ -133,10 +133,7 @@ def run(args) -> int:
     if truth_path is not None:
         if truth_format not in datasets.TRUTH_READERS:
             raise InputError(truth_path, f"unknown truth format {truth_format!r}")
-        origin = args.truth_origin if args.truth_origin is not None else float(meas.time_gps_s[0])
-        spec = datasets.DatasetSpec("cli", (Path(obs),), tuple(Path(n) for n in nav), Path(truth_path),
-                                    truth_format, match_tolerance_s=0.05 if truth_format == "smartloc" else 0.5,
-                                    time_origin_gps_s=origin)
+        spec = datasets.DatasetSpec("cli", obs, nav, truth_path, truth_format, time_origin_gps_s=args.truth_origin)
         truth, bad = datasets.align_truth(meas.time_gps_s, spec)
         for line in bad[:5]:
             print(f"warning: {line}", file=sys.stderr)
