@@ -11,7 +11,7 @@ from lfgnss.sequence import Sequence
 from lfgnss.weighted_fix import weighted_least_squares
 
 from .base import STATUS_NONE, STATUS_UPDATED, Solution, register
-from .noise import HeuristicNoise, NoiseModel, resolve_noise
+from .noise import HeuristicNoise, NoiseModel, checked_noise, resolve_noise
 
 
 @dataclass
@@ -24,11 +24,14 @@ class _LeastSquares:
         if self.noise is None:
             r = np.ones(sequence.mask.shape)
         else:
-            r, _ = self.noise(sequence)
+            r, _ = checked_noise(self.name, sequence.name, sequence.mask, *self.noise(sequence))
         fix = weighted_least_squares(sequence.pr_m, sequence.sat_pos_ecef_m, sequence.system_index, sequence.mask,
                                      len(sequence.systems), fill_from_nearest_epoch(sequence.coarse_ecef_m), r,
                                      scale_by_residuals=self.noise is None)
-        pos, cov, clock, ok = fix.pos_ecef_m, fix.cov_ecef_m2, fix.clock_m[:, 0], fix.ok
+        pos, cov, ok = fix.pos_ecef_m, fix.cov_ecef_m2, fix.ok
+        # the reference system's clock; NaN in an epoch without its satellites (WeightedFix holds 0 there)
+        seen = np.any(sequence.mask & (sequence.system_index == 0), axis=1)
+        clock = np.where(seen, fix.clock_m[:, 0], np.nan)
         return Solution(self.name, sequence.time_gps_s.copy(), np.where(ok[:, None], pos, np.nan),
                         np.where(ok[:, None, None], cov, np.nan), np.where(ok, clock, np.nan),
                         np.where(ok, sequence.mask.sum(1), 0), np.where(ok, STATUS_UPDATED, STATUS_NONE))

@@ -39,7 +39,7 @@ from lfgnss.sequence import Sequence
 from . import models
 from .base import STATUS_COASTED, STATUS_NONE, STATUS_RESET, STATUS_UPDATED, Solution, options_of, register
 from .models import EkfConfig
-from .noise import HeuristicNoise, NoiseModel, default_noise, resolve_noise
+from .noise import HeuristicNoise, NoiseModel, checked_noise, default_noise, resolve_noise
 from .smoother import lag_horizon, rts_smooth
 
 
@@ -129,25 +129,13 @@ class LfgnssEkf:
 
     def noise_arrays(self, sequence: Sequence, usable: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(r_m2, vc_m), each (T, N), from the noise model, checked on the usable slots."""
-        r, vc = self.noise(sequence)
-        r = np.asarray(r, float)
-        vc = np.asarray(vc, float)
-        if r.shape != usable.shape or vc.shape != usable.shape:
-            raise ValueError(f"{type(self).__name__}: noise model gave shapes {r.shape}, {vc.shape} for sequence "
-                             f"{sequence.name!r}, expected {usable.shape}")
-        return self._checked(sequence, usable, r, vc)
+        return self._checked(sequence, usable, *self.noise(sequence))
 
-    def _checked(self, sequence: Sequence, usable: np.ndarray, r: np.ndarray, vc: np.ndarray
+    def _checked(self, sequence: Sequence, usable: np.ndarray, r: object, vc: object
                  ) -> tuple[np.ndarray, np.ndarray]:
         """``(r, vc)`` with positive finite R and finite v^c on the usable slots (v^c 0 without compensation)."""
-        if not (np.isfinite(r[usable]).all() and (r[usable] > 0).all()):
-            raise ValueError(f"{type(self).__name__}: noise model gave non-positive or non-finite R on usable "
-                             f"satellites of {sequence.name!r}")
-        if not self.use_compensation:
-            vc = np.zeros_like(r)
-        elif not np.isfinite(vc[usable]).all():
-            raise ValueError(f"{type(self).__name__}: noise model gave non-finite v^c on usable satellites of "
-                             f"{sequence.name!r}")
+        r, vc = checked_noise(type(self).__name__, sequence.name, usable, r,
+                              vc if self.use_compensation else np.zeros(np.shape(r)))
         return r, vc
 
     def solve(self, sequence: Sequence) -> Solution:
@@ -156,7 +144,7 @@ class LfgnssEkf:
         n_sys = len(sequence.systems)
         t_len, _ = sequence.mask.shape
         n = models.n_states(n_sys)
-        time = np.asarray(sequence.time_gps_s, float)
+        time = np.array(sequence.time_gps_s, float)      # a copy: the Solution must not share the Sequence's
         dt_all = np.diff(time)
         if np.any(~(dt_all > 0)):
             k = int(np.nonzero(~(dt_all > 0))[0][0]) + 1

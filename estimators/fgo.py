@@ -64,7 +64,7 @@ from lfgnss.sequence import Sequence
 from lfgnss.velocity import DopplerVelocity, doppler_velocity
 
 from .base import (STATUS_COASTED, STATUS_NONE, STATUS_UPDATED, Solution, options_of, register)
-from .noise import HeuristicNoise, NoiseModel, default_noise, resolve_noise
+from .noise import HeuristicNoise, NoiseModel, checked_noise, default_noise, resolve_noise
 
 MODES = ("batch", "fixed-lag")
 ROBUST_KERNELS = ("huber", "cauchy")
@@ -319,14 +319,7 @@ class LfgnssFgo:
         if n_t > 1 and np.any(np.diff(t) <= 0):
             k = int(np.flatnonzero(np.diff(t) <= 0)[0])
             raise ValueError(f"estimators/fgo.py: {seq.name!r}: time not increasing at epoch {k + 1}")
-        r_m2, vc_m = self.noise(seq)
-        r_m2 = np.asarray(r_m2, float)
-        vc_m = np.asarray(vc_m, float)
-        bad = seq.mask & ~(np.isfinite(r_m2) & (r_m2 > 0) & np.isfinite(vc_m))
-        if np.any(bad):
-            k = int(np.argwhere(bad)[0, 0])
-            raise ValueError(f"estimators/fgo.py: {seq.name!r}: noise model gave non-finite or non-positive "
-                             f"r / non-finite vc for a usable satellite at epoch {k}")
+        r_m2, vc_m = checked_noise(type(self).__name__, seq.name, seq.mask, *self.noise(seq))
         z_m = np.where(seq.mask, seq.pr_m + vc_m, 0.0)
         sigma_m = np.sqrt(np.where(seq.mask, r_m2, 1.0))
 
@@ -352,6 +345,10 @@ class LfgnssFgo:
             est = self._solve_fixed_lag(seq, k0, z_m, sigma_m, psd_ecef, dv, info)
         info["solve_time_s"] = time.perf_counter() - start
         pos[k0:], vel[k0:], clock[k0:], n_used[k0:], cov_m = est
+        # a position-blind epoch spends its satellites on clocks: its position is the motion model's (coasted)
+        blind = position_blind_epochs(seq)
+        blind[k0] = False                           # the first epoch is placed by the coarse fix's prior
+        n_used[blind] = 0
         status[k0:] = np.where(n_used[k0:] > 0, STATUS_UPDATED, STATUS_COASTED)
         if cov_m is None:
             cov_m = self._stand_in_covariance(seq, k0, pos, sigma_m, psd_ecef)
@@ -441,7 +438,7 @@ class LfgnssFgo:
                 dt = float(t[k] - t[last])
                 pos[i] = pos[last - k0] + dt * vel[last - k0]
                 vel[i] = vel[last - k0]
-                n_used[i], clk[i] = self._clock_only(k, seq, z_m, pos[i])
+                clk[i] = self._clock_only(k, seq, z_m, pos[i])
                 if cov is not None:
                     if joint is None:
                         joint = smoother.getISAM2().jointMarginalCovariance([X(last), V(last)])
@@ -482,17 +479,17 @@ class LfgnssFgo:
         return pos, vel, clk, n_used, cov
 
     @staticmethod
-    def _clock_only(k: int, seq: Sequence, z_m: np.ndarray, pos: np.ndarray) -> tuple[int, float]:
-        """Satellites and clock of ``systems[0]`` [m] at a position-blind epoch k, at position ``pos`` [m].
+    def _clock_only(k: int, seq: Sequence, z_m: np.ndarray, pos: np.ndarray) -> float:
+        """Clock of ``systems[0]`` [m] at a position-blind epoch k, at position ``pos`` [m] (NaN: none of its satellites).
 
         One satellite per constellation: its clock takes the whole residual, as in the graph.
         """
         used = np.flatnonzero(seq.mask[k])
         first = used[seq.system_index[k, used] == 0]
         if first.size == 0:
-            return int(used.size), np.nan
+            return np.nan
         rho = geometric_range_m(seq.sat_pos_ecef_m[k, first[:1]], pos)[0]
-        return int(used.size), float(z_m[k, first[0]] - rho)
+        return float(z_m[k, first[0]] - rho)
 
     def _stand_in_covariance(self, seq: Sequence, k0: int, pos: np.ndarray, sigma_m: np.ndarray,
                              psd_ecef: np.ndarray) -> np.ndarray:

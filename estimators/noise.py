@@ -47,6 +47,25 @@ def resolve_noise(noise: object, owner: str) -> NoiseModel | None:
     return noise
 
 
+def checked_noise(owner: str, sequence_name: str, usable: np.ndarray, r_m2: object, vc_m: object
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """A noise model's ``(r_m2, vc_m)`` as float arrays shaped like ``usable``; ValueError naming the first bad epoch.
+
+    R must be finite and > 0 [m^2] and v^c finite [m] on the usable slots; other slots may hold anything.
+    """
+    r = np.asarray(r_m2, float)
+    vc = np.asarray(vc_m, float)
+    if r.shape != usable.shape or vc.shape != usable.shape:
+        raise ValueError(f"{owner}: noise model gave shapes {r.shape}, {vc.shape} for sequence {sequence_name!r}, "
+                         f"expected {usable.shape}")
+    for what, bad in (("non-positive or non-finite R", ~(np.isfinite(r) & (r > 0))), ("non-finite v^c", ~np.isfinite(vc))):
+        bad &= usable
+        if bad.any():
+            where = f" (first at epoch {int(np.argwhere(bad)[0, 0])})" if bad.ndim == 2 else ""
+            raise ValueError(f"{owner}: noise model gave {what} on usable satellites of {sequence_name!r}{where}")
+    return r, vc
+
+
 @dataclass(frozen=True)
 class HeuristicNoise:
     """Hand-set noise from C/N0 and elevation, no compensation (the "plain EKF" baseline).

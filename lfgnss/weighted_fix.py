@@ -51,7 +51,8 @@ def weighted_least_squares(pr_m: np.ndarray, sat_pos_ecef_m: np.ndarray, system_
     """Batched Gauss-Newton over all epochs: pseudoranges (T, N) [m], satellites (T, N, 3) [m], variances (T, N) [m^2].
 
     ``start_ecef_m`` (T, 3) is where each epoch starts (NaN: the epoch is not solved). With
-    ``scale_by_residuals`` the covariance is scaled by the a-posteriori unit variance ``sum(w v^2) / (n - m)``.
+    ``scale_by_residuals`` the covariance is scaled by the a-posteriori unit variance ``sum(w v^2) / (n - m)``;
+    an epoch with no redundancy (n = m) takes the median unit variance of the epochs that have some.
     """
     n_t, n_s = mask.shape
     onehot = np.zeros((n_t, n_s, n_systems))
@@ -83,8 +84,12 @@ def weighted_least_squares(pr_m: np.ndarray, sat_pos_ecef_m: np.ndarray, system_
     res = residuals(x)
     cov = np.linalg.inv(normal)[:, :3, :3]
     if scale_by_residuals:
-        dof = np.maximum(mask.sum(1) - 3 - observed.sum(1), 1)
-        cov = cov * (np.einsum("ts,ts->t", w, res ** 2) / dof)[:, None, None]
+        dof = mask.sum(1) - 3 - observed.sum(1)
+        unit = np.einsum("ts,ts->t", w, res ** 2) / np.maximum(dof, 1)
+        # no redundancy: the residuals are ~0 and say nothing; take the median of the epochs that have some
+        redundant = ok & (dof > 0)
+        unit = np.where(dof > 0, unit, np.median(unit[redundant]) if redundant.any() else 1.0)
+        cov = cov * unit[:, None, None]
     return WeightedFix(x[:, :3], cov, x[:, 3:], res, ok)
 
 

@@ -206,10 +206,10 @@ def test_fixed_lag_outage_much_longer_than_lag(left):
     assert np.array_equal(np.flatnonzero(position_blind_epochs(seq)), np.arange(out.start, out.stop))
     sol = LfgnssFgo(mode="fixed-lag", lag_s=10.0, covariances=True).solve(seq)
     assert np.all(sol.available) and np.isfinite(sol.pos_ecef_m).all() and np.isfinite(sol.cov_ecef_m2).all()
-    if left == "none":
-        assert np.all(sol.status[out] == STATUS_COASTED) and np.all(sol.n_used[out] == 0)
-    else:                                                    # the satellites still give the clock
-        assert np.all(sol.n_used[out] == len(seq.systems)) and np.isfinite(sol.clock_m[out]).all()
+    # coasted either way (a satellite spent on its clock tells nothing of position): status and .pos Q say so
+    assert np.all(sol.status[out] == STATUS_COASTED) and np.all(sol.n_used[out] == 0)
+    if left != "none":                                       # the satellites still give the clock
+        assert np.isfinite(sol.clock_m[out]).all()
     # coasted: the CV prediction from the last epoch before, with a growing covariance
     dt = seq.time_gps_s[out] - seq.time_gps_s[out.start - 1]
     pred = sol.pos_ecef_m[out.start - 1] + dt[:, None] * sol.vel_ecef_m_s[out.start - 1]

@@ -1,0 +1,85 @@
+"""What every back end owes a library user: its own time array, checked noise, honest covariances and clocks."""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+import estimators
+from estimators.base import STATUS_COASTED
+from estimators.fgo import position_blind_epochs
+from lfgnss.simulate import simulate_sequence
+
+
+@pytest.fixture(scope="module")
+def seq():
+    return simulate_sequence(40, seed=3)
+
+
+@pytest.mark.parametrize("backend", ["ekf", "plain-ekf", "fgo", "wls", "wls-weighted"])
+def test_solution_time_is_a_copy_of_the_sequences(seq, backend):
+    """Editing a Solution's times (seconds since start, for a plot) must not shift the Sequence's."""
+    before = seq.time_gps_s.copy()
+    sol = estimators.create(backend).solve(seq)
+    t = sol.time_gps_s
+    t -= t[0]
+    np.testing.assert_array_equal(seq.time_gps_s, before)
+
+
+def _bad_noise(kind):
+    def noise(s):
+        r, vc = np.where(s.mask, 25.0, 1.0), np.zeros(s.mask.shape)
+        first = np.argwhere(s.mask)[3]
+        if kind == "nan":
+            r[tuple(first)] = np.nan
+        elif kind == "negative":
+            r[tuple(first)] = -4.0
+        else:
+            r = r[:, :3]
+        return r, vc
+    return noise
+
+
+@pytest.mark.parametrize("backend", ["ekf", "fgo", "wls-weighted"])
+@pytest.mark.parametrize("kind, message", [("nan", "non-positive or non-finite R"),
+                                           ("negative", "non-positive or non-finite R"), ("shape", "shapes")])
+def test_a_bad_noise_model_is_named_by_every_back_end(seq, backend, kind, message):
+    with pytest.raises(ValueError, match=message):
+        estimators.create(backend, noise=_bad_noise(kind)).solve(seq)
+
+
+def test_least_squares_without_redundancy_keeps_a_plausible_covariance(seq):
+    """An epoch with as many satellites as unknowns has zero residuals: its covariance must not collapse to 0."""
+    mask = seq.mask.copy()
+    k = 10
+    keep = [np.flatnonzero(mask[k] & (seq.system_index[k] == j)) for j in range(len(seq.systems))]
+    mask[k] = False
+    mask[k, np.concatenate([keep[0][:3], keep[1][:2]])] = True             # 5 satellites, 3 + 2 unknowns
+    sol = estimators.create("wls").solve(replace(seq, mask=mask))
+    sd = np.sqrt(np.trace(sol.cov_ecef_m2, axis1=1, axis2=2))
+    others = np.delete(sd, k)
+    assert sd[k] > 0.5 * np.median(others)                                 # of the epochs' size, not 1e-7 m
+
+
+def test_least_squares_clock_is_nan_where_the_reference_system_is_absent(seq):
+    mask = seq.mask & ~((seq.system_index == 0) & (np.arange(len(seq))[:, None] < 5))
+    for backend in ("wls", "wls-weighted"):
+        sol = estimators.create(backend).solve(replace(seq, mask=mask))
+        assert np.isnan(sol.clock_m[:5]).all() and np.isfinite(sol.clock_m[5:]).all()
+        assert np.isfinite(sol.pos_ecef_m).all()
+
+
+@pytest.mark.parametrize("mode", ["batch", "fixed-lag"])
+def test_factor_graph_reports_position_blind_epochs_as_coasted(seq, mode):
+    """One satellite per constellation goes to its clock: the position is the motion model's, status coasted."""
+    mask = seq.mask.copy()
+    for k in range(20, 24):
+        keep = [np.flatnonzero(mask[k] & (seq.system_index[k] == j))[0] for j in range(len(seq.systems))]
+        mask[k] = False
+        mask[k, keep] = True
+    blind_seq = replace(seq, mask=mask)
+    assert np.flatnonzero(position_blind_epochs(blind_seq)).tolist() == [20, 21, 22, 23]
+    sol = estimators.create("fgo", mode=mode).solve(blind_seq)
+    assert np.all(sol.status[20:24] == STATUS_COASTED) and np.all(sol.n_used[20:24] == 0)
+    assert np.isfinite(sol.clock_m[20:24]).all()
