@@ -280,6 +280,12 @@ class LfgnssFgo:
         xk = X(k)
         for key, z, s, sig in zip(keys, z_m[k, used].tolist(), sat, sigma_m[k, used].tolist()):
             graph.add(gtsam.PseudorangeFactor(xk, key, z, s, 0.0, self._measurement_model(sig, kernel)))
+        if used.size - np.unique(sysj).size < 3:
+            # Fewer than 3 satellites left once each constellation's clock took one: with the clocks' Jacobians
+            # (c, in seconds) beside the positions', gtsam's undamped Cholesky (iSAM2, marginals) declares the
+            # system indeterminate although the motion factors fix it. The first epoch's loose prior, at the
+            # guess, lets it through and weighs nothing beside the motion factors.
+            graph.add(gtsam.PriorFactorPoint3(xk, pos_guess, gtsam.noiseModel.Isotropic.Sigma(3, self.prior_pos_sigma_m)))
         return int(used.size)
 
     def _doppler_velocity(self, seq: Sequence) -> DopplerVelocity | None:
