@@ -42,7 +42,7 @@ from .time import gps_s_to_week_tow, week_tow_to_gps_s
 if TYPE_CHECKING:
     from .observations import Observations
 
-_BUILD_VERSION = 6                 # 6: several obs files joined (5 read only the first)
+_BUILD_VERSION = 7                 # 7: spp restarts from a wrong header position; 6: several obs files joined
 SPLITS = ("train", "val", "test")
 SPLIT_AXES = ("tow", "relative_s", "epoch")
 #: Rows of a ``static`` truth file farther than this from its first row are not one point [m].
@@ -270,10 +270,14 @@ def align_truth(time_gps_s: np.ndarray, spec: DatasetSpec) -> tuple[np.ndarray, 
 # -- building and splitting ---------------------------------------------------------------------------------
 
 def _fingerprint(spec: DatasetSpec, feature_names: tuple[str, ...]) -> str:
+    """Cache key of a built dataset: its files' bytes, its settings and the versions of the readers that built it."""
+    from . import navigation, rinex      # lazily, as build() does; a reader's change reaches the datasets it built
+
     h = hashlib.sha256()
     for p in spec.files():
         h.update(p.read_bytes())
-    h.update(json.dumps([_BUILD_VERSION, spec.id, list(feature_names), spec.systems, spec.truth_format,
+    h.update(json.dumps([_BUILD_VERSION, rinex._PARSER_VERSION, navigation._CACHE_VERSION, spec.id,
+                         list(feature_names), spec.systems, spec.truth_format,
                          spec.match_tolerance_s, spec.time_origin_gps_s]).encode())
     return h.hexdigest()[:24]
 

@@ -126,6 +126,12 @@ def load(obs: str | Path | Observations, nav: str | Path | Iterable[str | Path] 
     observations = obs if isinstance(obs, Observations) else load_obs(obs, cache=cache)
     navigation = nav if isinstance(nav, Navigation) else load_nav(nav)
     notes = list(observations.warnings) + list(navigation.warnings)
+    if "GPS" not in navigation.iono:  # lfgnss.spp then falls back to corrections.KLOBUCHAR_DEFAULT, as RTKLIB does
+        note = (f"{', '.join(navigation.sources) or 'navigation'}: no GPS ionosphere coefficients (ION ALPHA/BETA or "
+                f"GPSA/GPSB header lines) in the navigation file(s); the Klobuchar ionosphere uses default "
+                f"coefficients (RTKLIB's, of 2004-01-01), which can be off by metres")
+        notes.append(note)
+        warnings.warn(note, RinexWarning, stacklevel=2)
     asked = None if systems is None else {s.upper() for s in systems}
     if asked is not None and asked - set(SYSTEMS):
         raise ValueError(f"unknown constellation letter(s) {''.join(sorted(asked - set(SYSTEMS)))} in the requested "

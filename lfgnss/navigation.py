@@ -120,7 +120,7 @@ class Navigation:
     warnings: tuple[str, ...] = ()
 
 
-_CACHE_VERSION = 2
+_CACHE_VERSION = 3
 
 
 def load_nav(paths: str | Path | Iterable[str | Path], *, cache: bool = True) -> Navigation:
@@ -274,6 +274,10 @@ _NUMBER = re.compile(r" *[+-]?(\d+\.?\d*|\.\d+)([EeD][+-]?\d+)? *")
 _COMPLETE_NUMBER = re.compile(r" *[+-]?(\d+\.?\d*|\.\d+)[EeD][+-]?\d\d+ *")
 #: Lines per record: RINEX 3 by the record's system letter, RINEX 2 by the file type of the header.
 _RECORD_LINES = {3: {"G": 8, "E": 8, "J": 8, "C": 8, "I": 8, "R": 4, "S": 4}, 2: {"N": 8, "E": 8, "G": 4}}
+#: RINEX 3.05 added a fourth BROADCAST ORBIT line to GLONASS records (status flags, L1/L2 group delay
+#: difference, URAI, health flags): 5 lines from version 3.05 on. lfgnss uses none of its values; the line is
+#: checked like the others, then dropped before georinex (1.16 reads 4 lines) sees the record.
+_GLONASS_LINES_V305 = 5
 
 
 def _epoch_ok(line: str, version: int) -> bool:
@@ -347,9 +351,13 @@ def _clean_layers(text: str, path: Path) -> tuple[list[str], list[str]]:
     if end is None:
         raise RinexError(path, "no END OF HEADER line: not a RINEX file")
     try:
-        version = int(float(lines[0][:9]))
+        full_version = float(lines[0][:9])
+        version = int(full_version)
     except ValueError:
         raise RinexError(path, "first line has no RINEX version", line=1) from None
+    record_lines = dict(_RECORD_LINES.get(version, {}))
+    if version == 3 and full_version >= 3.05 - 1e-6:
+        record_lines["R"] = _GLONASS_LINES_V305
     if version not in (2, 3) or not (lines[0][20:21] in ("N", "G", "E") or "NAV" in lines[0][20:40]):
         raise RinexError(path, f"not a RINEX 2/3 navigation file ({lines[0][:60].strip()!r})", line=1)
     start = _RECORD_START[version]
@@ -373,7 +381,7 @@ def _clean_layers(text: str, path: Path) -> tuple[list[str], list[str]]:
     damaged: list[tuple[int, str]] = []   # (line, reason) of each skipped record
     for numbers, rec in records:
         rec = [ln.ljust(80)[:80] for ln in rec]
-        n_lines = _RECORD_LINES[version].get(rec[0][0] if version == 3 else lines[0][20], 8)
+        n_lines = record_lines.get(rec[0][0] if version == 3 else lines[0][20], 8)
         if numbers[-1] == cut_line and len(rec) == n_lines + 1:   # a file cut inside the next epoch line
             notes.append(f"{path}:{cut_line}: file ends inside this line; skipped")
             numbers, rec = numbers[:-1], rec[:-1]
@@ -390,6 +398,8 @@ def _clean_layers(text: str, path: Path) -> tuple[list[str], list[str]]:
         for i, (j, c) in enumerate(slots[:last]):
             if not rec[j][c:c + _FIELD_W].strip():
                 rec[j] = rec[j][:c] + _ZERO_FIELD + rec[j][c + _FIELD_W:]
+        if version == 3 and rec[0][0] == "R" and n_lines == _GLONASS_LINES_V305:
+            rec = rec[:4]   # the RINEX 3.05 status line: georinex would read it as the start of a record
         key = tuple(rec)
         if key in seen:
             continue

@@ -26,12 +26,12 @@ from .constants import SYSTEMS
 from .errors import RinexError
 from .observations import Observations
 from .paths import cache_dir
-from .time import glonass_to_gps_s
+from .time import utc_to_gps_s
 
 if TYPE_CHECKING:
     import pandas as pd
 
-_PARSER_VERSION = 5
+_PARSER_VERSION = 6
 _GPS_EPOCH = dt.datetime(1980, 1, 6)
 _SV_RE = re.compile(r"^[GRECJSI][ 0-9][0-9]$")
 _V2_RECORD_LIKE = re.compile(r"^[ 0-9.\-]*[0-9][ 0-9.\-]*$")  # digits, blanks, points, signs only
@@ -46,15 +46,28 @@ def _v2_epoch_start(line: str) -> bool:
     head = line.rstrip()[:len(_V2_EPOCH_START)]
     return len(head) >= 3 and all(c in allowed for c, allowed in zip(head, _V2_EPOCH_START))
 
-#: Pseudorange code preference per constellation (single frequency, L1/E1/B1I/G1).
+#: Pseudorange code preference per constellation (single frequency, L1/E1/B1I/G1); the first one the header
+#: lists is used for the whole file (docs/input_conventions.md). BeiDou: B1I only, whatever the
+#: label: RINEX 3.01 and 3.03+ call it band 2 (C2I/C2Q/C2X), RINEX 3.02 band 1 (C1I/C1Q/C1X); in 3.03+
+#: band 1 is B1C (C1D/C1P/C1X), another signal with other group delays, which is not supported.
 CODES_V3 = {"G": ("C1C", "C1W", "C1P", "C1X"), "R": ("C1C", "C1P"), "E": ("C1C", "C1X", "C1B"),
-            "J": ("C1C", "C1X"), "C": ("C2I", "C2X")}
-CODES_V302_BDS = ("C1I", "C1X")  # RINEX 3.00-3.02 named B1I band 1
+            "J": ("C1C", "C1X"), "C": ("C2I", "C2X", "C1I", "C2Q", "C1Q")}
+#: RINEX 3.00-3.02 BeiDou: 3.02 names B1I band 1; C2I/C2Q/C2X (the 3.01 and 3.03 labels, found in some
+#: 3.02 files; RTKLIB 2.4.3 reads them as B1I) are B1I too. C1X is B1I only in a file without band-2 codes
+#: (else it is 3.03's B1C, see ``_bds_codes``).
+CODES_V302_BDS = ("C1I", "C1X", "C2I", "C2X", "C1Q", "C2Q")
+#: BeiDou B1C codes of RINEX 3.03+ (not supported: B1C needs its own group delays, absent from D1/D2 nav).
+BDS_B1C_CODES = ("C1D", "C1P", "C1X")
+#: RINEX 2: the first code of each list is preferred; where it is blank for a satellite, the next one the
+#: header lists is used for that record (C1 -> P1, as RTKLIB does for RINEX <= 2.11), with a note.
 CODES_V2 = {"G": ("C1", "P1"), "R": ("C1", "P1"), "E": ("C1",), "J": ("C1",), "C": ("C2", "C1")}
+#: Time system of the epochs when the header leaves it blank, by the file's satellite system (RINEX 2.11 and
+#: 3.0x "TIME OF FIRST OBS": GPS for pure GPS files, GLO for pure GLONASS, BDT for pure BeiDou, ...).
+_DEFAULT_TIME_SYSTEM = {"R": "GLO", "C": "BDT", "E": "GAL", "J": "QZS", "I": "IRN"}
 
 
 class RinexWarning(UserWarning):
-    """Records or epochs of a RINEX file were skipped."""
+    """Records, epochs or constellations of a RINEX file were skipped, or a pseudorange code substituted."""
 
 
 def load_obs(path: str | Path, *, systems: tuple[str, ...] | None = None, cache: bool = True,
@@ -84,8 +97,8 @@ def load_obs(path: str | Path, *, systems: tuple[str, ...] | None = None, cache:
         if cache:
             _to_npz(cached, obs)
     if obs.warnings:  # also on a cache hit: the same file always gives the same warning
-        warnings.warn(f"{path}: {len(obs.warnings)} problem(s), damaged records or epochs skipped; "
-                      f"first: {obs.warnings[0]}", RinexWarning, stacklevel=2)
+        warnings.warn(f"{path}: {len(obs.warnings)} problem(s) (damaged records or epochs skipped, constellations "
+                      f"or codes not usable or substituted); first: {obs.warnings[0]}", RinexWarning, stacklevel=2)
     return obs.select_systems(systems) if systems else obs
 
 
@@ -188,18 +201,30 @@ def _header_info(header: str, path: Path) -> dict:
     if not hdr.get("fields"):
         raise RinexError(path, "header lists no observation types")
     time_system = header[header.find("TIME OF FIRST OBS") - 12: header.find("TIME OF FIRST OBS")].strip() \
-        if "TIME OF FIRST OBS" in header else "GPS"
+        if "TIME OF FIRST OBS" in header else ""
+    if not time_system:  # blank: the default of the file's satellite system (column 41 of the version line)
+        time_system = _DEFAULT_TIME_SYSTEM.get(first[40:41], "GPS")
     try:
         approx = np.array([float(v) for v in hdr.get("position", [0.0, 0.0, 0.0])][:3])
     except (TypeError, ValueError):
         approx = np.zeros(3)
     if approx.size != 3 or not np.all(np.isfinite(approx)):
         approx = np.zeros(3)
-    return {"version": version, "fields": hdr["fields"], "time_system": time_system or "GPS", "approx": approx}
+    return {"version": version, "fields": hdr["fields"], "time_system": time_system, "approx": approx}
 
 
-def _choose_codes(fields, version: float, path: Path, problems: list[str]) -> dict[str, tuple[int, int, int, str]]:
-    """Per constellation: column index of pseudorange, C/N0, Doppler (-1 if absent) and the code."""
+def _bds_codes(types: list[str], version: float) -> tuple[str, ...]:
+    """BeiDou B1I pseudorange codes in order of preference for a RINEX 3 header listing ``types``."""
+    if version >= 3.03:
+        return CODES_V3["C"]
+    if any(t in types for t in ("C2I", "C2Q", "C2X")):  # band 2 is B1I, so band-1 X would be 3.03's B1C
+        return tuple(c for c in CODES_V302_BDS if c != "C1X")
+    return CODES_V302_BDS
+
+
+def _choose_codes(fields, version: float, path: Path, problems: list[str]) -> dict[str, tuple]:
+    """Per constellation: column index of pseudorange, C/N0, Doppler (-1 if absent), the code, and the
+    column and code of the RINEX 2 fallback pseudorange (-1 and "" if none)."""
     chosen = {}
     for system in SYSTEMS:
         if version < 3:
@@ -209,16 +234,23 @@ def _choose_codes(fields, version: float, path: Path, problems: list[str]) -> di
             if system not in fields:
                 continue
             types = list(fields[system])
-            prefs = CODES_V302_BDS if (system == "C" and version < 3.03) else CODES_V3[system]
+            prefs = _bds_codes(types, version) if system == "C" else CODES_V3[system]
         code = next((c for c in prefs if c in types), None)
         if code is None:
             if version >= 3:
-                problems.append(f"{path}: {system} has no supported pseudorange type (has {' '.join(types)}); "
+                why = ""
+                b1c = [t for t in types if t in BDS_B1C_CODES] if system == "C" and version >= 3.03 else []
+                if b1c:
+                    why = (f"; {'/'.join(b1c)} {'is' if len(b1c) == 1 else 'are'} B1C, not supported "
+                           f"(lfgnss uses B1I: C2I/C2X/C2Q)")
+                problems.append(f"{path}: {system} has no supported pseudorange type (has {' '.join(types)}){why}; "
                                 f"its satellites are skipped")
             continue
         cn0 = ("S" + code[1:]) if ("S" + code[1:]) in types else ("S1" if "S1" in types and version < 3 else None)
         dop = ("D" + code[1:]) if ("D" + code[1:]) in types else None
-        chosen[system] = (types.index(code), types.index(cn0) if cn0 else -1, types.index(dop) if dop else -1, code)
+        fallback = next((c for c in prefs[prefs.index(code) + 1:] if c in types), None) if version < 3 else None
+        chosen[system] = (types.index(code), types.index(cn0) if cn0 else -1, types.index(dop) if dop else -1, code,
+                          types.index(fallback) if fallback else -1, fallback or "")
     if not chosen:
         raise RinexError(path, "no pseudorange observation type for any supported constellation "
                                "(need C1C/C1/C2I/...)")
@@ -227,11 +259,20 @@ def _choose_codes(fields, version: float, path: Path, problems: list[str]) -> di
 
 def _to_gps_s(year: int, month: int, day: int, hour: int, minute: int, sec: float, time_system: str) -> float:
     t = (dt.datetime(year, month, day, hour, minute) - _GPS_EPOCH).total_seconds() + sec
+    return float(_scale_to_gps_s(t, time_system))
+
+
+def _scale_to_gps_s(t, time_system: str):
+    """GPS seconds from epoch time tags counted since 1980-01-06 on the file's time scale [s].
+
+    ``BDT``: + 14 s. ``GLO``: the tags are UTC(SU) (RINEX; not GLONASS system time, which is 3 h ahead),
+    + leap seconds as RTKLIB does (``utc2gpst``). GPS, GAL, QZS and IRN are taken as GPS time.
+    """
     if time_system == "BDT":
-        return t + 14.0
+        return np.asarray(t, dtype=float) + 14.0
     if time_system == "GLO":
-        return float(glonass_to_gps_s(t))
-    return t
+        return utc_to_gps_s(t)
+    return np.asarray(t, dtype=float)
 
 
 def _parse(text: str, path: Path, engine: str, notes: list[str] | None = None) -> Observations:
@@ -454,7 +495,7 @@ def _assemble(path, info, codes, epoch_times, epoch_lines, rec_epoch, rec_sv, re
             if rows.size and letter not in info["fields"]:
                 problems.append(f"{path}:{line[rows[0]]}: {rows.size} {letter} record(s) but no SYS / # / OBS TYPES "
                                 f"header line for {letter}: skipped")
-    for sys_letter, (i_pr, i_cn0, i_dop, _) in codes.items():
+    for sys_letter, (i_pr, i_cn0, i_dop, code, i_fallback, fallback) in codes.items():
         rows = np.flatnonzero((system == sys_letter).to_numpy() & valid_sv)
         if rows.size == 0:
             continue
@@ -470,6 +511,21 @@ def _assemble(path, info, codes, epoch_times, epoch_lines, rec_epoch, rec_sv, re
                 bad[rows[garbage]] = True
             else:
                 out[rows[garbage]] = np.nan
+        blank = rows[np.isnan(pr[rows]) & ~bad[rows]] if i_fallback >= 0 else rows[:0]
+        if blank.size:  # RINEX 2: the preferred code blank, the other one there (RTKLIB does the same)
+            values, garbage = _numbers(text.iloc[blank].str[16 * i_fallback: 16 * i_fallback + 14])
+            for k in blank[garbage]:
+                problems.append(f"{path}:{line[k]}: unreadable pseudorange {fallback} for {sv.iloc[k]} "
+                                f"({code} blank), record skipped")
+            bad[blank[garbage]] = True
+            pr[blank] = values
+            used = blank[np.isfinite(values) & keep_epoch[epoch[blank]]]
+            if used.size:
+                names = sorted(set(sv.iloc[used]))
+                problems.append(f"{path}:{line[used[0]]}: {code} blank, {fallback} used instead in {used.size} "
+                                f"record(s) of {len(names)} satellite(s) ({' '.join(names[:8])}"
+                                f"{' ...' if len(names) > 8 else ''}); {fallback} differs from {code} by the "
+                                f"satellite's {fallback}-{code} code bias (typically decimetres), not corrected")
     use = ~bad & system.isin(list(codes)).to_numpy() & np.isfinite(pr) & keep_epoch[epoch] if n_rec else np.zeros(0, bool)
     order = {s: i for i, s in enumerate(SYSTEMS)}
     svs = sorted(set(sv[use]), key=lambda s: (order.get(s[0], 99), s))
@@ -492,7 +548,7 @@ def _parse_georinex(text, path, info, codes, problems) -> Observations:
     import georinex
 
     meas = sorted({info["fields"][i] if info["version"] < 3 else info["fields"][s][i]
-                   for s, idx in codes.items() for i in idx[:3] if i >= 0})
+                   for s, idx in codes.items() for i in (*idx[:3], idx[4]) if i >= 0})
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         try:
@@ -500,6 +556,7 @@ def _parse_georinex(text, path, info, codes, problems) -> Observations:
         except Exception as err:
             raise RinexError(path, f"georinex could not read the file ({type(err).__name__}: {err})") from None
     times = (ds.time.values.astype("datetime64[ns]") - np.datetime64("1980-01-06", "ns")).astype("int64") * 1e-9
+    times = _scale_to_gps_s(times, info["time_system"])
     svs = [str(s) for s in ds.sv.values if str(s)[0] in codes]
     order = {s: i for i, s in enumerate(SYSTEMS)}
     svs = sorted(svs, key=lambda s: (order.get(s[0], 99), s))
@@ -516,6 +573,8 @@ def _parse_georinex(text, path, info, codes, problems) -> Observations:
         return out
 
     pr = grab(0)
+    fallback = grab(4)
+    pr = np.where(np.isnan(pr), fallback, pr)
     keep = np.any(np.isfinite(pr), axis=0)
     svs = np.array(svs, dtype="<U3")[keep]
     return Observations(str(path), info["version"], times, svs, pr[:, keep], grab(1)[:, keep], grab(2)[:, keep],

@@ -183,8 +183,8 @@ def run(args) -> int:
               f"({noise_text})")
         print(f"coarse fix: {summary['epoch_status']}; observations: {summary['observations']}")
         if meas.warnings:
-            print(f"input problems: {len(meas.warnings)} (damaged records or epochs skipped, constellations "
-                  f"dropped){'; the first 5:' if len(meas.warnings) > 5 else ':'}")
+            print(f"input notes: {len(meas.warnings)} (damaged records or epochs skipped, constellations dropped, "
+                  f"stand-ins used){'; the first 5:' if len(meas.warnings) > 5 else ':'}")
         for note in meas.warnings[:5]:
             print(f"warning: {note}")
         print(f"outputs: {', '.join(str(p) for p in written[:4])}" + (f" and {len(written) - 4} plots" if len(written) > 4 else ""))

@@ -7,7 +7,7 @@ GPS_EPOCH = np.datetime64("1980-01-06T00:00:00", "ns")
 SECONDS_PER_WEEK = 604_800.0
 BDT_MINUS_GPST_S = -14.0  # BDT = GPST - 14 s (both continuous)
 
-# (first GPS second at which the offset applies, GPST - UTC in seconds)
+# (UTC date from which the offset applies, GPST - UTC in seconds)
 _LEAP_TABLE = [
     ("1981-07-01", 1), ("1982-07-01", 2), ("1983-07-01", 3), ("1985-07-01", 4), ("1988-01-01", 5),
     ("1990-01-01", 6), ("1991-01-01", 7), ("1992-07-01", 8), ("1993-07-01", 9), ("1994-07-01", 10),
@@ -16,6 +16,7 @@ _LEAP_TABLE = [
 ]
 _LEAP_UTC_S = np.array([(np.datetime64(d, "ns") - GPS_EPOCH) / np.timedelta64(1, "s") for d, _ in _LEAP_TABLE])
 _LEAP_VALUE_S = np.array([v for _, v in _LEAP_TABLE], dtype=float)
+_LEAP_GPS_S = _LEAP_UTC_S + _LEAP_VALUE_S  # the same instants on the GPS scale
 
 
 def datetime64_to_gps_s(t: np.ndarray) -> np.ndarray:
@@ -42,10 +43,14 @@ def gps_s_to_week_tow(gps_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def leap_seconds(gps_s: np.ndarray) -> np.ndarray:
-    """GPST - UTC [s] at the given GPS time (table up to the 2017-01-01 leap second)."""
+    """GPST - UTC [s] at the given GPS time (table up to the 2017-01-01 leap second).
+
+    A leap second counts from the GPS second at which UTC reaches the table date: 2015-07-01 00:00:17
+    GPST is 2015-07-01 00:00:00 UTC, GPST - UTC = 17 s; one second earlier it is still 16 s (RTKLIB
+    ``gpst2utc``; the inserted second 23:59:60 itself has no distinct value on a count of seconds).
+    """
     gps_s = np.asarray(gps_s, dtype=float)
-    utc_approx = gps_s - 18.0
-    idx = np.searchsorted(_LEAP_UTC_S, utc_approx, side="right") - 1
+    idx = np.searchsorted(_LEAP_GPS_S, gps_s, side="right") - 1
     return np.where(idx >= 0, _LEAP_VALUE_S[np.clip(idx, 0, None)], 0.0)
 
 
@@ -57,7 +62,12 @@ def utc_to_gps_s(utc_s: np.ndarray) -> np.ndarray:
 
 
 def glonass_to_gps_s(glot_s: np.ndarray) -> np.ndarray:
-    """GPS seconds from GLONASS time (UTC(SU) + 3 h) expressed as seconds since 1980-01-06 [s]."""
+    """GPS seconds from GLONASS system time (UTC(SU) + 3 h) expressed as seconds since 1980-01-06 [s].
+
+    Only for times on the GLONASS system scale itself (e.g. t_b of the navigation message as broadcast).
+    RINEX writes GLONASS times as UTC(SU), without the 3 h: observation epochs of time system ``GLO``
+    and navigation epochs take :func:`utc_to_gps_s`, as RTKLIB does (``utc2gpst``).
+    """
     return utc_to_gps_s(np.asarray(glot_s, dtype=float) - 10_800.0)
 
 

@@ -339,3 +339,35 @@ def test_glonass_rk4_step_size_and_reversibility(bundled_nav):
     assert 25.3e6 < r < 25.7e6                                            # GLONASS a = 25,510 km
     same, _ = propagate(g.pos_ecef_m, g.vel_ecef_m_s, g.acc_ecef_m_s2, np.array([0.0]))
     np.testing.assert_array_equal(same, g.pos_ecef_m)
+
+
+# ---------------------------------------------------------------- BeiDou B1I labels and group delays
+@pytest.mark.shared_data
+def test_bds_b1i_labelled_c2i_in_rinex302_gets_tgd1(shared_data, tmp_path):
+    """hk-tst-2019 (RINEX 3.03, B1I = C2I) relabelled 3.02: BeiDou was dropped ('no supported pseudorange type')
+    while RTKLIB solves it. Now the same B1I pseudoranges, with the B1I group delay TGD1 of the ephemeris used."""
+    import lfgnss
+
+    src = shared_data(f"{HK2019}/COM3_190428_124409.obs")
+    navs = [shared_data(f"{HK2019}/hksc1180.19n"), shared_data(f"{HK2019}/hksc1180.19b")]
+    text = src.read_text()
+    assert text.startswith("     3.03")
+    relabelled = tmp_path / "v302.obs"
+    relabelled.write_text("     3.02" + text[9:])
+    ref = lfgnss.load(src, navs)
+    meas = lfgnss.load(relabelled, navs)
+    assert meas.obs.codes == ref.obs.codes == {"G": "C1C", "C": "C2I"}
+    assert meas.systems == ("G", "C")
+    for name in ("pr_m", "sat_clock_s", "group_delay_s", "reason"):
+        np.testing.assert_array_equal(getattr(meas, name), getattr(ref, name), err_msg=name)
+    is_c = np.array([s[0] == "C" for s in meas.sv])
+    t, s = np.nonzero(np.isfinite(meas.pr_m) & is_c[None, :] & (meas.reason == 0))
+    assert t.size > 1000
+    states = satellite_states(meas.nav, meas.sv[s], meas.time_gps_s[t], meas.pr_m[t, s])
+    kep = meas.nav.kepler
+    tgd1: dict[tuple[str, float], set[float]] = {}
+    for sv, toe, tgd in zip(kep.sv, kep.toe_gps_s, kep.tgd_s):   # BeiDou records: TGD1 (B1I), see navigation.py
+        tgd1.setdefault((sv, toe), set()).add(tgd)
+    got = meas.group_delay_s[t, s]
+    assert all(g in tgd1[(sv, toe)] for g, sv, toe in zip(got, meas.sv[s], states.toe_gps_s))
+    assert np.any(got != 0.0)

@@ -431,3 +431,113 @@ def test_damaged_rinex3_record_is_skipped_with_a_warning(shared_data, tmp_path):
         clean = load_nav(src)
         _assert_one_record_less(clean, nav, sv)
         _assert_states_unchanged(clean, nav, sv)
+
+
+# ---------------------------------------------------------------- RINEX 3.05 GLONASS records (5 lines)
+def _rinex3_lines(rinex2_record: str, sv: str) -> list[str]:
+    """A RINEX 2 record (epoch line + continuation lines) in the RINEX 3 layout (same fields, same order)."""
+    lines = rinex2_record.strip("\n").split("\n")
+    yy, mo, d, h, mi, s = (int(float(v)) for v in lines[0][2:22].split())
+    first = f"{sv} {2000 + yy:4d} {mo:02d} {d:02d} {h:02d} {mi:02d} {s:02d}" + lines[0][22:]
+    return [first] + ["    " + ln[3:] for ln in lines[1:]]
+
+
+GLO_REC_V3 = _rinex3_lines(GLONASS_RINEX2.split("END OF HEADER\n")[1], "R01")
+GPS_REC_V3 = _rinex3_lines(GPS_RINEX2.split("END OF HEADER\n")[1], "G02")
+GLO_STATUS_LINE = "     0.000000000000D+00 0.000000000000D+00 1.500000000000D+01 0.000000000000D+00"
+
+
+def _nav3(path: Path, version: str, records: list[list[str]], kind: str = "M: MIXED") -> Path:
+    head = [f"{version:>9s}           N: GNSS NAV DATA    {kind:<20s}RINEX VERSION / TYPE",
+            "    17                                                      LEAP SECONDS",
+            " " * 60 + "END OF HEADER"]
+    path.write_text("\n".join(head + [ln for rec in records for ln in rec]) + "\n")
+    return path
+
+
+def _glonass_equal(a, b) -> None:
+    for f in fields(a):
+        np.testing.assert_array_equal(getattr(a, f.name), getattr(b, f.name), err_msg=f.name)
+
+
+def test_rinex305_glonass_records_have_five_lines(tmp_path, bundled):
+    """RINEX 3.05 added a 4th BROADCAST ORBIT line to GLONASS records; all of them used to be rejected."""
+    ref = load_nav(bundled[1]).glonass
+    nav = load_nav(_nav3(tmp_path / "g305.rnx", "3.05", [GLO_REC_V3 + [GLO_STATUS_LINE]], "R: GLONASS"))
+    assert not nav.warnings
+    _glonass_equal(nav.glonass, ref)
+    assert nav.glonass.toe_gps_s[0] == week_tow_to_gps_s(1900, 86400 + 11 * 3600 + 15 * 60 + 17)  # UTC + 17 s
+    old = load_nav(_nav3(tmp_path / "g304.rnx", "3.04", [GLO_REC_V3], "R: GLONASS"))
+    assert not old.warnings
+    _glonass_equal(old.glonass, ref)
+
+
+def test_rinex305_mixed_file_keeps_glonass(tmp_path, bundled):
+    """A 3.05 mixed file silently lost all GLONASS (every record 'too long'); the GPS record after it too."""
+    path = _nav3(tmp_path / "m305.rnx", "3.05", [GLO_REC_V3 + [GLO_STATUS_LINE], GPS_REC_V3])
+    nav = load_nav(path)
+    assert not nav.warnings
+    assert len(nav.glonass) == 1 and len(nav.kepler) == 1
+    _glonass_equal(nav.glonass, load_nav(bundled[1]).glonass)
+    ref = load_nav(bundled[0]).kepler
+    for name in ("sv", "toe_gps_s", "sqrt_a_sqrt_m", "m0_rad", "af0_s", "tgd_s"):
+        np.testing.assert_array_equal(getattr(nav.kepler, name), getattr(ref, name))
+
+
+@pytest.mark.parametrize("version, status_line, reason", [
+    ("3.04", True, "record too long (damaged, or merged with the next record): 5 lines instead of 4"),
+    ("3.05", False, "record cut short: 4 lines instead of 5"),
+])
+def test_glonass_record_line_count_by_version(tmp_path, version, status_line, reason):
+    """The number of lines still protects against a lost or an extra line: 4 before 3.05, 5 from 3.05 on."""
+    bad = GLO_REC_V3 + ([GLO_STATUS_LINE] if status_line else [])
+    path = _nav3(tmp_path / "g.rnx", version, [bad, GPS_REC_V3])
+    with pytest.warns(RinexWarning, match="damaged navigation records skipped"):
+        nav = load_nav(path)
+    assert len(nav.glonass) == 0 and len(nav.kepler) == 1
+    assert nav.warnings == (f"{path}:4: {reason}; R01 record of line 4 skipped",)
+
+
+# ---------------------------------------------------------------- time scales
+@pytest.mark.parametrize("stamp, leap", [
+    ("2015-06-30T23:59:59", 16.0), ("2015-07-01T00:00:15", 16.0), ("2015-07-01T00:00:16", 16.0),
+    ("2015-07-01T00:00:17", 17.0), ("2015-07-01T00:00:30", 17.0),
+    ("2016-12-31T23:59:59", 17.0), ("2017-01-01T00:00:17", 17.0), ("2017-01-01T00:00:18", 18.0),
+    ("2020-06-03T03:02:27", 18.0), ("1981-07-01T00:00:00", 0.0), ("1981-07-01T00:00:01", 1.0),
+])
+def test_leap_seconds_at_the_boundaries(stamp, leap):
+    """GPST - UTC at a GPS time: the new value applies from the GPS second at which UTC reaches the date
+    (2015-07-01 00:00:17 GPST = 00:00:00 UTC), as RTKLIB ``gpst2utc``; it used to lag 17-18 s behind."""
+    from lfgnss.time import datetime64_to_gps_s, leap_seconds, utc_to_gps_s
+
+    t = datetime64_to_gps_s(np.datetime64(stamp, "ns"))
+    assert leap_seconds(t) == leap
+    assert leap_seconds(np.array([t, t])).tolist() == [leap, leap]
+    utc = t - leap                                        # and it inverts utc_to_gps_s away from the leap second
+    if stamp not in ("2015-07-01T00:00:16", "2017-01-01T00:00:17", "1981-07-01T00:00:00"):   # 23:59:60 UTC
+        assert utc_to_gps_s(utc) == t
+
+
+# ---------------------------------------------------------------- no ionosphere coefficients: said so
+def test_missing_ionosphere_coefficients_are_noted(tmp_path, capsys):
+    """Without GPS Klobuchar coefficients lfgnss (like RTKLIB) uses default ones: now with a note, also in the CLI."""
+    import lfgnss
+    from lfgnss.solve import SAMPLE_OBS, main
+
+    text = gzip.decompress((SAMPLE / "brdc1580.16n.gz").read_bytes()).decode()
+    assert "ION ALPHA" in text
+    no_iono = tmp_path / "noiono.16n"
+    no_iono.write_text("\n".join(ln for ln in text.split("\n") if "ION ALPHA" not in ln and "ION BETA" not in ln))
+    glo = SAMPLE / "brdc1580.16g.gz"
+    assert load_nav(no_iono).iono == {}
+    with pytest.warns(RinexWarning, match="no GPS ionosphere coefficients"):
+        meas = lfgnss.load(SAMPLE_OBS, [no_iono, glo])
+    note = [w for w in meas.warnings if "ionosphere" in w]
+    assert note == [f"{no_iono}, {glo}: no GPS ionosphere coefficients (ION ALPHA/BETA or GPSA/GPSB header lines) "
+                    f"in the navigation file(s); the Klobuchar ionosphere uses default coefficients (RTKLIB's, "
+                    f"of 2004-01-01), which can be off by metres"]
+    clean = lfgnss.load(SAMPLE_OBS, [SAMPLE / "brdc1580.16n.gz", glo])
+    assert not [w for w in clean.warnings if "ionosphere" in w]
+    code = main(["--backend", "wls", "--obs", str(SAMPLE_OBS), "--nav", str(no_iono), str(glo),
+                 "--out", str(tmp_path / "o"), "--no-plots", "--quiet"])
+    assert code == 0 and f"warning: {no_iono}, {glo}: no GPS ionosphere coefficients" in capsys.readouterr().err
