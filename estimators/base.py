@@ -5,7 +5,7 @@ import difflib
 import importlib
 import inspect
 from dataclasses import dataclass, field
-from typing import Callable, Protocol, runtime_checkable
+from typing import Callable, Iterable, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -66,6 +66,15 @@ def register(name: str) -> Callable:
 
 #: Back ends whose module is imported on first use (gtsam adds ~0.2 s to every start-up otherwise).
 _LAZY: dict[str, str] = {"fgo": "estimators.fgo"}
+
+
+def epoch_range(start: int, stop: int, progress: bool, desc: str) -> Iterable[int]:
+    """``range(start, stop)`` with a tqdm bar when ``progress`` and stderr is a terminal (long files take minutes)."""
+    if not progress:
+        return range(start, stop)
+    from tqdm.auto import tqdm
+
+    return tqdm(range(start, stop), desc=desc, unit="epoch", disable=None, leave=False, mininterval=0.5)
 
 
 def options_of(target: Callable) -> Callable:

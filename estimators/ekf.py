@@ -37,7 +37,7 @@ from lfgnss.features import innovation_feature
 from lfgnss.sequence import Sequence
 
 from . import models
-from .base import STATUS_COASTED, STATUS_NONE, STATUS_RESET, STATUS_UPDATED, Solution, options_of, register
+from .base import STATUS_COASTED, STATUS_NONE, STATUS_RESET, STATUS_UPDATED, Solution, epoch_range, options_of, register
 from .models import EkfConfig
 from .noise import HeuristicNoise, NoiseModel, checked_noise, default_noise, resolve_noise
 from .smoother import lag_horizon, rts_smooth
@@ -105,11 +105,13 @@ class LfgnssEkf:
         estimate of an epoch is ready that much later); ``inf``: the whole run. Without ``smooth`` only 0
         (the forward filter, which a zero lag is) or ``inf``; another lag is a ValueError, as ``--smooth-lag``
         without ``--smooth``.
+    progress : bool
+        Show a tqdm bar over the epochs on a terminal (``python -m lfgnss.solve`` does, unless ``--quiet``).
     """
 
     def __init__(self, noise: NoiseModel | str | os.PathLike | None = None, config: EkfConfig | None = None,
                  name: str = "ekf", use_compensation: bool = True, smooth: bool = False,
-                 smooth_lag_s: float = math.inf) -> None:
+                 smooth_lag_s: float = math.inf, progress: bool = False) -> None:
         if not isinstance(smooth, (bool, np.bool_)):
             raise TypeError(f"{type(self).__name__}: smooth must be True or False, got {smooth!r}")
         if isinstance(smooth_lag_s, bool) or not isinstance(smooth_lag_s, numbers.Real):
@@ -126,6 +128,7 @@ class LfgnssEkf:
         self.use_compensation = use_compensation
         self.smooth = bool(smooth)
         self.smooth_lag_s = float(smooth_lag_s)
+        self.progress = bool(progress)
 
     def noise_arrays(self, sequence: Sequence, usable: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(r_m2, vc_m), each (T, N), from the noise model, checked on the usable slots."""
@@ -247,7 +250,7 @@ class LfgnssEkf:
                     n_gated[k] += idx.size - int(ok.sum())
             status[k] = STATUS_RESET
 
-        for k in range(t_len):
+        for k in epoch_range(0, t_len, self.progress, self.name):
             dt = dt_all[k - 1] if k > 0 else 0.0
             idx = np.flatnonzero(usable[k])
             jdx = np.flatnonzero(doppler_ok[k])
@@ -314,9 +317,10 @@ class PlainEkf(LfgnssEkf):
     """The baseline: the same EKF, gate and resets with hand-set ``HeuristicNoise`` R and no v^c."""
 
     def __init__(self, noise: HeuristicNoise | None = None, config: EkfConfig | None = None,
-                 name: str = "plain-ekf", smooth: bool = False, smooth_lag_s: float = math.inf) -> None:
+                 name: str = "plain-ekf", smooth: bool = False, smooth_lag_s: float = math.inf,
+                 progress: bool = False) -> None:
         super().__init__(noise=HeuristicNoise() if noise is None else noise, config=config, name=name,
-                         use_compensation=False, smooth=smooth, smooth_lag_s=smooth_lag_s)
+                         use_compensation=False, smooth=smooth, smooth_lag_s=smooth_lag_s, progress=progress)
 
 
 __all__ = ["config_of", "LfgnssEkf", "create_lfgnss_ekf", "PlainEkf", "compensated_pseudorange", "usable_measurements", "coarse_available"]

@@ -63,7 +63,7 @@ from lfgnss.frames import ecef_to_lla, enu_rotation
 from lfgnss.sequence import Sequence
 from lfgnss.velocity import DopplerVelocity, doppler_velocity
 
-from .base import (STATUS_COASTED, STATUS_NONE, STATUS_UPDATED, Solution, options_of, register)
+from .base import (STATUS_COASTED, STATUS_NONE, STATUS_UPDATED, Solution, epoch_range, options_of, register)
 from .noise import HeuristicNoise, NoiseModel, checked_noise, default_noise, resolve_noise
 
 MODES = ("batch", "fixed-lag")
@@ -207,6 +207,8 @@ class LfgnssFgo:
         become Huber-robust priors on ``V(k)``; 0 leaves Doppler out. With 0.5 (as the EKF) the train /
         val 3D RMSE went from 12.7 / 9.1; 23.0 / 18.1; 3.2 / 3.6 m (hk; berlin; static, Cauchy 1.0,
         no Doppler) to the figures above; 2.0 was in between.
+    progress : bool
+        Show a tqdm bar over the epochs on a terminal (``python -m lfgnss.solve`` does, unless ``--quiet``).
     """
 
     name = "fgo"
@@ -216,7 +218,7 @@ class LfgnssFgo:
                  accel_psd_enu_m2_s3: tuple[float, float, float] = (1.0, 1.0, 0.1),
                  prior_pos_sigma_m: float = 100.0, prior_vel_sigma_m_s: float = 10.0,
                  covariances: bool = False, max_iterations: int = 50, fixed_lag_iterations: int = 1,
-                 doppler_sigma_m_s: float = 0.5) -> None:
+                 doppler_sigma_m_s: float = 0.5, progress: bool = False) -> None:
         if mode not in MODES:
             raise ValueError(f"estimators/fgo.py: mode {mode!r} not in {MODES}")
         if robust == "auto":
@@ -247,6 +249,7 @@ class LfgnssFgo:
         self.max_iterations = int(max_iterations)
         self.fixed_lag_iterations = int(fixed_lag_iterations)
         self.doppler_sigma_m_s = float(doppler_sigma_m_s)
+        self.progress = bool(progress)
 
     # ------------------------------------------------------------------ building blocks
     def _measurement_model(self, sigma_m: float, kernel: tuple[str | None, float] | None = None
@@ -394,7 +397,7 @@ class LfgnssFgo:
             start = gtsam.Values()
             self._priors(k0, p0[0], v0[0], graph)
             n_used = np.zeros(n_t - k0, int)
-            for k in range(k0, n_t):
+            for k in epoch_range(k0, n_t, self.progress, f"{self.name} ({kernel[0]} graph)"):
                 guess = p0[k - k0] if values is None else values.atPoint3(X(k))
                 start.insertPoint3(X(k), guess)
                 start.insertPoint3(V(k), v0[k - k0] if values is None else values.atPoint3(V(k)))
@@ -425,6 +428,7 @@ class LfgnssFgo:
         isam = gtsam.ISAM2Params()
         isam.setRelinearizeThreshold(0.01)
         isam.relinearizeSkip = 1
+        isam.findUnusedFactorSlots = True          # else every marginalised factor's slot stays: O(T^2) time
         smoother = gtsam.IncrementalFixedLagSmoother(self.lag_s, isam)
         p0, v0 = self._initial_trajectory(seq, k0, dv)
         motion = _MotionModel(psd_ecef)
@@ -435,7 +439,7 @@ class LfgnssFgo:
         cov = np.empty((m, 3, 3)) if self.covariances else None
         last = k0                                   # latest epoch in the graph
         joint = None                                # marginal covariance blocks of X(last), V(last)
-        for k in range(k0, n_t):
+        for k in epoch_range(k0, n_t, self.progress, self.name):
             i = k - k0
             if k > k0 and blind[k]:
                 # Kept out of the graph (module docstring): along a chain of short CV factors the Cholesky

@@ -41,6 +41,8 @@ FORMAT_NAME = "lfgnss-noise-model"
 FORMAT_VERSION = 1
 #: Variance of padded slots (same as ``learning.network.PAD_R_M2``, repeated to stay torch-free).
 PAD_R_M2 = 1.0
+#: Epochs per pass of the network in ``LfgnssModel.predict`` (memory is linear in it, the result independent of it).
+PREDICT_CHUNK_EPOCHS = 512
 
 
 class ModelFileError(InputError, ValueError):
@@ -186,6 +188,18 @@ class LfgnssModel:
             x = np.concatenate([x, np.where(mask, innovation, 0.0)[..., None]], -1)
         x = x.reshape(-1, n, d + self.online)
         m = mask.reshape(-1, n)
+        # in chunks of epochs: the attention scores alone are (M, H, N, N), ~0.3 MB an epoch at N = 36
+        r, vc = np.empty(m.shape), np.empty(m.shape)
+        for s in range(0, m.shape[0], PREDICT_CHUNK_EPOCHS):
+            rows = slice(s, s + PREDICT_CHUNK_EPOCHS)
+            r[rows], vc[rows] = self._forward(x[rows], m[rows])
+        r = np.where(m, r, PAD_R_M2).reshape(*lead, n)
+        vc = np.where(m, vc, 0.0).reshape(*lead, n)
+        return r, vc
+
+    def _forward(self, x: np.ndarray, m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The network on normalised inputs x (M, N, d) with mask m (M, N): (r_m2, vc_m), each (M, N), pads unset."""
+        n = m.shape[-1]
         p = self.params
         # h0 = x W_e^T + b_e
         h0 = _linear(x, p, "embed")
@@ -225,8 +239,6 @@ class LfgnssModel:
                                               elevation_power=pr["elevation_power"], el_min_rad=pr["el_min_rad"])
             r = prior * _softplus(o[..., 0]) / np.log(2.0) + self.r_floor_m2
         vc = o[..., 1] if self.compensation else np.zeros_like(r)
-        r = np.where(m, r, PAD_R_M2).reshape(*lead, n)
-        vc = np.where(m, vc, 0.0).reshape(*lead, n)
         return r, vc
 
     def features(self, sequence: Sequence) -> np.ndarray:

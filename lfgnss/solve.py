@@ -23,6 +23,7 @@ SAMPLE_TRUTH = SAMPLE_DIR / "Berlin_Potsdamer_Platz_GT.txt"
 DEFAULT_MODEL = default_model_path()
 LEARNED_BACKENDS = ("ekf", "fgo")
 SMOOTHABLE_BACKENDS = ("ekf", "plain-ekf")
+PROGRESS_BACKENDS = ("ekf", "plain-ekf", "fgo")   # a tqdm bar over the epochs on a terminal
 
 
 class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
@@ -165,6 +166,8 @@ def run(args) -> int:
             options["smooth_lag_s"] = args.smooth_lag
             label += f" (lag {args.smooth_lag:g} s)"
     label += " (hand-set noise)" if args.no_model else ""
+    if args.backend in PROGRESS_BACKENDS:
+        options["progress"] = not args.quiet
     estimator = estimators.create(args.backend, **options)
     estimator.name = label
     solution = estimator.solve(seq)

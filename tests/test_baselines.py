@@ -83,3 +83,28 @@ def test_factor_graph_reports_position_blind_epochs_as_coasted(seq, mode):
     sol = estimators.create("fgo", mode=mode).solve(blind_seq)
     assert np.all(sol.status[20:24] == STATUS_COASTED) and np.all(sol.n_used[20:24] == 0)
     assert np.isfinite(sol.clock_m[20:24]).all()
+
+
+def test_progress_bar_is_tqdm_and_changes_nothing(seq):
+    from tqdm.auto import tqdm
+
+    from estimators.base import epoch_range
+
+    assert isinstance(epoch_range(0, 5, True, "x"), tqdm) and list(epoch_range(0, 5, True, "x")) == list(range(5))
+    assert epoch_range(2, 5, False, "x") == range(2, 5)
+    for backend, options in (("ekf", {}), ("fgo", {"mode": "fixed-lag"}), ("fgo", {})):
+        quiet = estimators.create(backend, **options).solve(seq)
+        shown = estimators.create(backend, progress=True, **options).solve(seq)
+        np.testing.assert_array_equal(quiet.pos_ecef_m, shown.pos_ecef_m)
+
+
+def test_noise_model_runs_in_chunks_of_epochs_with_the_same_result(seq, monkeypatch):
+    """The network's memory is linear in the epochs of one pass; chunking must not change a bit."""
+    import learning.export as export
+    from lfgnss.paths import default_model_path
+
+    model = export.load_model(default_model_path())
+    whole = model(seq)
+    monkeypatch.setattr(export, "PREDICT_CHUNK_EPOCHS", 7)
+    for a, b in zip(whole, model(seq)):
+        np.testing.assert_array_equal(a, b)
