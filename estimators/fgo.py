@@ -29,7 +29,8 @@ Graph, after gtsam's ``SinglePointPositioningExample``:
   free per-epoch clocks do not have. Velocities tie consecutive positions through the motion factors,
   so a multipath jump of one epoch's pseudoranges can no longer move that epoch alone.
 * Weak priors on ``X``, ``V`` at the first epoch (coarse fix, ``prior_pos_sigma_m``,
-  ``prior_vel_sigma_m_s``).
+  ``prior_vel_sigma_m_s``), and the same position prior, at the epoch's initial guess, on an epoch with fewer
+  than 3 satellites left once each constellation's clock took one (see ``_epoch``).
 
 Modes: ``"batch"`` optimises the whole trajectory with Levenberg-Marquardt (smoothed estimate);
 ``"fixed-lag"`` runs ``gtsam.IncrementalFixedLagSmoother`` (iSAM2) epoch by epoch and outputs the
@@ -265,7 +266,8 @@ class LfgnssFgo:
     def _epoch(self, k: int, seq: Sequence, z_m: np.ndarray, sigma_m: np.ndarray, pos_guess: np.ndarray,
                graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
                kernel: tuple[str | None, float] | None = None) -> int:
-        """Add epoch k's pseudorange factors and clock initial values; return satellites used.
+        """Add epoch k's pseudorange factors, clock initial values (and a loose position prior where
+        fewer than 3 satellites are left after the clocks); return satellites used.
 
         Clock initial value per constellation: median(pr + vc - rho(x_guess)) / c [s].
         """

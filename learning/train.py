@@ -539,7 +539,7 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
     kept = model if averaged is None else averaged.module       # the weights validated, saved and exported
     lc = config["loss"]
     loss_fn = make_loss(lc["kind"], alpha=float(lc["alpha"]), gamma=float(lc["gamma"]), lam=float(lc["lambda"]),
-                        up_weight=float(lc["up_weight"]))
+                        up_weight=float(lc.get("up_weight", 1.0)))   # runs from before it resume
     history: list[dict] = []
     best = float("inf")
     start_epoch = 1

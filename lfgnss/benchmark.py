@@ -28,6 +28,7 @@ from . import datasets
 from .errors import INPUT_ERRORS, InputError, one_line
 from .metrics import METRIC_COLUMNS, accuracy_table, format_markdown, format_text, markdown_table
 from .paths import bundled_data_dir
+from .sequence import Sequence
 
 MODEL_DIR = bundled_data_dir() / "model"
 ABLATIONS = {"LF-GNSS EKF w/o DPC": "lfgnss-no_dpc.npz", "LF-GNSS EKF w/o HEM": "lfgnss-no_hem.npz",
@@ -163,9 +164,26 @@ def _rtklib_on(seq, spec, workdir: Path):
 
     if not rtklib_available():
         return None, None
+    if len(spec.obs) > 1:     # rnx2rtkp would take a second obs file for a base station's
+        print(f"{spec.id}: RTKLIB row left out: the dataset has {len(spec.obs)} obs files", file=sys.stderr)
+        return None, None
     sol, seconds = spp_solution(spec.obs[0], list(spec.nav), workdir / f"{spec.id}.pos",
                                 systems=spec.systems or ("G",))
     return align_to(seq.time_gps_s, sol), seconds
+
+
+def whole_test_split(dataset_id: str, feature_names: tuple[str, ...]) -> Sequence:
+    """The test split as one Sequence from its first to its last labelled epoch (InputError if it has none).
+
+    Epochs inside it without truth are solved but not scored; ``load_split`` would cut the split there.
+    """
+    spec = datasets.get(dataset_id)
+    seq = datasets.build(dataset_id, feature_names=feature_names)
+    idx = np.flatnonzero(datasets.split_index(seq, spec, "test"))
+    if idx.size == 0:
+        raise InputError(spec.truth, f"dataset {dataset_id}: no labelled epoch in its test split {spec.splits['test']} "
+                                     f"(axis {spec.split_axis})")
+    return seq.subset(slice(idx[0], idx[-1] + 1), name=f"{dataset_id}/test")
 
 
 def run(dataset_ids: list[str], *, model_dir: Path = MODEL_DIR, out_dir: Path | None = None,
@@ -178,7 +196,7 @@ def run(dataset_ids: list[str], *, model_dir: Path = MODEL_DIR, out_dir: Path | 
     for dataset_id in datasets.present(dataset_ids):
         spec = datasets.get(dataset_id)
         plugins = [(m.name, m.create()) for m in methods(model_dir, dataset_id)]
-        test = datasets.load_split(dataset_id, "test", feature_names=_features_for(e for _, e in plugins))[0]
+        test = whole_test_split(dataset_id, _features_for(e for _, e in plugins))
         truth = test.truth_ecef_m
         with tempfile.TemporaryDirectory() as tmp:
             rtk_pos, rtk_s = _rtklib_on(test, spec, Path(tmp))

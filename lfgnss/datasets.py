@@ -141,7 +141,11 @@ def register_toml(path: str | Path) -> DatasetSpec:
     except (OSError, tomllib.TOMLDecodeError) as err:
         raise InputError(path, f"unreadable dataset config ({getattr(err, 'strerror', None) or err})") from None
     base = path.parent
-    axis = cfg.get("splits", {}).get("axis", "tow") if isinstance(cfg.get("splits", {}), dict) else "tow"
+    for key in ("truth", "splits"):
+        if not isinstance(cfg.get(key, {}), dict):
+            raise InputError(path, f"[{key}] must be a table (e.g. [{key}] with file = ... / train = [a, b]), "
+                                   f"got {cfg[key]!r}")
+    axis = cfg.get("splits", {}).get("axis", "tow")
     if axis not in SPLIT_AXES:
         raise InputError(path, f"unknown split axis {axis!r} in [splits]; use one of {', '.join(SPLIT_AXES)}")
     for key in ("obs", "nav"):

@@ -129,6 +129,22 @@ def pack_features(names: tuple[str, ...], *, cn0_dbhz, el_rad, az_rad, residual_
 MAX_ABS_PRR_M_S = 1.0e4
 
 
+def _reference_clock(fix: CoarseFix, system_index: np.ndarray) -> np.ndarray:
+    """(T, C) clock of systems[0] and ISBs [m] in every epoch: an ISB unseen in an epoch is the nearest epoch's.
+
+    Where systems[0] has no satellite, spp gives the clock to the first system present (its ISB 0); that
+    epoch's clock is brought back to systems[0] with the nearest ISB of that system seen beside systems[0].
+    """
+    n_sys = fix.clock_m.shape[1]
+    present = np.stack([np.any(fix.used & (system_index == j), axis=1) for j in range(n_sys)], axis=1)
+    own = present[:, 0]
+    isb = fill_from_nearest_epoch(np.where(own[:, None], fix.clock_m, np.nan))
+    clock_system = np.argmax(present, axis=1)
+    shift = np.where(~own & (clock_system > 0), isb[np.arange(len(own)), clock_system], 0.0)
+    clock = np.where(own, fix.clock_m[:, 0], fix.clock_m[:, 0] - np.nan_to_num(shift))
+    return np.concatenate([clock[:, None], isb[:, 1:]], axis=1)
+
+
 def build_sequence(meas: Measurements, fix: CoarseFix, *, feature_names: tuple[str, ...] = DEFAULT_FEATURES,
                    name: str = "", truth_ecef_m: np.ndarray | None = None,
                    spp_config: SppConfig = SppConfig()) -> Sequence:
@@ -172,7 +188,7 @@ def build_sequence(meas: Measurements, fix: CoarseFix, *, feature_names: tuple[s
     feats = pack_features(tuple(feature_names), cn0_dbhz=cn0, el_rad=el, az_rad=az, residual_m=residual, dpc=dpc,
                           system_index=sysi, systems=meas.systems, mask=mask, residual_weighted_m=weighted,
                           code_doppler_m=code_doppler)
-    coarse_clock = fill_from_nearest_epoch(fix.clock_m)  # an ISB unseen in an epoch: nearest
+    coarse_clock = _reference_clock(fix, np.broadcast_to(meas.system_index, fix.used.shape))
     coarse_clock = np.where(fix.ok[:, None], coarse_clock, np.nan)
     truth = np.full((n_t, 3), np.nan) if truth_ecef_m is None else np.asarray(truth_ecef_m, float)
     return Sequence(

@@ -204,6 +204,7 @@ def _run_tag(args: argparse.Namespace, options: dict) -> str:
     tag += "-fixed-lag" if options.get("mode") == "fixed-lag" else ""
     tag += "-rts" if args.smooth else ""
     tag += f"-lag{args.smooth_lag:g}s" if args.smooth_lag is not None else ""
+    tag += f"-{Path(args.model).stem}" if args.model is not None else ""
     return tag + ("-hand-set" if args.no_model else "")
 
 

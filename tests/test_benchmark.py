@@ -148,3 +148,22 @@ def test_no_dataset_with_its_files_writes_no_results(tmp_path, monkeypatch, caps
     assert "berlin-pp: skipped, missing" in captured.out
     assert captured.err.count("\n") == 1 and "no dataset has all its files" in captured.err
     assert not (tmp_path / "out" / "results.md").exists()          # an empty table never replaces docs/results.md
+
+
+def test_a_test_split_with_a_truth_gap_is_scored_whole_and_an_empty_one_refused(tmp_path, monkeypatch, sample_toml):
+    """load_split cuts a split at an unlabelled epoch; the benchmark solves its whole span and scores every label."""
+    from lfgnss.benchmark import whole_test_split
+
+    monkeypatch.setattr(datasets, "_REGISTRY", {}, raising=False)
+    lines = (SAMPLE_DIR / "Berlin_Potsdamer_Platz_GT.txt").read_text().splitlines()
+    rows = [k for k, line in enumerate(lines) if line.startswith("point3") and 185.0 < float(line.split()[1]) < 186.0]
+    del lines[rows[0]]                                             # one truth line gone inside the test split
+    (tmp_path / "gt.txt").write_text("\n".join(lines) + "\n")
+    datasets.register_toml(sample_toml("gappy", truth="gt.txt"))
+    runs = datasets.load_split("gappy", "test")
+    span = whole_test_split("gappy", DEFAULT_FEATURES)
+    assert len(runs) == 2 and int(span.labelled.sum()) == sum(int(r.labelled.sum()) for r in runs)
+    assert len(span) == sum(len(r) for r in runs) + 1
+    datasets.register_toml(sample_toml("empty", splits=((0, 150), (150, 180), (5000, 6000))))
+    with pytest.raises(InputError, match="no labelled epoch in its test split"):
+        whole_test_split("empty", DEFAULT_FEATURES)

@@ -258,3 +258,11 @@ def test_datasets_cli_reports_a_dataset_named_twice_once(tmp_path, clean_registr
     assert datasets.main(["--register", str(cfg), "my-berlin"]) == 0
     out = capsys.readouterr().out
     assert out.count("my-berlin: 1375 epochs, 1372 with truth") == 1
+
+
+@pytest.mark.parametrize("line", ['truth = "truth.csv"', "splits = [1, 2]"])
+def test_truth_or_splits_that_are_not_tables_are_one_line_errors(tmp_path, clean_registry, line):
+    cfg = tmp_path / "flat.toml"
+    cfg.write_text(f'id = "flat"\nobs = ["a.obs"]\nnav = ["a.nav"]\n{line}\n')
+    with pytest.raises(InputError, match="must be a table"):
+        datasets.register_toml(cfg)

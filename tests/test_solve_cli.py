@@ -5,7 +5,7 @@ import pytest
 
 from lfgnss.errors import one_line
 from lfgnss.measurements import load
-from lfgnss.solve import SAMPLE_NAV, SAMPLE_OBS, SAMPLE_TRUTH, main
+from lfgnss.solve import DEFAULT_MODEL, SAMPLE_NAV, SAMPLE_OBS, SAMPLE_TRUTH, main
 
 
 @pytest.mark.parametrize("extra, message", [
@@ -56,6 +56,14 @@ def test_table_label_names_hand_set_noise_and_fixed_lag(tmp_path, capsys):
     assert main(["--out", str(tmp_path), "--no-plots", "--backend", "fgo", "--mode", "fixed-lag", "--no-model"]) == 0
     assert "fgo fixed-lag (hand-set noise) " in capsys.readouterr().out
     assert (tmp_path / "Berlin_Potsdamer_Platz_fgo-fixed-lag-hand-set.pos").exists()
+
+
+def test_a_model_of_ones_own_is_in_the_output_names(tmp_path):
+    import shutil
+
+    shutil.copy(DEFAULT_MODEL, tmp_path / "mine.npz")
+    assert main(["--out", str(tmp_path / "o"), "--quiet", "--no-plots", "--model", str(tmp_path / "mine.npz")]) == 0
+    assert (tmp_path / "o" / "Berlin_Potsdamer_Platz_ekf-mine.csv").exists()
 
 
 def test_back_ends_compared_in_one_folder_keep_their_own_outputs(tmp_path, capsys):

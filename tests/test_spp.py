@@ -261,3 +261,14 @@ def test_static_no_gps_epochs_match_beidou_only_run(shared_data, n_bds):
     np.testing.assert_allclose(fix.clock_m[:300, 0], fix_c.clock_m[:300, 0], atol=1e-3)
     np.testing.assert_array_equal(fix.clock_m[:300, 1], 0.0)
     assert np.all(np.isfinite(fix.clock_m[300:][fix.ok[300:]]))       # with GPS back: clock and BeiDou ISB
+
+
+def test_sequence_coarse_clock_fills_isbs_only_from_epochs_with_the_reference_system():
+    """Epoch 0 without GPS: spp's clock there is BeiDou's (ISB 0); the sequence takes GPS epochs' ISB and
+    brings the clock back to GPS, so the EKF starts from one consistent clock and ISB in every epoch."""
+    meas, truth, clock = _synthetic(n_epochs=4)
+    meas = _without(meas, [(0, slice(0, 7))])
+    fix = lfgnss.spp(meas)
+    np.testing.assert_allclose(fix.clock_m[0], [clock - 87.25, 0.0], atol=1e-3)
+    seq = lfgnss.build_sequence(meas, fix)
+    np.testing.assert_allclose(seq.coarse_clock_m, [[clock, -87.25]] * 4, atol=1e-3)

@@ -386,3 +386,15 @@ def test_config_file_paths_are_read_next_to_it_then_from_the_current_folder(tmp_
     assert load_config(None, ["data.register=my.toml"])["data"]["register"] == ["my.toml"]   # one file, not letters
     with pytest.raises(ValueError, match="data.register"):
         load_config(None, ["data.register=[1, 2]"])
+
+
+def test_a_run_from_before_loss_up_weight_resumes(tmp_path):
+    """Checkpoints hold their run's config; one saved before loss.up_weight existed must still resume."""
+    args = ["--config", "learning/configs/default.toml", "--out", str(tmp_path), "--no-progress"]
+    settings = [s for s in SETTINGS if not s.startswith("train.epochs")] + ["train.epochs=1"]
+    assert main(args + [x for s in settings for x in ("--set", s)]) == 0
+    saved = torch.load(tmp_path / "last.pt", weights_only=False)
+    del saved["config"]["loss"]["up_weight"]
+    torch.save(saved, tmp_path / "last.pt")
+    assert main(args + ["--resume", "--set", "train.epochs=2"]) == 0
+    assert torch.load(tmp_path / "last.pt", weights_only=False)["history"][-1]["epoch"] == 2
