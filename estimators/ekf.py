@@ -180,9 +180,10 @@ class LfgnssEkf:
         ekf = ExtendedKalmanFilter(dim_x=n, dim_z=1)
         state = np.full((t_len, n), np.nan)
         cov = np.full((t_len, n, n), np.nan)
-        prior = np.full((t_len, n), np.nan)
-        prior_cov = np.full((t_len, n, n), np.nan)
-        steps = np.full((t_len, n, n), np.nan)
+        kept = t_len if self.smooth else 0           # priors and transitions: only the RTS smoother reads them
+        prior = np.full((kept, n), np.nan)
+        prior_cov = np.full((kept, n, n), np.nan)
+        steps = np.full((kept, n, n), np.nan)
         status = np.full(t_len, STATUS_NONE, dtype=np.int8)
         n_used = np.zeros(t_len, dtype=np.int32)
         n_gated = np.zeros(t_len, dtype=np.int32)
@@ -266,7 +267,8 @@ class LfgnssEkf:
                     cache[dt] = (eye + dt * a, q1 * dt + q2 * dt ** 2 + q3 * dt ** 3)
                 ekf.F, ekf.Q = cache[dt]
                 ekf.predict()
-                steps[k] = ekf.F
+                if kept:
+                    steps[k] = ekf.F
                 if online:
                     ask_noise(k, idx, ekf.x)
                 gated = gate(k, idx, jdx)
@@ -282,7 +284,8 @@ class LfgnssEkf:
                         gated = gate(k, idx, jdx)
                         clock_realigned[k] = True
                         inconsistent = mostly_gated(gated, idx)
-                prior[k], prior_cov[k] = ekf.x, ekf.P
+                if kept:
+                    prior[k], prior_cov[k] = ekf.x, ekf.P
                 if inconsistent:
                     reset(k, idx, jdx)      # not (just) the clock: the state is inconsistent with the data
                 else:
