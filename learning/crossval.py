@@ -79,27 +79,18 @@ def plain_ekf_rmse_m(sequences: list[Sequence], config: dict, smooth: bool = Fal
     return tuple(pooled_rmse([r[k] for r in rows], counts) for k in ("rmse_3d_m", "rmse_2d_m"))
 
 
-def _saved_rmse_m(checkpoint: Path, config: dict, prep, smooth: bool) -> tuple[float, float]:
-    """(3D, 2D) RMSE [m] over the held-out block of a fold's saved (exported) weights (``smooth``: RTS-smoothed)."""
+def _saved_rmse_m(checkpoint: Path, config: dict, prep) -> tuple[float, float]:
+    """(RTS-smoothed 3D, forward 2D) RMSE [m] over the held-out block of a fold's saved (exported) weights."""
     import torch
 
-    from .loss import error_norm_m
-    from .train import build_model, run_filter
+    from .train import build_model, evaluate
 
     saved = torch.load(checkpoint, map_location="cpu", weights_only=False)
     model = build_model(config, len(prep.feature_names), prep.normaliser)
     model.load_state_dict(saved["model"])
-    model.eval()
-    sq = np.zeros(2)
-    n = 0
-    with torch.no_grad():
-        for batch in prep.val_batches:
-            pos = run_filter(model, batch, n_systems=prep.n_systems, ekf_cfg=ekf_config(config), smooth=smooth)
-            for i, up_weight in enumerate((1.0, 0.0)):
-                L, _ = error_norm_m(pos, batch.truth_ecef_m, up_weight=up_weight)
-                sq[i] += float((L.double() ** 2).sum())
-            n += int(L.numel())
-    return tuple(math.sqrt(v / n) if n else float("nan") for v in sq)
+    run = dict(n_systems=prep.n_systems, ekf_cfg=ekf_config(config))
+    return (evaluate(model, prep.val_batches, smooth=True, **run)[0],
+            evaluate(model, prep.val_batches, up_weight=0.0, **run)[0])
 
 
 def pooled_rmse(rmse: list[float], counts: list[int]) -> float:
@@ -135,14 +126,14 @@ def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = 
         history = train(copy.deepcopy(config), out / f"fold{j}", progress=progress, prepared=prep, export=False)
         best = min(history, key=lambda h: h["val_rmse_3d_m"])
         plain_3d, plain_2d = plain_ekf_rmse_m(held, config)
-        last = out / f"fold{j}" / "last.pt"
+        last_smoothed_3d, last_2d = _saved_rmse_m(out / f"fold{j}" / "last.pt", config, prep)
         rows.append({"fold": j, "held_out_epochs": sum(len(s) for s in held),
                      "plain_ekf_rmse_3d_m": plain_3d,
                      "untrained_rmse_3d_m": history[0]["val_rmse_3d_m"], "last_rmse_3d_m": history[-1]["val_rmse_3d_m"],
                      "best_rmse_3d_m": best["val_rmse_3d_m"], "best_epoch": best["epoch"],
                      "plain_ekf_smoothed_rmse_3d_m": plain_ekf_rmse_m(held, config, smooth=True)[0],
-                     "last_smoothed_rmse_3d_m": _saved_rmse_m(last, config, prep, smooth=True)[0],
-                     "plain_ekf_rmse_2d_m": plain_2d, "last_rmse_2d_m": _saved_rmse_m(last, config, prep, smooth=False)[1]})
+                     "last_smoothed_rmse_3d_m": last_smoothed_3d,
+                     "plain_ekf_rmse_2d_m": plain_2d, "last_rmse_2d_m": last_2d})
     keys = ["plain_ekf_rmse_3d_m", "untrained_rmse_3d_m", "last_rmse_3d_m", "best_rmse_3d_m",
             "plain_ekf_smoothed_rmse_3d_m", "last_smoothed_rmse_3d_m", "plain_ekf_rmse_2d_m", "last_rmse_2d_m"]
     rows.append({"fold": "pooled", "held_out_epochs": sum(r["held_out_epochs"] for r in rows),

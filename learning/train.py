@@ -343,9 +343,9 @@ def run_filter(model: LfgnssNet, batch: WindowBatch, *, n_systems: int, ekf_cfg,
 
 
 @torch.no_grad()
-def evaluate(model: LfgnssNet, batches: list[WindowBatch], *, n_systems: int, ekf_cfg, smooth: bool = False
-             ) -> tuple[float, float]:
-    """(3D RMSE [m], availability) over the labelled epochs of whole-sequence batches."""
+def evaluate(model: LfgnssNet, batches: list[WindowBatch], *, n_systems: int, ekf_cfg, smooth: bool = False,
+             up_weight: float = 1.0) -> tuple[float, float]:
+    """(3D RMSE [m], availability) over the labelled epochs of whole-sequence batches (``up_weight`` 0: 2D RMSE)."""
     was_training = model.training
     model.eval()
     try:
@@ -353,7 +353,7 @@ def evaluate(model: LfgnssNet, batches: list[WindowBatch], *, n_systems: int, ek
         for batch in batches:
             pos = run_filter(model, batch, n_systems=n_systems, ekf_cfg=ekf_cfg, smooth=smooth)
             n_lab += int(torch.isfinite(batch.truth_ecef_m).all(dim=-1).sum())
-            L, _ = error_norm_m(pos, batch.truth_ecef_m)
+            L, _ = error_norm_m(pos, batch.truth_ecef_m, up_weight=up_weight)
             sq += float((L.double() ** 2).sum())
             n_ok += int(L.numel())
     finally:
