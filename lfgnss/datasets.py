@@ -316,12 +316,16 @@ def join_observations(parts: list[Observations]) -> Observations:
                         warnings=tuple(w for o in parts for w in o.warnings), **arrays)
 
 
+def truth_note_summary(truth_path: str | Path, notes: list[str]) -> list[str]:
+    """The truth reader's notes as shown to a user: the first five, then a count of them all."""
+    more = [f"{truth_path}: {len(notes)} unreadable truth lines skipped in all"] if len(notes) > 5 else []
+    return notes[:5] + more
+
+
 def _warn_truth(spec: DatasetSpec, seq: Sequence, notes: list[str]) -> None:
-    """Warn of skipped truth lines (the first five, then a count) and of a truth that labels no epoch."""
-    for note in notes[:5]:
+    """Warn of skipped truth lines (``truth_note_summary``) and of a truth that labels no epoch."""
+    for note in truth_note_summary(spec.truth, notes):
         warnings.warn(note, stacklevel=3)
-    if len(notes) > 5:
-        warnings.warn(f"{spec.truth}: {len(notes)} unreadable truth lines skipped in all", stacklevel=3)
     if not seq.labelled.any():
         origin = " and [truth] time_origin_gps_s (GPS seconds of its t = 0)" if spec.truth_format == "smartloc" else ""
         warnings.warn(f"dataset {spec.id}: no truth time in {spec.truth} lies within {spec.match_tolerance_s:g} s of "
@@ -414,7 +418,7 @@ def load_split(dataset_id: str, split: str, *, feature_names: tuple[str, ...] = 
 
 
 __all__ = ["DatasetSpec", "SPLITS", "align_truth", "build", "contiguous_runs", "get", "load_split", "present",
-           "register", "register_toml", "registered", "split_index"]
+           "register", "register_toml", "registered", "split_index", "truth_note_summary"]
 
 
 def alignment_report(dataset_ids: list[str] | None = None) -> str:

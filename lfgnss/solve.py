@@ -136,10 +136,8 @@ def run(args) -> int:
             raise InputError(truth_path, f"unknown truth format {truth_format!r}")
         spec = datasets.DatasetSpec("cli", obs, nav, truth_path, truth_format, time_origin_gps_s=args.truth_origin)
         truth, bad = datasets.align_truth(meas.time_gps_s, spec)
-        for line in bad[:5]:
+        for line in datasets.truth_note_summary(truth_path, bad):
             print(f"warning: {line}", file=sys.stderr)
-        if len(bad) > 5:
-            print(f"warning: {truth_path}: {len(bad)} unreadable truth lines skipped in all", file=sys.stderr)
         if not np.isfinite(truth).all(axis=1).any():
             hint = " and --truth-origin (GPS seconds of its t = 0)" if truth_format == "smartloc" else ""
             print(f"warning: {truth_path}: no truth epoch matches an epoch of {obs}; no accuracy table or plots "

@@ -266,3 +266,9 @@ def test_truth_or_splits_that_are_not_tables_are_one_line_errors(tmp_path, clean
     cfg.write_text(f'id = "flat"\nobs = ["a.obs"]\nnav = ["a.nav"]\n{line}\n')
     with pytest.raises(InputError, match="must be a table"):
         datasets.register_toml(cfg)
+
+
+def test_truth_notes_are_summarised_alike_for_the_cli_and_dataset_builds():
+    notes = [f"gt.txt:{i}: unreadable truth line, skipped" for i in range(1, 8)]
+    assert datasets.truth_note_summary("gt.txt", notes[:5]) == notes[:5]
+    assert datasets.truth_note_summary("gt.txt", notes) == notes[:5] + ["gt.txt: 7 unreadable truth lines skipped in all"]
