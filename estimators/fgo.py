@@ -149,8 +149,8 @@ def _interpolate_rows(t: np.ndarray, y: np.ndarray) -> np.ndarray:
     return out
 
 
-def position_blind_epochs(seq: Sequence) -> np.ndarray:
-    """(T,) bool: epochs whose usable pseudoranges say nothing on position (none, or one per constellation).
+def position_ranges(seq: Sequence) -> np.ndarray:
+    """(T,) int: usable pseudoranges left for position once each constellation's clock took one.
 
     With a free clock per epoch and constellation, each constellation's first satellite is spent on its clock.
     """
@@ -158,7 +158,12 @@ def position_blind_epochs(seq: Sequence) -> np.ndarray:
     present = np.zeros((len(seq), n_sys), bool)
     rows, cols = np.nonzero(seq.mask)
     present[rows, seq.system_index[rows, cols]] = True
-    return seq.mask.sum(axis=1) <= present.sum(axis=1)
+    return seq.mask.sum(axis=1) - present.sum(axis=1)
+
+
+def position_blind_epochs(seq: Sequence) -> np.ndarray:
+    """(T,) bool: epochs whose usable pseudoranges say nothing on position (none, or one per constellation)."""
+    return position_ranges(seq) <= 0
 
 
 def _coasted_position_covariance(joint: gtsam.JointMarginal, x_key: int, v_key: int, dt_s: float,
@@ -265,9 +270,9 @@ class LfgnssFgo:
 
     def _epoch(self, k: int, seq: Sequence, z_m: np.ndarray, sigma_m: np.ndarray, pos_guess: np.ndarray,
                graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
-               kernel: tuple[str | None, float] | None = None) -> int:
-        """Add epoch k's pseudorange factors, clock initial values (and a loose position prior where
-        fewer than 3 satellites are left after the clocks); return satellites used.
+               kernel: tuple[str | None, float] | None = None, loose_prior: bool = False) -> int:
+        """Add epoch k's pseudorange factors, clock initial values (and with ``loose_prior``, for fewer than 3
+        ``position_ranges``, a loose position prior); return satellites used.
 
         Clock initial value per constellation: median(pr + vc - rho(x_guess)) / c [s].
         """
@@ -285,7 +290,7 @@ class LfgnssFgo:
         xk = X(k)
         for key, z, s, sig in zip(keys, z_m[k, used].tolist(), sat, sigma_m[k, used].tolist()):
             graph.add(gtsam.PseudorangeFactor(xk, key, z, s, 0.0, self._measurement_model(sig, kernel)))
-        if used.size - np.unique(sysj).size < 3:
+        if loose_prior:
             # Fewer than 3 satellites left once each constellation's clock took one: with the clocks' Jacobians
             # (c, in seconds) beside the positions', gtsam's undamped Cholesky (iSAM2, marginals) declares the
             # system indeterminate although the motion factors fix it. The first epoch's loose prior, at the
@@ -347,17 +352,18 @@ class LfgnssFgo:
             return Solution(self.name, t.copy(), pos, cov, clock, n_used, status, vel, info)
         k0 = int(np.argmax(fixed))
         psd_ecef = self._accel_psd_ecef(seq.coarse_ecef_m[k0])
+        ranges = position_ranges(seq)                # position information per epoch, after the clocks
         start = time.perf_counter()
         dv = self._doppler_velocity(seq)
         info["n_velocity_priors"] = 0 if dv is None else int(np.count_nonzero(dv.ok[k0:]))
         if self.mode == "batch":
-            est = self._solve_batch(seq, k0, z_m, sigma_m, psd_ecef, dv, info)
+            est = self._solve_batch(seq, k0, z_m, sigma_m, psd_ecef, dv, info, ranges)
         else:
-            est = self._solve_fixed_lag(seq, k0, z_m, sigma_m, psd_ecef, dv, info)
+            est = self._solve_fixed_lag(seq, k0, z_m, sigma_m, psd_ecef, dv, info, ranges)
         info["solve_time_s"] = time.perf_counter() - start
         pos[k0:], vel[k0:], clock[k0:], n_used[k0:], cov_m = est
         # a position-blind epoch spends its satellites on clocks: its position is the motion model's (coasted)
-        blind = position_blind_epochs(seq)
+        blind = ranges <= 0
         blind[k0] = False                           # the first epoch is placed by the coarse fix's prior
         n_used[blind] = 0
         status[k0:] = np.where(n_used[k0:] > 0, STATUS_UPDATED, STATUS_COASTED)
@@ -378,7 +384,7 @@ class LfgnssFgo:
             v = np.where(dv.ok[k0:, None], dv.vel_ecef_m_s[k0:], v)
         return p, v
 
-    def _solve_batch(self, seq, k0, z_m, sigma_m, psd_ecef, dv, info):
+    def _solve_batch(self, seq, k0, z_m, sigma_m, psd_ecef, dv, info, ranges):
         n_t, n_sys = len(seq), len(seq.systems)
         t = seq.time_gps_s
         p0, v0 = self._initial_trajectory(seq, k0, dv)
@@ -403,7 +409,7 @@ class LfgnssFgo:
                 guess = p0[k - k0] if values is None else values.atPoint3(X(k))
                 start.insertPoint3(X(k), guess)
                 start.insertPoint3(V(k), v0[k - k0] if values is None else values.atPoint3(V(k)))
-                n_used[k - k0] = self._epoch(k, seq, z_m, sigma_m, guess, graph, start, kernel)
+                n_used[k - k0] = self._epoch(k, seq, z_m, sigma_m, guess, graph, start, kernel, ranges[k] < 3)
                 self._velocity_prior(k, dv, graph)
                 if k > k0:
                     graph.add(motion.factor(k - 1, k, float(t[k] - t[k - 1])))
@@ -424,7 +430,7 @@ class LfgnssFgo:
             cov = np.array([marginals.marginalCovariance(X(k)) for k in range(k0, n_t)])
         return pos, vel, clk, n_used, cov
 
-    def _solve_fixed_lag(self, seq, k0, z_m, sigma_m, psd_ecef, dv, info):
+    def _solve_fixed_lag(self, seq, k0, z_m, sigma_m, psd_ecef, dv, info, ranges):
         n_t, n_sys = len(seq), len(seq.systems)
         t = seq.time_gps_s - seq.time_gps_s[k0]
         isam = gtsam.ISAM2Params()
@@ -434,7 +440,7 @@ class LfgnssFgo:
         smoother = gtsam.IncrementalFixedLagSmoother(self.lag_s, isam)
         p0, v0 = self._initial_trajectory(seq, k0, dv)
         motion = _MotionModel(psd_ecef)
-        blind = position_blind_epochs(seq)
+        blind = ranges <= 0
         m = n_t - k0
         pos, vel, clk = np.empty((m, 3)), np.empty((m, 3)), np.full(m, np.nan)
         n_used = np.zeros(m, int)
@@ -473,7 +479,7 @@ class LfgnssFgo:
                 graph.add(motion.factor(last, k, dt))
             values.insertPoint3(X(k), x_guess)
             values.insertPoint3(V(k), v_guess)
-            n_used[i] = self._epoch(k, seq, z_m, sigma_m, x_guess, graph, values)
+            n_used[i] = self._epoch(k, seq, z_m, sigma_m, x_guess, graph, values, loose_prior=ranges[k] < 3)
             self._velocity_prior(k, dv, graph)
             stamps = {key: float(t[k]) for key in values.keys()}
             smoother.update(graph, values, stamps)
@@ -543,5 +549,5 @@ def create_lfgnss_fgo(noise: NoiseModel | str | os.PathLike | None = None, **opt
     return LfgnssFgo(noise=default_noise() if noise is None else noise, **options)
 
 
-__all__ = ["LfgnssFgo", "create_lfgnss_fgo", "cv_motion_factor", "cv_process_covariance", "clock_key", "position_blind_epochs", "MODES",
+__all__ = ["LfgnssFgo", "create_lfgnss_fgo", "cv_motion_factor", "cv_process_covariance", "clock_key", "position_blind_epochs", "position_ranges", "MODES",
            "ROBUST_KERNELS"]
