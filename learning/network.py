@@ -129,7 +129,7 @@ class LfgnssNet(nn.Module):
         # attend to all (finite) slots; their outputs are overwritten below.
         empty = ~m.any(dim=-1, keepdim=True)
         key_padding = ~(m | empty)
-        x = torch.where(m[..., None], x, torch.zeros((), dtype=x.dtype))
+        x = torch.where(m[..., None], x, torch.zeros((), dtype=x.dtype, device=x.device))
         prior = None if self.r_prior is None else prior_variance(x, self.r_prior)
         h0 = self.embed(x)
         attn, _ = self.attention(h0, h0, h0, key_padding_mask=key_padding, need_weights=False)
@@ -140,8 +140,8 @@ class LfgnssNet(nn.Module):
         else:
             r = prior * F.softplus(out[..., 0]) / math.log(2.0) + self.r_floor_m2
         vc = out[..., 1] if self.compensation else torch.zeros_like(r)
-        r = torch.where(m, r, torch.full((), PAD_R_M2, dtype=r.dtype))
-        vc = torch.where(m, vc, torch.zeros((), dtype=vc.dtype))
+        r = torch.where(m, r, torch.full((), PAD_R_M2, dtype=r.dtype, device=r.device))
+        vc = torch.where(m, vc, torch.zeros((), dtype=vc.dtype, device=vc.device))
         return r.reshape(*lead, n), vc.reshape(*lead, n)
 
 

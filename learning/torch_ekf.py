@@ -278,11 +278,11 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor | None, vc_m: torch.Tensor 
     satvel_all = torch.where(dop_all[..., None], batch.sat_vel_ecef_m_s.to(f64), torch.zeros((), dtype=f64, device=dev))
 
     coarse_ok_all = torch.isfinite(batch.coarse_ecef_m).all(-1) & torch.isfinite(batch.coarse_clock_m[..., 0])
-    coarse_pos_all = torch.where(coarse_ok_all[..., None], batch.coarse_ecef_m.to(f64), torch.zeros((), dtype=f64))
+    coarse_pos_all = torch.where(coarse_ok_all[..., None], batch.coarse_ecef_m.to(f64), torch.zeros((), dtype=f64, device=dev))
     clk = torch.nan_to_num(batch.coarse_clock_m[..., :n_systems].to(f64), nan=0.0)
     x0_all = torch.zeros(b_len, t_len, n, dtype=f64, device=dev)
     x0_all[..., :3] = coarse_pos_all
-    x0_all[..., models.CLOCK] = torch.where(coarse_ok_all, clk[..., 0], torch.zeros((), dtype=f64))
+    x0_all[..., models.CLOCK] = torch.where(coarse_ok_all, clk[..., 0], torch.zeros((), dtype=f64, device=dev))
     x0_all[..., models.ISB0:] = clk[..., 1:]
 
     P0 = torch.as_tensor(models.initial_covariance(n_systems, config), dtype=f64, device=dev)

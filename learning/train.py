@@ -17,6 +17,7 @@ instead of random ones (fine-tuning on your own data): the network, its features
 the model's, so ``[model]`` and ``data.features``/``data.drop_features`` are taken from the file, and the new
 model file records the one it started from (``init_model``: path, hash, and the data it was trained on).
 The test split is never loaded here: asking for it raises.
+``device`` = "cuda" (or "auto") trains on a GPU; it pays off only with large batches (docs/training_speed.md).
 
 Sequences come from one pluggable function, ``load_sequences(dataset_id, split, config)``:
 dataset ``"synthetic"`` uses ``lfgnss.simulate.simulate_sequence``, any other id goes to
@@ -31,9 +32,11 @@ import csv
 import dataclasses
 import hashlib
 import math
+import os
 import random
 import sys
 import time
+import warnings
 import tomllib
 from pathlib import Path
 from typing import Any
@@ -55,6 +58,7 @@ from .types import WindowBatch
 DEFAULT_CONFIG: dict[str, Any] = {
     "seed": 0,
     "threads": 1,
+    "device": "cpu",
     "data": {
         "datasets": ["hk-tst-2019"],
         "train_split": "train",
@@ -126,8 +130,26 @@ def load_config(path: str | Path | None = None, overrides: list[str] = ()) -> di
     return check_config(apply_overrides(config, list(overrides)))
 
 
+def resolve_device(name: object) -> torch.device:
+    """The torch device of the ``device`` setting: "cpu", "cuda", "cuda:N", or "auto" (CUDA when there is one)."""
+    if not isinstance(name, str) or not (name in ("cpu", "cuda", "auto") or
+                                         (name.startswith("cuda:") and name[5:].isdigit())):
+        raise ValueError(f"device must be 'cpu', 'cuda', 'cuda:N' or 'auto', got {name!r}")
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    device = torch.device(name)
+    if device.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ValueError(f"device = {name!r}: this torch ({torch.__version__}) sees no CUDA GPU; "
+                             "use device = 'cpu' or 'auto'")
+        if (device.index or 0) >= torch.cuda.device_count():
+            raise ValueError(f"device = {name!r}: only {torch.cuda.device_count()} CUDA GPU(s) here")
+    return device
+
+
 def check_config(config: dict) -> dict:
     """``config`` unchanged, or ValueError for a setting of the wrong kind (caught before any data loads)."""
+    resolve_device(config.get("device", "cpu"))
     if config["train"].get("select", "val") not in ("val", "last"):
         raise ValueError(f"train.select must be 'val' or 'last', got {config['train']['select']!r}")
     ema = config["train"].get("ema_decay", 0.0)
@@ -363,7 +385,7 @@ def evaluate(model: LfgnssNet, batches: list[WindowBatch], *, n_systems: int, ek
 
 
 def _index_batch(full: WindowBatch, index: np.ndarray) -> WindowBatch:
-    idx = torch.as_tensor(index, dtype=torch.long)
+    idx = torch.as_tensor(index, dtype=torch.long, device=full.pr_m.device)
     return WindowBatch(**{f.name: getattr(full, f.name)[idx] for f in dataclasses.fields(full)})
 
 
@@ -500,9 +522,19 @@ def train(config: dict, out_dir: str | Path, *, resume: bool = False, overrides:
 
     threads, deterministic = torch.get_num_threads(), torch.are_deterministic_algorithms_enabled()
     torch.set_num_threads(int(config["threads"]))
+    on_gpu = resolve_device(config.get("device", "cpu")).type == "cuda"
+    if on_gpu:
+        # cuBLAS is deterministic only with a fixed workspace; must be set before its first use in the process
+        os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
+        print("note: on CUDA a run repeats to rounding, not bit for bit (torch has no deterministic CUDA nanmedian "
+              "or attention backward); it matches the CPU to about 1e-5 m", file=sys.stderr)
     torch.use_deterministic_algorithms(True, warn_only=True)
     try:
-        return _train(config, out, checkpoint, progress=progress, prepared=prepared, export=export)
+        with warnings.catch_warnings():
+            if on_gpu:                                  # said once above instead of at every kernel
+                warnings.filterwarnings("ignore", ".*does not have a deterministic implementation", UserWarning)
+                warnings.filterwarnings("ignore", ".*defaults to a non-deterministic algorithm", UserWarning)
+            return _train(config, out, checkpoint, progress=progress, prepared=prepared, export=export)
     finally:
         torch.set_num_threads(threads)
         torch.use_deterministic_algorithms(deterministic)
@@ -517,6 +549,8 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
     random.seed(seed)
 
     prep = prepared or prepare(config)
+    device = resolve_device(config.get("device", "cpu"))      # runs from before the setting resume on the CPU
+    train_batch, val_batches = prep.train_batch.to(device), [b.to(device) for b in prep.val_batches]
     ekf_cfg = ekf_config(config)
     tr = config["train"]
     smooth = bool(tr.get("smooth", False))   # train and validate the RTS-smoothed positions (estimators.smoother)
@@ -526,6 +560,7 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
             raise ValueError(f"train.init: {prep.init.path} cannot be rebuilt from its training configuration "
                              f"({prep.init.metadata['model']} vs {model.hyperparameters()})")
         model.load_state_dict({k: torch.as_tensor(v) for k, v in prep.init.params.items()})
+    model.to(device)                          # initialised on the CPU, so a seed gives the same start on any device
     started_from = None if prep.init is None else init_record(prep.init)
     decay = float(tr.get("weight_decay", 0.0))
     # Adam as in the paper; decoupled weight decay (AdamW) only when asked for, so 0 is the paper's optimiser.
@@ -568,7 +603,7 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
         _set_rng_state(checkpoint["rng"])
     else:
         t0 = time.perf_counter()
-        val, avail = evaluate(kept, prep.val_batches, n_systems=prep.n_systems, ekf_cfg=ekf_cfg, smooth=smooth)
+        val, avail = evaluate(kept, val_batches, n_systems=prep.n_systems, ekf_cfg=ekf_cfg, smooth=smooth)
         history.append({"epoch": 0, "train_loss": float("nan"), "val_rmse_3d_m": val, "val_availability": avail,
                         "lr": optimiser.param_groups[0]["lr"], "seconds": time.perf_counter() - t0})
         best = val
@@ -589,7 +624,7 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
 
             chunks = tqdm(chunks, desc=f"epoch {epoch}/{tr['epochs']}", leave=False, file=sys.stderr)
         for idx in chunks:
-            batch = _index_batch(prep.train_batch, idx)
+            batch = _index_batch(train_batch, idx)
             pos = run_filter(model, batch, n_systems=prep.n_systems, ekf_cfg=ekf_cfg, smooth=smooth)
             loss = loss_fn(pos, batch.truth_ecef_m)
             if not torch.isfinite(loss):
@@ -606,7 +641,7 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
         scheduler.step()
         if averaged is not None:
             averaged.update_parameters(model)
-        val, avail = evaluate(kept, prep.val_batches, n_systems=prep.n_systems, ekf_cfg=ekf_cfg, smooth=smooth)
+        val, avail = evaluate(kept, val_batches, n_systems=prep.n_systems, ekf_cfg=ekf_cfg, smooth=smooth)
         history.append({"epoch": epoch, "train_loss": total / count, "val_rmse_3d_m": val, "val_availability": avail,
                         "lr": lr, "seconds": time.perf_counter() - t0})
         if val < best:
