@@ -266,6 +266,8 @@ class LfgnssEkf:
                 if dt not in cache:
                     cache[dt] = (eye + dt * a, q1 * dt + q2 * dt ** 2 + q3 * dt ** 3)
                 ekf.F, ekf.Q = cache[dt]
+                if cfg.q_vel_up_m2_s3 is not None:
+                    ekf.Q = ekf.Q + models.vertical_noise_increment(dt, ekf.x[:3], n_sys, cfg)
                 ekf.predict()
                 if kept:
                     steps[k] = ekf.F

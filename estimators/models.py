@@ -24,7 +24,9 @@ Process noise from per-second (spectral) densities, exact for white noise on the
     Q_isb = q_isb dt
 
 so ``Q(dt) = Q1 dt + Q2 dt^2 + Q3 dt^3`` with constant matrices (``process_noise_coefficients``);
-the torch filter uses the same coefficients.
+the torch filter uses the same coefficients. With a vertical density ``q_up`` other than ``q_vel`` (a car
+changes height slowly), the velocity's white-noise density is ``q_vel I + (q_up - q_vel) u u^T`` with ``u`` the
+local up at the prior position, and ``vertical_noise_increment`` adds the difference to ``Q(dt)``.
 
 Measurement model of satellite ``i`` of constellation ``s_i`` (pseudorange corrected for satellite
 clock and atmosphere, see ``lfgnss.sequence.Sequence``)::
@@ -92,6 +94,10 @@ class EkfConfig:
         Position random walk on top of the constant-velocity model [m^2/s] (notes, code: 1e-4).
     q_vel_m2_s3 : float
         Velocity random walk (white acceleration) density [(m/s)^2/s]; a car in a city 1-4.
+    q_vel_up_m2_s3 : float or None
+        The same density along the local vertical [(m/s)^2/s]; None: ``q_vel_m2_s3`` (isotropic). A car's
+        height changes slowly, so a smaller value keeps street-canyon errors out of the height (the factor
+        graph's ``accel_psd_enu_m2_s3`` does the same).
     q_clock_m2_s, q_drift_m2_s3, q_isb_m2_s : float
         Clock phase, clock drift and ISB random-walk densities [m^2/s], [(m/s)^2/s], [m^2/s].
         Lenient on purpose (receivers with steered or poor oscillators); tune on validation data.
@@ -139,6 +145,7 @@ class EkfConfig:
     p0_isb_m2: float = 100.0 ** 2
     q_pos_m2_s: float = 1.0e-4
     q_vel_m2_s3: float = 2.0
+    q_vel_up_m2_s3: float | None = None
     q_clock_m2_s: float = 100.0
     q_drift_m2_s3: float = 0.1
     q_isb_m2_s: float = 1.0e-3
@@ -159,6 +166,9 @@ class EkfConfig:
                      "reset_distance_m", "max_gap_s", "doppler_sigma_m_s", "clock_jump_min_m"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"estimators/models.py: EkfConfig.{name} must be >= 0, got {getattr(self, name)}")
+        up = self.q_vel_up_m2_s3
+        if up is not None and (isinstance(up, bool) or not isinstance(up, (int, float)) or not up >= 0):
+            raise ValueError(f"estimators/models.py: EkfConfig.q_vel_up_m2_s3 must be >= 0 or None, got {up!r}")
         if self.min_sats_for_update < 1:
             raise ValueError("estimators/models.py: EkfConfig.min_sats_for_update must be >= 1")
 
@@ -223,10 +233,31 @@ def process_noise_coefficients(n_systems: int, config: EkfConfig) -> tuple[np.nd
     return q1, q2, q3
 
 
-def process_noise(dt_s: float, n_systems: int, config: EkfConfig) -> np.ndarray:
-    """Q(dt) (n, n) [m^2, m^2/s, (m/s)^2]."""
+def process_noise(dt_s: float, n_systems: int, config: EkfConfig, pos_ecef_m: np.ndarray | None = None
+                  ) -> np.ndarray:
+    """Q(dt) (n, n) [m^2, m^2/s, (m/s)^2]; at ``pos_ecef_m`` [m] when the vertical density differs."""
     q1, q2, q3 = process_noise_coefficients(n_systems, config)
-    return q1 * dt_s + q2 * dt_s ** 2 + q3 * dt_s ** 3
+    q = q1 * dt_s + q2 * dt_s ** 2 + q3 * dt_s ** 3
+    if config.q_vel_up_m2_s3 is not None and pos_ecef_m is not None:
+        q = q + vertical_noise_increment(dt_s, pos_ecef_m, n_systems, config)
+    return q
+
+
+def vertical_noise_increment(dt_s: float, pos_ecef_m: np.ndarray, n_systems: int, config: EkfConfig) -> np.ndarray:
+    """Q(dt) (n, n) to add for ``q_vel_up_m2_s3`` at ``pos_ecef_m`` [m]; zeros when it is None.
+
+    ``d [[dt^3/3, dt^2/2], [dt^2/2, dt]] (x) u u^T`` on (position, velocity), ``d = q_vel_up - q_vel``, ``u``
+    the geocentric up ``p / |p|`` (within 0.2 deg of the ellipsoid normal, which is immaterial for a noise
+    density). A position near the Earth's centre (no fix yet) adds nothing.
+    """
+    q = np.zeros((n_states(n_systems),) * 2)
+    norm = float(np.linalg.norm(pos_ecef_m))
+    if config.q_vel_up_m2_s3 is None or norm < 1.0:
+        return q
+    u = np.asarray(pos_ecef_m, float) / norm
+    k = np.array([[dt_s ** 3 / 3.0, dt_s ** 2 / 2.0], [dt_s ** 2 / 2.0, dt_s]])
+    q[:6, :6] = (config.q_vel_up_m2_s3 - config.q_vel_m2_s3) * np.kron(k, np.outer(u, u))
+    return q
 
 
 def lower_median(values: np.ndarray) -> float:
@@ -301,6 +332,6 @@ def doppler_measurement(x: np.ndarray, sat_pos_ecef_m: np.ndarray, sat_vel_ecef_
 
 
 __all__ = ["EkfConfig", "n_states", "clock_column", "initial_covariance", "initial_state", "transition_generator",
-           "transition", "process_noise_coefficients", "process_noise", "measurement", "doppler_measurement",
+           "transition", "process_noise_coefficients", "process_noise", "vertical_noise_increment", "measurement", "doppler_measurement",
            "prior_innovation_m",
            "lower_median", "realign_clock", "POS", "VEL", "CLOCK", "DRIFT", "ISB0"]

@@ -220,6 +220,18 @@ def _measurement_noise(pr: torch.Tensor, r_m2: torch.Tensor, vc_m: torch.Tensor,
 NoiseStep = Callable[[int, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
 
 
+def _vertical_noise_increment(dt: torch.Tensor, pos: torch.Tensor, n: int, config) -> torch.Tensor:
+    """(B, n, n) ``models.vertical_noise_increment`` for a batch: dt (B, 1, 1) [s], pos (B, 3) ECEF [m]."""
+    norm = pos.norm(dim=-1, keepdim=True)
+    u = torch.where(norm >= 1.0, pos / norm.clamp_min(1.0), torch.zeros((), dtype=pos.dtype, device=pos.device))
+    uu = (config.q_vel_up_m2_s3 - config.q_vel_m2_s3) * u[:, :, None] * u[:, None, :]
+    q = torch.zeros(pos.shape[0], n, n, dtype=pos.dtype, device=pos.device)
+    q[:, :3, :3] = dt ** 3 / 3.0 * uu
+    q[:, :3, 3:6] = q[:, 3:6, :3] = dt ** 2 / 2.0 * uu
+    q[:, 3:6, 3:6] = dt * uu
+    return q
+
+
 def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor | None, vc_m: torch.Tensor | None, *, n_systems: int,
               config: EkfConfig, noise_step: NoiseStep | None = None) -> EkfOutput:
     """Run the EKF over B windows of T epochs, differentiably in ``r_m2`` and ``vc_m``.
@@ -300,6 +312,8 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor | None, vc_m: torch.Tensor 
         F = eye + dt * A
         x_pred = (F @ x[..., None])[..., 0]
         P_pred = F @ P @ F.transpose(-1, -2) + q1 * dt + q2 * dt ** 2 + q3 * dt ** 3
+        if config.q_vel_up_m2_s3 is not None:
+            P_pred = P_pred + _vertical_noise_increment(dt, x[:, :3].detach(), n, config)
         coarse_ok = coarse_ok_all[:, k]
         init_needed = ~started | ((dt_all[:, k] > config.max_gap_s) & coarse_ok)
         reset_a = init_needed & coarse_ok

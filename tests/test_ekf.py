@@ -74,6 +74,25 @@ def test_transition_and_process_noise():
     np.testing.assert_array_equal(models.process_noise(0.0, 2, cfg), 0.0)
 
 
+def test_vertical_process_noise_is_the_vertical_density_along_up():
+    """q_vel_up: velocity density q_up along the local vertical and q_vel across it, checked in ENU (lfgnss.frames)."""
+    from lfgnss.frames import enu_rotation, lla_to_ecef
+
+    cfg = EkfConfig(q_vel_m2_s3=2.0, q_vel_up_m2_s3=0.1)
+    pos = np.asarray(lla_to_ecef(np.radians(22.3), np.radians(114.2), 10.0), float)
+    Q = models.process_noise(2.0, 2, cfg, pos)
+    rot = enu_rotation(np.radians(22.3), np.radians(114.2))
+    vv, pp = rot @ Q[3:6, 3:6] @ rot.T, rot @ Q[:3, :3] @ rot.T
+    np.testing.assert_allclose(np.diag(vv), [2.0 * 2.0, 2.0 * 2.0, 0.1 * 2.0], rtol=1e-3)   # q dt
+    np.testing.assert_allclose(pp[2, 2], 0.1 * 8.0 / 3.0 + cfg.q_pos_m2_s * 2.0, rtol=1e-3)  # q dt^3 / 3
+    assert abs(vv[0, 2]) < 2e-2                    # geocentric up: within 0.2 deg of the normal
+    assert np.linalg.eigvalsh(Q).min() > 0 and np.allclose(Q, Q.T)
+    np.testing.assert_array_equal(models.process_noise(2.0, 2, EkfConfig(), pos), models.process_noise(2.0, 2, EkfConfig()))
+    np.testing.assert_array_equal(models.vertical_noise_increment(2.0, np.zeros(3), 2, cfg), 0.0)  # no fix yet
+    with pytest.raises(ValueError, match="q_vel_up_m2_s3"):
+        EkfConfig(q_vel_up_m2_s3=-1.0)
+
+
 def test_config_rejects_bad_values():
     with pytest.raises(ValueError, match="q_vel_m2_s3"):
         EkfConfig(q_vel_m2_s3=-1.0)

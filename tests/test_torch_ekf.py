@@ -102,6 +102,23 @@ def test_matches_filterpy_plugin(cases):
                - 1e-3 * SPEED_OF_LIGHT_M_S) < 10.0                                # clock + drift dt + jump
 
 
+def test_vertical_process_noise_matches_the_plugin(cases):
+    """q_vel_up_m2_s3 in both filters: the same positions and covariances, and not those of the isotropic filter."""
+    seqs, r, vc = cases
+    cfg = EkfConfig(q_vel_up_m2_s3=0.02)
+    out = batch_ekf(to_batch(seqs), torch.as_tensor(r), torch.as_tensor(vc), n_systems=2, config=cfg)
+    iso = batch_ekf(to_batch(seqs), torch.as_tensor(r), torch.as_tensor(vc), n_systems=2, config=CONFIG)
+    for i, s in enumerate(seqs):
+        sol = LfgnssEkf(noise=FixedNoise(r[i], vc[i]), config=cfg).solve(s)
+        np.testing.assert_array_equal(out.status[i].numpy(), sol.status)
+        live = sol.status != STATUS_NONE
+        np.testing.assert_allclose(out.pos_ecef_m[i].numpy(), sol.pos_ecef_m, rtol=0, atol=1e-6, equal_nan=True)
+        np.testing.assert_allclose(out.cov[i].numpy()[live], sol.info["cov"][live], rtol=1e-6, atol=1e-6)
+        smoothed = LfgnssEkf(noise=FixedNoise(r[i], vc[i]), config=cfg, smooth=True).solve(s).pos_ecef_m
+        np.testing.assert_allclose(rts_smooth(out)[i].numpy(), smoothed, rtol=0, atol=1e-6, equal_nan=True)
+    assert not np.allclose(out.pos_ecef_m.numpy(), iso.pos_ecef_m.numpy(), rtol=0, atol=1e-3, equal_nan=True)
+
+
 def test_smoother_matches_the_plugins(cases):
     """The torch RTS pass equals ``LfgnssEkf(smooth=True)`` through resets, a late start and a clock jump."""
     seqs, r, vc = cases
