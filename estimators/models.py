@@ -332,6 +332,6 @@ def doppler_measurement(x: np.ndarray, sat_pos_ecef_m: np.ndarray, sat_vel_ecef_
 
 
 __all__ = ["EkfConfig", "n_states", "clock_column", "initial_covariance", "initial_state", "transition_generator",
-           "transition", "process_noise_coefficients", "process_noise", "vertical_noise_increment", "measurement", "doppler_measurement",
-           "prior_innovation_m",
+           "transition", "process_noise_coefficients", "process_noise", "vertical_noise_increment", "measurement",
+           "doppler_measurement", "prior_innovation_m",
            "lower_median", "realign_clock", "POS", "VEL", "CLOCK", "DRIFT", "ISB0"]
