@@ -60,6 +60,7 @@ from gtsam.symbol_shorthand import B, V, X
 
 from lfgnss.constants import SPEED_OF_LIGHT_M_S
 from lfgnss.corrections import geometric_range_m, line_of_sight
+from lfgnss.dop import satellites_per_system
 from lfgnss.frames import ecef_to_lla, enu_rotation
 from lfgnss.sequence import Sequence
 from lfgnss.velocity import DopplerVelocity, doppler_velocity
@@ -154,10 +155,7 @@ def position_ranges(seq: Sequence) -> np.ndarray:
 
     With a free clock per epoch and constellation, each constellation's first satellite is spent on its clock.
     """
-    n_sys = len(seq.systems)
-    present = np.zeros((len(seq), n_sys), bool)
-    rows, cols = np.nonzero(seq.mask)
-    present[rows, seq.system_index[rows, cols]] = True
+    present = satellites_per_system(seq.system_index, seq.mask, len(seq.systems)) > 0
     return seq.mask.sum(axis=1) - present.sum(axis=1)
 
 

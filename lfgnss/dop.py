@@ -117,13 +117,23 @@ def design_matrix(el_rad: np.ndarray, az_rad: np.ndarray, system_index: np.ndarr
     return _design(*_check_inputs(el_rad, az_rad, system_index, mask, n_systems))
 
 
+def satellites_per_system(system_index: np.ndarray, mask: np.ndarray, n_systems: int) -> np.ndarray:
+    """(T, C) int: the ``mask`` satellites of each system in each epoch (``system_index``, ``mask``: (T, N)).
+
+    A system is present where its count is > 0; the epoch's reference (clock) system is the lowest-index
+    system present, ``np.argmax(counts > 0, axis=1)`` (0 if none is), the convention of this module, of
+    ``lfgnss.spp`` and of the factor graph's clocks.
+    """
+    return ((system_index[..., None] == np.arange(n_systems)) & mask[..., None]).sum(axis=1)
+
+
 def _active_columns(sys_idx, mask, n_systems):
     """Satellites per system (T, C), active ISB columns (T, C-1) and reference system (T,).
 
     Reference system = lowest-index system present (0 if none is); ISB column s-1 is active iff
     system s is present and is not the reference.
     """
-    counts = ((sys_idx[..., None] == np.arange(n_systems)) & mask[..., None]).sum(axis=1)  # (T, C)
+    counts = satellites_per_system(sys_idx, mask, n_systems)
     present = counts > 0
     ref = np.argmax(present, axis=1)  # first True; 0 when none present
     sys_ids = np.arange(1, n_systems)

@@ -15,7 +15,7 @@ import warnings
 import numpy as np
 
 from .constants import SYSTEMS
-from .dop import dop_contribution
+from .dop import dop_contribution, satellites_per_system
 from .errors import LfgnssError
 from .measurements import Measurements
 from .sequence import DEFAULT_FEATURES, Sequence
@@ -135,8 +135,7 @@ def _reference_clock(fix: CoarseFix, system_index: np.ndarray) -> np.ndarray:
     Where systems[0] has no satellite, spp gives the clock to the first system present (its ISB 0); that
     epoch's clock is brought back to systems[0] with the nearest ISB of that system seen beside systems[0].
     """
-    n_sys = fix.clock_m.shape[1]
-    present = np.stack([np.any(fix.used & (system_index == j), axis=1) for j in range(n_sys)], axis=1)
+    present = satellites_per_system(system_index, fix.used, fix.clock_m.shape[1]) > 0
     own = present[:, 0]
     isb = fill_from_nearest_epoch(np.where(own[:, None], fix.clock_m, np.nan))
     clock_system = np.argmax(present, axis=1)
