@@ -328,4 +328,5 @@ class PlainEkf(LfgnssEkf):
                          use_compensation=False, smooth=smooth, smooth_lag_s=smooth_lag_s, progress=progress)
 
 
-__all__ = ["config_of", "LfgnssEkf", "create_lfgnss_ekf", "PlainEkf", "compensated_pseudorange", "usable_measurements", "coarse_available"]
+__all__ = ["config_of", "LfgnssEkf", "create_lfgnss_ekf", "PlainEkf", "compensated_pseudorange", "usable_measurements",
+           "coarse_available"]

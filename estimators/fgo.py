@@ -293,7 +293,8 @@ class LfgnssFgo:
             # (c, in seconds) beside the positions', gtsam's undamped Cholesky (iSAM2, marginals) declares the
             # system indeterminate although the motion factors fix it. The first epoch's loose prior, at the
             # guess, lets it through and weighs nothing beside the motion factors.
-            graph.add(gtsam.PriorFactorPoint3(xk, pos_guess, gtsam.noiseModel.Isotropic.Sigma(3, self.prior_pos_sigma_m)))
+            loose = gtsam.noiseModel.Isotropic.Sigma(3, self.prior_pos_sigma_m)
+            graph.add(gtsam.PriorFactorPoint3(xk, pos_guess, loose))
         return int(used.size)
 
     def _doppler_velocity(self, seq: Sequence) -> DopplerVelocity | None:
@@ -496,7 +497,7 @@ class LfgnssFgo:
 
     @staticmethod
     def _clock_only(k: int, seq: Sequence, z_m: np.ndarray, pos: np.ndarray) -> float:
-        """Clock of ``systems[0]`` [m] at a position-blind epoch k, at position ``pos`` [m] (NaN: none of its satellites).
+        """Clock of ``systems[0]`` [m] at a position-blind epoch k, at position ``pos`` [m] (NaN: none of its sats).
 
         One satellite per constellation: its clock takes the whole residual, as in the graph.
         """
@@ -547,5 +548,5 @@ def create_lfgnss_fgo(noise: NoiseModel | str | os.PathLike | None = None, **opt
     return LfgnssFgo(noise=default_noise() if noise is None else noise, **options)
 
 
-__all__ = ["LfgnssFgo", "create_lfgnss_fgo", "cv_motion_factor", "cv_process_covariance", "clock_key", "position_blind_epochs", "position_ranges", "MODES",
-           "ROBUST_KERNELS"]
+__all__ = ["LfgnssFgo", "create_lfgnss_fgo", "cv_motion_factor", "cv_process_covariance", "clock_key",
+           "position_blind_epochs", "position_ranges", "MODES", "ROBUST_KERNELS"]

@@ -58,7 +58,8 @@ def checked_noise(owner: str, sequence_name: str, usable: np.ndarray, r_m2: obje
     if r.shape != usable.shape or vc.shape != usable.shape:
         raise ValueError(f"{owner}: noise model gave shapes {r.shape}, {vc.shape} for sequence {sequence_name!r}, "
                          f"expected {usable.shape}")
-    for what, bad in (("non-positive or non-finite R", ~(np.isfinite(r) & (r > 0))), ("non-finite v^c", ~np.isfinite(vc))):
+    for what, bad in (("non-positive or non-finite R", ~(np.isfinite(r) & (r > 0))),
+                      ("non-finite v^c", ~np.isfinite(vc))):
         bad &= usable
         if bad.any():
             where = f" (first at epoch {int(np.argwhere(bad)[0, 0])})" if bad.ndim == 2 else ""

@@ -286,15 +286,16 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor | None, vc_m: torch.Tensor 
     clock_rows_all = _clock_rows(batch.system_index.long(), usable_all, n)
     use_doppler = config.doppler_sigma_m_s > 0
     dop_all = usable_all & batch.prr_mask if use_doppler else torch.zeros_like(usable_all)
-    prr_all = torch.where(dop_all, batch.prr_m_s.to(f64), torch.zeros((), dtype=f64, device=dev))
-    satvel_all = torch.where(dop_all[..., None], batch.sat_vel_ecef_m_s.to(f64), torch.zeros((), dtype=f64, device=dev))
+    zero = torch.zeros((), dtype=f64, device=dev)
+    prr_all = torch.where(dop_all, batch.prr_m_s.to(f64), zero)
+    satvel_all = torch.where(dop_all[..., None], batch.sat_vel_ecef_m_s.to(f64), zero)
 
     coarse_ok_all = torch.isfinite(batch.coarse_ecef_m).all(-1) & torch.isfinite(batch.coarse_clock_m[..., 0])
-    coarse_pos_all = torch.where(coarse_ok_all[..., None], batch.coarse_ecef_m.to(f64), torch.zeros((), dtype=f64, device=dev))
+    coarse_pos_all = torch.where(coarse_ok_all[..., None], batch.coarse_ecef_m.to(f64), zero)
     clk = torch.nan_to_num(batch.coarse_clock_m[..., :n_systems].to(f64), nan=0.0)
     x0_all = torch.zeros(b_len, t_len, n, dtype=f64, device=dev)
     x0_all[..., :3] = coarse_pos_all
-    x0_all[..., models.CLOCK] = torch.where(coarse_ok_all, clk[..., 0], torch.zeros((), dtype=f64, device=dev))
+    x0_all[..., models.CLOCK] = torch.where(coarse_ok_all, clk[..., 0], zero)
     x0_all[..., models.ISB0:] = clk[..., 1:]
 
     P0 = torch.as_tensor(models.initial_covariance(n_systems, config), dtype=f64, device=dev)
