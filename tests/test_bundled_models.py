@@ -1,0 +1,51 @@
+"""Each bundled model file was trained with the configuration its README row names (a config edited without
+retraining, or a model copied from another run, shows up here)."""
+import re
+from pathlib import Path
+
+import pytest
+
+from learning.export import load_model
+from learning.train import adopt_init, load_config
+
+ROOT = Path(__file__).resolve().parents[1]
+MODELS = ROOT / "lfgnss" / "data" / "model"
+#: How a run was executed, not what it trained: these may differ between the file and today's configuration.
+EXECUTION = {"threads", "device"}
+
+
+def readme_rows() -> dict[str, str]:
+    """{model file name: config path} from the model README's table ("made by" may say ``...`` for the module)."""
+    rows = {}
+    for line in (MODELS / "README.md").read_text().splitlines():
+        name = re.match(r"\| `(lfgnss-[\w.-]+\.npz)` \|", line)
+        config = re.search(r"--config (learning/configs/[\w.-]+\.toml)", line)
+        if name and config:
+            rows[name.group(1)] = config.group(1)
+    return rows
+
+
+def disagreements(stored: dict, expected: dict, path: str = "") -> list[str]:
+    """Settings both configurations have whose values differ; a setting newer than the file is not compared."""
+    out = []
+    for key in stored.keys() & expected.keys() - EXECUTION:
+        a, b = stored[key], expected[key]
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += disagreements(a, b, f"{path}{key}.")
+        elif a != b:
+            out.append(f"{path}{key}: file {a!r}, configuration {b!r}")
+    return out
+
+
+def test_every_bundled_model_file_has_a_readme_row_with_its_command():
+    assert sorted(readme_rows()) == sorted(p.name for p in MODELS.glob("*.npz"))
+
+
+@pytest.mark.parametrize("name, config_path", sorted(readme_rows().items()))
+def test_bundled_model_was_trained_with_its_configuration(name, config_path, monkeypatch):
+    monkeypatch.chdir(ROOT)     # train.init paths in the configs are relative to the repository root
+    stored = load_model(MODELS / name).metadata["config"]
+    expected = adopt_init(load_config(config_path))
+    assert disagreements(stored, expected) == [], f"{name} against {config_path}"
+    # the filter the file runs in (estimators.ekf.config_of) is the configuration's
+    assert stored.get("ekf", {}) == expected["ekf"]
