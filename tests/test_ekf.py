@@ -126,29 +126,6 @@ def test_a_smoothing_lag_without_smooth_is_refused(make):
         make(smooth="no")
 
 
-def test_noise_may_be_a_model_file_and_anything_else_is_refused_at_construction():
-    """``noise`` takes a model file path, as ``--model``; a wrong type fails at construction, not in ``solve``."""
-    from pathlib import Path
-
-    from lfgnss.errors import InputError
-    from lfgnss.paths import default_model_path
-
-    small = simulate_sequence(60, seed=9)
-    want = create("ekf").solve(small).pos_ecef_m
-    for path in (str(default_model_path()), Path(default_model_path())):
-        ekf = create("ekf", noise=path)
-        assert ekf.noise.metadata == default_noise().metadata and ekf.config == create("ekf").config
-        np.testing.assert_array_equal(ekf.solve(small).pos_ecef_m, want)
-        assert LfgnssEkf(noise=path).noise.metadata == default_noise().metadata
-    with pytest.raises(InputError, match="my.npz: no such model file"):
-        create("ekf", noise="my.npz")
-    for bad, what in ((3, "int"), (HeuristicNoise, "the class HeuristicNoise")):
-        with pytest.raises(TypeError, match=f"noise must be a noise model .* or a model file path, got {what}"):
-            create("ekf", noise=bad)
-        with pytest.raises(TypeError, match="noise must be"):
-            PlainEkf(noise=bad)
-
-
 def test_solution_contract(seq):
     late = replace(seq, coarse_ecef_m=seq.coarse_ecef_m.copy())
     late.coarse_ecef_m[:3] = np.nan

@@ -239,27 +239,6 @@ def test_epochs_before_first_coarse_fix_are_none():
 
 
 # ---------------------------------------------------------------- interface
-def test_noise_may_be_a_model_file_and_anything_else_is_refused_at_construction():
-    """``noise`` takes a model file path, as ``--model``; a wrong type fails at construction, not in ``solve``."""
-    from pathlib import Path
-
-    from lfgnss.errors import InputError
-    from lfgnss.paths import default_model_path
-
-    seq = simulate_sequence(20, seed=9)
-    want = create("fgo").solve(seq).pos_ecef_m
-    for path in (str(default_model_path()), Path(default_model_path())):
-        est = create("fgo", noise=path)
-        assert est.noise.metadata == default_noise().metadata
-        np.testing.assert_array_equal(est.solve(seq).pos_ecef_m, want)
-        assert LfgnssFgo(noise=path).noise.metadata == default_noise().metadata
-    with pytest.raises(InputError, match="my.npz: no such model file"):
-        create("fgo", noise="my.npz")
-    for bad, what in ((3, "int"), (HeuristicNoise, "the class HeuristicNoise")):
-        with pytest.raises(TypeError, match=f"LfgnssFgo: noise must be a noise model .* or a model file path, got {what}"):
-            LfgnssFgo(noise=bad)
-
-
 def test_registry_and_arguments():
     est = create("fgo", mode="fixed-lag")
     assert isinstance(est, LfgnssFgo) and est.mode == "fixed-lag" and est.name == "fgo"

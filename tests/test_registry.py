@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import inspect
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,6 +12,7 @@ from estimators import base
 from estimators.base import backend_options, create
 from estimators.ekf import LfgnssEkf, PlainEkf
 from estimators.noise import HeuristicNoise, default_noise
+from lfgnss.errors import InputError
 from lfgnss.paths import default_model_path
 from lfgnss.simulate import simulate_sequence
 
@@ -74,6 +76,30 @@ def test_weighted_least_squares_noise_is_checked_and_may_be_a_model_file():
     from_file = create("wls-weighted", noise=default_model_path()).solve(seq)
     from_model = create("wls-weighted", noise=default_noise()).solve(seq)
     np.testing.assert_array_equal(from_file.pos_ecef_m, from_model.pos_ecef_m)
+
+
+@pytest.mark.parametrize("backend, n_epochs", [("ekf", 60), ("fgo", 20)])
+def test_noise_may_be_a_model_file_and_anything_else_is_refused_at_construction(backend, n_epochs):
+    """``noise`` takes a model file path, as ``--model``; a wrong type fails at construction, not in ``solve``."""
+    cls = type(create(backend))
+    small = simulate_sequence(n_epochs, seed=9)
+    want = create(backend).solve(small).pos_ecef_m
+    for path in (str(default_model_path()), Path(default_model_path())):
+        est = create(backend, noise=path)
+        assert est.noise.metadata == default_noise().metadata
+        assert backend != "ekf" or est.config == create("ekf").config     # the filter the file was trained in
+        np.testing.assert_array_equal(est.solve(small).pos_ecef_m, want)
+        assert cls(noise=path).noise.metadata == default_noise().metadata
+    with pytest.raises(InputError, match="my.npz: no such model file"):
+        create(backend, noise="my.npz")
+    for bad, what in ((3, "int"), (HeuristicNoise, "the class HeuristicNoise")):
+        refused = f"noise must be a noise model .* or a model file path, got {what}"
+        with pytest.raises(TypeError, match=f"{cls.__name__}: {refused}"):
+            create(backend, noise=bad)
+        with pytest.raises(TypeError, match=f"{cls.__name__}: {refused}"):
+            cls(noise=bad)
+        with pytest.raises(TypeError, match=f"PlainEkf: {refused}"):
+            PlainEkf(noise=bad)
 
 
 def test_a_factory_that_takes_any_keyword_checks_them_itself(monkeypatch):
