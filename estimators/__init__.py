@@ -9,7 +9,7 @@ An option a backend does not take is a TypeError naming both (``backend_options(
 from .base import (STATUS_COASTED, STATUS_NAMES, STATUS_NONE, STATUS_RESET, STATUS_UPDATED, Estimator, Solution,
                    available, backend_options, create, register)
 from .models import EkfConfig
-from .noise import FixedNoise, HeuristicNoise, NoiseModel
+from .noise import FixedNoise, HeuristicNoise, NoiseModel, TruthNoise
 from .ekf import LfgnssEkf, PlainEkf
 from . import baselines  # noqa: F401  (registers "wls" and "wls-weighted")
 
@@ -24,4 +24,4 @@ def __getattr__(name: str):
 
 __all__ = ["Estimator", "Solution", "available", "backend_options", "create", "register", "STATUS_NONE",
            "STATUS_UPDATED", "STATUS_COASTED", "STATUS_RESET", "STATUS_NAMES", "EkfConfig", "NoiseModel",
-           "HeuristicNoise", "FixedNoise", "LfgnssEkf", "LfgnssFgo", "PlainEkf"]
+           "HeuristicNoise", "FixedNoise", "TruthNoise", "LfgnssEkf", "LfgnssFgo", "PlainEkf"]

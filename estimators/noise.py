@@ -13,6 +13,8 @@ from typing import Protocol
 import numpy as np
 
 from lfgnss import weighted_fix
+from lfgnss.corrections import geometric_range_m
+from lfgnss.features import system_median_m
 from lfgnss.paths import default_model_path
 from lfgnss.sequence import Sequence
 
@@ -107,3 +109,26 @@ class FixedNoise:
             raise ValueError(f"estimators/noise.py: FixedNoise arrays {np.shape(self.r_m2)}, {np.shape(self.vc_m)} "
                              f"do not fit sequence {sequence.name!r} of shape {shape}")
         return np.asarray(self.r_m2, float), np.asarray(self.vc_m, float)
+
+
+@dataclass(frozen=True)
+class TruthNoise:
+    """R from the ground truth: a reference to judge noise models by, not a method (it reads the truth).
+
+    r = e^2 + floor_m^2 [m^2], where e [m] is each pseudorange's error at the true position once the epoch's
+    median per constellation (its receiver clock and ISB) is removed: the weights of shared/BENCHMARK.md's
+    "weights taken from the truth" row. No v^c. Epochs without truth take ``fallback``'s R.
+    """
+
+    floor_m: float = 1.0
+    fallback: HeuristicNoise = HeuristicNoise()
+
+    def __call__(self, sequence: Sequence) -> tuple[np.ndarray, np.ndarray]:
+        labelled = np.all(np.isfinite(sequence.truth_ecef_m), axis=-1)
+        ok = sequence.mask & labelled[:, None]
+        truth = np.where(labelled[:, None], sequence.truth_ecef_m, 0.0)
+        raw = np.where(ok, sequence.pr_m - geometric_range_m(sequence.sat_pos_ecef_m, truth[:, None, :]), np.nan)
+        error = raw - system_median_m(raw, ok, sequence.system_index, len(sequence.systems))
+        r_fallback, _ = self.fallback(sequence)
+        r = np.where(ok, np.nan_to_num(error) ** 2 + self.floor_m ** 2, r_fallback)
+        return r, np.zeros_like(r)

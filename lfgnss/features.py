@@ -103,6 +103,24 @@ def innovation_feature(innovation_m: np.ndarray) -> np.ndarray:
     return np.sign(v) * np.log1p(np.abs(v))
 
 
+def system_median_m(values_m: np.ndarray, mask: np.ndarray, system_index: np.ndarray, n_systems: int) -> np.ndarray:
+    """(T, N): each slot's epoch median of ``values_m`` over the masked satellites of its constellation [m]; 0 if none.
+
+    Of pseudorange residuals, that median is the epoch's receiver clock (plus the constellation's ISB).
+    """
+    values = np.asarray(values_m, float)
+    out = np.zeros(values.shape)
+    for k in range(n_systems):
+        in_sys = mask & (system_index == k)
+        if not in_sys.any():
+            continue
+        with warnings.catch_warnings():  # epochs without a satellite of this system: all-NaN rows
+            warnings.simplefilter("ignore", RuntimeWarning)
+            med = np.nanmedian(np.where(in_sys, values, np.nan), axis=1)
+        out = np.where(system_index == k, np.nan_to_num(med)[:, None], out)
+    return out
+
+
 def pack_features(names: tuple[str, ...], *, cn0_dbhz, el_rad, az_rad, residual_m, dpc, system_index,
                   systems: tuple[str, ...], mask, residual_weighted_m=None, code_doppler_m=None) -> np.ndarray:
     """(T, N, d) raw features by name; zeros in masked slots.
@@ -161,13 +179,7 @@ def build_sequence(meas: Measurements, fix: CoarseFix, *, feature_names: tuple[s
     mask &= fix.reason != qc.GROSS_RESIDUAL
 
     raw_res = np.where(mask, pr_corr - rng, np.nan)
-    clock = np.zeros((n_t, n_s))
-    for k in range(len(meas.systems)):
-        in_sys = mask & (sysi == k)
-        with warnings.catch_warnings():  # epochs without a satellite of this system: all-NaN rows
-            warnings.simplefilter("ignore", RuntimeWarning)
-            med = np.nanmedian(np.where(in_sys, raw_res, np.nan), axis=1) if np.any(in_sys) else np.zeros(n_t)
-        clock = np.where(sysi == k, np.nan_to_num(med)[:, None], clock)
+    clock = system_median_m(raw_res, mask, sysi, len(meas.systems))
     residual = np.where(fix.ok[:, None] & fix.used, fix.residual_m, raw_res - clock)
     residual = np.where(mask, np.nan_to_num(residual), 0.0)
     sys_used = np.where(mask, sysi, -1)
