@@ -26,6 +26,7 @@ def test_readme_library_example_runs(capsys):
 
     assert namespace["ekf"].noise.path == load_model(DEFAULT_MODEL).path
     np.testing.assert_array_equal(solution.pos_ecef_m, LfgnssEkf(load_model(DEFAULT_MODEL)).solve(seq).pos_ecef_m)
+    assert "weights from the truth" in out and np.all(np.isfinite(namespace["reference"].pos_ecef_m))
 
 
 def test_default_solve_runs_on_bundled_data(tmp_path, capsys):
