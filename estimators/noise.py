@@ -123,6 +123,10 @@ class TruthNoise:
     floor_m: float = 1.0
     fallback: HeuristicNoise = HeuristicNoise()
 
+    def __post_init__(self) -> None:
+        if isinstance(self.floor_m, bool) or not isinstance(self.floor_m, (int, float)) or not self.floor_m > 0:
+            raise ValueError(f"estimators/noise.py: TruthNoise.floor_m must be > 0 [m], got {self.floor_m!r}")
+
     def __call__(self, sequence: Sequence) -> tuple[np.ndarray, np.ndarray]:
         labelled = np.all(np.isfinite(sequence.truth_ecef_m), axis=-1)
         ok = sequence.mask & labelled[:, None]

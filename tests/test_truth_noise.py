@@ -42,6 +42,12 @@ def test_truth_noise_falls_back_where_there_is_no_truth():
     assert np.all(np.isfinite(sol.pos_ecef_m))
 
 
+@pytest.mark.parametrize("floor", [0.0, -1.0, float("nan"), True, "1"])
+def test_truth_noise_refuses_a_floor_that_is_not_positive(floor):
+    with pytest.raises(ValueError, match="floor_m must be > 0"):
+        TruthNoise(floor_m=floor)
+
+
 def test_truth_weights_beat_the_hand_set_ones_on_simulated_reflections():
     seq = simulate_sequence(150, seed=6, nlos_fraction=0.3)
     rmse = {name: accuracy_table(est.solve(seq).pos_ecef_m, seq.truth_ecef_m)["rmse_3d_m"]
