@@ -78,6 +78,17 @@ def markdown(rows: list[dict], split: str, command: str) -> str:
     return "\n".join(out)
 
 
+def save_figure(fig, path: Path) -> Path:
+    """Lay ``fig`` out, write it to ``path`` (making its folder) and close it; returns ``path``."""
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
 def plot(rows: list[dict], path: Path, split: str) -> Path:
     """3D RMSE against lag, one panel per dataset (the whole-run smoother drawn at the right edge)."""
     import matplotlib
@@ -96,11 +107,7 @@ def plot(rows: list[dict], path: Path, split: str) -> Path:
         ax.set_ylabel("3D RMSE [m]")
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize=7)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def main(argv: list[str] | None = None) -> int:

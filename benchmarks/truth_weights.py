@@ -22,7 +22,7 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from smoothing_lag import DATASETS, estimators_for  # noqa: E402  (a sibling script)
+from smoothing_lag import DATASETS, estimators_for, save_figure  # noqa: E402  (a sibling script)
 
 DOC = REPO / "docs" / "truth_weights.md"
 FIGURE = REPO / "docs" / "figures" / "truth_weights.png"
@@ -120,11 +120,7 @@ def plot(rows: list[dict], path: Path, split: str = "test") -> Path:
         ax.set_ylabel("RMSE [m] (targets: 3D --, 2D ..)")
         ax.grid(True, axis="y", alpha=0.3)
         ax.legend(fontsize=7)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def main(argv: list[str] | None = None) -> int:
