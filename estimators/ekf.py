@@ -167,7 +167,7 @@ class LfgnssEkf:
         doppler_ok = usable & sequence.prr_mask if cfg.doppler_sigma_m_s > 0 else np.zeros_like(usable)
         prr_all = np.where(doppler_ok, sequence.prr_m_s, 0.0)
         satvel_all = sequence.sat_vel_ecef_m_s
-        r_doppler = cfg.doppler_sigma_m_s ** 2
+        r_doppler_all = models.doppler_variance_m2_s2(np.where(doppler_ok, sequence.cn0_dbhz, 45.0), cfg)
         sat_all = sequence.sat_pos_ecef_m
         sys_all = sequence.system_index
         coarse_ok = coarse_available(sequence)
@@ -203,7 +203,7 @@ class LfgnssEkf:
             h, H = models.measurement(ekf.x, sat_all[k, idx], sys_all[k, idx])
             z, r = z_all[k, idx], r_all[k, idx]
             g, G = models.doppler_measurement(ekf.x, sat_all[k, jdx], satvel_all[k, jdx])
-            y, rd = prr_all[k, jdx], np.full(jdx.size, r_doppler)
+            y, rd = prr_all[k, jdx], r_doppler_all[k, jdx]
             return (h, H, z, r, keep_mask(z - h, H, r)), (g, G, y, rd, keep_mask(y - g, G, rd))
 
         def update(k: int, gated: tuple) -> None:

@@ -43,7 +43,8 @@ drift, ``Sequence.prr_m_s``), used where ``Sequence.prr_mask``::
     g_i(x) = e_i . (v_sat_i - v) + d + omega_e / c (vs_x p_y + s_x v_y - vs_y p_x - s_y v_x)
     G_i = [0 0 0, -e_i^T, 0, 1, 0 ...]     (position derivative ~1e-4 /s, neglected)
 
-with variance ``doppler_sigma_m_s^2``: Doppler measures velocity and clock drift directly, so the
+with variance ``doppler_variance_m2_s2`` (``doppler_sigma_m_s^2``, growing below ``doppler_cn0_ref_dbhz``): Doppler
+measures velocity and clock drift directly, so the
 constant-velocity model no longer has to infer them from differences of noisy pseudoranges.
 """
 from __future__ import annotations
@@ -136,6 +137,11 @@ class EkfConfig:
     doppler_sigma_m_s : float
         Standard deviation of a Doppler pseudorange rate [m/s]; 0 ignores Doppler. Dopplers pass the
         same ``gate_sigma`` gate; they never trigger the clock realignment or a reset.
+    doppler_cn0_ref_dbhz : float or None
+        With a value, the Doppler variance grows as the signal weakens:
+        ``doppler_sigma_m_s^2 (1 + 10^((doppler_cn0_ref_dbhz - C/N0) / 5))``, twice the base at this C/N0 [dB-Hz]
+        and tenfold in sigma per 10 dB below it (the C/N0 law of ``HeuristicNoise``'s pseudorange variance).
+        None: every Doppler has ``doppler_sigma_m_s``.
     """
 
     p0_pos_m2: float = 100.0 ** 2
@@ -157,6 +163,7 @@ class EkfConfig:
     min_sats_for_update: int = 1
     doppler_sigma_m_s: float = 0.5
     clock_jump_min_m: float = 1000.0
+    doppler_cn0_ref_dbhz: float | None = None
 
     def __post_init__(self) -> None:
         for name in ("p0_pos_m2", "p0_vel_m2_s2", "p0_clock_m2", "p0_drift_m2_s2", "p0_isb_m2"):
@@ -169,6 +176,10 @@ class EkfConfig:
         up = self.q_vel_up_m2_s3
         if up is not None and (isinstance(up, bool) or not isinstance(up, (int, float)) or not up >= 0):
             raise ValueError(f"estimators/models.py: EkfConfig.q_vel_up_m2_s3 must be >= 0 or None, got {up!r}")
+        ref = self.doppler_cn0_ref_dbhz
+        if ref is not None and (isinstance(ref, bool) or not isinstance(ref, (int, float)) or not np.isfinite(ref)):
+            raise ValueError(f"estimators/models.py: EkfConfig.doppler_cn0_ref_dbhz must be a number of dB-Hz or None, "
+                             f"got {ref!r}")
         if self.min_sats_for_update < 1:
             raise ValueError("estimators/models.py: EkfConfig.min_sats_for_update must be >= 1")
 
@@ -317,6 +328,18 @@ def prior_innovation_m(x: np.ndarray, sat_pos_ecef_m: np.ndarray, system_index: 
     return v - lower_median(v)
 
 
+def doppler_variance_m2_s2(cn0_dbhz, config: EkfConfig):
+    """Variance of each Doppler pseudorange rate [(m/s)^2] at C/N0 ``cn0_dbhz`` [dB-Hz] (numpy array or torch tensor).
+
+    ``doppler_sigma_m_s^2 (1 + 10^((doppler_cn0_ref_dbhz - C/N0) / 5))``; without a reference C/N0 the constant
+    ``doppler_sigma_m_s^2``, shaped like ``cn0_dbhz``.
+    """
+    base = config.doppler_sigma_m_s ** 2
+    if config.doppler_cn0_ref_dbhz is None:
+        return base + 0.0 * cn0_dbhz
+    return base * (1.0 + 10.0 ** ((config.doppler_cn0_ref_dbhz - cn0_dbhz) / 5.0))
+
+
 def doppler_measurement(x: np.ndarray, sat_pos_ecef_m: np.ndarray, sat_vel_ecef_m_s: np.ndarray
                         ) -> tuple[np.ndarray, np.ndarray]:
     """Predicted pseudorange rates [m/s] (N,) and their Jacobian (N, n) at state ``x`` (see module docstring).
@@ -333,5 +356,5 @@ def doppler_measurement(x: np.ndarray, sat_pos_ecef_m: np.ndarray, sat_vel_ecef_
 
 __all__ = ["EkfConfig", "n_states", "clock_column", "initial_covariance", "initial_state", "transition_generator",
            "transition", "process_noise_coefficients", "process_noise", "vertical_noise_increment", "measurement",
-           "doppler_measurement", "prior_innovation_m",
-           "lower_median", "realign_clock", "POS", "VEL", "CLOCK", "DRIFT", "ISB0"]
+           "doppler_measurement", "doppler_variance_m2_s2", "prior_innovation_m", "lower_median", "realign_clock",
+           "POS", "VEL", "CLOCK", "DRIFT", "ISB0"]

@@ -132,8 +132,8 @@ def _gate_and_update(x: torch.Tensor, P: torch.Tensor, sat: torch.Tensor, clock_
                      config: EkfConfig, doppler: tuple | None = None) -> tuple:
     """Gate then Joseph-update priors (x (M, n), P (M, n, n)) with the usable slots (M, N).
 
-    ``doppler`` = (sat_vel (M, N, 3), prr (M, N), usable (M, N)) adds the Doppler rows (variance
-    ``config.doppler_sigma_m_s ** 2``); pseudoranges and Dopplers are gated alike, each block needs
+    ``doppler`` = (sat_vel (M, N, 3), prr (M, N), usable (M, N), variance (M, N)) adds the Doppler rows
+    (``estimators.models.doppler_variance_m2_s2``); pseudoranges and Dopplers are gated alike, each block needs
     ``min_sats_for_update`` kept rows to be used. Returns (x, P, n_used (M,), n_rejected (M,),
     n_usable (M,), n_doppler (M,)), counts of pseudoranges except ``n_doppler``; rows with
     ``allowed == False`` are returned unchanged (their numbers are never selected by the caller).
@@ -142,11 +142,11 @@ def _gate_and_update(x: torch.Tensor, P: torch.Tensor, sat: torch.Tensor, clock_
     v = z - h
     n_pr = v.shape[-1]
     if doppler is not None:
-        sat_vel, prr, dop_usable = doppler
+        sat_vel, prr, dop_usable, dop_var = doppler
         g, G = _doppler_measurement(x, sat, sat_vel, dop_usable)
         v = torch.cat([v, prr - g], -1)
         H = torch.cat([H, G], -2)
-        r = torch.cat([r, torch.full_like(prr, config.doppler_sigma_m_s ** 2)], -1)
+        r = torch.cat([r, dop_var], -1)
         usable = torch.cat([usable, dop_usable], -1)
     HP = H @ P
     with torch.no_grad():
@@ -289,6 +289,11 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor | None, vc_m: torch.Tensor 
     zero = torch.zeros((), dtype=f64, device=dev)
     prr_all = torch.where(dop_all, batch.prr_m_s.to(f64), zero)
     satvel_all = torch.where(dop_all[..., None], batch.sat_vel_ecef_m_s.to(f64), zero)
+    cn0_all = batch.cn0_dbhz.to(f64)
+    if use_doppler and config.doppler_cn0_ref_dbhz is not None and bool(torch.isnan(cn0_all[dop_all]).any()):
+        raise ValueError("learning/torch_ekf.py: a C/N0-dependent Doppler variance (EkfConfig.doppler_cn0_ref_dbhz) "
+                         "needs the batch's cn0_dbhz on every Doppler used")
+    dopvar_all = models.doppler_variance_m2_s2(torch.where(dop_all, cn0_all, torch.full_like(cn0_all, 45.0)), config)
 
     coarse_ok_all = torch.isfinite(batch.coarse_ecef_m).all(-1) & torch.isfinite(batch.coarse_clock_m[..., 0])
     coarse_pos_all = torch.where(coarse_ok_all[..., None], batch.coarse_ecef_m.to(f64), zero)
@@ -327,7 +332,7 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor | None, vc_m: torch.Tensor 
 
         # Both branches in one batched call: rows [0, B) normal prior, [B, 2B) reset prior.
         two = lambda a: torch.cat([a, a], 0)  # noqa: E731
-        dop_k = (satvel_all[:, k], prr_all[:, k], dop_all[:, k]) if use_doppler else None
+        dop_k = (satvel_all[:, k], prr_all[:, k], dop_all[:, k], dopvar_all[:, k]) if use_doppler else None
         xu, Pu, n_used2, n_rej2, n_usable2, n_dop2 = _gate_and_update(
             torch.cat([x_pred, x0_all[:, k]], 0), torch.cat([P_pred, P0.expand(b_len, n, n)], 0),
             two(sat_all[:, k]), two(clock_rows_all[:, k]), two(z_k), two(r_k),

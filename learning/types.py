@@ -26,12 +26,15 @@ class WindowBatch:
     prr_m_s: torch.Tensor | None = None           # (B, T, N) float64, Doppler pseudorange rate
     prr_mask: torch.Tensor | None = None          # (B, T, N) bool
     sat_vel_ecef_m_s: torch.Tensor | None = None  # (B, T, N, 3) float64
+    cn0_dbhz: torch.Tensor | None = None          # (B, T, N) float64, raw C/N0 (the Doppler variance's)
 
     def __post_init__(self) -> None:
         if self.prr_mask is None:               # no Doppler: zeros, nothing usable
             self.prr_m_s = torch.zeros_like(self.pr_m)
             self.prr_mask = torch.zeros_like(self.mask)
             self.sat_vel_ecef_m_s = torch.zeros_like(self.sat_pos_ecef_m)
+        if self.cn0_dbhz is None:               # unknown: NaN, refused by a C/N0-dependent Doppler variance
+            self.cn0_dbhz = torch.full_like(self.pr_m, float("nan"))
 
     def to(self, device: torch.device | str) -> "WindowBatch":
         """The same batch on another device."""

@@ -100,6 +100,38 @@ def test_config_rejects_bad_values():
         EkfConfig(min_sats_for_update=0)
 
 
+def test_doppler_variance_follows_the_cn0_law():
+    """Twice the base variance at the reference C/N0, a hundredfold more per 10 dB below; constant without one."""
+    import torch
+
+    cn0 = np.array([[50.0, 40.0, 30.0]])
+    cfg = EkfConfig(doppler_sigma_m_s=0.2, doppler_cn0_ref_dbhz=40.0)
+    np.testing.assert_allclose(models.doppler_variance_m2_s2(cn0, cfg), 0.04 * np.array([[1.01, 2.0, 101.0]]))
+    flat = models.doppler_variance_m2_s2(cn0, EkfConfig(doppler_sigma_m_s=0.2))
+    assert flat.shape == cn0.shape and np.allclose(flat, 0.04)
+    twin = models.doppler_variance_m2_s2(torch.as_tensor(cn0), cfg)
+    assert isinstance(twin, torch.Tensor) and np.allclose(twin.numpy(), models.doppler_variance_m2_s2(cn0, cfg))
+
+
+@pytest.mark.parametrize("ref", [float("nan"), float("inf"), True, "40"])
+def test_config_rejects_a_bad_doppler_reference_cn0(ref):
+    with pytest.raises(ValueError, match="doppler_cn0_ref_dbhz"):
+        EkfConfig(doppler_cn0_ref_dbhz=ref)
+
+
+def test_cn0_dependent_doppler_noise_tracks_velocity_better():
+    """Simulated Dopplers are noisier at low C/N0 (and on reflections): weighting them so beats a constant sigma."""
+    for seed in (1, 2):
+        s = simulate_sequence(200, seed=seed, nlos_fraction=0.3)
+        truth_vel = np.gradient(s.truth_ecef_m, s.time_gps_s, axis=0)
+
+        def velocity_rms(cfg: EkfConfig) -> float:
+            return _rms(np.linalg.norm(create("plain-ekf", config=cfg).solve(s).vel_ecef_m_s - truth_vel, axis=1)[20:])
+
+        weighted = velocity_rms(EkfConfig(doppler_sigma_m_s=0.1, doppler_cn0_ref_dbhz=40.0))
+        assert weighted < 0.85 * velocity_rms(EkfConfig()) and weighted < 0.6 * velocity_rms(EkfConfig(doppler_sigma_m_s=0.1))
+
+
 # --------------------------------------------------------------------------- registry / contract
 
 def test_registry_creates_both_filters():

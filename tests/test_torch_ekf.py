@@ -38,7 +38,7 @@ def to_batch(seqs) -> WindowBatch:
                        features=stack("features", torch.float32), coarse_ecef_m=stack("coarse_ecef_m"),
                        coarse_clock_m=stack("coarse_clock_m"), truth_ecef_m=stack("truth_ecef_m"),
                        prr_m_s=stack("prr_m_s"), prr_mask=stack("prr_mask", torch.bool),
-                       sat_vel_ecef_m_s=stack("sat_vel_ecef_m_s"))
+                       sat_vel_ecef_m_s=stack("sat_vel_ecef_m_s"), cn0_dbhz=stack("cn0_dbhz"))
 
 
 @pytest.fixture(scope="module")
@@ -117,6 +117,34 @@ def test_vertical_process_noise_matches_the_plugin(cases):
         smoothed = LfgnssEkf(noise=FixedNoise(r[i], vc[i]), config=cfg, smooth=True).solve(s).pos_ecef_m
         np.testing.assert_allclose(rts_smooth(out)[i].numpy(), smoothed, rtol=0, atol=1e-6, equal_nan=True)
     assert not np.allclose(out.pos_ecef_m.numpy(), iso.pos_ecef_m.numpy(), rtol=0, atol=1e-3, equal_nan=True)
+
+
+def test_cn0_dependent_doppler_variance_matches_the_plugin(cases):
+    """doppler_cn0_ref_dbhz in both filters: the same positions, Doppler counts and covariances, not the constant's."""
+    seqs, r, vc = cases
+    cfg = EkfConfig(doppler_sigma_m_s=0.1, doppler_cn0_ref_dbhz=40.0)
+    out = batch_ekf(to_batch(seqs), torch.as_tensor(r), torch.as_tensor(vc), n_systems=2, config=cfg)
+    flat = batch_ekf(to_batch(seqs), torch.as_tensor(r), torch.as_tensor(vc), n_systems=2,
+                     config=EkfConfig(doppler_sigma_m_s=0.1))
+    for i, s in enumerate(seqs):
+        sol = LfgnssEkf(noise=FixedNoise(r[i], vc[i]), config=cfg).solve(s)
+        np.testing.assert_array_equal(out.status[i].numpy(), sol.status)
+        np.testing.assert_array_equal(out.n_doppler[i].numpy(), sol.info["n_doppler"])
+        live = sol.status != STATUS_NONE
+        np.testing.assert_allclose(out.pos_ecef_m[i].numpy(), sol.pos_ecef_m, rtol=0, atol=1e-6, equal_nan=True)
+        np.testing.assert_allclose(out.cov[i].numpy()[live], sol.info["cov"][live], rtol=1e-6, atol=1e-6)
+    assert not np.allclose(out.pos_ecef_m.numpy(), flat.pos_ecef_m.numpy(), rtol=0, atol=1e-3, equal_nan=True)
+
+
+def test_cn0_dependent_doppler_variance_needs_the_cn0(cases):
+    seqs, r, vc = cases
+    batch = to_batch(seqs)
+    batch.cn0_dbhz = None
+    batch.__post_init__()
+    with pytest.raises(ValueError, match="needs the batch's cn0_dbhz"):
+        batch_ekf(batch, torch.as_tensor(r), torch.as_tensor(vc), n_systems=2,
+                  config=EkfConfig(doppler_cn0_ref_dbhz=40.0))
+    batch_ekf(batch, torch.as_tensor(r), torch.as_tensor(vc), n_systems=2, config=CONFIG)   # constant: not needed
 
 
 def test_smoother_matches_the_plugins(cases):
