@@ -43,9 +43,9 @@ drift, ``Sequence.prr_m_s``), used where ``Sequence.prr_mask``::
     g_i(x) = e_i . (v_sat_i - v) + d + omega_e / c (vs_x p_y + s_x v_y - vs_y p_x - s_y v_x)
     G_i = [0 0 0, -e_i^T, 0, 1, 0 ...]     (position derivative ~1e-4 /s, neglected)
 
-with variance ``doppler_variance_m2_s2`` (``doppler_sigma_m_s^2``, growing below ``doppler_cn0_ref_dbhz``): Doppler
-measures velocity and clock drift directly, so the
-constant-velocity model no longer has to infer them from differences of noisy pseudoranges.
+with variance ``doppler_variance_m2_s2`` (``doppler_sigma_m_s^2``, growing below ``doppler_cn0_ref_dbhz``):
+Doppler measures velocity and clock drift directly, so the constant-velocity model no longer has to infer
+them from differences of noisy pseudoranges.
 """
 from __future__ import annotations
 
