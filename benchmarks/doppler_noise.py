@@ -29,7 +29,10 @@ MIN_PER_BIN = 30
 
 
 def doppler_errors(seq) -> tuple[np.ndarray, np.ndarray]:
-    """(C/N0 [dB-Hz], Doppler error [m/s]) of every used Doppler at a labelled epoch, the epoch median removed."""
+    """(C/N0 [dB-Hz], Doppler error [m/s]) of every used Doppler at a labelled epoch, the epoch median removed.
+
+    The Earth-rotation term of ``estimators.models.doppler_measurement`` (a few mm/s) is left out.
+    """
     velocity = np.gradient(seq.truth_ecef_m, seq.time_gps_s, axis=0)
     los = seq.sat_pos_ecef_m - seq.truth_ecef_m[:, None, :]
     los /= np.linalg.norm(los, axis=-1, keepdims=True)
@@ -71,12 +74,17 @@ def run(dataset_ids, split: str = "train") -> list[dict]:
     for dataset_id in datasets.present(list(dataset_ids)):
         parts = [doppler_errors(s) for s in datasets.load_split(dataset_id, split)]
         cn0, error = (np.concatenate(p) for p in zip(*parts))
+        if error.size == 0:
+            raise ValueError(f"benchmarks/doppler_noise.py: {dataset_id} {split} has no Doppler at a labelled epoch")
         bins = []
-        for low in np.arange(np.floor(cn0.min() / BIN_DB) * BIN_DB, cn0.max(), BIN_DB):
+        for low in np.arange(np.floor(cn0.min() / BIN_DB) * BIN_DB, cn0.max() + BIN_DB, BIN_DB):
             inside = (cn0 >= low) & (cn0 < low + BIN_DB)
             if inside.sum() >= MIN_PER_BIN:
                 bins.append({"cn0_dbhz": float(low + BIN_DB / 2), "n": int(inside.sum()),
                              "sigma_m_s": float(1.4826 * np.median(np.abs(error[inside])))})
+        if len(bins) < 2:
+            raise ValueError(f"benchmarks/doppler_noise.py: {dataset_id} {split} has fewer than two C/N0 bins of "
+                             f"{MIN_PER_BIN} Dopplers: too few to fit the law")
         sigma, ref = fit_law(bins)
         rows.append({"dataset": dataset_id, "split": split, "n": int(error.size), "bins": bins,
                      "doppler_sigma_m_s": sigma, "doppler_cn0_ref_dbhz": ref})

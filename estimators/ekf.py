@@ -28,6 +28,7 @@ from __future__ import annotations
 import math
 import numbers
 import os
+import warnings
 from dataclasses import fields
 
 import numpy as np
@@ -70,6 +71,10 @@ def config_of(noise: NoiseModel) -> EkfConfig:
     if not stored:
         return EkfConfig()
     known = {f.name for f in fields(EkfConfig)}
+    if set(stored) - known:
+        warnings.warn(f"estimators/ekf.py: the model file's filter settings {sorted(set(stored) - known)} are unknown "
+                      f"to this version of lfgnss and ignored: the model runs in a filter other than its own "
+                      f"(update lfgnss)", stacklevel=2)
     values = {k: v for k, v in stored.items() if k in known}
     values.setdefault("doppler_sigma_m_s", 0.0)
     return EkfConfig(**values)
@@ -167,6 +172,10 @@ class LfgnssEkf:
         doppler_ok = usable & sequence.prr_mask if cfg.doppler_sigma_m_s > 0 else np.zeros_like(usable)
         prr_all = np.where(doppler_ok, sequence.prr_m_s, 0.0)
         satvel_all = sequence.sat_vel_ecef_m_s
+        if cfg.doppler_cn0_ref_dbhz is not None and not np.all(np.isfinite(sequence.cn0_dbhz[doppler_ok])):
+            k = int(np.argwhere(doppler_ok & ~np.isfinite(sequence.cn0_dbhz))[0, 0])
+            raise ValueError(f"{type(self).__name__}: a C/N0-dependent Doppler variance (EkfConfig.doppler_cn0_ref_dbhz) "
+                             f"needs a finite C/N0 on every Doppler used; {sequence.name!r} has none at epoch {k}")
         r_doppler_all = models.doppler_variance_m2_s2(np.where(doppler_ok, sequence.cn0_dbhz, 45.0), cfg)
         sat_all = sequence.sat_pos_ecef_m
         sys_all = sequence.system_index

@@ -50,8 +50,14 @@ them from differences of noisy pseudoranges.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Union
 
 import numpy as np
+
+if TYPE_CHECKING:
+    import torch
+
+ArrayOrTensor = Union[np.ndarray, "torch.Tensor"]
 
 from lfgnss.corrections import geometric_range_m, line_of_sight
 from lfgnss.velocity import doppler_design
@@ -328,15 +334,17 @@ def prior_innovation_m(x: np.ndarray, sat_pos_ecef_m: np.ndarray, system_index: 
     return v - lower_median(v)
 
 
-def doppler_variance_m2_s2(cn0_dbhz, config: EkfConfig):
+def doppler_variance_m2_s2(cn0_dbhz: ArrayOrTensor, config: EkfConfig) -> ArrayOrTensor:
     """Variance of each Doppler pseudorange rate [(m/s)^2] at C/N0 ``cn0_dbhz`` [dB-Hz] (numpy array or torch tensor).
 
     ``doppler_sigma_m_s^2 (1 + 10^((doppler_cn0_ref_dbhz - C/N0) / 5))``; without a reference C/N0 the constant
-    ``doppler_sigma_m_s^2``, shaped like ``cn0_dbhz``.
+    ``doppler_sigma_m_s^2``, shaped like ``cn0_dbhz`` whatever its values (NaN included).
     """
     base = config.doppler_sigma_m_s ** 2
     if config.doppler_cn0_ref_dbhz is None:
-        return base + 0.0 * cn0_dbhz
+        if hasattr(cn0_dbhz, "new_full"):                  # a torch tensor (this module does not import torch)
+            return cn0_dbhz.new_full(cn0_dbhz.shape, base)
+        return np.full(np.shape(cn0_dbhz), base)
     return base * (1.0 + 10.0 ** ((config.doppler_cn0_ref_dbhz - cn0_dbhz) / 5.0))
 
 

@@ -290,9 +290,9 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor | None, vc_m: torch.Tensor 
     prr_all = torch.where(dop_all, batch.prr_m_s.to(f64), zero)
     satvel_all = torch.where(dop_all[..., None], batch.sat_vel_ecef_m_s.to(f64), zero)
     cn0_all = batch.cn0_dbhz.to(f64)
-    if use_doppler and config.doppler_cn0_ref_dbhz is not None and bool(torch.isnan(cn0_all[dop_all]).any()):
+    if use_doppler and config.doppler_cn0_ref_dbhz is not None and not bool(torch.isfinite(cn0_all[dop_all]).all()):
         raise ValueError("learning/torch_ekf.py: a C/N0-dependent Doppler variance (EkfConfig.doppler_cn0_ref_dbhz) "
-                         "needs the batch's cn0_dbhz on every Doppler used")
+                         "needs the batch's cn0_dbhz, finite, on every Doppler used")
     dopvar_all = models.doppler_variance_m2_s2(torch.where(dop_all, cn0_all, torch.full_like(cn0_all, 45.0)), config)
 
     coarse_ok_all = torch.isfinite(batch.coarse_ecef_m).all(-1) & torch.isfinite(batch.coarse_clock_m[..., 0])

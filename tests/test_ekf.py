@@ -119,6 +119,22 @@ def test_config_rejects_a_bad_doppler_reference_cn0(ref):
         EkfConfig(doppler_cn0_ref_dbhz=ref)
 
 
+def test_doppler_cn0_is_read_only_by_the_cn0_law():
+    """A NaN C/N0 on a used Doppler: the constant sigma ignores it; the C/N0 law refuses it in one line."""
+    seq = simulate_sequence(40, seed=8)
+    cn0 = seq.cn0_dbhz.copy()
+    cn0[7, np.flatnonzero(seq.prr_mask[7])[0]] = np.nan
+    blind = replace(seq, cn0_dbhz=cn0)
+    noise = FixedNoise(*HeuristicNoise()(seq))          # pseudorange R from the sound C/N0: only Doppler reads it
+    for cfg in (EkfConfig(), EkfConfig(gate_sigma=0.0)):
+        want, got = LfgnssEkf(noise=noise, config=cfg).solve(seq), LfgnssEkf(noise=noise, config=cfg).solve(blind)
+        np.testing.assert_array_equal(got.pos_ecef_m, want.pos_ecef_m)
+        np.testing.assert_array_equal(got.info["n_doppler"], want.info["n_doppler"])
+    with pytest.raises(ValueError, match="needs a finite C/N0 on every Doppler used; 'synthetic' has none at epoch 7"):
+        LfgnssEkf(noise=noise, config=EkfConfig(doppler_cn0_ref_dbhz=40.0)).solve(blind)
+    assert np.isnan(models.doppler_variance_m2_s2(np.array([np.nan]), EkfConfig(doppler_cn0_ref_dbhz=40.0)))[0]
+
+
 def test_cn0_dependent_doppler_noise_tracks_velocity_better():
     """Simulated Dopplers are noisier at low C/N0 (and on reflections): weighting them so beats a constant sigma."""
     for seed in (1, 2):
@@ -308,10 +324,14 @@ def test_learned_model_runs_in_the_filter_it_was_trained_with():
 
     from estimators.ekf import config_of
     assert config_of(HeuristicNoise()) == EkfConfig()
-    trained = SimpleNamespace(metadata={"ekf_config": {"gate_sigma": 2.5, "doppler_sigma_m_s": 1.0, "gone": 1}})
+    trained = SimpleNamespace(metadata={"ekf_config": {"gate_sigma": 2.5, "doppler_sigma_m_s": 1.0}})
     assert config_of(trained) == EkfConfig(gate_sigma=2.5, doppler_sigma_m_s=1.0)
+    newer = SimpleNamespace(metadata={"ekf_config": {"gate_sigma": 2.5, "doppler_sigma_m_s": 1.0, "gone": 1}})
+    with pytest.warns(UserWarning, match=r"\['gone'\] are unknown to this version"):
+        assert config_of(newer) == EkfConfig(gate_sigma=2.5, doppler_sigma_m_s=1.0)
     older = SimpleNamespace(metadata={"ekf_config": {"gate_sigma": 3.0}})      # before Doppler support
     assert config_of(older).doppler_sigma_m_s == 0.0
+    assert config_of(older).doppler_cn0_ref_dbhz is None and config_of(trained).doppler_cn0_ref_dbhz is None
 
     class Trained(HeuristicNoise):
         """A callable noise model (the filter refuses anything else) carrying the trained model's metadata."""

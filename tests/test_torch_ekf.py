@@ -137,14 +137,19 @@ def test_cn0_dependent_doppler_variance_matches_the_plugin(cases):
 
 
 def test_cn0_dependent_doppler_variance_needs_the_cn0(cases):
+    """Without C/N0 the C/N0 law is refused in one line; the constant sigma runs exactly as with it."""
     seqs, r, vc = cases
     batch = to_batch(seqs)
     batch.cn0_dbhz = None
     batch.__post_init__()
-    with pytest.raises(ValueError, match="needs the batch's cn0_dbhz"):
+    with pytest.raises(ValueError, match="needs the batch's cn0_dbhz, finite"):
         batch_ekf(batch, torch.as_tensor(r), torch.as_tensor(vc), n_systems=2,
                   config=EkfConfig(doppler_cn0_ref_dbhz=40.0))
-    batch_ekf(batch, torch.as_tensor(r), torch.as_tensor(vc), n_systems=2, config=CONFIG)   # constant: not needed
+    blind = batch_ekf(batch, torch.as_tensor(r), torch.as_tensor(vc), n_systems=2, config=CONFIG)
+    seen = batch_ekf(to_batch(seqs), torch.as_tensor(r), torch.as_tensor(vc), n_systems=2, config=CONFIG)
+    assert int(seen.n_doppler.sum()) > 0
+    np.testing.assert_array_equal(blind.n_doppler.numpy(), seen.n_doppler.numpy())
+    np.testing.assert_array_equal(blind.pos_ecef_m.numpy(), seen.pos_ecef_m.numpy())
 
 
 def test_smoother_matches_the_plugins(cases):

@@ -107,6 +107,8 @@ def test_feature_selection_normaliser_and_padding():
     batch = collate([a, b], [Window(0, 0, 10), Window(1, 5, 10)], norm)
     assert batch.features.shape == (2, 10, 20, 4) and batch.features.dtype == torch.float32
     assert not batch.mask[0, :, 14:].any() and (batch.features[~batch.mask] == 0).all()
+    np.testing.assert_array_equal(batch.cn0_dbhz[1].numpy(), b.cn0_dbhz[5:15])      # raw C/N0, for the Doppler law
+    np.testing.assert_array_equal(batch.cn0_dbhz[0, :, :14].numpy(), a.cn0_dbhz[:10])
     x = norm.apply_torch(torch.as_tensor(b.features[..., :4]), torch.as_tensor(b.mask))
     np.testing.assert_allclose(x.numpy(), norm.apply(b.features[..., :4], b.mask))
     assert not set(DPC_FEATURES) & set(norm.feature_names)
