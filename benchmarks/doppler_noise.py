@@ -31,12 +31,14 @@ MIN_PER_BIN = 30
 def doppler_errors(seq) -> tuple[np.ndarray, np.ndarray]:
     """(C/N0 [dB-Hz], Doppler error [m/s]) of every used Doppler at a labelled epoch, the epoch median removed.
 
-    The Earth-rotation term of ``estimators.models.doppler_measurement`` (a few mm/s) is left out.
+    The prediction is the filters' Doppler model (``lfgnss.velocity.doppler_design``) at the true position and
+    velocity, with a zero clock drift: the median takes the drift out.
     """
+    from lfgnss.velocity import doppler_design
+
     velocity = np.gradient(seq.truth_ecef_m, seq.time_gps_s, axis=0)
-    los = seq.sat_pos_ecef_m - seq.truth_ecef_m[:, None, :]
-    los /= np.linalg.norm(los, axis=-1, keepdims=True)
-    predicted = np.einsum("tni,tni->tn", los, seq.sat_vel_ecef_m_s - velocity[:, None, :])
+    offset, rows = doppler_design(seq.sat_pos_ecef_m, seq.sat_vel_ecef_m_s, seq.truth_ecef_m)
+    predicted = offset + np.einsum("tni,ti->tn", rows[..., :3], velocity)
     ok = seq.prr_mask & seq.mask & np.all(np.isfinite(velocity), axis=-1)[:, None]
     error = np.where(ok, seq.prr_m_s - predicted, np.nan)
     with warnings.catch_warnings():          # epochs without a Doppler: all-NaN rows
