@@ -31,7 +31,7 @@ class DopplerVelocity:
     ----------
     vel_ecef_m_s : (T, 3) receiver velocity, ECEF [m/s]; NaN where ``ok`` is False
     drift_m_s : (T,) receiver clock drift times c [m/s]; NaN where ``ok`` is False
-    cov_m2_s2 : (T, 3, 3) velocity covariance [(m/s)^2], scaled by ``sigma_m_s^2``; NaN where not ``ok``
+    cov_m2_s2 : (T, 3, 3) velocity covariance [(m/s)^2] of the weighted fit; NaN where not ``ok``
     n_used : (T,) Dopplers in the fit
     ok : (T,) True where at least ``min_dopplers`` Dopplers gave a well-conditioned fix
     """
@@ -64,7 +64,7 @@ def doppler_design(sat_pos_ecef_m: np.ndarray, sat_vel_ecef_m_s: np.ndarray, rcv
 
 
 def doppler_velocity(prr_m_s: np.ndarray, prr_mask: np.ndarray, sat_pos_ecef_m: np.ndarray,
-                     sat_vel_ecef_m_s: np.ndarray, rcv_ecef_m: np.ndarray, *, sigma_m_s: float = 0.5,
+                     sat_vel_ecef_m_s: np.ndarray, rcv_ecef_m: np.ndarray, *, sigma_m_s: float | np.ndarray = 0.5,
                      huber_k: float = 1.5, iterations: int = 5, min_dopplers: int = 5,
                      max_condition: float = 1e8) -> DopplerVelocity:
     """Robust per-epoch velocity and clock drift from Doppler (T epochs, N slots).
@@ -74,13 +74,17 @@ def doppler_velocity(prr_m_s: np.ndarray, prr_mask: np.ndarray, sat_pos_ecef_m: 
     prr_m_s, prr_mask : (T, N) pseudorange rates [m/s] and where they are usable
     sat_pos_ecef_m, sat_vel_ecef_m_s : (T, N, 3) satellite positions [m] and velocities [m/s]
     rcv_ecef_m : (T, 3) receiver position [m], e.g. the coarse fix; epochs with NaN get no fix
-    sigma_m_s : a priori Doppler standard deviation [m/s]
+    sigma_m_s : a priori Doppler standard deviation [m/s]: one for all, or (T, N) per Doppler (weights 1 / sigma^2)
     huber_k : Huber threshold [sigmas] of the reweighting
-    iterations : reweighting passes after the equal-weight fit
+    iterations : reweighting passes after the 1 / sigma^2-weighted fit
     min_dopplers : fewest Dopplers for a fix (5: one more than the unknowns, so an outlier can show)
     max_condition : epochs whose normal matrix is worse conditioned get no fix
     """
     mask = np.asarray(prr_mask, bool) & np.all(np.isfinite(np.asarray(rcv_ecef_m, float)), axis=-1)[:, None]
+    sigma = np.broadcast_to(np.asarray(sigma_m_s, float), mask.shape)
+    if not np.all(np.isfinite(sigma[mask]) & (sigma[mask] > 0)):
+        raise ValueError("lfgnss/velocity.py: doppler_velocity needs a positive, finite sigma_m_s on every Doppler used")
+    sigma = np.where(mask, sigma, 1.0)
     rcv = np.nan_to_num(np.asarray(rcv_ecef_m, float))
     # Empty slots hold zeros; a dummy satellite 1e7 m away keeps their line of sight finite (0/0 would be NaN,
     # and NaN times a zero weight is still NaN in the normal equations).
@@ -90,7 +94,8 @@ def doppler_velocity(prr_m_s: np.ndarray, prr_mask: np.ndarray, sat_pos_ecef_m: 
     n_used = mask.sum(axis=1)
     enough = n_used >= min_dopplers
     eye = np.eye(N_UNKNOWNS)
-    weight = mask.astype(float)
+    inv_var = np.where(mask, sigma ** -2.0, 0.0)
+    weight = inv_var
     x = np.zeros((mask.shape[0], N_UNKNOWNS))
     for it in range(iterations + 1):
         normal = np.einsum("tn,tni,tnj->tij", weight, A, A)
@@ -98,10 +103,10 @@ def doppler_velocity(prr_m_s: np.ndarray, prr_mask: np.ndarray, sat_pos_ecef_m: 
         x = np.linalg.solve(normal, np.einsum("tn,tni,tn->ti", weight, A, y)[..., None])[..., 0]
         if it == iterations:
             break
-        u = np.abs(y - np.einsum("tni,ti->tn", A, x)) / sigma_m_s
-        weight = np.where(mask, np.minimum(1.0, huber_k / np.maximum(u, 1e-12)), 0.0)
+        u = np.abs(y - np.einsum("tni,ti->tn", A, x)) / sigma
+        weight = inv_var * np.minimum(1.0, huber_k / np.maximum(u, 1e-12))
     ok = enough & (np.linalg.cond(normal) < max_condition)
-    cov = np.linalg.inv(normal)[:, :3, :3] * sigma_m_s ** 2
+    cov = np.linalg.inv(normal)[:, :3, :3]
     nan3 = np.full(3, np.nan)
     return DopplerVelocity(vel_ecef_m_s=np.where(ok[:, None], x[:, :3], nan3),
                            drift_m_s=np.where(ok, x[:, 3], np.nan),

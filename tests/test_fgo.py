@@ -13,7 +13,7 @@ from gtsam.utils.numerical_derivative import (numericalDerivative41, numericalDe
                                               numericalDerivative43, numericalDerivative44)
 
 from estimators.base import STATUS_COASTED, STATUS_NONE, STATUS_UPDATED, create  # noqa: E402
-from estimators.noise import HeuristicNoise, default_noise  # noqa: E402
+from estimators.noise import FixedNoise, HeuristicNoise, default_noise  # noqa: E402
 from estimators.fgo import (DEFAULT_KERNEL, LfgnssFgo, cv_motion_factor, cv_process_covariance,  # noqa: E402
                             position_blind_epochs)
 from lfgnss.constants import SPEED_OF_LIGHT_M_S  # noqa: E402
@@ -254,6 +254,28 @@ def test_registry_and_arguments():
     seq = simulate_sequence(10, seed=9)
     with pytest.raises(ValueError, match="time not increasing"):
         LfgnssFgo().solve(replace(seq, time_gps_s=np.r_[seq.time_gps_s[:5], seq.time_gps_s[:5]]))
+
+
+def test_doppler_sigma_can_follow_cn0():
+    """``doppler_cn0_ref_dbhz`` weights each Doppler of the velocity priors by the EKF's C/N0 law: the priors'
+    covariances change and stay positive; a NaN C/N0 on a used Doppler is refused in one line, and ignored
+    without the law; a non-finite reference is refused."""
+    s = simulate_sequence(60, seed=5, nlos_fraction=0.3)
+    noise = FixedNoise(*HeuristicNoise()(s))            # pseudorange R from the sound C/N0: only Doppler reads it
+    flat, law = LfgnssFgo(noise=noise), LfgnssFgo(noise=noise, doppler_sigma_m_s=0.1, doppler_cn0_ref_dbhz=40.0)
+    dv_flat, dv_law = flat._doppler_velocity(s), law._doppler_velocity(s)
+    ok = dv_flat.ok & dv_law.ok
+    assert ok.sum() > 50 and not np.allclose(dv_flat.cov_m2_s2[ok], dv_law.cov_m2_s2[ok])
+    assert np.all(np.linalg.eigvalsh(dv_law.cov_m2_s2[ok]) > 0)
+    assert np.isfinite(law.solve(s).pos_ecef_m).all()
+    cn0 = s.cn0_dbhz.copy()
+    cn0[7, np.flatnonzero(s.prr_mask[7] & s.mask[7])[0]] = np.nan
+    blind = replace(s, cn0_dbhz=cn0)
+    with pytest.raises(ValueError, match="needs a finite C/N0 on every Doppler used; 'synthetic' has none at epoch 7"):
+        law.solve(blind)
+    np.testing.assert_array_equal(flat._doppler_velocity(blind).vel_ecef_m_s, dv_flat.vel_ecef_m_s)
+    with pytest.raises(ValueError, match="doppler_cn0_ref_dbhz must be finite"):
+        LfgnssFgo(doppler_cn0_ref_dbhz=float("nan"))
 
 
 @pytest.mark.parametrize("mode", ["fixed-lag", "batch"])

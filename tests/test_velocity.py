@@ -73,6 +73,34 @@ def test_too_few_dopplers_or_no_position_give_no_fix():
     assert np.isfinite(dv.vel_ecef_m_s[3]).all()
 
 
+def test_per_doppler_sigma_weights_each_doppler():
+    """A (T, N) sigma equal everywhere is the scalar fit; a huge sigma on one satellite takes it out of the fit
+    as a mask would, without the reweighting; a zero or NaN sigma on a used Doppler is refused."""
+    seq = simulate_sequence(60, seed=4)
+    same = _fix(seq, sigma_m_s=np.full(seq.prr_m_s.shape, 0.5))
+    scalar = _fix(seq)
+    np.testing.assert_allclose(same.vel_ecef_m_s, scalar.vel_ecef_m_s, atol=1e-9)
+    np.testing.assert_allclose(same.cov_m2_s2, scalar.cov_m2_s2, rtol=1e-9)
+
+    prr = seq.prr_m_s.copy()
+    prr[:, 0] += np.where(seq.prr_mask[:, 0], 30.0, 0.0)
+    sigma = np.full(prr.shape, 0.5)
+    sigma[:, 0] = 1.0e3
+    without = seq.prr_mask.copy()
+    without[:, 0] = False
+    fix = lambda mask, **kw: doppler_velocity(prr, mask, seq.sat_pos_ecef_m, seq.sat_vel_ecef_m_s,  # noqa: E731
+                                              seq.truth_ecef_m, iterations=0, **kw)
+    weighted, masked, flat = fix(seq.prr_mask, sigma_m_s=sigma), fix(without), fix(seq.prr_mask)
+    ok = weighted.ok & masked.ok
+    assert ok.sum() > 50
+    np.testing.assert_allclose(weighted.vel_ecef_m_s[ok], masked.vel_ecef_m_s[ok], atol=1e-3)
+    assert np.max(np.abs(flat.vel_ecef_m_s[ok] - masked.vel_ecef_m_s[ok])) > 1.0
+    for bad in (0.0, np.nan):
+        sigma[5, np.flatnonzero(seq.prr_mask[5])[0]] = bad
+        with pytest.raises(ValueError, match="positive, finite sigma_m_s"):
+            fix(seq.prr_mask, sigma_m_s=sigma)
+
+
 @pytest.mark.shared_data
 def test_static_receiver_doppler_velocity_is_near_zero(shared_data):
     """hk-tst-static-2020 (u-blox F9P, G/R/E/J/C, a static antenna): real Dopplers at the coarse fix give
