@@ -1,7 +1,7 @@
 """Blocked K-fold cross-validation of a training recipe on the train + validation epochs (never test).
 
     python -m learning.crossval --config learning/configs/default.toml --folds 3 [--set key=value ...]
-                                [--out runs/cv-NAME] [--no-progress]
+                                [--fold J ...] [--out runs/cv-NAME] [--no-progress]
 
 A validation split of a minute or two is one street: whether a recipe generalises cannot be read from
 it. Here each dataset's train and validation epochs, in time order, are cut into ``K`` contiguous
@@ -18,6 +18,8 @@ is picked on the held-out block itself); and the plain EKF and the last epoch wi
 "untrained" has a random output head, so it is near, not equal to, the plain EKF even for a recipe with
 the hand-set R prior. Writes ``crossval.csv`` and ``crossval.md``
 in ``--out`` and each fold's run (``log.csv``, ``curves.png``, ``best.pt``, ``last.pt``) in ``--out/fold<j>/``.
+``--fold J`` (repeatable) runs only those folds, e.g. one process per fold on a machine with spare cores, each
+with its own ``--out``; the pooled row is written only when every fold ran.
 """
 from __future__ import annotations
 
@@ -99,9 +101,13 @@ def pooled_rmse(rmse: list[float], counts: list[int]) -> float:
     return math.sqrt(sum(r ** 2 * c for r, c in zip(rmse, counts) if c) / n) if n else float("nan")
 
 
-def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = True) -> list[dict]:
-    """Train ``config`` on each fold; one row per fold plus a ``pooled`` row (see the module docstring)."""
+def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = True,
+             only: list[int] | None = None) -> list[dict]:
+    """Train ``config`` on each fold (or the folds ``only``); one row per fold, plus a ``pooled`` row when all ran."""
     out = Path(out_dir)
+    chosen = sorted(set(range(folds) if only is None else only))
+    if not chosen or not all(0 <= j < folds for j in chosen):
+        raise ValueError(f"folds to run must be among 0..{folds - 1}, got {only}")
     if (out / "crossval.csv").exists() or (out / "fold0").exists():
         raise ValueError(f"{out}: already holds a cross-validation; choose another --out")
     out.mkdir(parents=True, exist_ok=True)
@@ -115,7 +121,7 @@ def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = 
     whole = {ds: load_sequences(ds, data["train_split"], config) + load_sequences(ds, data["val_split"], config)
              for ds in data["datasets"]}
     rows = []
-    for j in range(folds):
+    for j in chosen:
         parts = {ds: fold_sequences(seqs, folds, j) for ds, seqs in whole.items()}
 
         def source(ds: str, split: str, _config: dict, parts=parts) -> list[Sequence]:
@@ -136,9 +142,10 @@ def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = 
                      "plain_ekf_rmse_2d_m": plain_2d, "last_rmse_2d_m": last_2d})
     keys = ["plain_ekf_rmse_3d_m", "untrained_rmse_3d_m", "last_rmse_3d_m", "best_rmse_3d_m",
             "plain_ekf_smoothed_rmse_3d_m", "last_smoothed_rmse_3d_m", "plain_ekf_rmse_2d_m", "last_rmse_2d_m"]
-    rows.append({"fold": "pooled", "held_out_epochs": sum(r["held_out_epochs"] for r in rows),
-                 **{k: pooled_rmse([r[k] for r in rows], [r["held_out_epochs"] for r in rows]) for k in keys},
-                 "best_epoch": "-"})
+    if len(chosen) == folds:
+        rows.append({"fold": "pooled", "held_out_epochs": sum(r["held_out_epochs"] for r in rows),
+                     **{k: pooled_rmse([r[k] for r in rows], [r["held_out_epochs"] for r in rows]) for k in keys},
+                     "best_epoch": "-"})
     with open(out / "crossval.csv", "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=COLUMNS)
         w.writeheader()
@@ -154,13 +161,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--folds", type=int, default=3, help="number of contiguous blocks (default 3)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override a configuration key (repeatable)")
+    p.add_argument("--fold", dest="only", type=int, action="append", metavar="J",
+                   help="run only fold J (repeatable; no pooled row unless every fold runs): folds in parallel "
+                        "processes, each with its own --out")
     p.add_argument("--out", help="output folder (default: runs/cv-<config name>)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     args = p.parse_args(argv)
     out = Path(args.out or Path("runs") / f"cv-{Path(args.config).stem if args.config else 'default'}")
     try:
         config = load_config(args.config, args.overrides)
-        crossval(config, args.folds, out, progress=not args.no_progress)
+        crossval(config, args.folds, out, progress=not args.no_progress, only=args.only)
     except INPUT_ERRORS as exc:
         exit_on_input_error(p, exc)
     print((out / "crossval.md").read_text(), end="")

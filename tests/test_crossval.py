@@ -68,6 +68,29 @@ def test_command_writes_per_fold_and_pooled_rows(tmp_path, capsys):
     assert exit_info.value.code == 2 and "already holds a cross-validation" in capsys.readouterr().err
 
 
+def test_one_fold_alone_matches_that_fold_of_the_whole_run(monkeypatch, tmp_path, capsys):
+    """``--fold J`` trains only fold J, on the same pieces as the whole run, and writes no pooled row; a fold out
+    of range is one line and exit 2."""
+    import learning.crossval as cv
+    from learning.train import load_config
+
+    config = load_config("learning/configs/default.toml", ["data.datasets=['synthetic']", "data.synthetic.n_epochs=60",
+                                                           "data.window=20", "data.stride=10"])
+    monkeypatch.setattr(cv, "train", lambda *a, **k: [{"epoch": 0, "val_rmse_3d_m": 1.0}])
+    monkeypatch.setattr(cv, "_saved_rmse_m", lambda *a, **k: (1.0, 0.5))
+    whole = cv.crossval(config, 3, tmp_path / "all", progress=False)
+    alone = cv.crossval(config, 3, tmp_path / "one", progress=False, only=[2])
+    assert [r["fold"] for r in whole] == [0, 1, 2, "pooled"] and [r["fold"] for r in alone] == [2]
+    assert alone[0] == whole[2]
+    with open(tmp_path / "one" / "crossval.csv") as fh:
+        assert [r["fold"] for r in csv.DictReader(fh)] == ["2"]
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--config", "learning/configs/default.toml", "--folds", "3", "--fold", "3", "--out", str(tmp_path / "x"),
+              "--set", "data.datasets=['synthetic']"])
+    assert exit_info.value.code == 2 and "folds to run must be among 0..2, got [3]" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
+
+
 def test_each_fold_trains_on_the_other_blocks_and_scores_the_held_out_one(monkeypatch, tmp_path):
     """What ``prepare`` receives per fold: training pieces as the train split, the held-out block as validation."""
     import learning.crossval as cv
