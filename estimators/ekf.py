@@ -172,11 +172,8 @@ class LfgnssEkf:
         doppler_ok = usable & sequence.prr_mask if cfg.doppler_sigma_m_s > 0 else np.zeros_like(usable)
         prr_all = np.where(doppler_ok, sequence.prr_m_s, 0.0)
         satvel_all = sequence.sat_vel_ecef_m_s
-        if cfg.doppler_cn0_ref_dbhz is not None and not np.all(np.isfinite(sequence.cn0_dbhz[doppler_ok])):
-            k = int(np.argwhere(doppler_ok & ~np.isfinite(sequence.cn0_dbhz))[0, 0])
-            raise ValueError(f"{type(self).__name__}: a C/N0-dependent Doppler variance (EkfConfig.doppler_cn0_ref_dbhz) "
-                             f"needs a finite C/N0 on every Doppler used; {sequence.name!r} has none at epoch {k}")
-        r_doppler_all = models.doppler_variance_m2_s2(np.where(doppler_ok, sequence.cn0_dbhz, 45.0), cfg)
+        r_doppler_all = models.used_doppler_variance_m2_s2(sequence.cn0_dbhz, doppler_ok, cfg, type(self).__name__,
+                                                           sequence.name)
         sat_all = sequence.sat_pos_ecef_m
         sys_all = sequence.system_index
         coarse_ok = coarse_available(sequence)

@@ -67,7 +67,7 @@ from lfgnss.sequence import Sequence
 from lfgnss.velocity import DopplerVelocity, doppler_velocity
 
 from .base import (STATUS_COASTED, STATUS_NONE, STATUS_UPDATED, Solution, epoch_range, options_of, register)
-from .models import EkfConfig, doppler_variance_m2_s2
+from .models import EkfConfig, used_doppler_variance_m2_s2
 from .noise import HeuristicNoise, NoiseModel, checked_noise, default_noise, resolve_noise
 
 MODES = ("batch", "fixed-lag")
@@ -242,7 +242,8 @@ class LfgnssFgo:
         if not doppler_sigma_m_s >= 0:
             raise ValueError(f"estimators/fgo.py: doppler_sigma_m_s must be >= 0, got {doppler_sigma_m_s}")
         if doppler_cn0_ref_dbhz is not None and not np.isfinite(doppler_cn0_ref_dbhz):
-            raise ValueError(f"estimators/fgo.py: doppler_cn0_ref_dbhz must be finite or None, got {doppler_cn0_ref_dbhz}")
+            raise ValueError(f"estimators/fgo.py: doppler_cn0_ref_dbhz must be finite or None, "
+                             f"got {doppler_cn0_ref_dbhz}")
         if not lag_s > 0:
             raise ValueError(f"estimators/fgo.py: lag_s must be > 0, got {lag_s}")
         if not robust_k > 0:
@@ -313,12 +314,8 @@ class LfgnssFgo:
         if self.doppler_sigma_m_s <= 0 or not np.any(seq.prr_mask):
             return None
         used = seq.prr_mask & seq.mask
-        if self.doppler_cn0_ref_dbhz is not None and not np.all(np.isfinite(seq.cn0_dbhz[used])):
-            k = int(np.argwhere(used & ~np.isfinite(seq.cn0_dbhz))[0, 0])
-            raise ValueError(f"estimators/fgo.py: a C/N0-dependent Doppler sigma (doppler_cn0_ref_dbhz) needs a finite "
-                             f"C/N0 on every Doppler used; {seq.name!r} has none at epoch {k}")
         law = EkfConfig(doppler_sigma_m_s=self.doppler_sigma_m_s, doppler_cn0_ref_dbhz=self.doppler_cn0_ref_dbhz)
-        sigma = np.sqrt(doppler_variance_m2_s2(np.where(used, seq.cn0_dbhz, 45.0), law))
+        sigma = np.sqrt(used_doppler_variance_m2_s2(seq.cn0_dbhz, used, law, "estimators/fgo.py", seq.name))
         return doppler_velocity(seq.prr_m_s, used, seq.sat_pos_ecef_m, seq.sat_vel_ecef_m_s,
                                 seq.coarse_ecef_m, sigma_m_s=sigma)
 

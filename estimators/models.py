@@ -348,6 +348,20 @@ def doppler_variance_m2_s2(cn0_dbhz: ArrayOrTensor, config: EkfConfig) -> ArrayO
     return base * (1.0 + 10.0 ** ((config.doppler_cn0_ref_dbhz - cn0_dbhz) / 5.0))
 
 
+def used_doppler_variance_m2_s2(cn0_dbhz: np.ndarray, used: np.ndarray, config: EkfConfig, owner: str,
+                                sequence_name: str) -> np.ndarray:
+    """(T, N) ``doppler_variance_m2_s2`` of the ``used`` Dopplers [(m/s)^2] (other slots at a neutral 45 dB-Hz).
+
+    ValueError naming ``owner`` and the first epoch where a used Doppler lacks the finite C/N0 that
+    ``doppler_cn0_ref_dbhz`` needs (the constant sigma reads no C/N0).
+    """
+    if config.doppler_cn0_ref_dbhz is not None and not np.all(np.isfinite(cn0_dbhz[used])):
+        k = int(np.argwhere(used & ~np.isfinite(cn0_dbhz))[0, 0])
+        raise ValueError(f"{owner}: a C/N0-dependent Doppler variance (doppler_cn0_ref_dbhz) needs a finite C/N0 on "
+                         f"every Doppler used; {sequence_name!r} has none at epoch {k}")
+    return doppler_variance_m2_s2(np.where(used, cn0_dbhz, 45.0), config)
+
+
 def doppler_measurement(x: np.ndarray, sat_pos_ecef_m: np.ndarray, sat_vel_ecef_m_s: np.ndarray
                         ) -> tuple[np.ndarray, np.ndarray]:
     """Predicted pseudorange rates [m/s] (N,) and their Jacobian (N, n) at state ``x`` (see module docstring).
@@ -364,5 +378,5 @@ def doppler_measurement(x: np.ndarray, sat_pos_ecef_m: np.ndarray, sat_vel_ecef_
 
 __all__ = ["EkfConfig", "n_states", "clock_column", "initial_covariance", "initial_state", "transition_generator",
            "transition", "process_noise_coefficients", "process_noise", "vertical_noise_increment", "measurement",
-           "doppler_measurement", "doppler_variance_m2_s2", "prior_innovation_m", "lower_median", "realign_clock",
-           "POS", "VEL", "CLOCK", "DRIFT", "ISB0"]
+           "doppler_measurement", "doppler_variance_m2_s2", "used_doppler_variance_m2_s2", "prior_innovation_m",
+           "lower_median", "realign_clock", "POS", "VEL", "CLOCK", "DRIFT", "ISB0"]

@@ -83,7 +83,8 @@ def doppler_velocity(prr_m_s: np.ndarray, prr_mask: np.ndarray, sat_pos_ecef_m: 
     mask = np.asarray(prr_mask, bool) & np.all(np.isfinite(np.asarray(rcv_ecef_m, float)), axis=-1)[:, None]
     sigma = np.broadcast_to(np.asarray(sigma_m_s, float), mask.shape)
     if not np.all(np.isfinite(sigma[mask]) & (sigma[mask] > 0)):
-        raise ValueError("lfgnss/velocity.py: doppler_velocity needs a positive, finite sigma_m_s on every Doppler used")
+        raise ValueError("lfgnss/velocity.py: doppler_velocity needs a positive, finite sigma_m_s on every "
+                         "Doppler used")
     sigma = np.where(mask, sigma, 1.0)
     rcv = np.nan_to_num(np.asarray(rcv_ecef_m, float))
     # Empty slots hold zeros; a dummy satellite 1e7 m away keeps their line of sight finite (0/0 would be NaN,
