@@ -198,19 +198,21 @@ class LfgnssEkf:
         gate_sigma = cfg.gate_sigma
         started = False
 
-        def keep_mask(v: np.ndarray, H: np.ndarray, r: np.ndarray) -> np.ndarray:
-            if gate_sigma <= 0:
-                return np.ones(v.size, bool)
-            s_diag = np.einsum("ij,jk,ik->i", H, ekf.P, H) + r                # diag(H P^- H^T + R)
-            return np.abs(v) <= gate_sigma * np.sqrt(s_diag)
+        def normalised(v: np.ndarray, H: np.ndarray, r: np.ndarray) -> np.ndarray:
+            return np.abs(v) / np.sqrt(np.einsum("ij,jk,ik->i", H, ekf.P, H) + r)    # |v| / sqrt(diag(H P^- H^T + R))
+
+        def keep_mask(t: np.ndarray) -> np.ndarray:
+            return t <= gate_sigma if gate_sigma > 0 else np.ones(t.size, bool)
 
         def gate(k: int, idx: np.ndarray, jdx: np.ndarray) -> tuple:
             """(h, H, z, r, keep) of the pseudoranges ``idx`` and of the Dopplers ``jdx`` at the current prior."""
             h, H = models.measurement(ekf.x, sat_all[k, idx], sys_all[k, idx])
             z, r = z_all[k, idx], r_all[k, idx]
+            t = normalised(z - h, H, r)
             g, G = models.doppler_measurement(ekf.x, sat_all[k, jdx], satvel_all[k, jdx])
             y, rd = prr_all[k, jdx], r_doppler_all[k, jdx]
-            return (h, H, z, r, keep_mask(z - h, H, r)), (g, G, y, rd, keep_mask(y - g, G, rd))
+            return ((h, H, z, r * models.huber_scale(t, cfg.huber_k), keep_mask(t)),
+                    (g, G, y, rd, keep_mask(normalised(y - g, G, rd))))
 
         def update(k: int, gated: tuple) -> None:
             """Joseph-form update with the kept measurements; records n_used, n_doppler and n_gated of epoch k."""

@@ -148,6 +148,10 @@ class EkfConfig:
         ``doppler_sigma_m_s^2 (1 + 10^((doppler_cn0_ref_dbhz - C/N0) / 5))``, twice the base at this C/N0 [dB-Hz]
         and tenfold in sigma per 10 dB below it (the C/N0 law of ``HeuristicNoise``'s pseudorange variance).
         None: every Doppler has ``doppler_sigma_m_s``.
+    huber_k : float or None
+        With a value, a soft robust update on top of the gate: a kept pseudorange whose normalised innovation
+        ``t = |v_i + vc_i| / sqrt(S_ii)`` exceeds ``huber_k`` has its variance scaled by ``t / huber_k`` (Huber's
+        weight ``min(1, huber_k / t)``, one step, weights taken as constants). None: the hard gate alone.
     """
 
     p0_pos_m2: float = 100.0 ** 2
@@ -170,6 +174,7 @@ class EkfConfig:
     doppler_sigma_m_s: float = 0.5
     clock_jump_min_m: float = 1000.0
     doppler_cn0_ref_dbhz: float | None = None
+    huber_k: float | None = None
 
     def __post_init__(self) -> None:
         for name in ("p0_pos_m2", "p0_vel_m2_s2", "p0_clock_m2", "p0_drift_m2_s2", "p0_isb_m2"):
@@ -186,8 +191,18 @@ class EkfConfig:
         if ref is not None and (isinstance(ref, bool) or not isinstance(ref, (int, float)) or not np.isfinite(ref)):
             raise ValueError(f"estimators/models.py: EkfConfig.doppler_cn0_ref_dbhz must be a number of dB-Hz or None, "
                              f"got {ref!r}")
+        k = self.huber_k
+        if k is not None and (isinstance(k, bool) or not isinstance(k, (int, float)) or not k > 0 or k == np.inf):
+            raise ValueError(f"estimators/models.py: EkfConfig.huber_k must be a positive number or None, got {k!r}")
         if self.min_sats_for_update < 1:
             raise ValueError("estimators/models.py: EkfConfig.min_sats_for_update must be >= 1")
+
+
+def huber_scale(t: ArrayOrTensor, huber_k: float | None) -> ArrayOrTensor:
+    """Variance factor ``max(1, t / huber_k)`` of a measurement with normalised innovation ``|t|``; 1 when None."""
+    if huber_k is None:
+        return t * 0 + 1
+    return (abs(t) / huber_k).clip(min=1.0)
 
 
 def initial_covariance(n_systems: int, config: EkfConfig) -> np.ndarray:

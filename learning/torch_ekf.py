@@ -151,11 +151,10 @@ def _gate_and_update(x: torch.Tensor, P: torch.Tensor, sat: torch.Tensor, clock_
     HP = H @ P
     with torch.no_grad():
         usable = usable & allowed[:, None]
-        if config.gate_sigma > 0:
-            s_diag = (HP * H).sum(-1) + r
-            keep = usable & (v.abs() <= config.gate_sigma * torch.sqrt(s_diag))
-        else:
-            keep = usable
+        t = v.abs() / torch.sqrt((HP * H).sum(-1) + r)
+        keep = usable & (t <= config.gate_sigma) if config.gate_sigma > 0 else usable
+        scale = models.huber_scale(t, config.huber_k)
+        scale[:, n_pr:] = 1.0                               # Dopplers: the hard gate alone
         n_keep_pr = keep[:, :n_pr].sum(-1)
         n_keep_dop = keep[:, n_pr:].sum(-1)
         enough = torch.cat([(n_keep_pr >= config.min_sats_for_update)[:, None].expand(-1, n_pr),
@@ -165,7 +164,7 @@ def _gate_and_update(x: torch.Tensor, P: torch.Tensor, sat: torch.Tensor, clock_
     usedf = used.to(torch.float64)
     Hm = H * usedf[..., None]
     vm = torch.where(used, v, torch.zeros_like(v))
-    Rm = torch.where(used, r, torch.ones_like(r))
+    Rm = torch.where(used, r * scale, torch.ones_like(r))
     PHt = (Hm @ P).transpose(-1, -2)                       # (M, n, N) = P H^T (P symmetric)
     S = Hm @ PHt + torch.diag_embed(Rm)                     # S = H P H^T + R
     L = torch.linalg.cholesky(S)

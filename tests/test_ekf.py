@@ -219,6 +219,27 @@ def test_gate_rejects_300m_outlier(seq, clean_error):
     assert _rms(_err(ungated, seq)[SETTLE:]) > _rms(err[SETTLE:]) + 1.0   # the gate matters
 
 
+def test_huber_scale():
+    """Variance factor max(1, |t| / k): 1 inside the threshold, |t| / k beyond it, 1 everywhere without k."""
+    import torch
+
+    t = np.array([0.5, -1.0, 3.0, -6.0])
+    np.testing.assert_allclose(models.huber_scale(t, 2.0), [1.0, 1.0, 1.5, 3.0])
+    np.testing.assert_allclose(models.huber_scale(t, None), 1.0)
+    np.testing.assert_allclose(models.huber_scale(torch.as_tensor(t), 2.0).numpy(), [1.0, 1.0, 1.5, 3.0])
+
+
+def test_huber_update_softens_moderate_outliers(seq):
+    """NLOS-like +30 m errors on 15 % of the pseudoranges: many pass the 3-sigma gate, and the soft update
+    (huber_k = 1) keeps the error well below the hard gate's."""
+    rng = np.random.default_rng(0)
+    pr = seq.pr_m + np.where(seq.mask & (rng.random(seq.pr_m.shape) < 0.15), 30.0, 0.0)
+    hit = replace(seq, pr_m=pr)
+    hard = _rms(_err(create("plain-ekf").solve(hit), seq)[SETTLE:])
+    soft = _rms(_err(create("plain-ekf", config=EkfConfig(huber_k=1.0)).solve(hit), seq)[SETTLE:])
+    assert soft < 0.75 * hard, (soft, hard)
+
+
 def test_outage_coasts_then_recovers(seq, clean_error):
     mask = seq.mask.copy()
     coarse = seq.coarse_ecef_m.copy()

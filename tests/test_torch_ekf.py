@@ -136,6 +136,29 @@ def test_cn0_dependent_doppler_variance_matches_the_plugin(cases):
     assert not np.allclose(out.pos_ecef_m.numpy(), flat.pos_ecef_m.numpy(), rtol=0, atol=1e-3, equal_nan=True)
 
 
+def test_huber_update_matches_the_plugin(cases):
+    """huber_k in both filters: the same states, counts and covariances, and not those of the hard gate alone."""
+    seqs, r, vc = cases
+    cfg = EkfConfig(huber_k=1.0)
+    out = batch_ekf(to_batch(seqs), torch.as_tensor(r), torch.as_tensor(vc), n_systems=2, config=cfg)
+    hard = batch_ekf(to_batch(seqs), torch.as_tensor(r), torch.as_tensor(vc), n_systems=2, config=CONFIG)
+    for i, s in enumerate(seqs):
+        sol = LfgnssEkf(noise=FixedNoise(r[i], vc[i]), config=cfg).solve(s)
+        np.testing.assert_array_equal(out.status[i].numpy(), sol.status)
+        np.testing.assert_array_equal(out.n_used[i].numpy(), sol.n_used)
+        np.testing.assert_array_equal(out.n_gated[i].numpy(), sol.info["n_gated"])
+        live = sol.status != STATUS_NONE
+        np.testing.assert_allclose(out.pos_ecef_m[i].numpy(), sol.pos_ecef_m, rtol=0, atol=1e-6, equal_nan=True)
+        np.testing.assert_allclose(out.cov[i].numpy()[live], sol.info["cov"][live], rtol=1e-6, atol=1e-6)
+    assert not np.allclose(out.pos_ecef_m.numpy(), hard.pos_ecef_m.numpy(), rtol=0, atol=1e-3, equal_nan=True)
+
+
+def test_huber_k_must_be_positive():
+    for bad in (0.0, -1.0, float("nan"), float("inf"), True, "2"):
+        with pytest.raises(ValueError, match="huber_k must be a positive number or None"):
+            EkfConfig(huber_k=bad)
+
+
 def test_cn0_dependent_doppler_variance_needs_the_cn0(cases):
     """Without C/N0 the C/N0 law is refused in one line; the constant sigma runs exactly as with it."""
     seqs, r, vc = cases
