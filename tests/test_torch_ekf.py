@@ -126,14 +126,21 @@ def test_cn0_dependent_doppler_variance_matches_the_plugin(cases):
     out = batch_ekf(to_batch(seqs), torch.as_tensor(r), torch.as_tensor(vc), n_systems=2, config=cfg)
     flat = batch_ekf(to_batch(seqs), torch.as_tensor(r), torch.as_tensor(vc), n_systems=2,
                      config=EkfConfig(doppler_sigma_m_s=0.1))
+    _assert_matches_plugin(out, seqs, r, vc, cfg)
+    assert not np.allclose(out.pos_ecef_m.numpy(), flat.pos_ecef_m.numpy(), rtol=0, atol=1e-3, equal_nan=True)
+
+
+def _assert_matches_plugin(out, seqs, r, vc, cfg) -> None:
+    """The torch filter's statuses, counts, positions and covariances equal the filterpy plug-in's under ``cfg``."""
     for i, s in enumerate(seqs):
         sol = LfgnssEkf(noise=FixedNoise(r[i], vc[i]), config=cfg).solve(s)
         np.testing.assert_array_equal(out.status[i].numpy(), sol.status)
+        np.testing.assert_array_equal(out.n_used[i].numpy(), sol.n_used)
+        np.testing.assert_array_equal(out.n_gated[i].numpy(), sol.info["n_gated"])
         np.testing.assert_array_equal(out.n_doppler[i].numpy(), sol.info["n_doppler"])
         live = sol.status != STATUS_NONE
         np.testing.assert_allclose(out.pos_ecef_m[i].numpy(), sol.pos_ecef_m, rtol=0, atol=1e-6, equal_nan=True)
         np.testing.assert_allclose(out.cov[i].numpy()[live], sol.info["cov"][live], rtol=1e-6, atol=1e-6)
-    assert not np.allclose(out.pos_ecef_m.numpy(), flat.pos_ecef_m.numpy(), rtol=0, atol=1e-3, equal_nan=True)
 
 
 def test_huber_update_matches_the_plugin(cases):
@@ -142,14 +149,7 @@ def test_huber_update_matches_the_plugin(cases):
     cfg = EkfConfig(huber_k=1.0)
     out = batch_ekf(to_batch(seqs), torch.as_tensor(r), torch.as_tensor(vc), n_systems=2, config=cfg)
     hard = batch_ekf(to_batch(seqs), torch.as_tensor(r), torch.as_tensor(vc), n_systems=2, config=CONFIG)
-    for i, s in enumerate(seqs):
-        sol = LfgnssEkf(noise=FixedNoise(r[i], vc[i]), config=cfg).solve(s)
-        np.testing.assert_array_equal(out.status[i].numpy(), sol.status)
-        np.testing.assert_array_equal(out.n_used[i].numpy(), sol.n_used)
-        np.testing.assert_array_equal(out.n_gated[i].numpy(), sol.info["n_gated"])
-        live = sol.status != STATUS_NONE
-        np.testing.assert_allclose(out.pos_ecef_m[i].numpy(), sol.pos_ecef_m, rtol=0, atol=1e-6, equal_nan=True)
-        np.testing.assert_allclose(out.cov[i].numpy()[live], sol.info["cov"][live], rtol=1e-6, atol=1e-6)
+    _assert_matches_plugin(out, seqs, r, vc, cfg)
     assert not np.allclose(out.pos_ecef_m.numpy(), hard.pos_ecef_m.numpy(), rtol=0, atol=1e-3, equal_nan=True)
 
 
