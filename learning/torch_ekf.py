@@ -153,8 +153,9 @@ def _gate_and_update(x: torch.Tensor, P: torch.Tensor, sat: torch.Tensor, clock_
         usable = usable & allowed[:, None]
         t = v.abs() / torch.sqrt((HP * H).sum(-1) + r)
         keep = usable & (t <= config.gate_sigma) if config.gate_sigma > 0 else usable
-        scale = models.huber_scale(t, config.huber_k)
-        scale[:, n_pr:] = 1.0                               # Dopplers: the hard gate alone
+        # 1 off the kept rows (padded slots may have t = 0/0, and 0 * NaN would poison r's gradient) and on Dopplers
+        scale = torch.where(keep, models.huber_scale(t, config.huber_k), torch.ones_like(t))
+        scale[:, n_pr:] = 1.0
         n_keep_pr = keep[:, :n_pr].sum(-1)
         n_keep_dop = keep[:, n_pr:].sum(-1)
         enough = torch.cat([(n_keep_pr >= config.min_sats_for_update)[:, None].expand(-1, n_pr),
