@@ -5,7 +5,8 @@ Per epoch ``k`` (models in ``estimators.models``)::
     predict:  x^- = F(dt) x,  P^- = F P F^T + Q(dt)
     measure:  z_i = pr_i + vc_i              (v^c enters here, ``compensated_pseudorange``)
               v_i = z_i - h_i(x^-),  S = H P^- H^T + R,  R = diag(r_i)
-    gate:     keep satellite i if |v_i| <= gate_sigma * sqrt(S_ii)
+    gate:     keep satellite i if t_i = |v_i| / sqrt(S_ii) <= gate_sigma
+    soften:   r_i *= max(1, t_i / huber_k)          (only with EkfConfig.huber_k; Huber's weight, pseudoranges)
     update:   K = P^- H^T S^-1,  x = x^- + K v,  P = (I - K H) P^- (I - K H)^T + K R K^T   (Joseph)
 
 so ``x = x^- + K (pr - h + vc)`` as in the paper. Initialisation and resets take the coarse fix

@@ -18,8 +18,8 @@ reset) and their median innovation is clock-jump sized (``clock_jump_min_m``), t
 realigned and gated again. The reset result is taken at the first epoch with a coarse fix, after gaps
 > ``max_gap_s``, when the realigned prior is still mostly gated, and when the normal update ends
 farther than ``reset_distance_m`` from the coarse fix; in the rows that reset, satellites failing the
-post-fit check are dropped and the reset prior updated again. The gate decision (a hard mask) and
-the reset choice carry no gradient; everything else does.
+post-fit check are dropped and the reset prior updated again. The gate decision (a hard mask), the
+Huber variance factor (``EkfConfig.huber_k``) and the reset choice carry no gradient; everything else does.
 
 With ``noise_step`` the network runs inside the filter: at each epoch it is given every satellite's
 innovation against the normal prior (``prior_innovation``; 0 where the epoch has no prior) and returns
