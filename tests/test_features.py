@@ -208,3 +208,17 @@ def test_cross_street_feature_on_the_sample_follows_the_true_heading(sample):
     # urban Dopplers put the heading some degrees off (median 4 deg here): a coarse canyon cue, not a compass;
     # a heading off by a uniform random angle would give a median gap near 0.3
     assert np.median(gap) < 0.1 and np.percentile(gap, 75) < 0.2
+
+
+def test_cross_street_without_dopplers_is_the_unknown_value(sample):
+    """A file without Doppler gives no heading: the feature is the neutral constant, never NaN."""
+    import dataclasses
+
+    from lfgnss.features import CROSS_STREET_UNKNOWN
+
+    meas, fix, _ = sample
+    no_doppler = dataclasses.replace(meas, obs=dataclasses.replace(meas.obs,
+                                                                    doppler_hz=np.zeros_like(meas.obs.doppler_hz)))
+    seq = lfgnss.build_sequence(no_doppler, fix, feature_names=DEFAULT_FEATURES + ("cross_street",))
+    assert not seq.prr_mask.any()
+    np.testing.assert_allclose(seq.features[..., 8][seq.mask], CROSS_STREET_UNKNOWN)
