@@ -60,7 +60,7 @@ if TYPE_CHECKING:
 ArrayOrTensor = Union[np.ndarray, "torch.Tensor"]
 
 from lfgnss.corrections import geometric_range_m, line_of_sight
-from lfgnss.velocity import doppler_design
+from lfgnss.velocity import cn0_doppler_variance_m2_s2, doppler_design
 
 #: Indices into the state vector.
 POS = slice(0, 3)
@@ -355,12 +355,12 @@ def doppler_variance_m2_s2(cn0_dbhz: ArrayOrTensor, config: EkfConfig) -> ArrayO
     ``doppler_sigma_m_s^2 (1 + 10^((doppler_cn0_ref_dbhz - C/N0) / 5))``; without a reference C/N0 the constant
     ``doppler_sigma_m_s^2``, shaped like ``cn0_dbhz`` whatever its values (NaN included).
     """
-    base = config.doppler_sigma_m_s ** 2
     if config.doppler_cn0_ref_dbhz is None:
+        base = config.doppler_sigma_m_s ** 2
         if hasattr(cn0_dbhz, "new_full"):                  # a torch tensor (this module does not import torch)
             return cn0_dbhz.new_full(cn0_dbhz.shape, base)
         return np.full(np.shape(cn0_dbhz), base)
-    return base * (1.0 + 10.0 ** ((config.doppler_cn0_ref_dbhz - cn0_dbhz) / 5.0))
+    return cn0_doppler_variance_m2_s2(cn0_dbhz, config.doppler_sigma_m_s, config.doppler_cn0_ref_dbhz)
 
 
 def used_doppler_variance_m2_s2(cn0_dbhz: np.ndarray, used: np.ndarray, config: EkfConfig, owner: str,

@@ -23,7 +23,7 @@ from .measurements import Measurements
 from .sequence import DEFAULT_FEATURES, Sequence
 from .spp import CoarseFix, SppConfig, _geometry
 from . import qc
-from .velocity import doppler_velocity
+from .velocity import cn0_doppler_variance_m2_s2, doppler_velocity
 from .weighted_fix import cn0_elevation_variance_m2, weighted_least_squares
 
 #: Every feature the packer knows, in a stable order.
@@ -38,7 +38,7 @@ CODE_DOPPLER_MAX_GAP_S = 2.0
 HEADING_MIN_SPEED_M_S = 1.0
 #: ``cross_street`` before the receiver has ever moved: the mean of |sin| over a uniform angle.
 CROSS_STREET_UNKNOWN = 2.0 / np.pi
-#: Doppler sigma law of the heading fit, ``sigma sqrt(1 + 10^((ref - C/N0) / 5))``: berlin-pp's train Dopplers
+#: Doppler sigma law of the heading fit (``velocity.cn0_doppler_variance_m2_s2``): berlin-pp's train Dopplers
 #: at the true velocity (benchmarks/doppler_noise.py), as in learning/configs/berlin.toml. Against equal weights it
 #: halves the heading error on the bundled drive's first 180 s (median 9 -> 4 deg; 75th percentile 20 -> 11).
 HEADING_DOPPLER_SIGMA_M_S = 0.1
@@ -243,9 +243,9 @@ def build_sequence(meas: Measurements, fix: CoarseFix, *, feature_names: tuple[s
                     if "code_doppler" in feature_names else None)
     across = None
     if "cross_street" in feature_names:
-        sigma = HEADING_DOPPLER_SIGMA_M_S * np.sqrt(1.0 + 10.0 ** ((HEADING_DOPPLER_CN0_REF_DBHZ - cn0) / 5.0))
+        sigma = np.sqrt(cn0_doppler_variance_m2_s2(cn0, HEADING_DOPPLER_SIGMA_M_S, HEADING_DOPPLER_CN0_REF_DBHZ))
         vel = doppler_velocity(np.where(prr_mask, prr, 0.0), prr_mask, meas.sat_pos_ecef_m, meas.sat_vel_ecef_m_s,
-                               np.where(fix.ok[:, None], fix.pos_ecef_m, ref), sigma_m_s=sigma)
+                               ref, sigma_m_s=sigma)
         across = cross_street(az, heading_rad(vel.vel_ecef_m_s, np.median(ref, axis=0)))
     feats = pack_features(tuple(feature_names), cn0_dbhz=cn0, el_rad=el, az_rad=az, residual_m=residual, dpc=dpc,
                           system_index=sysi, systems=meas.systems, mask=mask, residual_weighted_m=weighted,

@@ -63,6 +63,15 @@ def doppler_design(sat_pos_ecef_m: np.ndarray, sat_vel_ecef_m_s: np.ndarray, rcv
     return a, A
 
 
+def cn0_doppler_variance_m2_s2(cn0_dbhz, sigma_m_s: float, cn0_ref_dbhz: float):
+    """Doppler variance ``sigma^2 (1 + 10^((ref - C/N0) / 5))`` [(m/s)^2] at C/N0 [dB-Hz] (numpy array or torch tensor).
+
+    Near ``sigma_m_s`` [m/s] well above ``cn0_ref_dbhz``, growing tenfold in variance per 5 dB below it
+    (benchmarks/doppler_noise.py fits it to Dopplers at the true velocity).
+    """
+    return sigma_m_s ** 2 * (1.0 + 10.0 ** ((cn0_ref_dbhz - cn0_dbhz) / 5.0))
+
+
 def doppler_velocity(prr_m_s: np.ndarray, prr_mask: np.ndarray, sat_pos_ecef_m: np.ndarray,
                      sat_vel_ecef_m_s: np.ndarray, rcv_ecef_m: np.ndarray, *, sigma_m_s: float | np.ndarray = 0.5,
                      huber_k: float = 1.5, iterations: int = 5, min_dopplers: int = 5,
@@ -115,4 +124,4 @@ def doppler_velocity(prr_m_s: np.ndarray, prr_mask: np.ndarray, sat_pos_ecef_m: 
                            n_used=n_used.astype(np.int32), ok=ok)
 
 
-__all__ = ["DopplerVelocity", "doppler_design", "doppler_velocity"]
+__all__ = ["DopplerVelocity", "cn0_doppler_variance_m2_s2", "doppler_design", "doppler_velocity"]
