@@ -58,7 +58,9 @@ def test_target_rows_compare_each_learned_row_with_its_bars():
     assert ekf["3D vs plain EKF"] == "9.00 vs 13.00 (yes)"
     assert ekf["3D vs yardstick"] == "9.00 vs 14.00 (yes)"                  # the yardstick's EKF ...
     assert fgo["3D vs yardstick"] == "12.50 vs 12.20 (no)"                  # ... and its robust graph
+    assert ekf["2D vs yardstick"] == "4.00 vs 7.90 (yes)" and fgo["2D vs yardstick"] == "3.00 vs 8.50 (yes)"
     assert ekf["3D vs RTKLIB, its epochs"] == "8.00 vs 8.71 (yes)"
+    assert ekf["2D vs RTKLIB, its epochs"] == "3.00 vs 3.88 (yes)"
     assert fgo["3D vs RTKLIB, its epochs"] == "-"                           # no row on RTKLIB's epochs
     rts = rows["LF-GNSS EKF + RTS smoother"]                                # a smoother: against smoothers
     assert rts["3D vs plain EKF"] == "7.00 vs 8.00 (yes)" and rts["3D vs yardstick"] == "7.00 vs 12.20 (yes)"
