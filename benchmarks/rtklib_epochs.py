@@ -1,0 +1,114 @@
+"""Our filters against RTKLIB on the epochs RTKLIB solves, on every split (the benchmark does the test split only).
+
+    python benchmarks/rtklib_epochs.py                  # train, val and test splits, print the tables
+    python benchmarks/rtklib_epochs.py --write          # ... and write docs/rtklib_epochs.md
+
+RTKLIB's ``rnx2rtkp`` (the benchmark's settings, ``lfgnss.rtklib``) runs once per dataset; its solutions are matched
+to each split's epochs. On the epochs it solved, the plain EKF and the LF-GNSS EKF with the dataset's own model
+(``lfgnss-<dataset>.npz``, else the joint one), run forward over the whole split, are scored beside it. It shows
+whether a miss against RTKLIB on the test split's epochs is a property of those epochs or a bias of ours (height, for
+one). The models were trained on the train split, so only the validation and test columns are out of sample. Nothing
+is chosen from these figures.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from smoothing_lag import DATASETS, estimators_for  # noqa: E402  (a sibling script)
+
+DOC = REPO / "docs" / "rtklib_epochs.md"
+SPLITS = ("train", "val", "test")
+RTKLIB = "RTKLIB rnx2rtkp"
+
+
+def rtklib_positions(dataset_id: str, workdir: Path):
+    """(time_gps_s, ECEF positions [m], NaN where unsolved) of RTKLIB over the dataset's whole obs file, or None."""
+    from lfgnss import datasets
+    from lfgnss.rtklib import rtklib_available, spp_solution
+
+    spec = datasets.get(dataset_id)
+    if not rtklib_available() or len(spec.obs) != 1:
+        return None
+    sol, _ = spp_solution(spec.obs[0], list(spec.nav), workdir / f"{dataset_id}.pos", systems=spec.systems or ("G",))
+    return sol
+
+
+def run(dataset_ids, splits=SPLITS) -> list[dict]:
+    """One row per dataset, split and method: accuracy over the labelled epochs RTKLIB solved in that split."""
+    from lfgnss import datasets
+    from lfgnss.benchmark import _features_for
+    from lfgnss.metrics import accuracy_table
+    from lfgnss.outputs import align_to
+
+    rows = []
+    for dataset_id in datasets.present(list(dataset_ids)):
+        with tempfile.TemporaryDirectory() as tmp:
+            rtk = rtklib_positions(dataset_id, Path(tmp))
+        if rtk is None:
+            print(f"{dataset_id}: no RTKLIB (rnx2rtkp missing, or several obs files): left out", file=sys.stderr)
+            continue
+        filters = {name: make(0.0) for name, make in estimators_for(dataset_id).items()}
+        for split in splits:
+            seqs = datasets.load_split(dataset_id, split, feature_names=_features_for(filters.values()))
+            truth = np.concatenate([s.truth_ecef_m for s in seqs])
+            solved = {RTKLIB: np.concatenate([align_to(s.time_gps_s, rtk) for s in seqs])}
+            solved |= {name: np.concatenate([f.solve(s).pos_ecef_m for s in seqs]) for name, f in filters.items()}
+            ok = np.all(np.isfinite(solved[RTKLIB]), axis=1) & np.all(np.isfinite(truth), axis=1)
+            n_labelled = int(np.all(np.isfinite(truth), axis=1).sum())
+            for name, pos in solved.items():
+                r = accuracy_table(pos[ok], truth[ok]) if ok.any() else {}
+                rows.append({"dataset": dataset_id, "split": split, "method": name, "rtklib_epochs": int(ok.sum()),
+                             "labelled": n_labelled} | {k: r.get(k, float("nan")) for k in
+                                                        ("rmse_u_m", "rmse_2d_m", "rmse_3d_m")})
+    return rows
+
+
+def markdown(rows: list[dict], command: str) -> str:
+    """One table per dataset: methods as rows, splits as columns, U / 2D / 3D RMSE [m] in cells."""
+    out = ["# Our filters against RTKLIB on the epochs RTKLIB solves, per split", "",
+           f"Produced by `{command}` (U / 2D / 3D RMSE in metres over the labelled epochs of each split that RTKLIB "
+           "solved; the filters run forward over the whole split and are scored on those epochs only). The models "
+           "were trained on the train split: its column is in-sample. docs/results.md has the test split's full "
+           "table.", ""]
+    for dataset in dict.fromkeys(r["dataset"] for r in rows):
+        mine = [r for r in rows if r["dataset"] == dataset]
+        splits = list(dict.fromkeys(r["split"] for r in mine))
+        counts = {r["split"]: f"{r['split']} ({r['rtklib_epochs']} of {r['labelled']})" for r in mine}
+        out += [f"## {dataset}", "", "| method | " + " | ".join(counts[s] for s in splits) + " |",
+                "| --- |" + " ---: |" * len(splits)]
+        for name in dict.fromkeys(r["method"] for r in mine):
+            cells = {r["split"]: f"{r['rmse_u_m']:.2f} / {r['rmse_2d_m']:.2f} / {r['rmse_3d_m']:.2f}"
+                     for r in mine if r["method"] == name and r["rtklib_epochs"] > 0}
+            out.append(f"| {name} | " + " | ".join(cells.get(s, "-") for s in splits) + " |")
+        out.append("")
+    return "\n".join(out)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run, print, and with ``--write`` write the Markdown page."""
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--datasets", nargs="+", default=list(DATASETS))
+    p.add_argument("--splits", nargs="+", default=list(SPLITS), choices=SPLITS)
+    p.add_argument("--write", action="store_true", help=f"write {DOC.relative_to(REPO)}")
+    args = p.parse_args(argv)
+    warnings.simplefilter("ignore", FutureWarning)
+    sys.path.insert(0, str(REPO))
+    rows = run(args.datasets, args.splits)
+    text = markdown(rows, " ".join(["python benchmarks/rtklib_epochs.py", *(sys.argv[1:] if argv is None else argv)]))
+    print(text)
+    if args.write:
+        DOC.write_text(text)
+        print(f"written: {DOC}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
