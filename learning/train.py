@@ -75,7 +75,7 @@ DEFAULT_CONFIG: dict[str, Any] = {
     "model": {"d_model": 64, "n_heads": 4, "hidden": [64, 128, 64], "r_floor_m2": 0.01, "r_scale_m2": 1.0,
               "r_init_m2": None, "r_prior": "none", "compensation": True, "innovation": False},
     "train": {"epochs": 200, "batch_size": 16, "lr": 1.0e-3, "t_max": 50, "eta_min": 1.0e-4, "grad_clip": 0.0,
-              "weight_decay": 0.0, "select": "val", "ema_decay": 0.0, "init": "", "smooth": False},
+              "feature_noise": 0.0, "weight_decay": 0.0, "select": "val", "ema_decay": 0.0, "init": "", "smooth": False},
     "loss": {"kind": "hem", "alpha": 0.75, "gamma": 1.5, "lambda": 1.0, "up_weight": 1.0},
     "ekf": {},
 }
@@ -162,6 +162,9 @@ def check_config(config: dict) -> dict:
         raise ValueError(f"data.register must be a list of dataset TOML files, got {register!r}")
     if not isinstance(config["train"].get("init", ""), str):
         raise ValueError(f"train.init must be the path of a model file (a string), got {config['train']['init']!r}")
+    noise = config["train"].get("feature_noise", 0.0)
+    if isinstance(noise, bool) or not isinstance(noise, (int, float)) or not 0.0 <= noise < math.inf:
+        raise ValueError(f"train.feature_noise must be a number >= 0 (standard deviations), got {noise!r}")
     if not isinstance(config["train"].get("smooth", False), bool):
         raise ValueError(f"train.smooth must be true or false, got {config['train']['smooth']!r}")
     burn_in, window = config["data"].get("burn_in", 0), config["data"]["window"]
@@ -387,6 +390,18 @@ def evaluate(model: LfgnssNet, batches: list[WindowBatch], *, n_systems: int, ek
 def _index_batch(full: WindowBatch, index: np.ndarray) -> WindowBatch:
     idx = torch.as_tensor(index, dtype=torch.long, device=full.pr_m.device)
     return WindowBatch(**{f.name: getattr(full, f.name)[idx] for f in dataclasses.fields(full)})
+
+
+def jitter_features(batch: WindowBatch, std: float, generator: torch.Generator) -> WindowBatch:
+    """``batch`` with Gaussian noise of ``std`` (in the normaliser's standard deviations) on its satellites' features.
+
+    A training-time regulariser (``train.feature_noise``): the network cannot key on exact feature values of
+    the few streets it trains on. Padded slots stay zero; validation never sees the noise.
+    """
+    if std <= 0:
+        return batch
+    noise = torch.randn(batch.features.shape, generator=generator, dtype=batch.features.dtype).to(batch.features.device)
+    return dataclasses.replace(batch, features=batch.features + std * noise * batch.mask[..., None])
 
 
 def _rng_state() -> dict:
@@ -623,8 +638,9 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
             from tqdm import tqdm
 
             chunks = tqdm(chunks, desc=f"epoch {epoch}/{tr['epochs']}", leave=False, file=sys.stderr)
+        jitter = torch.Generator().manual_seed(int(seed) * 100_003 + epoch)
         for idx in chunks:
-            batch = _index_batch(train_batch, idx)
+            batch = jitter_features(_index_batch(train_batch, idx), float(tr.get("feature_noise", 0.0)), jitter)
             pos = run_filter(model, batch, n_systems=prep.n_systems, ekf_cfg=ekf_cfg, smooth=smooth)
             loss = loss_fn(pos, batch.truth_ecef_m)
             if not torch.isfinite(loss):

@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from learning.export import load_model
-from learning.train import (_index_batch, build_model, ekf_config, load_config, load_sequences, main, prepare,
-                            run_filter, train)
+from learning.train import (_index_batch, build_model, ekf_config, jitter_features, load_config, load_sequences, main,
+                            prepare, run_filter, train)
 from learning.loss import make_loss
 
 EPOCHS = 4
@@ -167,6 +167,29 @@ def test_weight_decay_alone_changes_the_run(config, prepared, full_run, tmp_path
     assert history[0]["val_rmse_3d_m"] == full_run[1][0]["val_rmse_3d_m"]   # same start (seed) ...
     assert history[1]["train_loss"] != full_run[1][1]["train_loss"]         # ... and only the decay differs
     assert history[1]["val_rmse_3d_m"] != full_run[1][1]["val_rmse_3d_m"]
+
+
+def test_feature_noise_jitters_only_the_training_features_of_real_satellites(config, prepared, full_run, tmp_path):
+    """train.feature_noise: N(0, std^2) on the normalised features of masked-in slots, reproducible per seed and
+    epoch; the first validation (epoch 0) is the run's without it; a negative std is refused."""
+    import copy
+
+    batch = _index_batch(prepared.train_batch, np.arange(3))
+    assert jitter_features(batch, 0.0, torch.Generator().manual_seed(1)) is batch
+    a = jitter_features(batch, 0.5, torch.Generator().manual_seed(1))
+    b = jitter_features(batch, 0.5, torch.Generator().manual_seed(1))
+    assert torch.equal(a.features, b.features) and torch.equal(a.pr_m, batch.pr_m)
+    delta = (a.features - batch.features)
+    assert torch.all(delta[~batch.mask] == 0)                               # padding stays inert
+    assert float(delta[batch.mask].std()) == pytest.approx(0.5, rel=0.05)
+    cfg = copy.deepcopy(config)
+    cfg["train"]["epochs"] = 1
+    cfg["train"]["feature_noise"] = 0.3
+    history = train(cfg, tmp_path, progress=False, prepared=prepared, export=False)
+    assert history[0]["val_rmse_3d_m"] == full_run[1][0]["val_rmse_3d_m"]
+    assert history[1]["train_loss"] != full_run[1][1]["train_loss"]
+    with pytest.raises(ValueError, match="train.feature_noise"):
+        load_config("learning/configs/default.toml", ["train.feature_noise=-0.1"])
 
 
 def test_weight_averaging_is_an_ema_of_epoch_weights_and_resumes(config, prepared, full_run, tmp_path):
