@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from lfgnss import datasets
-from lfgnss.benchmark import (DEFAULT_DATASETS, MODEL_DIR, PLAIN, PLAIN_RTS, RTKLIB, _features_for, _select,
-                              _trained_on, check_models, main, methods, resolve_datasets, target_rows)
+from lfgnss.benchmark import (DEFAULT_DATASETS, MODEL_DIR, PLAIN, PLAIN_OWN_FILTER, PLAIN_RTS, RTKLIB, _features_for,
+                              _select, _trained_on, check_models, main, methods, resolve_datasets, target_rows)
 from lfgnss.errors import InputError
 from lfgnss.metrics import accuracy_table, format_markdown, markdown_table
 from lfgnss.sequence import DEFAULT_FEATURES
@@ -33,6 +33,26 @@ def test_rows_follow_the_model_files(tmp_path):
     # another dataset's own model is not used
     assert not any("per-dataset" in m.name for m in methods(tmp_path, "hk-tst-2019"))
     assert rows["LF-GNSS EKF, per-dataset model"].create().noise.metadata["feature_names"]
+    assert PLAIN_OWN_FILTER not in rows            # the joint model's filter is the default one: no extra row
+
+
+def test_a_per_dataset_model_in_its_own_filter_brings_the_plain_ekf_in_that_filter(tmp_path):
+    """berlin-pp's model was trained with Doppler weights, vertical noise and Huber: the plain EKF gets them too."""
+    from estimators.ekf import config_of
+    from learning.export import load_model
+
+    shutil.copy(MODEL_DIR / "lfgnss-berlin-pp.npz", tmp_path / "lfgnss-berlin-pp.npz")
+    rows = {m.name: m for m in methods(tmp_path, "berlin-pp")}
+    plain = rows[PLAIN_OWN_FILTER].create()
+    assert rows[PLAIN_OWN_FILTER].model is None and type(plain).__name__ == type(rows[PLAIN].create()).__name__
+    assert plain.config == config_of(load_model(tmp_path / "lfgnss-berlin-pp.npz")) != rows[PLAIN].create().config
+    assert plain.config.huber_k == 2.0 and plain.config.q_vel_up_m2_s3 == 0.1
+    all_rows = [_row("berlin-pp", PLAIN, 35.9, 20.0), _row("berlin-pp", PLAIN_OWN_FILTER, 22.9, 11.2),
+                _row("berlin-pp", "LF-GNSS EKF, per-dataset model", 13.3, 8.9),
+                _row("berlin-pp", "LF-GNSS FGO, per-dataset model", 12.1, 10.2)]
+    bars = {r["method"]: r["3D vs plain EKF"] for r in target_rows(all_rows, [])}
+    assert bars == {"LF-GNSS EKF, per-dataset model": "13.30 vs 22.90 (yes)",      # the stronger, same-filter bar
+                    "LF-GNSS FGO, per-dataset model": "12.10 vs 35.90 (yes)"}
 
 
 def test_one_test_sequence_carries_every_feature_the_models_read():
