@@ -97,11 +97,14 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--datasets", nargs="+", default=list(DATASETS))
     p.add_argument("--splits", nargs="+", default=list(SPLITS), choices=SPLITS)
-    p.add_argument("--write", action="store_true", help=f"write {DOC.relative_to(REPO)}")
+    p.add_argument("--write", action="store_true", help="write the page, docs/rtklib_epochs.md")
     args = p.parse_args(argv)
     warnings.simplefilter("ignore", FutureWarning)
     sys.path.insert(0, str(REPO))
     rows = run(args.datasets, args.splits)
+    if not rows:
+        print("rtklib_epochs.py: no dataset with its files and RTKLIB's rnx2rtkp: nothing to compare", file=sys.stderr)
+        return 2
     text = markdown(rows, " ".join(["python benchmarks/rtklib_epochs.py", *(sys.argv[1:] if argv is None else argv)]))
     print(text)
     if args.write:

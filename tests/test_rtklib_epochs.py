@@ -46,3 +46,10 @@ def test_every_row_is_scored_on_rtklibs_own_epochs(tmp_path, monkeypatch, sample
     val = [r for r in rows if r["split"] == "val"]
     if val[0]["rtklib_epochs"] == 0:                               # a split RTKLIB never solved reads "-", not nan
         assert "nan" not in page and page.rstrip().splitlines()[-1].endswith("| - |")
+
+
+def test_without_any_dataset_the_page_is_not_overwritten(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("LFGNSS_SHARED_DATA", str(tmp_path / "no-data"))
+    monkeypatch.setattr(rtklib_epochs, "DOC", tmp_path / "page.md")
+    assert rtklib_epochs.main(["--datasets", "berlin-pp", "--write"]) == 2
+    assert "nothing to compare" in capsys.readouterr().err and not (tmp_path / "page.md").exists()
