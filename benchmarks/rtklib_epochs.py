@@ -3,7 +3,7 @@
     python benchmarks/rtklib_epochs.py                  # train, val and test splits, print the tables
     python benchmarks/rtklib_epochs.py --write          # ... and write docs/rtklib_epochs.md
 
-RTKLIB's ``rnx2rtkp`` (the benchmark's settings, ``lfgnss.rtklib``) runs once per dataset; its solutions are matched
+RTKLIB's ``rnx2rtkp`` runs as in the benchmark (its settings, ``lfgnss.benchmark._rtklib_on``), its solutions matched
 to each split's epochs. On the epochs it solved, the plain EKF and the LF-GNSS EKF with the dataset's own model
 (``lfgnss-<dataset>.npz``, else the joint one), run forward over the whole split, are scored beside it. It shows
 whether a miss against RTKLIB on the test split's epochs is a property of those epochs or a bias of ours (height, for
@@ -29,37 +29,25 @@ SPLITS = ("train", "val", "test")
 RTKLIB = "RTKLIB rnx2rtkp"
 
 
-def rtklib_positions(dataset_id: str, workdir: Path):
-    """(time_gps_s, ECEF positions [m], NaN where unsolved) of RTKLIB over the dataset's whole obs file, or None."""
-    from lfgnss import datasets
-    from lfgnss.rtklib import rtklib_available, spp_solution
-
-    spec = datasets.get(dataset_id)
-    if not rtklib_available() or len(spec.obs) != 1:
-        return None
-    sol, _ = spp_solution(spec.obs[0], list(spec.nav), workdir / f"{dataset_id}.pos", systems=spec.systems or ("G",))
-    return sol
-
-
 def run(dataset_ids, splits=SPLITS) -> list[dict]:
     """One row per dataset, split and method: accuracy over the labelled epochs RTKLIB solved in that split."""
     from lfgnss import datasets
-    from lfgnss.benchmark import _features_for
+    from lfgnss.benchmark import _features_for, _rtklib_on
     from lfgnss.metrics import accuracy_table
-    from lfgnss.outputs import align_to
 
     rows = []
     for dataset_id in datasets.present(list(dataset_ids)):
-        with tempfile.TemporaryDirectory() as tmp:
-            rtk = rtklib_positions(dataset_id, Path(tmp))
-        if rtk is None:
-            print(f"{dataset_id}: no RTKLIB (rnx2rtkp missing, or several obs files): left out", file=sys.stderr)
-            continue
+        spec = datasets.get(dataset_id)
         filters = {name: make(0.0) for name, make in estimators_for(dataset_id).items()}
         for split in splits:
             seqs = datasets.load_split(dataset_id, split, feature_names=_features_for(filters.values()))
+            with tempfile.TemporaryDirectory() as tmp:
+                rtk = [_rtklib_on(s, spec, Path(tmp))[0] for s in seqs]
+            if any(pos is None for pos in rtk):
+                print(f"{dataset_id}: no RTKLIB solution (rnx2rtkp missing, or see above): left out", file=sys.stderr)
+                break
             truth = np.concatenate([s.truth_ecef_m for s in seqs])
-            solved = {RTKLIB: np.concatenate([align_to(s.time_gps_s, rtk) for s in seqs])}
+            solved = {RTKLIB: np.concatenate(rtk)}
             solved |= {name: np.concatenate([f.solve(s).pos_ecef_m for s in seqs]) for name, f in filters.items()}
             ok = np.all(np.isfinite(solved[RTKLIB]), axis=1) & np.all(np.isfinite(truth), axis=1)
             n_labelled = int(np.all(np.isfinite(truth), axis=1).sum())
