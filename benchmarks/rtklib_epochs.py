@@ -3,9 +3,10 @@
     python benchmarks/rtklib_epochs.py                  # train, val and test splits, print the tables
     python benchmarks/rtklib_epochs.py --write          # ... and write docs/rtklib_epochs.md
 
-RTKLIB's ``rnx2rtkp`` runs as in the benchmark (its settings, ``lfgnss.benchmark._rtklib_on``), its solutions matched
-to each split's epochs. On the epochs it solved, the plain EKF and the LF-GNSS EKF with the dataset's own model
-(``lfgnss-<dataset>.npz``, else the joint one), run forward over the whole split, are scored beside it. It shows
+RTKLIB's ``rnx2rtkp`` runs once per dataset as in the benchmark (``lfgnss.benchmark.rtklib_solution``), its solutions
+matched to each split's epochs. On the epochs it solved, the plain EKF, the LF-GNSS EKF with the dataset's own model
+(``lfgnss-<dataset>.npz``, else the joint one) and, where that model's filter is not the default, the plain EKF in
+that filter, each run forward over the whole split, are scored beside it. It shows
 whether a miss against RTKLIB on the test split's epochs is a property of those epochs or a bias of ours (height, for
 one). The models were trained on the train split, so only the validation and test columns are out of sample. Nothing
 is chosen from these figures.
@@ -29,33 +30,59 @@ SPLITS = ("train", "val", "test")
 RTKLIB = "RTKLIB rnx2rtkp"
 
 
-def run(dataset_ids, splits=SPLITS) -> list[dict]:
+def filters_for(dataset_id: str) -> dict:
+    """Name -> estimator: plain EKF, the LF-GNSS EKF with the dataset's model and, where that model's filter is not
+    the default one, the plain EKF in it (as ``lfgnss.benchmark`` does)."""
+    import estimators
+    from estimators.ekf import config_of
+    from estimators.models import EkfConfig
+    from lfgnss.benchmark import PLAIN_OWN_FILTER
+
+    found = {name: make(0.0) for name, make in estimators_for(dataset_id).items()}
+    own = config_of(next(f.noise for name, f in found.items() if name.startswith("LF-GNSS")))
+    if own != EkfConfig():
+        found[PLAIN_OWN_FILTER] = estimators.create("plain-ekf", config=own)
+    return found
+
+
+def _score(dataset_id: str, split: str, method: str, pos: np.ndarray, available: np.ndarray, truth: np.ndarray,
+           on: np.ndarray) -> dict:
+    """One row: U, 2D, 3D RMSE [m] of ``pos`` over the epochs ``on`` (NaN where there are none)."""
+    from lfgnss.metrics import accuracy_table
+
+    r = accuracy_table(pos[on], truth[on], available[on]) if on.any() else {}
+    return {"dataset": dataset_id, "split": split, "method": method, "rtklib_epochs": int(on.sum()),
+            "labelled": int(np.all(np.isfinite(truth), axis=1).sum()), "solved": r.get("n_solved", 0),
+            **{k: r.get(k, float("nan")) for k in ("rmse_u_m", "rmse_2d_m", "rmse_3d_m")}}
+
+
+def run(dataset_ids: list[str], splits: tuple[str, ...] = SPLITS) -> list[dict]:
     """One row per dataset, split and method: accuracy over the labelled epochs RTKLIB solved in that split."""
     from lfgnss import datasets
-    from lfgnss.benchmark import _features_for, _rtklib_on
-    from lfgnss.metrics import accuracy_table
+    from lfgnss.benchmark import _features_for, rtklib_solution
+    from lfgnss.outputs import align_to
 
     rows = []
     for dataset_id in datasets.present(list(dataset_ids)):
-        spec = datasets.get(dataset_id)
-        filters = {name: make(0.0) for name, make in estimators_for(dataset_id).items()}
+        with tempfile.TemporaryDirectory() as tmp:
+            rtk, _ = rtklib_solution(datasets.get(dataset_id), Path(tmp))
+        if rtk is None:
+            print(f"{dataset_id}: no RTKLIB solution (rnx2rtkp missing, or see above): left out", file=sys.stderr)
+            continue
+        filters = filters_for(dataset_id)
         for split in splits:
             seqs = datasets.load_split(dataset_id, split, feature_names=_features_for(filters.values()))
-            with tempfile.TemporaryDirectory() as tmp:
-                rtk = [_rtklib_on(s, spec, Path(tmp))[0] for s in seqs]
-            if any(pos is None for pos in rtk):
-                print(f"{dataset_id}: no RTKLIB solution (rnx2rtkp missing, or see above): left out", file=sys.stderr)
-                break
+            if not seqs:
+                print(f"{dataset_id}: no labelled epoch in its {split} split: left out", file=sys.stderr)
+                continue
             truth = np.concatenate([s.truth_ecef_m for s in seqs])
-            solved = {RTKLIB: np.concatenate(rtk)}
-            solved |= {name: np.concatenate([f.solve(s).pos_ecef_m for s in seqs]) for name, f in filters.items()}
-            ok = np.all(np.isfinite(solved[RTKLIB]), axis=1) & np.all(np.isfinite(truth), axis=1)
-            n_labelled = int(np.all(np.isfinite(truth), axis=1).sum())
-            for name, pos in solved.items():
-                r = accuracy_table(pos[ok], truth[ok]) if ok.any() else {}
-                rows.append({"dataset": dataset_id, "split": split, "method": name, "rtklib_epochs": int(ok.sum()),
-                             "labelled": n_labelled} | {k: r.get(k, float("nan")) for k in
-                                                        ("rmse_u_m", "rmse_2d_m", "rmse_3d_m")})
+            rtk_pos = np.concatenate([align_to(s.time_gps_s, rtk) for s in seqs])
+            on = np.all(np.isfinite(rtk_pos), axis=1) & np.all(np.isfinite(truth), axis=1)
+            rows.append(_score(dataset_id, split, RTKLIB, rtk_pos, on, truth, on))
+            for name, f in filters.items():
+                sols = [f.solve(s) for s in seqs]
+                rows.append(_score(dataset_id, split, name, np.concatenate([x.pos_ecef_m for x in sols]),
+                                   np.concatenate([x.available for x in sols]), truth, on))
     return rows
 
 
@@ -83,13 +110,20 @@ def markdown(rows: list[dict], command: str) -> str:
 def main(argv: list[str] | None = None) -> int:
     """Run, print, and with ``--write`` write the Markdown page."""
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--datasets", nargs="+", default=list(DATASETS))
+    p.add_argument("--datasets", nargs="+", default=list(DATASETS), help="benchmark dataset ids (default: the three)")
     p.add_argument("--splits", nargs="+", default=list(SPLITS), choices=SPLITS)
     p.add_argument("--write", action="store_true", help="write the page, docs/rtklib_epochs.md")
     args = p.parse_args(argv)
     warnings.simplefilter("ignore", FutureWarning)
     sys.path.insert(0, str(REPO))
-    rows = run(args.datasets, args.splits)
+    from lfgnss import datasets
+
+    unknown = [d for d in args.datasets if d not in datasets.registered()]
+    if unknown:
+        print(f"rtklib_epochs.py: unknown dataset {', '.join(unknown)}; known: {', '.join(datasets.registered())}",
+              file=sys.stderr)
+        return 2
+    rows = run(args.datasets, tuple(args.splits))
     if not rows:
         print("rtklib_epochs.py: no dataset with its files and RTKLIB's rnx2rtkp: nothing to compare", file=sys.stderr)
         return 2

@@ -396,7 +396,8 @@ def jitter_features(batch: WindowBatch, std: float, generator: torch.Generator) 
     """``batch`` with Gaussian noise of ``std`` (in the normaliser's standard deviations) on its satellites' features.
 
     A training-time regulariser (``train.feature_noise``): the network cannot key on exact feature values of
-    the few streets it trains on. Padded slots stay zero; validation never sees the noise.
+    the few streets it trains on. Every feature column gets it (one-hot ``sys_*`` columns too); padded slots stay
+    zero; validation never sees the noise.
     """
     if std <= 0:
         return batch
@@ -627,6 +628,7 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
 
     n_windows = len(prep.windows)
     batch_size = int(tr["batch_size"])
+    feature_noise = float(tr.get("feature_noise", 0.0))
     for epoch in range(start_epoch, int(tr["epochs"]) + 1):
         t0 = time.perf_counter()
         model.train()
@@ -640,7 +642,7 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
             chunks = tqdm(chunks, desc=f"epoch {epoch}/{tr['epochs']}", leave=False, file=sys.stderr)
         jitter = torch.Generator().manual_seed(int(seed) * 100_003 + epoch)
         for idx in chunks:
-            batch = jitter_features(_index_batch(train_batch, idx), float(tr.get("feature_noise", 0.0)), jitter)
+            batch = jitter_features(_index_batch(train_batch, idx), feature_noise, jitter)
             pos = run_filter(model, batch, n_systems=prep.n_systems, ekf_cfg=ekf_cfg, smooth=smooth)
             loss = loss_fn(pos, batch.truth_ecef_m)
             if not torch.isfinite(loss):

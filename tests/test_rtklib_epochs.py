@@ -18,38 +18,43 @@ from lfgnss.rtklib import spp_solution
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import rtklib_epochs  # noqa: E402
 
+LEARNED = "LF-GNSS EKF (lfgnss-default.npz)"
+
 
 def test_every_row_is_scored_on_rtklibs_own_epochs(tmp_path, monkeypatch, sample_toml, rnx2rtkp):
     monkeypatch.setattr(datasets, "_REGISTRY", {}, raising=False)
     spec = datasets.register_toml(sample_toml("my-drive", splits=((0, 150), (150, 180), (180, 200))))
     rows = rtklib_epochs.run(["my-drive"], ("train", "val"))
-    assert [(r["split"], r["method"]) for r in rows] == [
-        (s, m) for s in ("train", "val") for m in (rtklib_epochs.RTKLIB, "plain EKF", "LF-GNSS EKF (lfgnss-default.npz)")]
+    assert [(r["split"], r["method"]) for r in rows] == [     # the joint model's filter is the default: no 4th row
+        (s, m) for s in ("train", "val") for m in (rtklib_epochs.RTKLIB, "plain EKF", LEARNED)]
 
     seq = datasets.load_split("my-drive", "train")[0]             # the bundled drive's first 150 s: one run
     sol, _ = spp_solution(spec.obs[0], list(spec.nav), tmp_path / "rtk.pos", systems=spec.systems)
     rtk = align_to(seq.time_gps_s, sol)
     ok = np.isfinite(rtk).all(axis=1) & np.isfinite(seq.truth_ecef_m).all(axis=1)
     assert 0 < ok.sum() < len(seq)                                 # RTKLIB rejects most of this street
-    ekf = estimators.create("ekf", noise=load_model(MODEL_DIR / "lfgnss-default.npz")).solve(seq)
-    want = {rtklib_epochs.RTKLIB: accuracy_table(rtk[ok], seq.truth_ecef_m[ok]),
-            "LF-GNSS EKF (lfgnss-default.npz)": accuracy_table(ekf.pos_ecef_m[ok], seq.truth_ecef_m[ok])}
-    for r in rows:
-        if r["split"] == "train":
-            assert r["rtklib_epochs"] == ok.sum() and r["labelled"] == len(seq)
-            if r["method"] in want:
-                assert r["rmse_3d_m"] == pytest.approx(want[r["method"]]["rmse_3d_m"])
-                assert r["rmse_u_m"] == pytest.approx(want[r["method"]]["rmse_u_m"])
+    solved = {rtklib_epochs.RTKLIB: rtk, "plain EKF": estimators.create("plain-ekf").solve(seq).pos_ecef_m,
+              LEARNED: estimators.create("ekf", noise=load_model(MODEL_DIR / "lfgnss-default.npz")).solve(seq).pos_ecef_m}
+    for r in rows[:3]:
+        want = accuracy_table(solved[r["method"]][ok], seq.truth_ecef_m[ok])
+        assert (r["rtklib_epochs"], r["labelled"], r["solved"]) == (ok.sum(), len(seq), ok.sum())
+        assert (r["rmse_u_m"], r["rmse_3d_m"]) == pytest.approx((want["rmse_u_m"], want["rmse_3d_m"]))
+    assert all(r["rtklib_epochs"] == 0 for r in rows[3:])          # 150-180 s: RTKLIB solves none
 
     page = rtklib_epochs.markdown(rows, "cmd")
-    assert f"| train ({ok.sum()} of {len(seq)}) |" in page and page.count("| plain EKF |") == 1
-    val = [r for r in rows if r["split"] == "val"]
-    if val[0]["rtklib_epochs"] == 0:                               # a split RTKLIB never solved reads "-", not nan
-        assert "nan" not in page and page.rstrip().splitlines()[-1].endswith("| - |")
+    assert f"| train ({ok.sum()} of {len(seq)}) | val (0 of " in page and page.count("| plain EKF |") == 1
+    assert "nan" not in page and page.rstrip().splitlines()[-1].endswith("| - |")   # no epochs: "-", not nan
 
 
-def test_without_any_dataset_the_page_is_not_overwritten(tmp_path, monkeypatch, capsys):
-    monkeypatch.setenv("LFGNSS_SHARED_DATA", str(tmp_path / "no-data"))
+def test_without_rtklib_nothing_is_compared_and_the_page_is_kept(tmp_path, monkeypatch, capsys):
+    import lfgnss.rtklib
+
+    monkeypatch.setattr(lfgnss.rtklib, "rtklib_available", lambda: False)
     monkeypatch.setattr(rtklib_epochs, "DOC", tmp_path / "page.md")
-    assert rtklib_epochs.main(["--datasets", "berlin-pp", "--write"]) == 2
+    if datasets.get("hk-tst-static-2020").missing():                # no data is the other way to have no row
+        monkeypatch.setenv("LFGNSS_SHARED_DATA", str(tmp_path / "no-data"))
+    assert rtklib_epochs.run(["hk-tst-static-2020"]) == []
+    assert rtklib_epochs.main(["--datasets", "hk-tst-static-2020", "--write"]) == 2
     assert "nothing to compare" in capsys.readouterr().err and not (tmp_path / "page.md").exists()
+    assert rtklib_epochs.main(["--datasets", "nope"]) == 2
+    assert "unknown dataset nope" in capsys.readouterr().err

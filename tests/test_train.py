@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from learning.export import load_model
-from learning.train import (_index_batch, build_model, ekf_config, jitter_features, load_config, load_sequences, main,
-                            prepare, run_filter, train)
+from learning.train import (_index_batch, build_model, ekf_config, evaluate, jitter_features, load_config,
+                            load_sequences, main, prepare, run_filter, train)
 from learning.loss import make_loss
 
 EPOCHS = 4
@@ -188,6 +188,10 @@ def test_feature_noise_jitters_only_the_training_features_of_real_satellites(con
     history = train(cfg, tmp_path, progress=False, prepared=prepared, export=False)
     assert history[0]["val_rmse_3d_m"] == full_run[1][0]["val_rmse_3d_m"]
     assert history[1]["train_loss"] != full_run[1][1]["train_loss"]
+    model = build_model(cfg, len(prepared.feature_names), prepared.normaliser)      # validation is noise-free:
+    model.load_state_dict(torch.load(tmp_path / "last.pt", weights_only=False)["model"])   # the saved weights
+    again = evaluate(model, prepared.val_batches, n_systems=prepared.n_systems, ekf_cfg=ekf_config(cfg))[0]
+    assert again == pytest.approx(history[1]["val_rmse_3d_m"], rel=1e-9)              # give the logged figure
     with pytest.raises(ValueError, match="train.feature_noise"):
         load_config("learning/configs/default.toml", ["train.feature_noise=-0.1"])
 
