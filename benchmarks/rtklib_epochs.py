@@ -34,14 +34,12 @@ def filters_for(dataset_id: str) -> dict:
     """Name -> estimator: plain EKF, the LF-GNSS EKF with the dataset's model and, where that model's filter is not
     the default one, the plain EKF in it (as ``lfgnss.benchmark`` does)."""
     import estimators
-    from estimators.ekf import config_of
-    from estimators.models import EkfConfig
-    from lfgnss.benchmark import PLAIN_OWN_FILTER
+    from lfgnss.benchmark import PLAIN_OWN_FILTER, own_filter
 
     found = {name: make(0.0) for name, make in estimators_for(dataset_id).items()}
-    own = config_of(next(f.noise for name, f in found.items() if name.startswith("LF-GNSS")))
-    if own != EkfConfig():
-        found[PLAIN_OWN_FILTER] = estimators.create("plain-ekf", config=own)
+    config = own_filter(next(f.noise for name, f in found.items() if name.startswith("LF-GNSS")))
+    if config is not None:
+        found[PLAIN_OWN_FILTER] = estimators.create("plain-ekf", config=config)
     return found
 
 

@@ -79,21 +79,20 @@ def methods(model_dir: Path = MODEL_DIR, dataset_id: str | None = None) -> list[
     """Baselines always; learned rows where their model file exists (per-dataset ones for ``dataset_id``).
 
     A per-dataset model trained in a filter other than the default also brings the plain EKF in that filter
-    (``PLAIN_OWN_FILTER``; its file is read here for the settings). ``model_dir`` is a folder of ``lfgnss-*.npz`` files, or one model file that takes the rows of the shipped
-    (joint) model on every dataset.
+    (``PLAIN_OWN_FILTER``; its file is read here for the settings). ``model_dir`` is a folder of ``lfgnss-*.npz``
+    files, or one model file that takes the rows of the shipped (joint) model on every dataset.
     """
     rows = [Method("least squares (equal weight)", "wls"), Method("least squares (C/N0-weighted)", "wls-weighted"),
             Method(PLAIN, "plain-ekf"), Method(PLAIN_RTS, "plain-ekf", options={"smooth": True})]
     model_dir = Path(model_dir)
     own = model_dir / f"lfgnss-{dataset_id}.npz"
-    if dataset_id is not None and model_dir.is_dir() and own.exists():
-        from estimators.ekf import config_of
-        from estimators.models import EkfConfig
+    has_own = dataset_id is not None and model_dir.is_dir() and own.exists()
+    if has_own:
         from learning.export import load_model
 
-        own_filter = config_of(load_model(own))
-        if own_filter != EkfConfig():   # the hand-set noise in the learned row's filter: what the learning adds
-            rows.append(Method(PLAIN_OWN_FILTER, "plain-ekf", options={"config": own_filter}))
+        config = own_filter(load_model(own))
+        if config is not None:          # the hand-set noise in the learned row's filter: what the learning adds
+            rows.append(Method(PLAIN_OWN_FILTER, "plain-ekf", options={"config": config}))
     default = model_dir if model_dir.is_file() else model_dir / DEFAULT_MODEL
     if default.is_file():
         rows += [Method("LF-GNSS EKF", "ekf", default), Method("LF-GNSS EKF" + RTS, "ekf", default, {"smooth": True}),
@@ -101,11 +100,20 @@ def methods(model_dir: Path = MODEL_DIR, dataset_id: str | None = None) -> list[
     if not model_dir.is_dir():
         return rows
     rows += [Method(name, "ekf", model_dir / f) for name, f in ABLATIONS.items() if (model_dir / f).exists()]
-    if dataset_id is not None and own.exists():
+    if has_own:
         rows += [Method(OWN_EKF, "ekf", own),
                  Method(f"LF-GNSS EKF{RTS}, per-dataset model", "ekf", own, {"smooth": True}),
                  Method("LF-GNSS FGO, per-dataset model", "fgo", own)]
     return rows
+
+
+def own_filter(noise):
+    """The ``EkfConfig`` a learned noise model was trained in (``estimators.ekf.config_of``); None if the default one."""
+    from estimators.ekf import config_of
+    from estimators.models import EkfConfig
+
+    config = config_of(noise)
+    return None if config == EkfConfig() else config
 
 
 def expected_model_names(dataset_ids) -> list[str]:
