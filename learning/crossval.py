@@ -20,6 +20,12 @@ the hand-set R prior. Writes ``crossval.csv`` and ``crossval.md``
 in ``--out`` and each fold's run (``log.csv``, ``curves.png``, ``best.pt``, ``last.pt``) in ``--out/fold<j>/``.
 ``--fold J`` (repeatable) runs only those folds, e.g. one process per fold on a machine with spare cores, each
 with its own ``--out``; the pooled row is written only when every fold ran.
+
+``--reuse DIR`` trains nothing: it scores each fold's saved model (``DIR/fold<j>/last.pt``, from an earlier run of the
+same recipe) again on its held-out block, under this run's ``[ekf]`` settings, e.g. ``--set ekf.huber_k=2``: an
+inference-time variant of the filter judged on every block in a minute instead of a retraining. Anything else that
+differs from the saved run's configuration (seed included) is refused; so is a held-out block whose data changed.
+The "untrained" and "best" columns are empty there.
 """
 from __future__ import annotations
 
@@ -85,14 +91,74 @@ def _saved_rmse_m(checkpoint: Path, config: dict, prep) -> tuple[float, float]:
     """(RTS-smoothed 3D, forward 2D) RMSE [m] over the held-out block of a fold's saved (exported) weights."""
     import torch
 
+    saved = torch.load(checkpoint, map_location="cpu", weights_only=False)
+    return _model_rmse_m(saved, config, prep.normaliser, prep.val_batches, prep.n_systems)[1:]
+
+
+def _model_rmse_m(saved: dict, config: dict, normaliser, batches: list, n_systems: int) -> tuple[float, float, float]:
+    """(forward 3D, RTS-smoothed 3D, forward 2D) RMSE [m] of a checkpoint's weights over ``batches``, ``config``'s EKF."""
     from .train import build_model, evaluate
 
-    saved = torch.load(checkpoint, map_location="cpu", weights_only=False)
-    model = build_model(config, len(prep.feature_names), prep.normaliser)
+    model = build_model(saved["config"], len(normaliser.feature_names), normaliser)
     model.load_state_dict(saved["model"])
-    run = dict(n_systems=prep.n_systems, ekf_cfg=ekf_config(config))
-    return (evaluate(model, prep.val_batches, smooth=True, **run)[0],
-            evaluate(model, prep.val_batches, up_weight=0.0, **run)[0])
+    run = dict(n_systems=n_systems, ekf_cfg=ekf_config(config))
+    return (evaluate(model, batches, **run)[0], evaluate(model, batches, smooth=True, **run)[0],
+            evaluate(model, batches, up_weight=0.0, **run)[0])
+
+
+#: Settings a rescore (``--reuse``) may change: the filter's, and how the run uses the machine.
+RESCORE_FREE = ("ekf", "threads", "device")
+
+
+def _flat(table: dict, prefix: str = "") -> dict:
+    """Nested tables as one dict of dotted keys, e.g. ``{"ekf.gate_sigma": 3.0}``."""
+    out = {}
+    for key, value in table.items():
+        if isinstance(value, dict):
+            out.update(_flat(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
+def saved_fold(reuse_dir: str | Path, fold: int, config: dict, held: list[Sequence]) -> dict:
+    """The checkpoint ``reuse_dir/fold<fold>/last.pt``, checked to be ``config``'s recipe (but ``[ekf]``) and ``held``'s."""
+    import torch
+
+    from .train import fingerprint
+
+    path = Path(reuse_dir) / f"fold{fold}" / "last.pt"
+    try:
+        saved = torch.load(path, map_location="cpu", weights_only=False)
+        saved_config, prints = saved["config"], saved["data_fingerprints"]
+    except Exception as exc:            # torch.load raises many kinds on a file that is not a checkpoint
+        raise ValueError(f"{path}: not a learning.train checkpoint ({type(exc).__name__}: {exc})") from exc
+    was, now = (_flat({k: v for k, v in c.items() if k not in RESCORE_FREE}) for c in (saved_config, config))
+    changed = sorted(k for k in was.keys() | now.keys() if was.get(k, "(unset)") != now.get(k, "(unset)"))
+    if changed:
+        k = changed[0]
+        raise ValueError(f"{path}: trained with {k} = {was.get(k, '(unset)')!r}, this run has "
+                         f"{now.get(k, '(unset)')!r}; a rescore may change only {', '.join(RESCORE_FREE)} settings")
+    val = config["data"]["val_split"]
+    trained_on = [(p["sequence"], p["sha256_16"]) for p in prints if p["split"] == val]
+    if trained_on != [(s.name, fingerprint(s)) for s in held]:
+        raise ValueError(f"{path}: its held-out block is not this run's (the data changed since it was trained)")
+    return saved
+
+
+def _rescored_row(fold: int, saved: dict, config: dict, held: list[Sequence]) -> dict:
+    """A crossval row for a saved fold model scored again on its held-out pieces (no untrained / best figures)."""
+    from .data import sequence_batch
+    from .normalise import Normaliser
+
+    normaliser = Normaliser.from_dict(saved["normaliser"])
+    batches = [sequence_batch(s, normaliser, n_systems=int(saved["n_systems"])) for s in held]
+    last_3d, last_smoothed_3d, last_2d = _model_rmse_m(saved, config, normaliser, batches, int(saved["n_systems"]))
+    plain_3d, plain_2d = plain_ekf_rmse_m(held, config)
+    return {"fold": fold, "held_out_epochs": sum(len(s) for s in held), "plain_ekf_rmse_3d_m": plain_3d,
+            "untrained_rmse_3d_m": math.nan, "last_rmse_3d_m": last_3d, "best_rmse_3d_m": math.nan, "best_epoch": "-",
+            "plain_ekf_smoothed_rmse_3d_m": plain_ekf_rmse_m(held, config, smooth=True)[0],
+            "last_smoothed_rmse_3d_m": last_smoothed_3d, "plain_ekf_rmse_2d_m": plain_2d, "last_rmse_2d_m": last_2d}
 
 
 def pooled_rmse(rmse: list[float], counts: list[int]) -> float:
@@ -102,14 +168,21 @@ def pooled_rmse(rmse: list[float], counts: list[int]) -> float:
 
 
 def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = True,
-             only: list[int] | None = None) -> list[dict]:
-    """Train ``config`` on each fold (or the folds ``only``); one row per fold, plus a ``pooled`` row when all ran."""
+             only: list[int] | None = None, reuse: str | Path | None = None) -> list[dict]:
+    """Train ``config`` on each fold (or the folds ``only``); one row per fold, plus a ``pooled`` row when all ran.
+
+    ``reuse``: train nothing, score the folds' saved models in that folder under ``config``'s EKF (``saved_fold``).
+    """
     out = Path(out_dir)
     chosen = sorted(set(range(folds) if only is None else only))
     if not chosen or not all(0 <= j < folds for j in chosen):
         raise ValueError(f"folds to run must be among 0..{folds - 1}, got {only}")
     if (out / "crossval.csv").exists() or (out / "fold0").exists():
         raise ValueError(f"{out}: already holds a cross-validation; choose another --out")
+    missing = [] if reuse is None else [p for j in chosen if not (p := Path(reuse) / f"fold{j}" / "last.pt").is_file()]
+    if missing:
+        raise ValueError(f"{missing[0]}: no saved fold model (--reuse takes the --out folder of an earlier "
+                         "cross-validation of the same recipe)")
     out.mkdir(parents=True, exist_ok=True)
     config = adopt_init(config)
     data = config["data"]
@@ -128,6 +201,9 @@ def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = 
             return parts[ds][0] if split == data["train_split"] else parts[ds][1]
 
         held = [s for _, h in parts.values() for s in h]
+        if reuse is not None:
+            rows.append(_rescored_row(j, saved_fold(reuse, j, config, held), config, held))
+            continue
         prep = prepare(config, source)
         history = train(copy.deepcopy(config), out / f"fold{j}", progress=progress, prepared=prep, export=False)
         best = min(history, key=lambda h: h["val_rmse_3d_m"])
@@ -164,13 +240,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--fold", dest="only", type=int, action="append", metavar="J",
                    help="run only fold J (repeatable; no pooled row unless every fold runs): folds in parallel "
                         "processes, each with its own --out")
+    p.add_argument("--reuse", metavar="DIR",
+                   help="train nothing: score the saved fold models of an earlier run (its --out) again on their "
+                        "held-out blocks under this run's [ekf] settings (--set ekf.KEY=VALUE)")
     p.add_argument("--out", help="output folder (default: runs/cv-<config name>)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     args = p.parse_args(argv)
     out = Path(args.out or Path("runs") / f"cv-{Path(args.config).stem if args.config else 'default'}")
     try:
         config = load_config(args.config, args.overrides)
-        crossval(config, args.folds, out, progress=not args.no_progress, only=args.only)
+        crossval(config, args.folds, out, progress=not args.no_progress, only=args.only, reuse=args.reuse)
     except INPUT_ERRORS as exc:
         exit_on_input_error(p, exc)
     print((out / "crossval.md").read_text(), end="")

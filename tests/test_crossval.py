@@ -39,14 +39,29 @@ def test_block_across_a_sequence_boundary_and_bad_arguments(sequences):
         fold_sequences(sequences[:1], 30, 0)
 
 
-def test_command_writes_per_fold_and_pooled_rows(tmp_path, capsys):
-    args = ["--config", "learning/configs/default.toml", "--folds", "2", "--out", str(tmp_path), "--no-progress"]
-    for s in ("data.datasets=['synthetic']", "data.synthetic.n_epochs=60", "data.window=20", "data.stride=10",
-              "train.batch_size=4", "train.epochs=2"):
-        args += ["--set", s]
+RECIPE = ["--config", "learning/configs/default.toml", "--folds", "2", "--no-progress"]
+for _s in ("data.datasets=['synthetic']", "data.synthetic.n_epochs=60", "data.window=20", "data.stride=10",
+           "train.batch_size=4", "train.epochs=2"):
+    RECIPE += ["--set", _s]
+
+
+def _rows(folder):
+    with open(folder / "crossval.csv") as fh:
+        return list(csv.DictReader(fh))
+
+
+@pytest.fixture(scope="module")
+def trained_run(tmp_path_factory):
+    """One small cross-validation on simulated data: (its --out folder, its command-line arguments)."""
+    out = tmp_path_factory.mktemp("cv")
+    args = RECIPE + ["--out", str(out)]
     assert main(args) == 0
-    with open(tmp_path / "crossval.csv") as fh:
-        rows = list(csv.DictReader(fh))
+    return out, args
+
+
+def test_command_writes_per_fold_and_pooled_rows(trained_run, capsys):
+    tmp_path, args = trained_run
+    rows = _rows(tmp_path)
     assert [r["fold"] for r in rows] == ["0", "1", "pooled"]
     for r in rows:
         for key in ("plain_ekf_rmse_3d_m", "untrained_rmse_3d_m", "last_rmse_3d_m", "best_rmse_3d_m",
@@ -62,10 +77,55 @@ def test_command_writes_per_fold_and_pooled_rows(tmp_path, capsys):
     assert float(rows[2]["plain_ekf_rmse_3d_m"]) == pytest.approx(pooled)
     for j in (0, 1):
         assert (tmp_path / f"fold{j}" / "log.csv").exists() and not (tmp_path / f"fold{j}" / "model.npz").exists()
-    assert "| pooled |" in capsys.readouterr().out
     with pytest.raises(SystemExit) as exit_info:        # never over an earlier run: one line, exit 2
         main(args)
     assert exit_info.value.code == 2 and "already holds a cross-validation" in capsys.readouterr().err
+
+
+def test_reuse_scores_the_saved_fold_models_again_under_new_filter_settings(trained_run, tmp_path, capsys):
+    """``--reuse`` trains nothing: unchanged settings give the run's own figures back; an [ekf] change moves them;
+    any other change, a missing run or a changed held-out block is one line and exit 2."""
+    import torch
+
+    run, _ = trained_run
+    assert main(RECIPE + ["--out", str(tmp_path / "same"), "--reuse", str(run)]) == 0
+    assert not (tmp_path / "same" / "fold0").exists()                       # nothing trained
+    again, first = _rows(tmp_path / "same"), _rows(run)
+    for a, b in zip(again, first):
+        for key in ("held_out_epochs", "plain_ekf_rmse_3d_m", "last_rmse_3d_m", "plain_ekf_smoothed_rmse_3d_m",
+                    "last_smoothed_rmse_3d_m", "plain_ekf_rmse_2d_m", "last_rmse_2d_m"):
+            assert float(a[key]) == pytest.approx(float(b[key]), rel=1e-9), key
+        assert math.isnan(float(a["untrained_rmse_3d_m"])) and math.isnan(float(a["best_rmse_3d_m"]))
+    assert "| pooled | 180 | " in capsys.readouterr().out
+    assert main(RECIPE + ["--out", str(tmp_path / "gate"), "--reuse", str(run), "--set", "ekf.gate_sigma=2.0"]) == 0
+    gated = _rows(tmp_path / "gate")
+    assert all(float(a["plain_ekf_rmse_3d_m"]) != float(b["plain_ekf_rmse_3d_m"]) for a, b in zip(gated, first))
+    assert all(float(a["last_rmse_3d_m"]) != float(b["last_rmse_3d_m"]) for a, b in zip(gated, first))
+    capsys.readouterr()
+    for extra, message in ((["--set", "seed=3"], "fold0/last.pt: trained with seed = 0, this run has 3; a rescore "
+                                                 "may change only ekf, threads, device settings"),
+                           (["--set", "train.epochs=3"], "trained with train.epochs = 2, this run has 3")):
+        with pytest.raises(SystemExit) as exit_info:
+            main(RECIPE + extra + ["--out", str(tmp_path / "x"), "--reuse", str(run)])
+        assert exit_info.value.code == 2 and message in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_info:
+        main(RECIPE + ["--out", str(tmp_path / "y"), "--reuse", str(tmp_path / "none")])
+    assert exit_info.value.code == 2 and "none/fold0/last.pt: no saved fold model" in capsys.readouterr().err
+    assert not (tmp_path / "y").exists()
+    tampered = tmp_path / "tampered" / "fold0"
+    tampered.mkdir(parents=True)
+    saved = torch.load(run / "fold0" / "last.pt", map_location="cpu", weights_only=False)
+    saved["data_fingerprints"] = [dict(p, sha256_16="0" * 16) for p in saved["data_fingerprints"]]
+    torch.save(saved, tampered / "last.pt")
+    with pytest.raises(SystemExit) as exit_info:
+        main(RECIPE + ["--fold", "0", "--out", str(tmp_path / "z"), "--reuse", str(tmp_path / "tampered")])
+    assert exit_info.value.code == 2 and "its held-out block is not this run's" in capsys.readouterr().err
+    (tampered / "last.pt").write_text("not a checkpoint")
+    with pytest.raises(SystemExit) as exit_info:
+        main(RECIPE + ["--fold", "0", "--out", str(tmp_path / "w"), "--reuse", str(tmp_path / "tampered")])
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and "tampered/fold0/last.pt: not a learning.train checkpoint" in err
+    assert "Traceback" not in err
 
 
 def test_one_fold_alone_matches_that_fold_of_the_whole_run(monkeypatch, tmp_path, capsys):
