@@ -22,8 +22,10 @@ innovations too (``online``): the EKF plug-in calls ``predict`` epoch by epoch w
 """
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
 import json
+import sys
 import zipfile
 from pathlib import Path
 from typing import Iterable
@@ -268,6 +270,88 @@ def model_settings(metadata: dict) -> dict:
 
 
 _REQUIRED_META = ("format", "format_version", "feature_names", "model", "parameters", "normaliser")
+_REQUIRED_MODEL = ("d_model", "n_heads", "hidden", "r_floor_m2")
+_PRIOR_KEYS = ("cn0_index", "el_index", "cn0_mean", "cn0_std", "el_mean", "el_std", "floor_m", "cn0_scale_m2",
+               "elevation_power", "el_min_rad")
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and abs(value) <= sys.float_info.max
+
+
+def _is_count(value, minimum: int = 1) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= minimum
+
+
+def _check_metadata(path: str, meta: dict) -> None:
+    """Types and values of the metadata the forward pass and the EKF use; ModelFileError naming file and key."""
+    def fail(key: str, need: str, value) -> None:
+        shown = {list: "a list", dict: "a table"}.get(type(value)) or f"{' '.join(repr(value).split())!s:.60}"
+        raise ModelFileError(path, f"metadata {key} must be {need}, not {shown}")
+
+    for key in ("model", "parameters", "normaliser"):
+        if not isinstance(meta[key], dict):
+            fail(key, "a table", meta[key])
+    for name, shape in meta["parameters"].items():
+        if not (isinstance(shape, list) and all(_is_count(n, 0) for n in shape)):
+            fail(f"parameters.{name}", "a list of array dimensions", shape)
+    m = model_settings(meta)
+    missing = [k for k in _REQUIRED_MODEL if k not in m]
+    if missing:
+        raise ModelFileError(path, f"metadata model.{missing[0]} missing (needs {', '.join(_REQUIRED_MODEL)})")
+    d_model, n_heads, prior = m["d_model"], m["n_heads"], m.get("r_prior")
+    checks = [("d_model", _is_count(d_model), "an integer >= 1"),
+              ("n_heads", _is_count(d_model) and _is_count(n_heads) and d_model % n_heads == 0,
+               f"an integer >= 1 dividing d_model {d_model}"),
+              ("hidden", isinstance(m["hidden"], list) and all(_is_count(h) for h in m["hidden"]),
+               "a list of integers >= 1"),
+              ("r_floor_m2", _is_number(m["r_floor_m2"]) and m["r_floor_m2"] >= 0, "a finite number >= 0"),
+              ("r_scale_m2", _is_number(m.get("r_scale_m2", 1.0)) and m.get("r_scale_m2", 1.0) > 0,
+               "a finite number > 0"),
+              ("compensation", isinstance(m.get("compensation", True), bool), "true or false"),
+              ("innovation", isinstance(m["innovation"], bool), "true or false"),
+              ("r_prior", prior is None or isinstance(prior, dict), "a table or null")]
+    for key, ok, need in checks:
+        if not ok:
+            fail(f"model.{key}", need, m.get(key))
+    d = len(meta["feature_names"])
+    for key in _PRIOR_KEYS if prior is not None else ():
+        value = prior.get(key)
+        if key.endswith("_index") and not (_is_count(value, 0) and value < d):
+            fail(f"model.r_prior.{key}", f"a feature index below {d}", value)
+        if not _is_number(value):
+            fail(f"model.r_prior.{key}", "a finite number", value)
+    eps = meta.get("layer_norm_eps", 1e-5)
+    if not (_is_number(eps) and eps > 0):
+        fail("layer_norm_eps", "a finite number > 0", eps)
+    stored = meta.get("ekf_config")
+    if stored is not None and not isinstance(stored, dict):
+        fail("ekf_config", "a table or null", stored)
+    from estimators.models import EkfConfig   # the filter settings as estimators.ekf.config_of reads them
+
+    known = {f.name for f in dataclasses.fields(EkfConfig)}
+    for key, value in (stored or {}).items():
+        if key in known and not (value is None or isinstance(value, (int, float))):
+            fail(f"ekf_config.{key}", "a number or null", value)
+    try:
+        EkfConfig(**{"doppler_sigma_m_s": 0.0} | {k: v for k, v in (stored or {}).items() if k in known})
+    except (TypeError, ValueError) as exc:
+        reason = " ".join(str(exc).split()).removeprefix("estimators/models.py: ")
+        raise ModelFileError(path, f"metadata ekf_config: {reason}") from exc
+
+
+def _parameter_shapes(m: dict, n_inputs: int) -> dict[str, list[int]]:
+    """The shape of every tensor the forward pass reads, from the ``model`` settings."""
+    dm = m["d_model"]
+    shapes = {"embed.weight": [dm, n_inputs], "embed.bias": [dm], "attention.in_proj_weight": [3 * dm, dm],
+              "attention.in_proj_bias": [3 * dm], "attention.out_proj.weight": [dm, dm],
+              "attention.out_proj.bias": [dm], "norm.weight": [dm], "norm.bias": [dm]}
+    width = dm
+    for i, h in enumerate(m["hidden"]):
+        shapes[f"mlp.{2 * i}.weight"], shapes[f"mlp.{2 * i}.bias"] = [h, width], [h]
+        width = h
+    shapes["head.weight"], shapes["head.bias"] = [2, width], [2]
+    return shapes
 
 
 def load_model(path: str | Path, expected_features: Iterable[str] | None = None) -> LfgnssModel:
@@ -277,23 +361,36 @@ def load_model(path: str | Path, expected_features: Iterable[str] | None = None)
     ------
     ModelFileError
         (a ``ValueError``) naming the file and the reason: unreadable / truncated / corrupt file,
-        another format or version, missing or mis-shaped arrays, features that this version of
-        ``lfgnss.features`` cannot compute, or features other than ``expected_features`` (names and order).
+        another format or version, metadata of the wrong type or value (naming the key), missing or
+        mis-shaped arrays, features that this version of ``lfgnss.features`` cannot compute, features
+        other than ``expected_features`` (names and order), or a network that does not run on a test input.
     """
     path = str(path)
     try:
-        with np.load(path, allow_pickle=False) as z:
-            arrays = {k: np.asarray(z[k]) for k in z.files}
+        with open(path, "rb") as fh:
+            magic = fh.read(4)
+        arrays = None
+        if magic.startswith(b"PK"):
+            with np.load(path, allow_pickle=False) as z:
+                arrays = {k: np.asarray(z[k]) for k in z.files}
     except FileNotFoundError as exc:
         raise ModelFileError(path, "no such model file") from exc
+    except IsADirectoryError as exc:
+        raise ModelFileError(path, "a folder, not a model file") from exc
     except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as exc:
+        if "allow_pickle" in str(exc):
+            raise ModelFileError(path, "not an lfgnss model file (it holds pickled Python objects)") from exc
         raise ModelFileError(path, f"truncated or corrupt model file ({type(exc).__name__}: {exc})") from exc
+    if arrays is None:
+        raise ModelFileError(path, "not an lfgnss model file (not an .npz archive)" if magic else "empty file")
     if "metadata" not in arrays:
         raise ModelFileError(path, "not an lfgnss model file (no metadata)")
     try:
         meta = json.loads(str(arrays["metadata"]))
     except (ValueError, TypeError) as exc:
         raise ModelFileError(path, f"metadata is not valid JSON ({exc})") from exc
+    if not isinstance(meta, dict):
+        raise ModelFileError(path, f"not an {FORMAT_NAME} file (metadata is a JSON {type(meta).__name__}, not a table)")
     missing = [k for k in _REQUIRED_META if k not in meta]
     if missing or meta.get("format") != FORMAT_NAME:
         raise ModelFileError(path, f"not an {FORMAT_NAME} file (format {meta.get('format')!r}, missing {missing})")
@@ -307,27 +404,44 @@ def load_model(path: str | Path, expected_features: Iterable[str] | None = None)
     if unknown:  # the same words as the CLI check in lfgnss.solve
         raise ModelFileError(path, f"the model needs feature(s) {', '.join(unknown)} that this lfgnss cannot compute "
                                    f"(it computes {', '.join(AVAILABLE_FEATURES)})")
+    _check_metadata(path, meta)
     params = {}
     for name, shape in meta["parameters"].items():
         arr = arrays.get(f"param/{name}")
-        if arr is None or list(arr.shape) != list(shape) or not np.all(np.isfinite(arr)):
+        if (arr is None or list(arr.shape) != list(shape) or arr.dtype.kind not in "fiu"
+                or not np.all(np.isfinite(arr))):
             raise ModelFileError(path, f"parameter {name!r} missing, mis-shaped or not finite")
         params[name] = arr
     try:
         normaliser = Normaliser(tuple(meta["feature_names"]), arrays["normaliser_mean"], arrays["normaliser_std"])
-    except (KeyError, ValueError) as exc:
-        raise ModelFileError(path, f"bad normaliser ({exc})") from exc
-    n_hidden = len(meta["model"].get("hidden", []))
-    needed = ["embed.weight", "attention.in_proj_weight", "attention.out_proj.weight", "norm.weight", "head.weight"]
-    needed += [f"mlp.{2 * i}.weight" for i in range(n_hidden)]
-    absent = [k for k in needed if k not in params]
+    except (KeyError, ValueError, TypeError) as exc:
+        reason = "normaliser_mean / normaliser_std are not numbers" if isinstance(exc, TypeError) else exc
+        raise ModelFileError(path, f"bad normaliser ({reason})") from exc
+    settings = model_settings(meta)
+    n_inputs = len(normaliser.feature_names) + settings["innovation"]
+    shapes = _parameter_shapes(settings, n_inputs)
+    absent = [k for k in shapes if k not in params]
     if absent:
-        raise ModelFileError(path, f"parameters {absent} missing")
-    n_inputs = len(normaliser.feature_names) + bool(model_settings(meta)["innovation"])
+        layers = f" (model.hidden is {settings['hidden']})" if any(k.startswith("mlp.") for k in absent) else ""
+        raise ModelFileError(path, f"parameters {absent} missing{layers}")
     if params["embed.weight"].shape[1] != n_inputs:
         raise ModelFileError(path, f"embedding takes {params['embed.weight'].shape[1]} inputs but "
                                    f"{n_inputs} are named")
+    for name, want in shapes.items():
+        if list(params[name].shape) != want:
+            raise ModelFileError(path, f"parameter {name!r} is {list(params[name].shape)} but model.d_model "
+                                       f"{settings['d_model']} and model.hidden {settings['hidden']} need {want}")
     if expected_features is not None and tuple(expected_features) != tuple(normaliser.feature_names):
         raise ModelFileError(path, f"model features {list(normaliser.feature_names)} do not match the expected "
                                    f"{list(expected_features)}")
-    return LfgnssModel(path, params, normaliser, meta)
+    try:  # backstop: one epoch of two satellites at the normaliser mean must give usable noise
+        model = LfgnssModel(path, params, normaliser, meta)
+        with np.errstate(all="ignore"):
+            r, vc = model.predict(np.tile(normaliser.mean, (1, 2, 1)), np.ones((1, 2), bool),
+                                  np.zeros((1, 2)) if model.online else None)
+    except Exception as exc:  # noqa: BLE001 -- any failure here is the file's
+        raise ModelFileError(path, f"the network does not run ({type(exc).__name__}: "
+                                   f"{' '.join(str(exc).split())})") from exc
+    if not (np.all(np.isfinite(r)) and np.all(r > 0) and np.all(np.isfinite(vc))):
+        raise ModelFileError(path, "the network gives non-finite or non-positive noise on a test input")
+    return model

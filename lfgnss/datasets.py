@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import tomllib
 import warnings
 from dataclasses import dataclass, field, replace
@@ -180,10 +181,38 @@ def get(dataset_id: str) -> DatasetSpec:
 
 # -- ground truth -------------------------------------------------------------------------------------------
 
-def _numeric_rows(path: Path, n_cols: int, sep: str, record_word: str | None = None) -> tuple[np.ndarray, list[str]]:
+#: A ground truth point is near the Earth's surface: ECEF radius [m] within these bounds (ocean floor to airliner
+#: height and more), ellipsoidal height [m] within TRUTH_HEIGHT_M.
+TRUTH_RADIUS_M = (6.0e6, 6.6e6)
+TRUTH_HEIGHT_M = (-1.0e4, 1.0e5)
+
+
+def _lla_problem(values: list[float]) -> str | None:
+    """Why a row of (time, time, latitude [deg], longitude [deg], height [m]) is no position on Earth, or None."""
+    lat, lon, h = values[2:5]
+    if not -90.0 <= lat <= 90.0:
+        return f"latitude {lat:g} deg outside [-90, 90]"
+    if not -180.0 <= lon <= 360.0:
+        return f"longitude {lon:g} deg outside [-180, 360]"
+    if not TRUTH_HEIGHT_M[0] <= h <= TRUTH_HEIGHT_M[1]:
+        return f"height {h:g} m outside [{TRUTH_HEIGHT_M[0]:g}, {TRUTH_HEIGHT_M[1]:g}]"
+    return None
+
+
+def _ecef_problem(values: list[float]) -> str | None:
+    """Why a row of (time, X, Y, Z [m]) is no position near the Earth's surface, or None."""
+    r = math.hypot(*values[1:4])                   # no overflow to inf at 1e308
+    if not TRUTH_RADIUS_M[0] <= r <= TRUTH_RADIUS_M[1]:
+        return f"ECEF position {r:.6g} m from the Earth's centre, outside [{TRUTH_RADIUS_M[0]:g}, {TRUTH_RADIUS_M[1]:g}]"
+    return None
+
+
+def _numeric_rows(path: Path, n_cols: int, sep: str, record_word: str | None = None,
+                  problem=None) -> tuple[np.ndarray, list[str]]:
     """Rows of at least n_cols numbers; bad lines are reported as 'PATH:LINE: reason' and skipped.
 
     With ``record_word`` only lines starting with that word are rows; others are reported, '#' comments aside.
+    ``problem(values) -> reason or None`` rejects rows of readable but impossible values.
     """
     rows, bad = [], []
     try:
@@ -208,15 +237,23 @@ def _numeric_rows(path: Path, n_cols: int, sep: str, record_word: str | None = N
         except ValueError:
             bad.append(f"{path}:{i}: unreadable truth line, skipped")
             continue
+        why = problem(values) if problem is not None else None
+        if why is not None:
+            bad.append(f"{path}:{i}: {why}, skipped")
+            continue
         rows.append(values)
     if not rows:
+        if bad:                 # "PATH:LINE: reason, skipped" of the first line: say why there
+            line, why = bad[0][len(str(path)) + 1:].split(": ", 1)
+            raise InputError(path, f"no readable ground-truth line; the first: {why.removesuffix(', skipped')}",
+                             line=int(line))
         raise InputError(path, "no readable ground-truth line")
     return np.array(rows), bad
 
 
 def read_urbannav(path: Path, spec: DatasetSpec) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """UrbanNav CSV: GPS week, TOW [s], latitude, longitude [deg], height [m]."""
-    rows, bad = _numeric_rows(path, 5, "any")
+    rows, bad = _numeric_rows(path, 5, "any", problem=_lla_problem)
     return week_tow_to_gps_s(rows[:, 0], rows[:, 1]), lla_to_ecef(np.radians(rows[:, 2]), np.radians(rows[:, 3]), rows[:, 4]), bad
 
 
@@ -224,7 +261,7 @@ def read_smartloc(path: Path, spec: DatasetSpec) -> tuple[np.ndarray, np.ndarray
     """libRSF ``point3`` rows: t [s since spec.time_origin_gps_s, which align_truth fills in], ECEF X Y Z [m]."""
     if spec.time_origin_gps_s is None:
         raise ValueError(f"dataset {spec.id}: smartloc truth needs time_origin_gps_s (align_truth sets it)")
-    rows, bad = _numeric_rows(path, 4, "any", record_word="point3")
+    rows, bad = _numeric_rows(path, 4, "any", record_word="point3", problem=_ecef_problem)
     return spec.time_origin_gps_s + rows[:, 0], rows[:, 1:4], bad
 
 
@@ -233,7 +270,7 @@ def read_static(path: Path, spec: DatasetSpec) -> tuple[np.ndarray, np.ndarray, 
 
     The first row is the point; rows farther than ``STATIC_SPREAD_M`` from it give a warning (not one point).
     """
-    rows, bad = _numeric_rows(path, 5, "any")
+    rows, bad = _numeric_rows(path, 5, "any", problem=_lla_problem)
     xyz = lla_to_ecef(np.radians(rows[:, 2]), np.radians(rows[:, 3]), rows[:, 4])
     spread_m = float(np.max(np.linalg.norm(xyz - xyz[0], axis=1)))
     if spread_m > STATIC_SPREAD_M:
@@ -244,7 +281,7 @@ def read_static(path: Path, spec: DatasetSpec) -> tuple[np.ndarray, np.ndarray, 
 
 def read_ecef_csv(path: Path, spec: DatasetSpec) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """CSV of GPS seconds since 1980-01-06, ECEF X, Y, Z [m]."""
-    rows, bad = _numeric_rows(path, 4, "any")
+    rows, bad = _numeric_rows(path, 4, "any", problem=_ecef_problem)
     return rows[:, 0], rows[:, 1:4], bad
 
 

@@ -46,7 +46,7 @@ class SatelliteStates:
     toe_gps_s: np.ndarray        #: (M,) toe of the selected ephemeris (NaN if none)
     health: np.ndarray           #: (M,) int health word of the selected ephemeris (-1 if none)
     ok: np.ndarray               #: (M,) bool
-    reason: np.ndarray           #: (M,) str: '' | 'no ephemeris' | 'ephemeris expired' | 'unhealthy' | 'invalid time'
+    reason: np.ndarray           #: (M,) str: '' | 'no ephemeris' | 'ephemeris expired' | 'unhealthy' | 'invalid time' | 'invalid ephemeris' (a non-finite state)
 
     def __len__(self) -> int:
         return len(self.sv)
@@ -132,6 +132,8 @@ def ephemeris_states(nav: Navigation, sv: np.ndarray, t_gps_s: np.ndarray, *,
 
     unhealthy = (reason == "") & (health != 0)
     reason[unhealthy] = "unhealthy"
+    broken = (reason == "") & ~(np.isfinite(pos).all(axis=1) & np.isfinite(clk))
+    reason[broken] = "invalid ephemeris"
     return SatelliteStates(sv=sv, t_tx_gps_s=t, pos_ecef_m=pos, vel_ecef_m_s=vel, clock_s=clk,
                            clock_drift_s_s=drift, group_delay_s=tgd, toe_gps_s=toe, health=health,
                            ok=reason == "", reason=reason)

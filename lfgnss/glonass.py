@@ -13,6 +13,9 @@ from .constants import GM_GLO_M3_S2, OMEGA_EARTH_GLO_RAD_S
 J2_GLO = 1.0826257e-3      #: second zonal harmonic of the geopotential (ICD)
 RE_GLO_M = 6378136.0       #: equatorial radius of the earth, PZ-90 [m]
 STEP_S = 60.0              #: integration step [s] (RTKLIB TSTEP)
+#: Longest propagation [s]: a broadcast state is valid for +-15 min; beyond hours it is a damaged record, and
+#: integrating it would take |dt| / 60 s steps (an unbounded loop for an absurd time).
+MAX_PROPAGATION_S = 6 * 3600.0
 
 
 def derivatives(state: np.ndarray, acc_m_s2: np.ndarray) -> np.ndarray:
@@ -70,12 +73,15 @@ def propagate(pos_ecef_m: np.ndarray, vel_ecef_m_s: np.ndarray, acc_m_s2: np.nda
 
     Returns
     -------
-    pos_ecef_m, vel_ecef_m_s : (N, 3) arrays at toe + dt in the ECEF frame of that time.
+    pos_ecef_m, vel_ecef_m_s : (N, 3) arrays at toe + dt in the ECEF frame of that time; NaN where ``dt_s`` is
+        not finite or beyond ``MAX_PROPAGATION_S``.
     """
     state = np.concatenate([np.asarray(pos_ecef_m, float), np.asarray(vel_ecef_m_s, float)], axis=1)
     acc = np.asarray(acc_m_s2, float)
     remaining = np.asarray(dt_s, float).copy()
-    remaining[~np.isfinite(remaining)] = 0.0
+    unusable = ~(np.abs(remaining) <= MAX_PROPAGATION_S)
+    remaining[unusable] = 0.0
+    state[unusable] = np.nan
     n_steps = int(np.ceil(np.max(np.abs(remaining), initial=0.0) / step_s - 1e-12)) if remaining.size else 0
     for _ in range(n_steps):
         h = np.where(np.abs(remaining) > 1e-9, np.sign(remaining) * np.minimum(np.abs(remaining), step_s), 0.0)

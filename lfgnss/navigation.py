@@ -120,7 +120,7 @@ class Navigation:
     warnings: tuple[str, ...] = ()
 
 
-_CACHE_VERSION = 3
+_CACHE_VERSION = 4
 
 
 def load_nav(paths: str | Path | Iterable[str | Path], *, cache: bool = True) -> Navigation:
@@ -206,9 +206,13 @@ def _parse_nav(paths: list[Path]) -> Navigation:
         datasets, skipped = _read(path)
         notes += skipped
         raw = pd.concat([_flat(ds) for ds in datasets], ignore_index=True)
-        kep, glo = _kepler_frame(raw), _glonass_frame(raw)
+        kep, kep_notes = _plausible(_kepler_frame(raw), KEPLER_LIMITS, path)
+        glo, glo_notes = _plausible(_glonass_frame(raw), GLONASS_LIMITS, path)
         if kep.empty and glo.empty:
-            raise RinexError(path, "no GPS/Galileo/QZSS/BeiDou/GLONASS ephemeris records")
+            first = f": every record impossible, e.g. {(kep_notes + glo_notes)[0][len(str(path)) + 2:]}" \
+                if kep_notes or glo_notes else ""
+            raise RinexError(path, f"no GPS/Galileo/QZSS/BeiDou/GLONASS ephemeris records{first}")
+        notes += kep_notes + glo_notes
         kep_frames.append(kep)
         glo_frames.append(glo)
         for key, name in (("GPS", "ionospheric_corr_GPS"), ("BDS", "ionospheric_corr_BDS")):
@@ -219,6 +223,36 @@ def _parse_nav(paths: list[Path]) -> Navigation:
     glonass = _glonass_records(pd.concat(glo_frames, ignore_index=True))
     return Navigation(kepler=kepler, glonass=glonass, iono=iono, sources=tuple(str(p) for p in paths),
                       warnings=tuple(dict.fromkeys(notes)))
+
+
+#: Bounds of a broadcast value any GNSS satellite can have, (column, low, high, what): a record outside them is
+#: damaged (a flipped exponent, a wrong field), and one such satellite would wreck every epoch's coarse fix.
+#: sqrt(A) 4000-7500 m^0.5 spans 16 000-56 000 km (MEO to GEO; Galileo's eccentric E14/E18 included, e 0.16);
+#: clock offsets: GPS/BeiDou fields reach 1 ms, Galileo's 62 ms, GLONASS tau_n 2 ms.
+KEPLER_LIMITS = (("sqrt_a_sqrt_m", 4000.0, 7500.0, "sqrt(A) [m^0.5]"), ("e", 0.0, 0.5, "eccentricity"),
+                 ("af0_s", -0.1, 0.1, "clock offset af0 [s]"))
+GLONASS_LIMITS = (("radius_m", 2.0e7, 3.5e7, "orbit radius [m]"), ("speed_m_s", 0.0, 1.0e4, "speed [m/s]"),
+                  ("tau_n_s", -0.01, 0.01, "clock offset tau_n [s]"))
+
+
+def _plausible(df: pd.DataFrame, limits: tuple, path: Path) -> tuple[pd.DataFrame, list[str]]:
+    """The records of ``df`` whose values are within ``limits``, and one note per satellite with records skipped."""
+    if df.empty:
+        return df, []
+    values = {"radius_m": lambda: np.linalg.norm(df[["x", "y", "z"]].to_numpy(float), axis=1),
+              "speed_m_s": lambda: np.linalg.norm(df[["vx", "vy", "vz"]].to_numpy(float), axis=1)}
+    bad = np.zeros(len(df), bool)
+    why = np.full(len(df), "", dtype=object)
+    for column, low, high, what in limits:
+        v = values[column]() if column in values else df[column].to_numpy(float)
+        out = ~bad & ~((v >= low) & (v <= high))
+        why[out] = [f"{what} {x:.6g} outside [{low:g}, {high:g}]" for x in v[out]]
+        bad |= out
+    notes = []
+    for sv in dict.fromkeys(df["sv"].to_numpy()[bad]):
+        rows = np.flatnonzero(bad & (df["sv"].to_numpy() == sv))
+        notes.append(f"{path}: {len(rows)} {sv} record(s) skipped as impossible, first: {why[rows[0]]}")
+    return df[~bad], notes
 
 
 # --------------------------------------------------------------------------------------------------
@@ -232,7 +266,7 @@ def _read(path: Path) -> tuple[list, list[str]]:
     from georinex.rio import opener
 
     if not path.is_file():
-        raise RinexError(path, "file not found")
+        raise RinexError(path, "a folder, not a navigation file" if path.is_dir() else "file not found")
     if path.stat().st_size == 0:
         raise RinexError(path, "empty file")
     try:
@@ -268,6 +302,7 @@ def _read(path: Path) -> tuple[list, list[str]]:
 _RECORD_START = {2: re.compile(r"^[ 0-9][0-9] [ 0-9][0-9] [ 0-9][0-9] [ 0-9][0-9] "),
                  3: re.compile(r"^[GRECJSI][ 0-9][0-9] [0-9]{4} ")}
 _FIELD_W = 19
+_LOWER_D = re.compile(r"(?<=\d)d(?=[+-]?\d)")
 _ZERO_FIELD = " 0.000000000000E+00"
 # a value as georinex reads it (float() after D -> E), without nan/inf, underscores or inner blanks
 _NUMBER = re.compile(r" *[+-]?(\d+\.?\d*|\.\d+)([EeD][+-]?\d+)? *")
@@ -380,7 +415,7 @@ def _clean_layers(text: str, path: Path) -> tuple[list[str], list[str]]:
     chunks: dict[tuple[int, str], list[str]] = {}
     damaged: list[tuple[int, str]] = []   # (line, reason) of each skipped record
     for numbers, rec in records:
-        rec = [ln.ljust(80)[:80] for ln in rec]
+        rec = [_LOWER_D.sub("D", ln).ljust(80)[:80] for ln in rec]   # 1.5d-04: Fortran's other exponent letter
         n_lines = record_lines.get(rec[0][0] if version == 3 else lines[0][20], 8)
         if numbers[-1] == cut_line and len(rec) == n_lines + 1:   # a file cut inside the next epoch line
             notes.append(f"{path}:{cut_line}: file ends inside this line; skipped")

@@ -31,7 +31,7 @@ from .time import utc_to_gps_s
 if TYPE_CHECKING:
     import pandas as pd
 
-_PARSER_VERSION = 6
+_PARSER_VERSION = 7
 _GPS_EPOCH = dt.datetime(1980, 1, 6)
 _SV_RE = re.compile(r"^[GRECJSI][ 0-9][0-9]$")
 _V2_RECORD_LIKE = re.compile(r"^[ 0-9.\-]*[0-9][ 0-9.\-]*$")  # digits, blanks, points, signs only
@@ -39,12 +39,21 @@ _V2_EPOCH_RE = re.compile(r"^ [ \d]\d [ \d]\d [ \d]\d [ \d]\d [ \d]\d [ \d]\d\.\
 #: Character classes of an epoch line's first 19 characters, " yy mm dd hh mm ss.": a line that starts like
 #: them is a damaged epoch line, never a record line (whose first field is a right-aligned F14.3 or blank).
 _V2_EPOCH_START = (" ", " 0123456789", "0123456789") * 6 + (".",)
+#: Columns 27-35 of an epoch line: two blanks, the flag, the satellite count and a first satellite id; in a
+#: record line, column 27 is the decimal point of the second field or, that field blank, column 29 is blank.
+_V2_EPOCH_TAIL = re.compile(r"^.{26}  [0-6][ \d]{2}\d[GRECJSI ][ \d]\d")
 
 
 def _v2_epoch_start(line: str) -> bool:
     """True if ``line`` (at least 3 characters) begins like a RINEX 2 epoch line, e.g. one cut short."""
     head = line.rstrip()[:len(_V2_EPOCH_START)]
     return len(head) >= 3 and all(c in allowed for c, allowed in zip(head, _V2_EPOCH_START))
+
+
+def _v2_damaged_epoch(line: str) -> bool:
+    """True if ``line`` looks like a RINEX 2 epoch line (damaged or not), never for a record line: it begins
+    like one, or has an epoch line's flag, satellite count and first satellite id in place."""
+    return _v2_epoch_start(line) or _V2_EPOCH_TAIL.match(line) is not None
 
 #: Pseudorange code preference per constellation (single frequency, L1/E1/B1I/G1); the first one the header
 #: lists is used for the whole file (docs/input_conventions.md). BeiDou: B1I only, whatever the
@@ -64,6 +73,8 @@ CODES_V2 = {"G": ("C1", "P1"), "R": ("C1", "P1"), "E": ("C1",), "J": ("C1",), "C
 #: Time system of the epochs when the header leaves it blank, by the file's satellite system (RINEX 2.11 and
 #: 3.0x "TIME OF FIRST OBS": GPS for pure GPS files, GLO for pure GLONASS, BDT for pure BeiDou, ...).
 _DEFAULT_TIME_SYSTEM = {"R": "GLO", "C": "BDT", "E": "GAL", "J": "QZS", "I": "IRN"}
+#: Time systems an observation file's "TIME OF FIRST OBS" may name (RINEX 3.05 table A2); others are read as GPS.
+_TIME_SYSTEMS = ("GPS", "GLO", "GAL", "QZS", "BDT", "IRN")
 
 
 class RinexWarning(UserWarning):
@@ -185,6 +196,7 @@ def _header_info(header: str, path: Path) -> dict:
         raise RinexError(path, f"is a {info.get('rinextype', 'unknown')} file, not an observation file", line=1)
     if not (2.0 <= version < 5.0):
         raise RinexError(path, f"unsupported RINEX version {version} (supported: 2.x, 3.x, 4.x)", line=1)
+    _check_type_counts(header, version, path)
     try:
         if version < 3:
             from georinex.obs2 import obsheader2
@@ -198,19 +210,48 @@ def _header_info(header: str, path: Path) -> dict:
         label = "# / TYPES OF OBSERV" if version < 3 else "SYS / # / OBS TYPES"
         where = next((i + 1 for i, ln in enumerate(header.split("\n")) if label in ln), None)
         raise RinexError(path, f"unreadable '{label}' header ({type(err).__name__}: {err})", line=where) from None
+    lines = header.split("\n")
     if not hdr.get("fields"):
+        other = "SYS / # / OBS TYPES" if version < 3 else "# / TYPES OF OBSERV"
+        where = next((i + 1 for i, ln in enumerate(lines) if other in ln[60:]), None)
+        if where is not None:  # e.g. a RINEX 2 body under a 3.02 version line
+            raise RinexError(path, f"observation types given as '{other}' (RINEX {3 if version < 3 else 2}), but "
+                                   f"line 1 says RINEX {version}: version and header disagree", line=where)
         raise RinexError(path, "header lists no observation types")
-    time_system = header[header.find("TIME OF FIRST OBS") - 12: header.find("TIME OF FIRST OBS")].strip() \
-        if "TIME OF FIRST OBS" in header else ""
+    notes = []
+    where = next((i + 1 for i, ln in enumerate(lines) if "TIME OF FIRST OBS" in ln[60:]), None)
+    time_system = lines[where - 1][48:60].strip() if where else ""
     if not time_system:  # blank: the default of the file's satellite system (column 41 of the version line)
         time_system = _DEFAULT_TIME_SYSTEM.get(first[40:41], "GPS")
+    elif time_system not in _TIME_SYSTEMS:
+        notes.append(f"{path}:{where}: unknown time system {time_system!r} in 'TIME OF FIRST OBS' (expected "
+                     f"{'/'.join(_TIME_SYSTEMS)}): epoch times read as GPS time")
+        time_system = "GPS"
     try:
         approx = np.array([float(v) for v in hdr.get("position", [0.0, 0.0, 0.0])][:3])
     except (TypeError, ValueError):
         approx = np.zeros(3)
     if approx.size != 3 or not np.all(np.isfinite(approx)):
         approx = np.zeros(3)
-    return {"version": version, "fields": hdr["fields"], "time_system": time_system, "approx": approx}
+    return {"version": version, "fields": hdr["fields"], "time_system": time_system, "approx": approx, "notes": notes}
+
+
+def _check_type_counts(header: str, version: float, path: Path) -> None:
+    """Raise :class:`RinexError` where an observation-types header line declares another number of types than
+    it (with its continuation lines) lists: records could not be cut into the right fields."""
+    label = "# / TYPES OF OBSERV" if version < 3 else "SYS / # / OBS TYPES"
+    groups: list[list] = []  # [line number, what, declared count text, listed types]
+    for i, ln in enumerate(header.split("\n")):
+        if label not in ln[60:]:
+            continue
+        if not groups or version >= 3 and ln[:1].strip():  # else a continuation line
+            what = f" for {ln[0]}" if version >= 3 and ln[:1].strip() else ""
+            groups.append([i + 1, what, (ln[:6] if version < 3 else ln[1:6]).strip(), []])
+        groups[-1][3] += ln[6:60].split()
+    for lineno, what, count, types in groups:
+        if count.isdigit() and int(count) != len(types):
+            raise RinexError(path, f"'{label}' header{what} declares {int(count)} observation types but lists "
+                                   f"{len(types)} ({' '.join(types)})", line=lineno)
 
 
 def _bds_codes(types: list[str], version: float) -> tuple[str, ...]:
@@ -278,7 +319,7 @@ def _scale_to_gps_s(t, time_system: str):
 def _parse(text: str, path: Path, engine: str, notes: list[str] | None = None) -> Observations:
     header, body, n_header = _split_header(text, path)
     info = _header_info(header, path)
-    problems: list[str] = list(notes or [])
+    problems: list[str] = list(notes or []) + info["notes"]
     codes = _choose_codes(info["fields"], info["version"], path, problems)
     if engine == "georinex":
         return _parse_georinex(text, path, info, codes, problems)
@@ -359,9 +400,7 @@ def _cut_v2(body, n_header, path, info, problems):
             t = _to_gps_s(y, mo, d, h, mi, s, info["time_system"])
         except (ValueError, IndexError):
             problems.append(f"{path}:{lineno}: unreadable epoch line, skipped up to the next epoch")
-            i += 1
-            while i < n and not _V2_EPOCH_RE.match(body[i]):
-                i += 1
+            i = _next_v2_epoch(body, i + 1)
             continue
         if flag > 1:
             i += 1 + nsat
@@ -372,16 +411,14 @@ def _cut_v2(body, n_header, path, info, problems):
             # lines are shifted (a lost or repeated line) and its records would go to the wrong satellites
             problems.append(f"{path}:{lineno}: epoch line without its satellite-id continuation line, skipped "
                             f"up to the next epoch")
-            i += 1
-            while i < n and not _V2_EPOCH_RE.match(body[i]):
-                i += 1
+            i = _next_v2_epoch(body, i + 1)
             continue
         sv_text = "".join(body[i + k][32:68].ljust(36) for k in range(n_sv_lines) if i + k < n).ljust(3 * nsat)
         svs = [sv_text[3 * k: 3 * k + 3] for k in range(nsat)]
         svs = [("G" + s[1:]) if s[0] == " " and s[1:].strip() else s for s in svs]  # blank system letter: GPS
         first = i + n_sv_lines
         recs = body[first: first + nsat * lines_per_sat]
-        bad = next((k for k, r in enumerate(recs) if _V2_EPOCH_RE.match(r)), len(recs))
+        bad = next((k for k, r in enumerate(recs) if _V2_EPOCH_RE.match(r) or _v2_damaged_epoch(r)), len(recs))
         if bad < nsat * lines_per_sat:
             problems.append(f"{path}:{lineno}: epoch truncated ({bad // lines_per_sat} of {nsat} satellite "
                             f"records), skipped")
@@ -391,15 +428,13 @@ def _cut_v2(body, n_header, path, info, problems):
         while nxt < n and not body[nxt].strip():
             nxt += 1
         if (nxt < n and not _V2_EPOCH_RE.match(body[nxt]) and _V2_RECORD_LIKE.match(body[nxt])
-                and not _v2_epoch_start(body[nxt])):
+                and not _v2_damaged_epoch(body[nxt])):
             # one record line more than announced: a record was repeated or inserted, and since RINEX 2
             # records carry no satellite id, those after it would be matched to the wrong satellites
             problems.append(f"{path}:{lineno}: epoch followed by one record line more than its {nsat} "
                             f"satellites (line {n_header + nxt + 1}): records cannot be matched to satellites, "
                             f"skipped up to the next epoch")
-            i = nxt + 1
-            while i < n and not _V2_EPOCH_RE.match(body[i]):
-                i += 1
+            i = _next_v2_epoch(body, nxt + 1)
             continue
         ep = len(times)
         times.append(t)
@@ -412,6 +447,14 @@ def _cut_v2(body, n_header, path, info, problems):
             rec_line.append(first + 1 + n_header + k * lines_per_sat)
         i = first + nsat * lines_per_sat
     return times, epoch_lines, rec_epoch, rec_sv, rec_text, rec_line
+
+
+def _next_v2_epoch(body: list[str], i: int) -> int:
+    """Index of the first line from ``i`` on that is, or begins like, a RINEX 2 epoch line (``len(body)`` if
+    none): a damaged epoch line is stopped at too, so that each one gets its own note (each costs an epoch)."""
+    while i < len(body) and not (_V2_EPOCH_RE.match(body[i]) or _v2_damaged_epoch(body[i])):
+        i += 1
+    return i
 
 
 def _numbers(texts: pd.Series) -> tuple[np.ndarray, np.ndarray]:
@@ -487,6 +530,8 @@ def _assemble(path, info, codes, epoch_times, epoch_lines, rec_epoch, rec_sv, re
     cn0 = np.full(n_rec, np.nan)
     dop = np.full(n_rec, np.nan)
     bad = ~valid_sv
+    unreadable_opt = np.zeros(n_rec, int)   # unreadable C/N0 and Doppler values per record (read as missing)
+    opt_names: set[str] = set()
     for k in np.flatnonzero(~valid_sv):
         problems.append(f"{path}:{line[k]}: unreadable satellite id {rec_sv[k]!r}, record skipped")
     if info["version"] >= 3 and n_rec:
@@ -509,8 +554,10 @@ def _assemble(path, info, codes, epoch_times, epoch_lines, rec_epoch, rec_sv, re
                 for k in rows[garbage]:
                     problems.append(f"{path}:{line[k]}: unreadable pseudorange for {sv.iloc[k]}, record skipped")
                 bad[rows[garbage]] = True
-            else:
+            elif garbage.any():
                 out[rows[garbage]] = np.nan
+                unreadable_opt[rows[garbage]] += 1
+                opt_names.add(info["fields"][col] if info["version"] < 3 else info["fields"][sys_letter][col])
         blank = rows[np.isnan(pr[rows]) & ~bad[rows]] if i_fallback >= 0 else rows[:0]
         if blank.size:  # RINEX 2: the preferred code blank, the other one there (RTKLIB does the same)
             values, garbage = _numbers(text.iloc[blank].str[16 * i_fallback: 16 * i_fallback + 14])
@@ -527,6 +574,13 @@ def _assemble(path, info, codes, epoch_times, epoch_lines, rec_epoch, rec_sv, re
                                 f"{' ...' if len(names) > 8 else ''}); {fallback} differs from {code} by the "
                                 f"satellite's {fallback}-{code} code bias (typically decimetres), not corrected")
     use = ~bad & system.isin(list(codes)).to_numpy() & np.isfinite(pr) & keep_epoch[epoch] if n_rec else np.zeros(0, bool)
+    lost = np.flatnonzero(unreadable_opt * use)
+    if lost.size:
+        count = int(unreadable_opt[lost].sum())
+        problems.append(f"{path}:{line[lost[0]]}: {count} unreadable C/N0 or Doppler value{'s' * (count > 1)} "
+                        f"({'/'.join(sorted(opt_names))}; first here) read as missing")
+    if use.any():
+        _drop_repeated_satellites(path, use, epoch, sv, pr, line, problems)
     order = {s: i for i, s in enumerate(SYSTEMS)}
     svs = sorted(set(sv[use]), key=lambda s: (order.get(s[0], 99), s))
     col_of = {s: i for i, s in enumerate(svs)}
@@ -542,6 +596,43 @@ def _assemble(path, info, codes, epoch_times, epoch_lines, rec_epoch, rec_sv, re
     return Observations(str(path), info["version"], times[keep_epoch], np.array(svs, dtype="<U3"), arrays[0],
                         arrays[1], arrays[2], {k: v[3] for k, v in codes.items() if any(s[0] == k for s in svs)},
                         info["approx"], tuple(problems))
+
+
+def _drop_repeated_satellites(path, use, epoch, sv, pr, line, problems) -> None:
+    """Clear ``use`` for repeated records of a satellite within one epoch, with one note per kind.
+
+    A repeat with the same pseudorange is ignored (the first record is kept). Where the pseudoranges differ,
+    every record of that satellite in that epoch is skipped rather than the first one kept: nothing tells
+    which one is the satellite's (in RINEX 2, a damaged id list assigns another satellite's record), and
+    one wrong pseudorange costs far more than one satellite less (a +5 km repeat kept gave 1 km errors).
+    """
+    import pandas as pd
+
+    rows = np.flatnonzero(use)
+    sv_code = pd.factorize(sv.iloc[rows])[0]
+    key = epoch[rows].astype(np.int64) * (int(sv_code.max()) + 1) + sv_code
+    order = np.argsort(key, kind="stable")        # records of one (epoch, satellite) together, in file order
+    ks = key[order]
+    starts = np.r_[True, ks[1:] != ks[:-1]]
+    if starts.all():
+        return
+    first = np.empty(rows.size, int)
+    first[order] = order[np.flatnonzero(starts)][np.cumsum(starts) - 1]   # the first record of each one's group
+    repeat = first != np.arange(rows.size)
+    differs = repeat & (pr[rows] != pr[rows[first]])
+    drop = np.isin(key, key[differs])             # every record of a satellite-epoch whose pseudoranges differ
+    same = repeat & ~drop
+    if same.any():
+        j, n = np.flatnonzero(same)[0], int(same.sum())
+        problems.append(f"{path}:{line[rows[j]]}: satellite {sv.iloc[rows[j]]} listed twice in one epoch; the repeat "
+                        f"is ignored" + (f" ({n} such repeated records in the file, first here)" if n > 1 else ""))
+    if differs.any():
+        j, n = np.flatnonzero(differs)[0], int(np.unique(key[differs]).size)
+        problems.append(f"{path}:{line[rows[j]]}: satellite {sv.iloc[rows[j]]} listed twice in one epoch with "
+                        f"different pseudoranges ({pr[rows[first[j]]]:.3f} m on line {line[rows[first[j]]]}, "
+                        f"{pr[rows[j]]:.3f} m here): both records skipped"
+                        + (f" ({n} such satellite-epochs in the file, first here)" if n > 1 else ""))
+    use[rows[repeat | drop]] = False
 
 
 def _parse_georinex(text, path, info, codes, problems) -> Observations:

@@ -7,6 +7,7 @@ a non-zero exit code; every output already written stays.
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import warnings
 from pathlib import Path
@@ -52,12 +53,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--truth-format", default=None,
                    help="urbannav | smartloc | static | ecef-csv (default: urbannav; with no --truth and no --obs, "
                         "the bundled sample's smartloc truth)")
-    p.add_argument("--truth-origin", type=float, default=None,
+    p.add_argument("--truth-origin", type=_finite_float, default=None,
                    help="GPS seconds of t=0 for smartloc truth (default: first epoch)")
     p.add_argument("--mode", default=None, choices=("batch", "fixed-lag"), help="fgo mode (default: batch)")
     p.add_argument("--smooth", action="store_true",
                    help="ekf, plain-ekf: smooth the filter's run backwards (Rauch-Tung-Striebel; post-processing)")
-    p.add_argument("--smooth-lag", type=float, default=None, metavar="SECONDS",
+    p.add_argument("--smooth-lag", type=_finite_float, default=None, metavar="SECONDS",
                    help="with --smooth: a fixed-lag smoother, each epoch using the epochs up to SECONDS later")
     p.add_argument("--out", type=Path, default=Path("lfgnss-out"), help="output folder")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
@@ -172,11 +173,19 @@ def run(args) -> int:
 
     name = f"{Path(obs).name.split('.')[0]}_{_run_tag(args, options)}"
     stem = args.out / name
-    written = [write_pos(f"{stem}.pos", solution), write_csv(f"{stem}.csv", solution, truth),
-               write_geojson(f"{stem}.geojson", solution), write_kml(f"{stem}.kml", solution)]
+    # a file that cannot be written (a folder in its place, a full disk) costs that file only: the solution, the
+    # other files and the accuracy table are kept, and the run ends with exit code 2
+    jobs = [(f"{stem}.pos", lambda p: [write_pos(p, solution)]), (f"{stem}.csv", lambda p: [write_csv(p, solution, truth)]),
+            (f"{stem}.geojson", lambda p: [write_geojson(p, solution)]), (f"{stem}.kml", lambda p: [write_kml(p, solution)])]
     if truth is not None and not args.no_plots:
-        written += plot_solution(args.out, solution, truth, extra_solutions={"least squares": _coarse(seq)},
-                                 prefix=f"{name}_")
+        jobs.append((f"{stem}_*.png", lambda _: plot_solution(args.out, solution, truth, prefix=f"{name}_",
+                                                             extra_solutions={"least squares": _coarse(seq)})))
+    written, failed = [], []
+    for path, job in jobs:
+        try:
+            written += job(path)
+        except OSError as err:
+            failed.append(f"{err.filename or path}: cannot write ({err.strerror or err})")
 
     if not args.quiet:
         summary = fix.summary()
@@ -188,12 +197,27 @@ def run(args) -> int:
                   f"stand-ins used){'; the first 5:' if len(meas.warnings) > 5 else ':'}")
         for note in meas.warnings[:5]:
             print(f"warning: {note}")
-        print(f"outputs: {', '.join(str(p) for p in written[:4])}" + (f" and {len(written) - 4} plots" if len(written) > 4 else ""))
+        files = [p for p in written if not str(p).endswith(".png")]
+        plots = len(written) - len(files)
+        print(f"outputs: {', '.join(str(p) for p in files) or 'none'}" + (f" and {plots} plots" if plots else ""))
     if truth is not None:
         rows = [accuracy_table(fix.pos_ecef_m, truth, fix.ok, method="least squares (coarse)"),
                 accuracy_table(solution.pos_ecef_m, truth, solution.available, method=label)]
         print(format_text(rows))
-    return 0
+    for message in failed:
+        print(f"error: {message}", file=sys.stderr)
+    return 2 if failed else 0
+
+
+def _finite_float(text: str) -> float:
+    """An option's number, refused by argparse (one line, exit 2) when it is not a finite number."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"needs a finite number, got {text!r}")
+    return value
 
 
 def _run_tag(args: argparse.Namespace, options: dict) -> str:
@@ -238,6 +262,9 @@ def main(argv: list[str] | None = None) -> int:
     except INPUT_ERRORS as err:
         print(f"error: {one_line(err)}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
     except Exception as err:  # a bug, not bad input: still one line, no traceback, a distinct exit code
         message = " ".join(str(err).split())
         print(f"error: internal error while solving {args.obs or SAMPLE_OBS} ({type(err).__name__}: {message}); "

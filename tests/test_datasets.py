@@ -1,4 +1,5 @@
 """Dataset layer: benchmark splits and truth alignment on shared data, user TOML datasets, bad truth lines."""
+import re
 import warnings
 
 import numpy as np
@@ -74,6 +75,27 @@ def test_truth_file_with_bad_lines(tmp_path, sample_toml):
     truth, notes = datasets.align_truth(t, spec)
     assert notes == [f"{bad}:3: unreadable truth line, skipped", f"{bad}:6: not a point3 record, skipped"]
     assert np.all(np.isfinite(truth[0])) and np.all(np.isnan(truth[1])) and np.all(np.isfinite(truth[2]))
+
+
+@pytest.mark.parametrize("reader, rows, reason", [
+    (datasets.read_urbannav, ["2051 46701 22.3 114.1 10", "2051 46702 95.0 114.1 10", "2051 46703 22.3 114.1 1e308"],
+     ["latitude 95 deg outside [-90, 90]", "height 1e+308 m outside [-10000, 100000]"]),
+    (datasets.read_ecef_csv, ["1e9 -2418000 5386000 2405000", "1e9 1 2 3", "1e9 1e308 0 0"],
+     ["ECEF position 3.74166 m from the Earth's centre, outside [6e+06, 6.6e+06]",
+      "ECEF position 1e+308 m from the Earth's centre, outside [6e+06, 6.6e+06]"]),
+], ids=["urbannav", "ecef-csv"])
+def test_truth_rows_off_the_earth_are_skipped_with_a_note(tmp_path, reader, rows, reason):
+    """Readable but impossible truth (a latitude of 95 deg, a height of 1e308 m) is no truth: skipped with a note
+    naming file and line; a file of nothing else is a one-line error naming the first line and why."""
+    path = tmp_path / "truth.csv"
+    path.write_text("\n".join(rows) + "\n")
+    spec = datasets.DatasetSpec(id="x", obs=(path,), nav=(path,), truth=path, truth_format="urbannav")
+    _, xyz, notes = reader(path, spec)
+    assert len(xyz) == 1 and np.isfinite(xyz).all()
+    assert notes == [f"{path}:2: {reason[0]}, skipped", f"{path}:3: {reason[1]}, skipped"]
+    path.write_text("\n".join(rows[1:]) + "\n")
+    with pytest.raises(InputError, match=f"^{re.escape(f'{path}:1: no readable ground-truth line; the first: {reason[0]}')}$"):
+        reader(path, spec)
 
 
 def test_bad_toml_is_one_line_error(tmp_path):

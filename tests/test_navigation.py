@@ -541,3 +541,66 @@ def test_missing_ionosphere_coefficients_are_noted(tmp_path, capsys):
     code = main(["--backend", "wls", "--obs", str(SAMPLE_OBS), "--nav", str(no_iono), str(glo),
                  "--out", str(tmp_path / "o"), "--no-plots", "--quiet"])
     assert code == 0 and f"warning: {no_iono}, {glo}: no GPS ionosphere coefficients" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------- impossible values: skipped with a warning
+@pytest.mark.parametrize("name, damage, sv, reason", [
+    ("brdc1580.16n.gz", (3, 2, 22, b" 0.150000000000D+01"), "G", r"eccentricity 1\.5 outside \[0, 0\.5\]"),
+    ("brdc1580.16n.gz", (5, 2, 60, b" 0.515357678223D+14"), "G", r"sqrt\(A\) \[m\^0\.5\] 5\.15358e\+13 outside"),
+    ("brdc1580.16n.gz", (8, 0, 22, b" 0.100000000000D+11"), "G", r"clock offset af0 \[s\] 1e\+10 outside"),
+    ("brdc1580.16g.gz", (10, 0, 22, b"-0.100000000000D+11"), "R", r"clock offset tau_n \[s\] 1e\+10 outside"),
+    ("brdc1580.16g.gz", (12, 1, 3, b" 0.973446533203D+08"), "R", r"orbit radius \[m\] .* outside \[2e\+07, 3\.5e\+07\]"),
+], ids=["gps-eccentricity", "gps-sqrt-a-exponent", "gps-clock", "glonass-clock", "glonass-position"])
+def test_impossible_record_is_skipped_with_a_warning(tmp_path, name, damage, sv, reason):
+    """A readable but impossible value (a flipped exponent) costs that record only, with a note naming file and
+    satellite; one such record would otherwise put a satellite light-years away (or, for GLONASS, integrate the
+    orbit for 1e10 s: a hang) and wreck every epoch's coarse fix."""
+    src, path = SAMPLE / name, tmp_path / ("bad" + Path(name).suffixes[0])
+    [(_, bad_sv)] = _damaged_copy(src, path, [damage])
+    assert bad_sv[0] == sv
+    with pytest.warns(RinexWarning, match=rf"{path}: 1 problem.*first: {path}: 1 {bad_sv} record\(s\) skipped as "
+                                          rf"impossible, first: {reason}"):
+        nav = load_nav(path)
+    clean = load_nav(src)
+    _assert_one_record_less(clean, nav, bad_sv)
+    _assert_states_unchanged(clean, nav, bad_sv)
+
+
+def test_every_record_impossible_is_a_one_line_error(tmp_path):
+    path = tmp_path / "bad.16n"
+    path.write_text(GPS_RINEX2.replace("0.157487246906D-01", "0.157487246906D+01"))     # e = 1.57
+    with pytest.raises(RinexError, match=rf"^{path}: no GPS.* records: every record impossible, e\.g\. 1 G02 "
+                                         r"record\(s\) skipped as impossible, first: eccentricity 1\.57"):
+        load_nav(path)
+
+
+def test_lowercase_d_exponents_read_as_uppercase(bundled, tmp_path):
+    """Fortran writes 1.5d-04 as well as 1.5D-04 (RTKLIB reads both)."""
+    lower = tmp_path / "lower.16n"
+    head, body = GPS_RINEX2.split("END OF HEADER\n")
+    lower.write_text(head + "END OF HEADER\n" + body.replace("D", "d"))
+    a, b = load_nav(bundled[0]), load_nav(lower)
+    assert not b.warnings
+    for f in fields(a.kepler):
+        np.testing.assert_array_equal(getattr(a.kepler, f.name), getattr(b.kepler, f.name))
+
+
+def test_glonass_propagation_is_bounded_and_a_non_finite_state_is_not_ok(bundled):
+    """An absurd propagation time gives NaN at once (not |dt| / 60 s integration steps); ephemeris_states
+    marks a non-finite state 'invalid ephemeris', never ok."""
+    import dataclasses
+    import time
+
+    from lfgnss.glonass import MAX_PROPAGATION_S, propagate
+
+    nav = load_nav(bundled[1])
+    g = nav.glonass
+    start = time.perf_counter()
+    pos, vel = propagate(g.pos_ecef_m, g.vel_ecef_m_s, g.acc_ecef_m_s2, np.array([1e10]))
+    assert time.perf_counter() - start < 1.0 and np.isnan(pos).all() and np.isnan(vel).all()
+    pos, _ = propagate(g.pos_ecef_m, g.vel_ecef_m_s, g.acc_ecef_m_s2, np.array([MAX_PROPAGATION_S / 4]))
+    assert np.isfinite(pos).all()
+    broken = dataclasses.replace(nav, glonass=dataclasses.replace(g, pos_ecef_m=np.full_like(g.pos_ecef_m, np.nan)))
+    states = ephemeris_states(broken, np.array(["R01"]), g.toe_gps_s[:1] + 60.0)
+    assert not states.ok[0] and states.reason[0] == "invalid ephemeris"
+    assert ephemeris_states(nav, np.array(["R01"]), g.toe_gps_s[:1] + 60.0).ok[0]

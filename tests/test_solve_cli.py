@@ -42,6 +42,47 @@ def test_unusable_output_folder_is_one_line_before_solving(tmp_path, capsys, mak
     assert str(target) in captured.err
 
 
+@pytest.mark.parametrize("extra, message", [
+    (["--smooth", "--smooth-lag", "inf"], "argument --smooth-lag: needs a finite number, got 'inf'"),
+    (["--obs", str(SAMPLE_OBS), "--nav", *map(str, SAMPLE_NAV), "--truth", str(SAMPLE_TRUTH),
+      "--truth-format", "smartloc", "--truth-origin", "nan"], "argument --truth-origin: needs a finite number, got 'nan'"),
+])
+def test_non_finite_numbers_are_refused(tmp_path, capsys, extra, message):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--out", str(tmp_path), *extra])
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and message in err and "Traceback" not in err
+
+
+def test_a_nav_folder_is_named_as_such(tmp_path, capsys):
+    assert main(["--obs", str(SAMPLE_OBS), "--nav", str(tmp_path), "--out", str(tmp_path / "out")]) == 2
+    assert capsys.readouterr().err == f"error: {tmp_path}: a folder, not a navigation file\n"
+
+
+def test_ctrl_c_is_one_line_not_a_traceback(tmp_path, capsys, monkeypatch):
+    import lfgnss.solve as solve
+
+    def interrupted(_args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(solve, "run", interrupted)
+    assert main(["--out", str(tmp_path)]) == 130
+    assert capsys.readouterr().err == "interrupted\n"
+
+
+def test_an_output_that_cannot_be_written_costs_that_file_only(tmp_path, capsys):
+    """A folder where the CSV should go: one line naming that file, every other output and the table kept, exit 2."""
+    out = tmp_path / "out"
+    (out / "Berlin_Potsdamer_Platz_ekf.csv").mkdir(parents=True)
+    assert main(["--out", str(out), "--no-plots"]) == 2
+    captured = capsys.readouterr()
+    assert captured.err == f"error: {out / 'Berlin_Potsdamer_Platz_ekf.csv'}: cannot write (Is a directory)\n"
+    assert any(line.startswith("ekf ") and "100.0" in line for line in captured.out.splitlines())   # the table
+    for suffix in ("pos", "geojson", "kml"):
+        assert (out / f"Berlin_Potsdamer_Platz_ekf.{suffix}").stat().st_size > 0
+    assert "outputs: " in captured.out and ".csv" not in captured.out.split("outputs: ")[1].splitlines()[0]
+
+
 def test_truth_matching_no_epoch_warns_and_skips_the_table(tmp_path, capsys):
     args = ["--obs", str(SAMPLE_OBS), "--nav", *map(str, SAMPLE_NAV), "--truth", str(SAMPLE_TRUTH),
             "--truth-format", "smartloc", "--truth-origin", "0", "--out", str(tmp_path)]
