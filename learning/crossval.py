@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from lfgnss.datasets import contiguous_runs
-from lfgnss.errors import INPUT_ERRORS
+from lfgnss.errors import INPUT_ERRORS, one_line
 from lfgnss.metrics import accuracy_table, markdown_table
 from lfgnss.sequence import Sequence
 
@@ -252,6 +252,9 @@ def main(argv: list[str] | None = None) -> int:
         crossval(config, args.folds, out, progress=not args.no_progress, only=args.only, reuse=args.reuse)
     except INPUT_ERRORS as exc:
         exit_on_input_error(p, exc)
+    except FloatingPointError as exc:         # a fold diverged: not bad input (exit 3, as learning.train)
+        p.exit(3, f"{p.prog}: error: {one_line(exc)}: cross-validation stopped (exit status 3); the folds' "
+                  f"checkpoints are kept in {out}; check [loss], or try a lower train.lr or a train.grad_clip > 0\n")
     print((out / "crossval.md").read_text(), end="")
     return 0
 

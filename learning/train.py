@@ -18,6 +18,8 @@ the model's, so ``[model]`` and ``data.features``/``data.drop_features`` are tak
 model file records the one it started from (``init_model``: path, hash, and the data it was trained on).
 The test split is never loaded here: asking for it raises.
 ``device`` = "cuda" (or "auto") trains on a GPU; it pays off only with large batches (docs/training_speed.md).
+Exit status: 0 done; 2 bad input (a one-line error naming the file or setting; nothing is written for a bad
+setting); 3 the training loss became non-finite (one line; ``last.pt``/``best.pt`` of the epochs before are kept).
 
 Sequences come from one pluggable function, ``load_sequences(dataset_id, split, config)``:
 dataset ``"synthetic"`` uses ``lfgnss.simulate.simulate_sequence``, any other id goes to
@@ -90,6 +92,8 @@ def _merge(base: dict, update: dict, where: str = "") -> dict:
     for key, value in update.items():
         if key not in out and where != "ekf." and not where.startswith("ekf."):
             raise ValueError(f"unknown configuration key {where + key!r}")
+        if isinstance(out.get(key), dict) and not isinstance(value, dict):    # ekf = 3, --set data=1
+            raise ValueError(f"{where + key} must be a table of settings, got {value!r}")
         if isinstance(value, dict) and isinstance(out.get(key), dict):
             out[key] = _merge(out[key], value, where + key + ".")
         else:
@@ -123,11 +127,27 @@ def apply_overrides(config: dict, assignments: list[str]) -> dict:
 
 
 def load_config(path: str | Path | None = None, overrides: list[str] = ()) -> dict:
-    """DEFAULT_CONFIG updated by the TOML file at ``path`` and then by ``overrides``."""
+    """DEFAULT_CONFIG updated by the TOML file at ``path`` and then by ``overrides``.
+
+    ValueError for a wrong setting (``check_config``); one that the file itself gets wrong names the file.
+    """
     config = copy.deepcopy(DEFAULT_CONFIG)
     if path is not None:
-        config = _merge(config, _read_toml(Path(path)))
-    return check_config(apply_overrides(config, list(overrides)))
+        data = _read_toml(Path(path))                 # its own errors name the file
+        try:
+            config = _merge(config, data)
+        except ValueError as exc:
+            raise ValueError(f"{path}: {exc}") from None
+    try:
+        return check_config(apply_overrides(config, list(overrides)))
+    except ValueError as exc:
+        if path is not None:
+            try:
+                check_config(copy.deepcopy(config))
+            except ValueError as alone:              # the same error without the --set overrides: the file's
+                if str(alone) == str(exc):
+                    raise ValueError(f"{path}: {exc}") from None
+        raise
 
 
 def resolve_device(name: object) -> torch.device:
@@ -147,40 +167,95 @@ def resolve_device(name: object) -> torch.device:
     return device
 
 
+def _setting(config: dict, key: str) -> Any:
+    """The dotted ``key`` of ``config``, or its default where the table lacks it (runs from before the key resume)."""
+    value, default = config, DEFAULT_CONFIG
+    for part in key.split("."):
+        default = default[part]
+        value = value.get(part, default)
+    return value
+
+
+def _check_number(config: dict, key: str, low: float, high: float = math.inf, *, whole: bool = False,
+                  above: bool = False) -> None:
+    """ValueError naming ``key`` unless it is a finite number (an int with ``whole``; never a bool) in [low, high]
+    (``above``: in (low, high])."""
+    value = _setting(config, key)
+    if not (not isinstance(value, bool) and isinstance(value, int if whole else (int, float))
+            and (isinstance(value, int) or math.isfinite(value)) and (value > low if above else value >= low)
+            and value <= high):
+        bounds = f"{'>' if above else '>='} {low}" + (f" and <= {high}" if high < math.inf else "")
+        raise ValueError(f"{key} must be {'a whole number' if whole else 'a finite number'} {bounds}, got {value!r}")
+
+
 def check_config(config: dict) -> dict:
-    """``config`` unchanged, or ValueError for a setting of the wrong kind (caught before any data loads)."""
+    """``config``, or ValueError naming a setting of the wrong kind (caught before any data loads).
+
+    A single string where a list of names is expected (``--set data.datasets=synthetic``) becomes a one-item list.
+    """
+    for key in ("data", "data.synthetic", "model", "train", "loss", "ekf"):
+        if not isinstance(_setting(config, key), dict):
+            raise ValueError(f"{key} must be a table of settings, got {_setting(config, key)!r}")
     resolve_device(config.get("device", "cpu"))
-    if config["train"].get("select", "val") not in ("val", "last"):
-        raise ValueError(f"train.select must be 'val' or 'last', got {config['train']['select']!r}")
-    ema = config["train"].get("ema_decay", 0.0)
+    for key, what in (("datasets", "dataset ids"), ("features", "feature names"),
+                      ("drop_features", "feature names (or 'dpc')"), ("register", "dataset TOML files")):
+        items = _setting(config, f"data.{key}")
+        if isinstance(items, str):                        # --set data.register=my.toml: one file, not its letters
+            config["data"][key] = items = [items]
+        needed = key in ("datasets", "features")
+        if not isinstance(items, list) or not all(isinstance(i, str) for i in items) or (needed and not items):
+            raise ValueError(f"data.{key} must be a {'non-empty ' * needed}list of {what}, got {items!r}")
+    for key, what in (("data.train_split", "a split name"), ("data.val_split", "a split name"),
+                      ("train.init", "the path of a model file")):
+        if not isinstance(_setting(config, key), str):
+            raise ValueError(f"{key} must be {what} (a string), got {_setting(config, key)!r}")
+    for key, choices in (("train.select", ("val", "last")), ("model.r_prior", ("none", "heuristic")),
+                         ("loss.kind", ("hem", "rmse"))):
+        if _setting(config, key) not in choices:
+            raise ValueError(f"{key} must be {' or '.join(map(repr, choices))}, got {_setting(config, key)!r}")
+    for key in ("train.smooth", "model.compensation", "model.innovation"):
+        if not isinstance(_setting(config, key), bool):
+            raise ValueError(f"{key} must be true or false, got {_setting(config, key)!r}")
+    _check_number(config, "seed", 0, 2**32 - 1, whole=True)
+    for key in ("threads", "data.window", "data.stride", "data.synthetic.n_epochs", "data.synthetic.sats_per_system",
+                "model.d_model", "model.n_heads", "train.epochs", "train.batch_size", "train.t_max"):
+        _check_number(config, key, 1, whole=True)
+    for key, above in (("train.lr", False), ("train.eta_min", False), ("train.weight_decay", False),
+                       ("train.grad_clip", False), ("train.feature_noise", False), ("model.r_floor_m2", False),
+                       ("model.r_scale_m2", True), ("loss.alpha", True), ("loss.gamma", False),
+                       ("loss.lambda", False), ("loss.up_weight", False)):
+        _check_number(config, key, 0, above=above)
+    _check_number(config, "data.synthetic.nlos_fraction", 0, 1)
+    if _setting(config, "model.r_init_m2") is not None:
+        _check_number(config, "model.r_init_m2", 0, above=True)
+    for key, low in (("model.hidden", 1), ("data.synthetic.train_seeds", 0), ("data.synthetic.val_seeds", 0)):
+        items = _setting(config, key)
+        if not isinstance(items, list) or not all(type(i) is int and i >= low for i in items):
+            raise ValueError(f"{key} must be a list of whole numbers >= {low}, got {items!r}")
+    d_model, n_heads = _setting(config, "model.d_model"), _setting(config, "model.n_heads")
+    if d_model % n_heads:
+        raise ValueError(f"model.d_model must be a multiple of model.n_heads ({n_heads}), got {d_model}")
+    ema = _setting(config, "train.ema_decay")
     if isinstance(ema, bool) or not isinstance(ema, (int, float)) or not 0.0 <= ema < 1.0:
         raise ValueError(f"train.ema_decay must be a number in [0, 1), got {ema!r}")
-    register = config["data"].get("register", [])
-    if isinstance(register, str):                          # --set data.register=my.toml: one file
-        config["data"]["register"] = register = [register]
-    if not isinstance(register, list) or not all(isinstance(r, str) for r in register):
-        raise ValueError(f"data.register must be a list of dataset TOML files, got {register!r}")
-    if not isinstance(config["train"].get("init", ""), str):
-        raise ValueError(f"train.init must be the path of a model file (a string), got {config['train']['init']!r}")
-    noise = config["train"].get("feature_noise", 0.0)
-    if isinstance(noise, bool) or not isinstance(noise, (int, float)) or not 0.0 <= noise < math.inf:
-        raise ValueError(f"train.feature_noise must be a number >= 0 (standard deviations), got {noise!r}")
-    if not isinstance(config["train"].get("smooth", False), bool):
-        raise ValueError(f"train.smooth must be true or false, got {config['train']['smooth']!r}")
-    burn_in, window = config["data"].get("burn_in", 0), config["data"]["window"]
+    burn_in, window = _setting(config, "data.burn_in"), _setting(config, "data.window")
     if isinstance(burn_in, bool) or not isinstance(burn_in, int) or not 0 <= burn_in < window:
         raise ValueError(f"data.burn_in must be a whole number of epochs >= 0 and below data.window ({window}), "
                          f"got {burn_in!r}")
-    for key in ("compensation", "innovation"):
-        if not isinstance(config["model"].get(key, True), bool):
-            raise ValueError(f"model.{key} must be true or false, got {config['model'][key]!r}")
+    for key, value in _setting(config, "ekf").items():    # every EkfConfig field is a number
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or math.isnan(value):
+            raise ValueError(f"ekf.{key} must be a number, got {value!r}")
+    ekf_config(config)                                    # unknown [ekf] keys, or values EkfConfig refuses
     return config
 
 
 def _beside(path: Path, name: object) -> object:
     """``name`` read next to the configuration file ``path`` when it is a relative path found there, else as given."""
-    if isinstance(name, str) and name and not Path(name).is_absolute() and (path.parent / name).exists():
-        return str(path.parent / name)
+    try:
+        if isinstance(name, str) and name and not Path(name).is_absolute() and (path.parent / name).exists():
+            return str(path.parent / name)
+    except (OSError, ValueError):                         # a name too long, or with a NUL: not a file there
+        pass
     return name
 
 
@@ -193,18 +268,23 @@ def _read_toml(path: Path, depth: int = 0) -> dict:
     try:
         with open(path, "rb") as fh:
             data = tomllib.load(fh)
-    except (OSError, tomllib.TOMLDecodeError) as exc:
-        raise ValueError(f"{path}: cannot read configuration: {exc}") from exc
-    register = data.get("data", {}).get("register")
-    if isinstance(register, list):
-        data["data"]["register"] = [_beside(path, r) for r in register]
-    elif register is not None:
-        data["data"]["register"] = _beside(path, register)
+    except (OSError, ValueError, RecursionError) as exc:   # ValueError: TOMLDecodeError, or bytes that are not UTF-8
+        raise ValueError(f"{path}: cannot read configuration: {one_line(exc)}") from None
+    for key, value in data.items():
+        if isinstance(DEFAULT_CONFIG.get(key), dict) and not isinstance(value, dict):
+            raise ValueError(f"{path}: {key} must be a table of settings ([{key}]), got {value!r}")
+    section = data.get("data", {})
+    if isinstance(section.get("register"), list):
+        section["register"] = [_beside(path, r) for r in section["register"]]
+    elif "register" in section:
+        section["register"] = _beside(path, section["register"])
     if "init" in data.get("train", {}):
         data["train"]["init"] = _beside(path, data["train"]["init"])
     base = data.pop("base", None)
     if base is None:
         return data
+    if not isinstance(base, str):
+        raise ValueError(f"{path}: base must be the path of a configuration file (a string), got {base!r}")
     if depth > 8:
         raise ValueError(f"{path}: 'base' chain too deep")
     return _merge_free(_read_toml(path.parent / base, depth + 1), data)
@@ -516,9 +596,8 @@ def train(config: dict, out_dir: str | Path, *, resume: bool = False, overrides:
     prepared : Prepared, optional
         Pre-built data (tests reuse it across runs); built from ``config`` otherwise.
     """
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    last_path, best_path = out / "last.pt", out / "best.pt"
+    out = Path(out_dir)                       # made only once the settings and the data are found good (_train)
+    last_path = out / "last.pt"
     checkpoint = None
     if resume:
         if not last_path.exists():
@@ -578,6 +657,7 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
         model.load_state_dict({k: torch.as_tensor(v) for k, v in prep.init.params.items()})
     model.to(device)                          # initialised on the CPU, so a seed gives the same start on any device
     started_from = None if prep.init is None else init_record(prep.init)
+    out.mkdir(parents=True, exist_ok=True)
     decay = float(tr.get("weight_decay", 0.0))
     # Adam as in the paper; decoupled weight decay (AdamW) only when asked for, so 0 is the paper's optimiser.
     optimiser = (torch.optim.AdamW(model.parameters(), lr=float(tr["lr"]), weight_decay=decay) if decay > 0
@@ -646,7 +726,7 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
             pos = run_filter(model, batch, n_systems=prep.n_systems, ekf_cfg=ekf_cfg, smooth=smooth)
             loss = loss_fn(pos, batch.truth_ecef_m)
             if not torch.isfinite(loss):
-                raise FloatingPointError(f"epoch {epoch}: non-finite training loss {float(loss)}")
+                raise FloatingPointError(f"epoch {epoch}: non-finite training loss {float(loss.detach())}")
             optimiser.zero_grad(set_to_none=True)
             loss.backward()
             if float(tr["grad_clip"]) > 0:
@@ -700,6 +780,10 @@ def main(argv: list[str] | None = None) -> int:
         history = train(config, out, resume=args.resume, overrides=args.overrides, progress=not args.no_progress)
     except INPUT_ERRORS as exc:
         exit_on_input_error(p, exc)
+    except FloatingPointError as exc:         # diverged: not bad input (exit 3, not 2); the checkpoints stay
+        p.exit(3, f"{p.prog}: error: {one_line(exc)}: training stopped (exit status 3); the checkpoints of the "
+                  f"epochs before it are kept in {out} (last.pt, best.pt); check [loss], or try a lower train.lr or "
+                  "a train.grad_clip > 0, in a new --out\n")
     from .export import load_model
 
     best = min(history, key=lambda h: h["val_rmse_3d_m"])

@@ -173,3 +173,13 @@ def test_each_fold_trains_on_the_other_blocks_and_scores_the_held_out_one(monkey
         assert all("/cv-train" in s.name for s in train) and all("/cv-held-out" in s.name for s in held)
         assert sum(len(s) for s in held) == rows[j]["held_out_epochs"] == 60       # 180 epochs in 3 blocks
         assert sum(len(s) for s in train) == 120
+
+
+def test_a_diverging_fold_is_one_line_and_exit_3(tmp_path, capsys):
+    """A non-finite training loss (here an overflowing loss weight) ends the run in one line, as learning.train."""
+    with pytest.raises(SystemExit) as exit_info:
+        main(RECIPE + ["--set", "loss.alpha=1e308", "--set", "train.epochs=1", "--fold", "0",
+                       "--out", str(tmp_path / "cv")])
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 3 and err.count("\n") == 1 and "Traceback" not in err
+    assert "non-finite training loss" in err and "cross-validation stopped" in err

@@ -1,0 +1,124 @@
+"""Bad settings of learning.train: one line naming the file or key, exit 2, no traceback, nothing written."""
+from pathlib import Path
+
+import pytest
+
+from learning.train import load_config, main
+
+SYNTHETIC = ["data.datasets=['synthetic']"]
+TINY = SYNTHETIC + ["data.synthetic.n_epochs=60", "data.window=20", "data.stride=10", "train.batch_size=4",
+                    "train.epochs=1", "threads=1"]
+
+BAD_SETTINGS = [
+    ("loss.alpha=nan", "loss.alpha must be a finite number > 0, got nan"),
+    ("loss.gamma=-1", "loss.gamma must be a finite number >= 0"),
+    ("loss.lambda=inf", "loss.lambda must be a finite number >= 0"),
+    ("loss.up_weight=-0.5", "loss.up_weight must be a finite number >= 0"),
+    ("loss.kind='huber'", "loss.kind must be 'hem' or 'rmse'"),
+    ("ekf=3", "ekf must be a table of settings, got 3"),
+    ("data=1", "data must be a table of settings, got 1"),
+    ("data.synthetic=5", "data.synthetic must be a table of settings"),
+    ("train.batch_size=-2", "train.batch_size must be a whole number >= 1, got -2"),
+    ("train.batch_size=0", "train.batch_size must be a whole number >= 1, got 0"),
+    ("train.epochs=ten", "train.epochs must be a whole number >= 1, got 'ten'"),
+    ("train.epochs=true", "train.epochs must be a whole number >= 1, got True"),
+    ("train.epochs=2.5", "train.epochs must be a whole number >= 1"),
+    ("data.window=0", "data.window must be a whole number >= 1, got 0"),
+    ("data.stride=0", "data.stride must be a whole number >= 1"),
+    ("train.t_max=0", "train.t_max must be a whole number >= 1"),
+    ("model.d_model=0", "model.d_model must be a whole number >= 1, got 0"),
+    ("model.n_heads=0", "model.n_heads must be a whole number >= 1"),
+    ("model.d_model=6", "model.d_model must be a multiple of model.n_heads (4), got 6"),
+    ("model.hidden=[64, 0]", "model.hidden must be a list of whole numbers >= 1"),
+    ("train.lr=-1", "train.lr must be a finite number >= 0, got -1"),
+    ("train.lr=nan", "train.lr must be a finite number >= 0, got nan"),
+    ("train.eta_min=-1e-4", "train.eta_min must be a finite number >= 0"),
+    ("train.weight_decay=inf", "train.weight_decay must be a finite number >= 0"),
+    ("train.grad_clip=-1", "train.grad_clip must be a finite number >= 0"),
+    ("threads=0", "threads must be a whole number >= 1"),
+    ("seed=-1", "seed must be a whole number >= 0"),
+    ("data.datasets=[]", "data.datasets must be a non-empty list of dataset ids"),
+    ("data.datasets=[1]", "data.datasets must be a non-empty list of dataset ids"),
+    ("ekf.gate_sigma='3'", "ekf.gate_sigma must be a number, got '3'"),
+    ("ekf.gate_sigma=nan", "ekf.gate_sigma must be a number, got nan"),
+]
+
+
+def _fails(argv: list[str], capsys) -> str:
+    """main(argv) exits 2 with one line and no traceback; that line."""
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "Warning" not in err, err
+    assert len(err.strip().splitlines()) == 1, err
+    return err
+
+
+@pytest.mark.parametrize("setting, expected", BAD_SETTINGS)
+def test_a_bad_setting_is_named_in_one_line_before_anything_is_written(setting, expected, tmp_path, capsys):
+    out = tmp_path / "run"
+    argv = [x for s in SYNTHETIC + [setting] for x in ("--set", s)] + ["--out", str(out), "--no-progress"]
+    err = _fails(argv, capsys)
+    assert f"error: {expected}" in err, err
+    assert not out.exists()                     # not even the folder: the settings are checked first
+
+
+@pytest.mark.parametrize("text, expected", [
+    ("ekf = 3\n", "ekf must be a table of settings ([ekf]), got 3"),
+    ("data = 3\n", "data must be a table of settings ([data]), got 3"),
+    ("base = 3\n", "base must be the path of a configuration file (a string), got 3"),
+    ("[loss]\nalpha = nan\n", "loss.alpha must be a finite number > 0, got nan"),
+    ("[data]\nwindow = 0\n", "data.window must be a whole number >= 1, got 0"),
+    ("[data]\nsynthetic = 3\n", "data.synthetic must be a table of settings, got 3"),
+    ("[trian]\nepochs = 3\n", "unknown configuration key 'trian'"),
+])
+def test_a_bad_setting_of_a_file_names_the_file(text, expected, tmp_path, capsys):
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    out = tmp_path / "run"
+    err = _fails(["--config", str(path), "--out", str(out)], capsys)
+    assert f"error: {path}: {expected}" in err, err
+    assert not out.exists()
+
+
+def test_a_file_that_is_not_text_names_the_file(tmp_path, capsys):
+    path = tmp_path / "noise.toml"
+    path.write_bytes(bytes([0x8F, 0xFF, 0x00, 0xC3, 0x28, 0xA0, 0xA1]) * 20)
+    err = _fails(["--config", str(path), "--out", str(tmp_path / "run")], capsys)
+    assert f"error: {path}: cannot read configuration" in err, err
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_setting_given_with_set_does_not_blame_the_file(tmp_path, capsys):
+    """A file setting that an override puts right is fine; an override's own mistake names no file."""
+    path = tmp_path / "mine.toml"
+    path.write_text('base = "%s"\n[data]\nwindow = 0\n' % Path("learning/configs/synthetic.toml").resolve())
+    assert load_config(path, ["data.window=20"])["data"]["window"] == 20
+    err = _fails(["--config", "learning/configs/default.toml", "--set", "train.lr=-1"], capsys)
+    assert "error: train.lr must be" in err and "default.toml" not in err
+
+
+def test_single_names_are_one_item_lists():
+    """data.datasets = "synthetic" (and features, drop_features, register) is one name, not its letters."""
+    config = load_config(None, ["data.datasets=synthetic", "data.drop_features='dpc'"])
+    assert config["data"]["datasets"] == ["synthetic"] and config["data"]["drop_features"] == ["dpc"]
+
+
+def test_every_shipped_config_passes_the_checks():
+    for path in sorted(Path("learning/configs").glob("*.toml")):
+        load_config(path)
+
+
+def test_a_non_finite_training_loss_is_one_line_and_keeps_the_checkpoints(tmp_path, capsys):
+    """A finite but absurd loss.alpha overflows the loss: exit 3 (not bad input), one line, epoch-0 checkpoints kept."""
+    out = tmp_path / "run"
+    argv = [x for s in TINY + ["loss.alpha=1e308"] for x in ("--set", s)] + ["--out", str(out), "--no-progress"]
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    assert exit_info.value.code == 3
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    assert "epoch 1: non-finite training loss" in err and "training stopped" in err and str(out) in err
+    assert (out / "last.pt").exists() and (out / "best.pt").exists()
+    assert not (out / "model.npz").exists()
