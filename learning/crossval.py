@@ -43,8 +43,8 @@ from lfgnss.errors import INPUT_ERRORS, one_line
 from lfgnss.metrics import accuracy_table, markdown_table
 from lfgnss.sequence import Sequence
 
-from .train import (adopt_init, ekf_config, exit_on_input_error, init_model, load_config, load_sequences, prepare,
-                    train, trained_datasets)
+from .train import (DEFAULT_CONFIG, _merge_free, adopt_init, ekf_config, exit_on_input_error, init_model,
+                    load_config, load_sequences, prepare, train, trained_datasets)
 
 COLUMNS = ["fold", "held_out_epochs", "plain_ekf_rmse_3d_m", "untrained_rmse_3d_m", "last_rmse_3d_m",
            "best_rmse_3d_m", "best_epoch", "plain_ekf_smoothed_rmse_3d_m", "last_smoothed_rmse_3d_m",
@@ -96,13 +96,15 @@ def _saved_rmse_m(checkpoint: Path, config: dict, prep) -> tuple[float, float]:
 
 
 def _model_rmse_m(saved: dict, config: dict, normaliser, batches: list, n_systems: int) -> tuple[float, float, float]:
-    """(forward 3D, RTS-smoothed 3D, forward 2D) RMSE [m] of a checkpoint's weights over ``batches``, ``config``'s EKF."""
+    """(3D as trained (forward, or smoothed with ``train.smooth``), RTS-smoothed 3D, forward 2D) RMSE [m] of a
+    checkpoint's weights over ``batches``, under ``config``'s EKF."""
     from .train import build_model, evaluate
 
     model = build_model(saved["config"], len(normaliser.feature_names), normaliser)
     model.load_state_dict(saved["model"])
     run = dict(n_systems=n_systems, ekf_cfg=ekf_config(config))
-    return (evaluate(model, batches, **run)[0], evaluate(model, batches, smooth=True, **run)[0],
+    smooth = bool(saved["config"]["train"].get("smooth", False))    # the run's own last_rmse_3d_m: as trained
+    return (evaluate(model, batches, smooth=smooth, **run)[0], evaluate(model, batches, smooth=True, **run)[0],
             evaluate(model, batches, up_weight=0.0, **run)[0])
 
 
@@ -121,8 +123,18 @@ def _flat(table: dict, prefix: str = "") -> dict:
     return out
 
 
+def _recipe(config: dict) -> dict:
+    """What a rescore must not change: ``config`` but RESCORE_FREE, defaults filled in, file paths resolved."""
+    flat = _flat({k: v for k, v in _merge_free(DEFAULT_CONFIG, config).items() if k not in RESCORE_FREE})
+    resolve = lambda p: str(Path(p).resolve()) if p else p          # noqa: E731 -- cfg/m.npz = /abs/cfg/m.npz
+    flat["train.init"] = resolve(flat.get("train.init", ""))
+    flat["data.register"] = [resolve(p) for p in flat.get("data.register", [])]
+    return flat
+
+
 def saved_fold(reuse_dir: str | Path, fold: int, config: dict, held: list[Sequence]) -> dict:
-    """The checkpoint ``reuse_dir/fold<fold>/last.pt``, checked to be ``config``'s recipe (but ``[ekf]``) and ``held``'s."""
+    """The checkpoint ``reuse_dir/fold<fold>/last.pt``, checked to be of ``config``'s recipe (``[ekf]`` aside)
+    and of the held-out pieces ``held``."""
     import torch
 
     from .train import fingerprint
@@ -133,7 +145,7 @@ def saved_fold(reuse_dir: str | Path, fold: int, config: dict, held: list[Sequen
         saved_config, prints = saved["config"], saved["data_fingerprints"]
     except Exception as exc:            # torch.load raises many kinds on a file that is not a checkpoint
         raise ValueError(f"{path}: not a learning.train checkpoint ({type(exc).__name__}: {exc})") from exc
-    was, now = (_flat({k: v for k, v in c.items() if k not in RESCORE_FREE}) for c in (saved_config, config))
+    was, now = _recipe(saved_config), _recipe(config)
     changed = sorted(k for k in was.keys() | now.keys() if was.get(k, "(unset)") != now.get(k, "(unset)"))
     if changed:
         k = changed[0]
@@ -142,7 +154,8 @@ def saved_fold(reuse_dir: str | Path, fold: int, config: dict, held: list[Sequen
     val = config["data"]["val_split"]
     trained_on = [(p["sequence"], p["sha256_16"]) for p in prints if p["split"] == val]
     if trained_on != [(s.name, fingerprint(s)) for s in held]:
-        raise ValueError(f"{path}: its held-out block is not this run's (the data changed since it was trained)")
+        raise ValueError(f"{path}: its held-out block is not this run's (another --folds, or the data changed since "
+                         "it was trained)")
     return saved
 
 
@@ -202,7 +215,14 @@ def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = 
 
         held = [s for _, h in parts.values() for s in h]
         if reuse is not None:
-            rows.append(_rescored_row(j, saved_fold(reuse, j, config, held), config, held))
+            import torch
+
+            threads = torch.get_num_threads()
+            torch.set_num_threads(int(config["threads"]))       # as train() runs: a shared machine stays shared
+            try:
+                rows.append(_rescored_row(j, saved_fold(reuse, j, config, held), config, held))
+            finally:
+                torch.set_num_threads(threads)
             continue
         prep = prepare(config, source)
         history = train(copy.deepcopy(config), out / f"fold{j}", progress=progress, prepared=prep, export=False)

@@ -203,7 +203,8 @@ def _ecef_problem(values: list[float]) -> str | None:
     """Why a row of (time, X, Y, Z [m]) is no position near the Earth's surface, or None."""
     r = math.hypot(*values[1:4])                   # no overflow to inf at 1e308
     if not TRUTH_RADIUS_M[0] <= r <= TRUTH_RADIUS_M[1]:
-        return f"ECEF position {r:.6g} m from the Earth's centre, outside [{TRUTH_RADIUS_M[0]:g}, {TRUTH_RADIUS_M[1]:g}]"
+        low, high = TRUTH_RADIUS_M
+        return f"ECEF position {r:.6g} m from the Earth's centre, outside [{low:g}, {high:g}]"
     return None
 
 

@@ -236,16 +236,18 @@ GLONASS_LIMITS = (("radius_m", 2.0e7, 3.5e7, "orbit radius [m]"), ("speed_m_s", 
 
 
 def _plausible(df: pd.DataFrame, limits: tuple, path: Path) -> tuple[pd.DataFrame, list[str]]:
-    """The records of ``df`` whose values are within ``limits``, and one note per satellite with records skipped."""
+    """The records of ``df`` whose values are within ``limits`` (or that are flagged unhealthy, so never used),
+    and one note per satellite with records skipped."""
     if df.empty:
         return df, []
     values = {"radius_m": lambda: np.linalg.norm(df[["x", "y", "z"]].to_numpy(float), axis=1),
               "speed_m_s": lambda: np.linalg.norm(df[["vx", "vy", "vz"]].to_numpy(float), axis=1)}
     bad = np.zeros(len(df), bool)
+    bad_or_unhealthy = df["health"].to_numpy() != 0     # flagged unusable anyway: kept, so its flag stays in force
     why = np.full(len(df), "", dtype=object)
     for column, low, high, what in limits:
         v = values[column]() if column in values else df[column].to_numpy(float)
-        out = ~bad & ~((v >= low) & (v <= high))
+        out = ~bad & ~bad_or_unhealthy & ~((v >= low) & (v <= high))
         why[out] = [f"{what} {x:.6g} outside [{low:g}, {high:g}]" for x in v[out]]
         bad |= out
     notes = []
@@ -448,7 +450,7 @@ def _clean_layers(text: str, path: Path) -> tuple[list[str], list[str]]:
                                f"damaged; first: {damaged[0][1]}", line=damaged[0][0])
     if not chunks:
         raise RinexError(path, "no ephemeris records")
-    head = lines[: end + 1]
+    head = [ln if "COMMENT" in ln[60:] else _LOWER_D.sub("D", ln) for ln in lines[: end + 1]]   # ION ALPHA 1.2d-08
     notes += [f"{path}:{line}: {reason}" for line, reason in damaged]
     return ["\n".join(head + chunk) + "\n" for chunk in chunks.values()], notes
 

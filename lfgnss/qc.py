@@ -16,12 +16,14 @@ LOW_ELEVATION = 7
 GROSS_RESIDUAL = 8
 SYSTEM_EXCLUDED = 9
 NOT_OBSERVED = 10
+INVALID_EPHEMERIS = 11
 
 REASONS = {OK: "ok", NO_EPHEMERIS: "no ephemeris", EPHEMERIS_EXPIRED: "ephemeris expired", UNHEALTHY: "unhealthy",
            PR_OUT_OF_RANGE: "pseudorange out of range", LOW_CN0: "C/N0 below threshold", NO_CN0: "no C/N0",
            LOW_ELEVATION: "below elevation mask", GROSS_RESIDUAL: "gross residual", SYSTEM_EXCLUDED: "system excluded",
-           NOT_OBSERVED: "not observed"}
-_EPHEMERIS_REASON = {"": OK, "no ephemeris": NO_EPHEMERIS, "ephemeris expired": EPHEMERIS_EXPIRED, "unhealthy": UNHEALTHY}
+           NOT_OBSERVED: "not observed", INVALID_EPHEMERIS: "invalid ephemeris"}
+_EPHEMERIS_REASON = {"": OK, "no ephemeris": NO_EPHEMERIS, "ephemeris expired": EPHEMERIS_EXPIRED, "unhealthy": UNHEALTHY,
+                     "invalid ephemeris": INVALID_EPHEMERIS}
 
 
 @dataclass(frozen=True)

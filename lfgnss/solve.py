@@ -175,8 +175,10 @@ def run(args) -> int:
     stem = args.out / name
     # a file that cannot be written (a folder in its place, a full disk) costs that file only: the solution, the
     # other files and the accuracy table are kept, and the run ends with exit code 2
-    jobs = [(f"{stem}.pos", lambda p: [write_pos(p, solution)]), (f"{stem}.csv", lambda p: [write_csv(p, solution, truth)]),
-            (f"{stem}.geojson", lambda p: [write_geojson(p, solution)]), (f"{stem}.kml", lambda p: [write_kml(p, solution)])]
+    jobs = [(f"{stem}.pos", lambda p: [write_pos(p, solution)]),
+            (f"{stem}.csv", lambda p: [write_csv(p, solution, truth)]),
+            (f"{stem}.geojson", lambda p: [write_geojson(p, solution)]),
+            (f"{stem}.kml", lambda p: [write_kml(p, solution)])]
     if truth is not None and not args.no_plots:
         jobs.append((f"{stem}_*.png", lambda _: plot_solution(args.out, solution, truth, prefix=f"{name}_",
                                                              extra_solutions={"least squares": _coarse(seq)})))

@@ -183,3 +183,27 @@ def test_a_diverging_fold_is_one_line_and_exit_3(tmp_path, capsys):
     err = capsys.readouterr().err
     assert exit_info.value.code == 3 and err.count("\n") == 1 and "Traceback" not in err
     assert "non-finite training loss" in err and "cross-validation stopped" in err
+
+
+def test_reuse_of_a_smoothed_recipe_reproduces_its_own_figure(tmp_path):
+    """With train.smooth the run's last_rmse_3d_m is the smoothed RMSE; a rescore reports the same quantity."""
+    smooth = RECIPE + ["--set", "train.smooth=true", "--fold", "0"]
+    assert main(smooth + ["--out", str(tmp_path / "run")]) == 0
+    assert main(smooth + ["--out", str(tmp_path / "again"), "--reuse", str(tmp_path / "run")]) == 0
+    a, b = _rows(tmp_path / "again")[0], _rows(tmp_path / "run")[0]
+    assert float(a["last_rmse_3d_m"]) == pytest.approx(float(b["last_rmse_3d_m"]), rel=1e-9)
+
+
+def test_recipe_comparison_fills_defaults_and_resolves_paths(tmp_path, monkeypatch):
+    """A key an older run did not record is its default; cfg/m.npz and /abs/cfg/m.npz are one file."""
+    from learning.crossval import _recipe
+    from learning.train import load_config
+
+    monkeypatch.chdir(tmp_path)
+    config = load_config(None, ["train.init=cfg/m.npz"])
+    older = {k: (dict(v) if isinstance(v, dict) else v) for k, v in config.items()}
+    del older["train"]["smooth"]
+    older["train"]["init"] = str(tmp_path / "cfg" / "m.npz")
+    assert _recipe(older) == _recipe(config)
+    older["train"]["init"] = "other/m.npz"
+    assert _recipe(older) != _recipe(config)

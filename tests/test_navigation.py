@@ -545,7 +545,7 @@ def test_missing_ionosphere_coefficients_are_noted(tmp_path, capsys):
 
 # ---------------------------------------------------------------- impossible values: skipped with a warning
 @pytest.mark.parametrize("name, damage, sv, reason", [
-    ("brdc1580.16n.gz", (3, 2, 22, b" 0.150000000000D+01"), "G", r"eccentricity 1\.5 outside \[0, 0\.5\]"),
+    ("brdc1580.16n.gz", (7, 2, 22, b" 0.150000000000D+01"), "G", r"eccentricity 1\.5 outside \[0, 0\.5\]"),
     ("brdc1580.16n.gz", (5, 2, 60, b" 0.515357678223D+14"), "G", r"sqrt\(A\) \[m\^0\.5\] 5\.15358e\+13 outside"),
     ("brdc1580.16n.gz", (8, 0, 22, b" 0.100000000000D+11"), "G", r"clock offset af0 \[s\] 1e\+10 outside"),
     ("brdc1580.16g.gz", (10, 0, 22, b"-0.100000000000D+11"), "R", r"clock offset tau_n \[s\] 1e\+10 outside"),
@@ -575,14 +575,29 @@ def test_every_record_impossible_is_a_one_line_error(tmp_path):
 
 
 def test_lowercase_d_exponents_read_as_uppercase(bundled, tmp_path):
-    """Fortran writes 1.5d-04 as well as 1.5D-04 (RTKLIB reads both)."""
+    """Fortran writes 1.5d-04 as well as 1.5D-04 (RTKLIB reads both), in the records and in the header."""
+    import re
+
     lower = tmp_path / "lower.16n"
-    head, body = GPS_RINEX2.split("END OF HEADER\n")
-    lower.write_text(head + "END OF HEADER\n" + body.replace("D", "d"))
+    lower.write_text(re.sub(r"(?<=\d)D(?=[+-]\d)", "d", GPS_RINEX2))
+    assert "0.6519d-08" in lower.read_text()                          # ION ALPHA too
     a, b = load_nav(bundled[0]), load_nav(lower)
     assert not b.warnings
     for f in fields(a.kepler):
         np.testing.assert_array_equal(getattr(a.kepler, f.name), getattr(b.kepler, f.name))
+    np.testing.assert_array_equal(a.iono["GPS"], b.iono["GPS"])
+
+
+def test_an_impossible_record_flagged_unhealthy_is_kept_unhealthy(tmp_path):
+    """A placeholder record the system marks unusable keeps that flag in force (not dropped, so that a healthy
+    neighbour would be picked in its place), and needs no note."""
+    path = tmp_path / "placeholder.16n"
+    path.write_text(GPS_RINEX2.replace("0.157487246906D-01", "0.157487246906D+01")          # e = 1.57
+                    .replace("0.200000000000D+01 0.000000000000D+00", "0.200000000000D+01 0.100000000000D+01"))
+    nav = load_nav(path)
+    assert len(nav.kepler) == 1 and nav.kepler.health[0] == 1 and not nav.warnings
+    states = ephemeris_states(nav, nav.kepler.sv[:1], nav.kepler.toe_gps_s[:1])
+    assert not states.ok[0] and states.reason[0] == "unhealthy"
 
 
 def test_glonass_propagation_is_bounded_and_a_non_finite_state_is_not_ok(bundled):
@@ -603,4 +618,7 @@ def test_glonass_propagation_is_bounded_and_a_non_finite_state_is_not_ok(bundled
     broken = dataclasses.replace(nav, glonass=dataclasses.replace(g, pos_ecef_m=np.full_like(g.pos_ecef_m, np.nan)))
     states = ephemeris_states(broken, np.array(["R01"]), g.toe_gps_s[:1] + 60.0)
     assert not states.ok[0] and states.reason[0] == "invalid ephemeris"
+    from lfgnss import qc
+
+    assert qc.REASONS[int(qc.ephemeris_reason(states.reason)[0])] == "invalid ephemeris"     # counted as such
     assert ephemeris_states(nav, np.array(["R01"]), g.toe_gps_s[:1] + 60.0).ok[0]
