@@ -21,7 +21,7 @@ def test_rows_follow_the_model_files(tmp_path):
 
     shutil.copy(MODEL_DIR / "lfgnss-default.npz", tmp_path / "lfgnss-default.npz")
     shutil.copy(MODEL_DIR / "lfgnss-default.npz", tmp_path / "lfgnss-no_hem.npz")
-    shutil.copy(MODEL_DIR / "lfgnss-default.npz", tmp_path / "lfgnss-berlin-pp.npz")
+    shutil.copy(MODEL_DIR / "lfgnss-hk-tst-static-2020.npz", tmp_path / "lfgnss-berlin-pp.npz")   # default filter
     rows = {m.name: m for m in methods(tmp_path, "berlin-pp")}
     assert {"LF-GNSS EKF", "LF-GNSS FGO", "LF-GNSS EKF w/o HEM", "LF-GNSS EKF, per-dataset model",
             "LF-GNSS FGO, per-dataset model", "LF-GNSS EKF + RTS smoother",
@@ -33,7 +33,7 @@ def test_rows_follow_the_model_files(tmp_path):
     # another dataset's own model is not used
     assert not any("per-dataset" in m.name for m in methods(tmp_path, "hk-tst-2019"))
     assert rows["LF-GNSS EKF, per-dataset model"].create().noise.metadata["feature_names"]
-    assert PLAIN_OWN_FILTER not in rows            # the joint model's filter is the default one: no extra row
+    assert PLAIN_OWN_FILTER not in rows            # that model's filter is the default one: no extra row
 
 
 def test_a_per_dataset_model_in_its_own_filter_brings_the_plain_ekf_in_that_filter(tmp_path):
