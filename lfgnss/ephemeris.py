@@ -111,7 +111,8 @@ def ephemeris_states(nav: Navigation, sv: np.ndarray, t_gps_s: np.ndarray, *,
         rows, sel = rows[good], recs[idx[good]]
         if rows.size == 0:
             continue
-        p, v, c, cd = _kepler_states(kep, sel, t[rows], s)
+        with np.errstate(invalid="ignore", over="ignore", divide="ignore"):   # an unhealthy placeholder record (e >= 1)
+            p, v, c, cd = _kepler_states(kep, sel, t[rows], s)                # gives NaN; it is never used
         pos[rows], vel[rows], clk[rows], drift[rows] = p, v, c, cd
         tgd[rows], toe[rows], health[rows] = kep.tgd_s[sel], kep.toe_gps_s[sel], kep.health[sel]
 
