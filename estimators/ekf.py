@@ -63,22 +63,15 @@ def coarse_available(sequence: Sequence) -> np.ndarray:
 
 
 def config_of(noise: NoiseModel) -> EkfConfig:
-    """The EkfConfig a learned model was trained with (its file's ``ekf_config``), else the defaults.
-
-    A model file older than Doppler support has no ``doppler_sigma_m_s``; it gets 0 (pseudoranges
-    only), the filter it was trained in.
-    """
+    """The EkfConfig a learned model was trained with (its file's ``ekf_config``), else the defaults
+    (``models.stored_ekf_config``); a warning names the settings this version does not know."""
     stored = (getattr(noise, "metadata", None) or {}).get("ekf_config")
-    if not stored:
-        return EkfConfig()
-    known = {f.name for f in fields(EkfConfig)}
-    if set(stored) - known:
-        warnings.warn(f"estimators/ekf.py: the model file's filter settings {sorted(set(stored) - known)} are unknown "
+    unknown = sorted(set(stored or {}) - {f.name for f in fields(EkfConfig)})
+    if unknown:
+        warnings.warn(f"estimators/ekf.py: the model file's filter settings {unknown} are unknown "
                       f"to this version of lfgnss and ignored: the model runs in a filter other than its own "
                       f"(update lfgnss)", stacklevel=2)
-    values = {k: v for k, v in stored.items() if k in known}
-    values.setdefault("doppler_sigma_m_s", 0.0)
-    return EkfConfig(**values)
+    return models.stored_ekf_config(stored)
 
 
 def _given(_x: np.ndarray, value: np.ndarray) -> np.ndarray:

@@ -49,7 +49,7 @@ them from differences of noisy pseudoranges.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import TYPE_CHECKING, Union
 
 import numpy as np
@@ -196,6 +196,18 @@ class EkfConfig:
             raise ValueError(f"estimators/models.py: EkfConfig.huber_k must be a positive number or None, got {k!r}")
         if self.min_sats_for_update < 1:
             raise ValueError("estimators/models.py: EkfConfig.min_sats_for_update must be >= 1")
+
+
+def stored_ekf_config(stored: dict | None) -> EkfConfig:
+    """The EkfConfig a model file's ``ekf_config`` describes (keys this version does not know are left out).
+
+    A file older than Doppler support has no ``doppler_sigma_m_s``; it gets 0 (pseudoranges only), the filter it
+    was trained in. No ``ekf_config`` at all: the defaults.
+    """
+    if not stored:
+        return EkfConfig()
+    known = {f.name for f in fields(EkfConfig)}
+    return EkfConfig(**{"doppler_sigma_m_s": 0.0, **{k: v for k, v in stored.items() if k in known}})
 
 
 def huber_scale(t: ArrayOrTensor, huber_k: float | None) -> ArrayOrTensor:

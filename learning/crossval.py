@@ -159,6 +159,14 @@ def saved_fold(reuse_dir: str | Path, fold: int, config: dict, held: list[Sequen
     return saved
 
 
+def _fold_row(fold: int, held: list[Sequence], config: dict, learned: dict) -> dict:
+    """A crossval row: the ``learned`` model's columns, and the plain EKF's on the same held-out pieces."""
+    plain_3d, plain_2d = plain_ekf_rmse_m(held, config)
+    return {"fold": fold, "held_out_epochs": sum(len(s) for s in held), "plain_ekf_rmse_3d_m": plain_3d,
+            "plain_ekf_smoothed_rmse_3d_m": plain_ekf_rmse_m(held, config, smooth=True)[0],
+            "plain_ekf_rmse_2d_m": plain_2d, **learned}
+
+
 def _rescored_row(fold: int, saved: dict, config: dict, held: list[Sequence]) -> dict:
     """A crossval row for a saved fold model scored again on its held-out pieces (no untrained / best figures)."""
     from .data import sequence_batch
@@ -167,11 +175,9 @@ def _rescored_row(fold: int, saved: dict, config: dict, held: list[Sequence]) ->
     normaliser = Normaliser.from_dict(saved["normaliser"])
     batches = [sequence_batch(s, normaliser, n_systems=int(saved["n_systems"])) for s in held]
     last_3d, last_smoothed_3d, last_2d = _model_rmse_m(saved, config, normaliser, batches, int(saved["n_systems"]))
-    plain_3d, plain_2d = plain_ekf_rmse_m(held, config)
-    return {"fold": fold, "held_out_epochs": sum(len(s) for s in held), "plain_ekf_rmse_3d_m": plain_3d,
-            "untrained_rmse_3d_m": math.nan, "last_rmse_3d_m": last_3d, "best_rmse_3d_m": math.nan, "best_epoch": "-",
-            "plain_ekf_smoothed_rmse_3d_m": plain_ekf_rmse_m(held, config, smooth=True)[0],
-            "last_smoothed_rmse_3d_m": last_smoothed_3d, "plain_ekf_rmse_2d_m": plain_2d, "last_rmse_2d_m": last_2d}
+    return _fold_row(fold, held, config, {"untrained_rmse_3d_m": math.nan, "last_rmse_3d_m": last_3d,
+                                          "best_rmse_3d_m": math.nan, "best_epoch": "-",
+                                          "last_smoothed_rmse_3d_m": last_smoothed_3d, "last_rmse_2d_m": last_2d})
 
 
 def pooled_rmse(rmse: list[float], counts: list[int]) -> float:
@@ -227,15 +233,11 @@ def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = 
         prep = prepare(config, source)
         history = train(copy.deepcopy(config), out / f"fold{j}", progress=progress, prepared=prep, export=False)
         best = min(history, key=lambda h: h["val_rmse_3d_m"])
-        plain_3d, plain_2d = plain_ekf_rmse_m(held, config)
         last_smoothed_3d, last_2d = _saved_rmse_m(out / f"fold{j}" / "last.pt", config, prep)
-        rows.append({"fold": j, "held_out_epochs": sum(len(s) for s in held),
-                     "plain_ekf_rmse_3d_m": plain_3d,
-                     "untrained_rmse_3d_m": history[0]["val_rmse_3d_m"], "last_rmse_3d_m": history[-1]["val_rmse_3d_m"],
-                     "best_rmse_3d_m": best["val_rmse_3d_m"], "best_epoch": best["epoch"],
-                     "plain_ekf_smoothed_rmse_3d_m": plain_ekf_rmse_m(held, config, smooth=True)[0],
-                     "last_smoothed_rmse_3d_m": last_smoothed_3d,
-                     "plain_ekf_rmse_2d_m": plain_2d, "last_rmse_2d_m": last_2d})
+        rows.append(_fold_row(j, held, config, {
+            "untrained_rmse_3d_m": history[0]["val_rmse_3d_m"], "last_rmse_3d_m": history[-1]["val_rmse_3d_m"],
+            "best_rmse_3d_m": best["val_rmse_3d_m"], "best_epoch": best["epoch"],
+            "last_smoothed_rmse_3d_m": last_smoothed_3d, "last_rmse_2d_m": last_2d}))
     keys = ["plain_ekf_rmse_3d_m", "untrained_rmse_3d_m", "last_rmse_3d_m", "best_rmse_3d_m",
             "plain_ekf_smoothed_rmse_3d_m", "last_smoothed_rmse_3d_m", "plain_ekf_rmse_2d_m", "last_rmse_2d_m"]
     if len(chosen) == folds:

@@ -327,14 +327,14 @@ def _check_metadata(path: str, meta: dict) -> None:
     stored = meta.get("ekf_config")
     if stored is not None and not isinstance(stored, dict):
         fail("ekf_config", "a table or null", stored)
-    from estimators.models import EkfConfig   # the filter settings as estimators.ekf.config_of reads them
+    from estimators.models import EkfConfig, stored_ekf_config   # the filter settings as the EKF reads them
 
     known = {f.name for f in dataclasses.fields(EkfConfig)}
     for key, value in (stored or {}).items():
         if key in known and not (value is None or isinstance(value, (int, float))):
             fail(f"ekf_config.{key}", "a number or null", value)
     try:
-        EkfConfig(**{"doppler_sigma_m_s": 0.0} | {k: v for k, v in (stored or {}).items() if k in known})
+        stored_ekf_config(stored)
     except (TypeError, ValueError) as exc:
         reason = " ".join(str(exc).split()).removeprefix("estimators/models.py: ")
         raise ModelFileError(path, f"metadata ekf_config: {reason}") from exc

@@ -215,7 +215,7 @@ def _numeric_rows(path: Path, n_cols: int, sep: str, record_word: str | None = N
     With ``record_word`` only lines starting with that word are rows; others are reported, '#' comments aside.
     ``problem(values) -> reason or None`` rejects rows of readable but impossible values.
     """
-    rows, bad = [], []
+    rows, skipped = [], []          # skipped: (line number, reason)
     try:
         lines = path.read_text(errors="replace").splitlines()
     except OSError as err:
@@ -228,7 +228,7 @@ def _numeric_rows(path: Path, n_cols: int, sep: str, record_word: str | None = N
             if parts[0].startswith("#"):
                 continue
             if parts[0] != record_word:
-                bad.append(f"{path}:{i}: not a {record_word} record, skipped")
+                skipped.append((i, f"not a {record_word} record"))
                 continue
             parts = parts[1:]
         try:
@@ -236,20 +236,18 @@ def _numeric_rows(path: Path, n_cols: int, sep: str, record_word: str | None = N
             if len(values) < n_cols or not np.all(np.isfinite(values)):
                 raise ValueError
         except ValueError:
-            bad.append(f"{path}:{i}: unreadable truth line, skipped")
+            skipped.append((i, "unreadable truth line"))
             continue
         why = problem(values) if problem is not None else None
         if why is not None:
-            bad.append(f"{path}:{i}: {why}, skipped")
+            skipped.append((i, why))
             continue
         rows.append(values)
     if not rows:
-        if bad:                 # "PATH:LINE: reason, skipped" of the first line: say why there
-            line, why = bad[0][len(str(path)) + 1:].split(": ", 1)
-            raise InputError(path, f"no readable ground-truth line; the first: {why.removesuffix(', skipped')}",
-                             line=int(line))
+        if skipped:             # say why at the first line
+            raise InputError(path, f"no readable ground-truth line; the first: {skipped[0][1]}", line=skipped[0][0])
         raise InputError(path, "no readable ground-truth line")
-    return np.array(rows), bad
+    return np.array(rows), [f"{path}:{i}: {why}, skipped" for i, why in skipped]
 
 
 def read_urbannav(path: Path, spec: DatasetSpec) -> tuple[np.ndarray, np.ndarray, list[str]]:

@@ -206,13 +206,13 @@ def _parse_nav(paths: list[Path]) -> Navigation:
         datasets, skipped = _read(path)
         notes += skipped
         raw = pd.concat([_flat(ds) for ds in datasets], ignore_index=True)
-        kep, kep_notes = _plausible(_kepler_frame(raw), KEPLER_LIMITS, path)
-        glo, glo_notes = _plausible(_glonass_frame(raw), GLONASS_LIMITS, path)
+        kep, kep_notes = _plausible(_kepler_frame(raw), KEPLER_LIMITS)
+        glo, glo_notes = _plausible(_glonass_frame(raw), GLONASS_LIMITS)
+        impossible = kep_notes + glo_notes
         if kep.empty and glo.empty:
-            first = f": every record impossible, e.g. {(kep_notes + glo_notes)[0][len(str(path)) + 2:]}" \
-                if kep_notes or glo_notes else ""
+            first = f": every record impossible, e.g. {impossible[0]}" if impossible else ""
             raise RinexError(path, f"no GPS/Galileo/QZSS/BeiDou/GLONASS ephemeris records{first}")
-        notes += kep_notes + glo_notes
+        notes += [f"{path}: {note}" for note in impossible]
         kep_frames.append(kep)
         glo_frames.append(glo)
         for key, name in (("GPS", "ionospheric_corr_GPS"), ("BDS", "ionospheric_corr_BDS")):
@@ -235,25 +235,26 @@ GLONASS_LIMITS = (("radius_m", 2.0e7, 3.5e7, "orbit radius [m]"), ("speed_m_s", 
                   ("tau_n_s", -0.01, 0.01, "clock offset tau_n [s]"))
 
 
-def _plausible(df: pd.DataFrame, limits: tuple, path: Path) -> tuple[pd.DataFrame, list[str]]:
+def _plausible(df: pd.DataFrame, limits: tuple) -> tuple[pd.DataFrame, list[str]]:
     """The records of ``df`` whose values are within ``limits`` (or that are flagged unhealthy, so never used),
-    and one note per satellite with records skipped."""
+    and one note per satellite with records skipped (without the file name)."""
     if df.empty:
         return df, []
     values = {"radius_m": lambda: np.linalg.norm(df[["x", "y", "z"]].to_numpy(float), axis=1),
               "speed_m_s": lambda: np.linalg.norm(df[["vx", "vy", "vz"]].to_numpy(float), axis=1)}
     bad = np.zeros(len(df), bool)
-    bad_or_unhealthy = df["health"].to_numpy() != 0     # flagged unusable anyway: kept, so its flag stays in force
+    unhealthy = df["health"].to_numpy() != 0     # flagged unusable anyway: kept, so its flag stays in force
     why = np.full(len(df), "", dtype=object)
     for column, low, high, what in limits:
         v = values[column]() if column in values else df[column].to_numpy(float)
-        out = ~bad & ~bad_or_unhealthy & ~((v >= low) & (v <= high))
+        out = ~bad & ~unhealthy & ~((v >= low) & (v <= high))
         why[out] = [f"{what} {x:.6g} outside [{low:g}, {high:g}]" for x in v[out]]
         bad |= out
+    sv = df["sv"].to_numpy()
     notes = []
-    for sv in dict.fromkeys(df["sv"].to_numpy()[bad]):
-        rows = np.flatnonzero(bad & (df["sv"].to_numpy() == sv))
-        notes.append(f"{path}: {len(rows)} {sv} record(s) skipped as impossible, first: {why[rows[0]]}")
+    for name in dict.fromkeys(sv[bad]):
+        rows = np.flatnonzero(bad & (sv == name))
+        notes.append(f"{len(rows)} {name} record(s) skipped as impossible, first: {why[rows[0]]}")
     return df[~bad], notes
 
 
