@@ -11,7 +11,6 @@ is fitted to those bins (log sigma, least squares weighted by the bin counts): t
 """
 from __future__ import annotations
 
-import argparse
 import sys
 import warnings
 from pathlib import Path
@@ -20,7 +19,7 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from smoothing_lag import DATASETS, save_figure  # noqa: E402  (a sibling script)
+from smoothing_lag import DATASETS, command_line, publish, save_figure, script_parser  # noqa: E402  (a sibling script)
 
 DOC = REPO / "docs" / "doppler_noise.md"
 FIGURE = REPO / "docs" / "figures" / "doppler_noise.png"
@@ -135,20 +134,14 @@ def plot(rows: list[dict], path: Path) -> Path:
 
 def main(argv: list[str] | None = None) -> int:
     """Run, print, and with ``--write`` write the Markdown page and the figure."""
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--datasets", nargs="+", default=list(DATASETS))
+    p = script_parser(__doc__, f"write {DOC.relative_to(REPO)} and {FIGURE.name}")
     p.add_argument("--split", default="train", choices=("train", "val", "test"))
-    p.add_argument("--write", action="store_true", help=f"write {DOC.relative_to(REPO)} and {FIGURE.name}")
     args = p.parse_args(argv)
     warnings.simplefilter("ignore", FutureWarning)
     sys.path.insert(0, str(REPO))
     rows = run(args.datasets, args.split)
-    text = markdown(rows, " ".join(["python benchmarks/doppler_noise.py", *(sys.argv[1:] if argv is None else argv)]))
-    print(text)
-    if args.write:
-        DOC.write_text(text)
-        print(f"written: {DOC}, {plot(rows, FIGURE)}")
-    return 0
+    text = markdown(rows, command_line("doppler_noise.py", argv))
+    return publish(text, DOC, args.write, lambda: plot(rows, FIGURE))
 
 
 if __name__ == "__main__":

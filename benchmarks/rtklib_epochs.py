@@ -13,7 +13,6 @@ is chosen from these figures.
 """
 from __future__ import annotations
 
-import argparse
 import sys
 import tempfile
 import warnings
@@ -23,7 +22,7 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from smoothing_lag import DATASETS, estimators_for  # noqa: E402  (a sibling script)
+from smoothing_lag import DATASETS, command_line, estimators_for, publish, script_parser  # noqa: E402  (a sibling script)
 
 DOC = REPO / "docs" / "rtklib_epochs.md"
 SPLITS = ("train", "val", "test")
@@ -107,10 +106,8 @@ def markdown(rows: list[dict], command: str) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """Run, print, and with ``--write`` write the Markdown page."""
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--datasets", nargs="+", default=list(DATASETS), help="benchmark dataset ids (default: the three)")
+    p = script_parser(__doc__, "write the page, docs/rtklib_epochs.md")
     p.add_argument("--splits", nargs="+", default=list(SPLITS), choices=SPLITS)
-    p.add_argument("--write", action="store_true", help="write the page, docs/rtklib_epochs.md")
     args = p.parse_args(argv)
     warnings.simplefilter("ignore", FutureWarning)
     sys.path.insert(0, str(REPO))
@@ -125,12 +122,7 @@ def main(argv: list[str] | None = None) -> int:
     if not rows:
         print("rtklib_epochs.py: no dataset with its files and RTKLIB's rnx2rtkp: nothing to compare", file=sys.stderr)
         return 2
-    text = markdown(rows, " ".join(["python benchmarks/rtklib_epochs.py", *(sys.argv[1:] if argv is None else argv)]))
-    print(text)
-    if args.write:
-        DOC.write_text(text)
-        print(f"written: {DOC}")
-    return 0
+    return publish(markdown(rows, command_line("rtklib_epochs.py", argv)), DOC, args.write)
 
 
 if __name__ == "__main__":

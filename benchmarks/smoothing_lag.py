@@ -89,6 +89,28 @@ def save_figure(fig, path: Path) -> Path:
     return path
 
 
+def script_parser(doc: str, write_help: str) -> argparse.ArgumentParser:
+    """The benchmark scripts' command line: ``--datasets`` and ``--write``; each adds its split option."""
+    p = argparse.ArgumentParser(description=doc.split("\n\n")[0])
+    p.add_argument("--datasets", nargs="+", default=list(DATASETS), help="benchmark dataset ids (default: the three)")
+    p.add_argument("--write", action="store_true", help=write_help)
+    return p
+
+
+def publish(text: str, doc: Path, write: bool, figure=None) -> int:
+    """Print the page; with ``write`` also write it to ``doc`` and draw ``figure()`` (-> its path). Exit status 0."""
+    print(text)
+    if write:
+        doc.write_text(text)
+        print(f"written: {doc}" + (f", {figure()}" if figure is not None else ""))
+    return 0
+
+
+def command_line(script: str, argv: list[str] | None) -> str:
+    """The command as typed, for the page's header."""
+    return " ".join([f"python benchmarks/{script}", *(sys.argv[1:] if argv is None else argv)])
+
+
 def plot(rows: list[dict], path: Path, split: str) -> Path:
     """3D RMSE against lag, one panel per dataset (the whole-run smoother drawn at the right edge)."""
     import matplotlib
@@ -112,21 +134,14 @@ def plot(rows: list[dict], path: Path, split: str) -> Path:
 
 def main(argv: list[str] | None = None) -> int:
     """Run, print, and with ``--write`` write the Markdown page and the figure."""
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--datasets", nargs="+", default=list(DATASETS))
+    p = script_parser(__doc__, f"write {DOC.relative_to(REPO)} and {FIGURE.name}")
     p.add_argument("--split", default="val", choices=("train", "val", "test"))
-    p.add_argument("--write", action="store_true", help=f"write {DOC.relative_to(REPO)} and {FIGURE.name}")
     args = p.parse_args(argv)
     warnings.simplefilter("ignore", FutureWarning)
     sys.path.insert(0, str(REPO))
     rows = run(args.datasets, args.split)
-    command = " ".join(["python benchmarks/smoothing_lag.py", *(sys.argv[1:] if argv is None else argv)])
-    text = markdown(rows, args.split, command)
-    print(text)
-    if args.write:
-        DOC.write_text(text)
-        print(f"written: {DOC}, {plot(rows, FIGURE, args.split)}")
-    return 0
+    text = markdown(rows, args.split, command_line("smoothing_lag.py", argv))
+    return publish(text, DOC, args.write, lambda: plot(rows, FIGURE, args.split))
 
 
 if __name__ == "__main__":

@@ -12,7 +12,6 @@ is the noise model's or the filter's.
 """
 from __future__ import annotations
 
-import argparse
 import math
 import sys
 import warnings
@@ -22,7 +21,7 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from smoothing_lag import DATASETS, estimators_for, save_figure  # noqa: E402  (a sibling script)
+from smoothing_lag import DATASETS, command_line, estimators_for, publish, save_figure, script_parser  # noqa: E402  (a sibling script)
 
 DOC = REPO / "docs" / "truth_weights.md"
 FIGURE = REPO / "docs" / "figures" / "truth_weights.png"
@@ -125,21 +124,15 @@ def plot(rows: list[dict], path: Path, split: str = "test") -> Path:
 
 def main(argv: list[str] | None = None) -> int:
     """Run, print, and with ``--write`` write the Markdown page and the figure."""
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--datasets", nargs="+", default=list(DATASETS))
+    p = script_parser(__doc__, f"write {DOC.relative_to(REPO)} and {FIGURE.name}")
     p.add_argument("--splits", nargs="+", default=list(SPLITS), choices=SPLITS)
-    p.add_argument("--write", action="store_true", help=f"write {DOC.relative_to(REPO)} and {FIGURE.name}")
     args = p.parse_args(argv)
     warnings.simplefilter("ignore", FutureWarning)
     sys.path.insert(0, str(REPO))
     rows = run(args.datasets, args.splits)
-    command = " ".join(["python benchmarks/truth_weights.py", *(sys.argv[1:] if argv is None else argv)])
-    text = markdown(rows, command)
-    print(text)
-    if args.write:
-        DOC.write_text(text)
-        print(f"written: {DOC}, {plot(rows, FIGURE, 'test' if 'test' in args.splits else args.splits[-1])}")
-    return 0
+    text = markdown(rows, command_line("truth_weights.py", argv))
+    split = "test" if "test" in args.splits else args.splits[-1]
+    return publish(text, DOC, args.write, lambda: plot(rows, FIGURE, split))
 
 
 if __name__ == "__main__":

@@ -208,7 +208,7 @@ def _ecef_problem(values: list[float]) -> str | None:
     return None
 
 
-def _numeric_rows(path: Path, n_cols: int, sep: str, record_word: str | None = None,
+def _numeric_rows(path: Path, n_cols: int, record_word: str | None = None,
                   problem=None) -> tuple[np.ndarray, list[str]]:
     """Rows of at least n_cols numbers; bad lines are reported as 'PATH:LINE: reason' and skipped.
 
@@ -223,7 +223,7 @@ def _numeric_rows(path: Path, n_cols: int, sep: str, record_word: str | None = N
     for i, line in enumerate(lines, 1):
         if not line.strip():
             continue
-        parts = line.replace(",", " ").split() if sep == "any" else line.split(sep)
+        parts = line.replace(",", " ").split()
         if record_word is not None:
             if parts[0].startswith("#"):
                 continue
@@ -250,9 +250,26 @@ def _numeric_rows(path: Path, n_cols: int, sep: str, record_word: str | None = N
     return np.array(rows), [f"{path}:{i}: {why}, skipped" for i, why in skipped]
 
 
+#: Each truth format's rows, as _numeric_rows' (numbers per row, record word, plausibility check).
+_ROW_LAYOUTS = {"urbannav": (5, None, _lla_problem), "smartloc": (4, "point3", _ecef_problem),
+                "static": (5, None, _lla_problem), "ecef-csv": (4, None, _ecef_problem)}
+
+
+def _readable_as(path: Path, truth_format: str) -> str | None:
+    """Another truth format in which ``path`` has readable rows, or None (a hint for a wrong format setting)."""
+    for other, layout in _ROW_LAYOUTS.items():
+        if other != truth_format and _ROW_LAYOUTS[truth_format] != layout:
+            try:
+                _numeric_rows(path, *layout)
+                return other
+            except InputError:
+                continue
+    return None
+
+
 def read_urbannav(path: Path, spec: DatasetSpec) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """UrbanNav CSV: GPS week, TOW [s], latitude, longitude [deg], height [m]."""
-    rows, bad = _numeric_rows(path, 5, "any", problem=_lla_problem)
+    rows, bad = _numeric_rows(path, *_ROW_LAYOUTS["urbannav"])
     return week_tow_to_gps_s(rows[:, 0], rows[:, 1]), lla_to_ecef(np.radians(rows[:, 2]), np.radians(rows[:, 3]), rows[:, 4]), bad
 
 
@@ -260,7 +277,7 @@ def read_smartloc(path: Path, spec: DatasetSpec) -> tuple[np.ndarray, np.ndarray
     """libRSF ``point3`` rows: t [s since spec.time_origin_gps_s, which align_truth fills in], ECEF X Y Z [m]."""
     if spec.time_origin_gps_s is None:
         raise ValueError(f"dataset {spec.id}: smartloc truth needs time_origin_gps_s (align_truth sets it)")
-    rows, bad = _numeric_rows(path, 4, "any", record_word="point3", problem=_ecef_problem)
+    rows, bad = _numeric_rows(path, *_ROW_LAYOUTS["smartloc"])
     return spec.time_origin_gps_s + rows[:, 0], rows[:, 1:4], bad
 
 
@@ -269,7 +286,7 @@ def read_static(path: Path, spec: DatasetSpec) -> tuple[np.ndarray, np.ndarray, 
 
     The first row is the point; rows farther than ``STATIC_SPREAD_M`` from it give a warning (not one point).
     """
-    rows, bad = _numeric_rows(path, 5, "any", problem=_lla_problem)
+    rows, bad = _numeric_rows(path, *_ROW_LAYOUTS["static"])
     xyz = lla_to_ecef(np.radians(rows[:, 2]), np.radians(rows[:, 3]), rows[:, 4])
     spread_m = float(np.max(np.linalg.norm(xyz - xyz[0], axis=1)))
     if spread_m > STATIC_SPREAD_M:
@@ -280,7 +297,7 @@ def read_static(path: Path, spec: DatasetSpec) -> tuple[np.ndarray, np.ndarray, 
 
 def read_ecef_csv(path: Path, spec: DatasetSpec) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """CSV of GPS seconds since 1980-01-06, ECEF X, Y, Z [m]."""
-    rows, bad = _numeric_rows(path, 4, "any", problem=_ecef_problem)
+    rows, bad = _numeric_rows(path, *_ROW_LAYOUTS["ecef-csv"])
     return rows[:, 0], rows[:, 1:4], bad
 
 
@@ -295,7 +312,13 @@ def align_truth(time_gps_s: np.ndarray, spec: DatasetSpec) -> tuple[np.ndarray, 
     time_gps_s = np.asarray(time_gps_s, dtype=float)
     if spec.time_origin_gps_s is None:
         spec = replace(spec, time_origin_gps_s=float(time_gps_s[0]) if time_gps_s.size else 0.0)
-    t_truth, xyz, bad = TRUTH_READERS[spec.truth_format](spec.truth, spec)
+    try:
+        t_truth, xyz, bad = TRUTH_READERS[spec.truth_format](spec.truth, spec)
+    except InputError as err:
+        other = _readable_as(spec.truth, spec.truth_format) if spec.truth_format in _ROW_LAYOUTS else None
+        if other is None:
+            raise
+        raise InputError(err.path, f"{err.reason} (the file reads as truth format {other!r})", line=err.line) from None
     if spec.truth_format == "static":
         return np.broadcast_to(xyz[0], (time_gps_s.size, 3)).copy(), bad
     order = np.argsort(t_truth)

@@ -141,9 +141,11 @@ def load(obs: str | Path | Observations, nav: str | Path | Iterable[str | Path] 
     for system in sorted((asked or set()) - present):
         notes.append(f"{observations.path}: no {system} observations (requested)")
     observations = observations.select_systems(wanted)
+    if observations.sv.size == 0 and not present:
+        raise RinexError(observations.path, "no pseudorange observations of any constellation")
     if observations.sv.size == 0:
         raise RinexError(observations.path, f"no observations of the requested constellations {''.join(wanted)} "
-                                            f"(the file has {''.join(s for s in SYSTEMS if s in present) or 'none'})")
+                                            f"(the file has {''.join(s for s in SYSTEMS if s in present)})")
 
     # C/N0 of 0 (written by converters for "not recorded"), negative or absurd (damaged field): missing
     cn0 = observations.cn0_dbhz.copy()

@@ -98,6 +98,23 @@ def test_truth_rows_off_the_earth_are_skipped_with_a_note(tmp_path, reader, rows
         reader(path, spec)
 
 
+@pytest.mark.parametrize("given, rows, hint", [
+    ("smartloc", ["2051,46701,22.3,114.1,10", "2051,46702,22.3,114.1,10"], "urbannav"),
+    ("urbannav", ["point3 0.0 3785185.7 899901.8 5037236.1"], "smartloc"),
+    ("static", ["1.2e9, -2418000, 5386000, 2405000"], "ecef-csv"),
+], ids=["urbannav-as-smartloc", "smartloc-as-urbannav", "ecef-as-static"])
+def test_a_wrong_truth_format_is_named_with_the_one_the_file_reads_as(tmp_path, given, rows, hint):
+    path = tmp_path / "truth.txt"
+    path.write_text("\n".join(rows) + "\n")
+    spec = datasets.DatasetSpec(id="x", obs=(path,), nav=(path,), truth=path, truth_format=given)
+    with pytest.raises(InputError, match=re.escape(f"(the file reads as truth format {hint!r})") + "$") as err:
+        datasets.align_truth(np.array([1.2e9]), spec)
+    assert str(err.value).startswith(f"{path}:1: no readable ground-truth line")
+    path.write_text("nothing here\n")               # no format reads it: no hint
+    with pytest.raises(InputError, match="no readable ground-truth line; the first: [^(]*$"):
+        datasets.align_truth(np.array([1.2e9]), spec)
+
+
 def test_bad_toml_is_one_line_error(tmp_path):
     cfg = tmp_path / "bad.toml"
     cfg.write_text('id = "x"\nobs = ["a.obs"]\n')

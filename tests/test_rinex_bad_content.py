@@ -279,3 +279,18 @@ def test_truncated_epoch_followed_by_a_damaged_epoch_line(tmp_path, clean):
     assert len(obs.warnings) == 2
     np.testing.assert_array_equal(obs.time_gps_s, np.delete(clean.time_gps_s, [4, 5]))
     np.testing.assert_array_equal(obs.pr_m, np.delete(clean.pr_m, [4, 5], axis=0))
+
+
+# ------------------------------------------------------------------ a file with no pseudorange at all
+def test_all_blank_records_say_no_pseudorange_not_a_constellation_choice(tmp_path):
+    """Satellite ids with blank fields: the error says there are no pseudoranges, not that none of the (never
+    requested) constellations GCERJ were found."""
+    from lfgnss.measurements import load
+    from lfgnss.solve import SAMPLE_NAV
+
+    path = _rinex3(tmp_path / "blank.rnx", [SATS, SATS])
+    path.write_text("\n".join(line[:3] if line.startswith("G0") else line for line in path.read_text().split("\n")))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        with pytest.raises(RinexError, match=f"^{path}: no pseudorange observations of any constellation$"):
+            load(path, SAMPLE_NAV, cache=False)
