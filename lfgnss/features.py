@@ -27,7 +27,7 @@ from .velocity import cn0_doppler_variance_m2_s2, doppler_velocity
 from .weighted_fix import cn0_elevation_variance_m2, weighted_least_squares
 
 #: Every feature the packer knows, in a stable order.
-AVAILABLE_FEATURES = (DEFAULT_FEATURES + ("residual_weighted", "code_doppler", "cross_street")
+AVAILABLE_FEATURES = (DEFAULT_FEATURES + ("residual_weighted", "code_doppler", "cross_street", "track_age", "cn0_std")
                       + tuple(f"sys_{s}" for s in SYSTEMS))
 
 #: Code-Doppler disagreement: larger values are capped here [m]; so is a satellite with no previous epoch.
@@ -103,6 +103,59 @@ def code_doppler_disagreement_m(time_gps_s: np.ndarray, pr_m: np.ndarray, prr_m_
     return np.where(np.isfinite(d), np.minimum(np.abs(d), CODE_DOPPLER_CAP_M), CODE_DOPPLER_CAP_M)
 
 
+#: A satellite's track restarts after a gap in its pseudoranges longer than this [s].
+TRACK_MAX_GAP_S = 2.0
+#: Track ages are capped here [s]; a track already running at the file's first epoch counts as this old.
+TRACK_AGE_CAP_S = 60.0
+#: C/N0 spread window [s]: the last seconds of the current track.
+CN0_STD_WINDOW_S = 5.0
+
+
+def track_start(time_gps_s: np.ndarray, tracked: np.ndarray) -> np.ndarray:
+    """(T, N) index of the epoch where each satellite's current continuous track began (-1 where not tracked)."""
+    t = np.asarray(time_gps_s, float)
+    gap = np.concatenate([[True], ~((np.diff(t) > 0) & (np.diff(t) <= TRACK_MAX_GAP_S))])
+    prev = np.vstack([np.zeros((1, tracked.shape[1]), bool), tracked[:-1]])
+    begins = tracked & (gap[:, None] | ~prev)
+    start = np.maximum.accumulate(np.where(begins, np.arange(len(t))[:, None], -1), axis=0)
+    return np.where(tracked, start, -1)
+
+
+def track_age_s(time_gps_s: np.ndarray, tracked: np.ndarray) -> np.ndarray:
+    """(T, N) seconds since each satellite's current track began, capped at ``TRACK_AGE_CAP_S`` (0 untracked).
+
+    In a city a satellite just (re)acquired is suspect (``code_doppler_disagreement_m``); the age says how long
+    its pseudoranges have been continuous. A track that runs from the first epoch has an unknown age: the cap.
+    """
+    t = np.asarray(time_gps_s, float)
+    start = track_start(t, tracked)
+    age = t[:, None] - t[np.maximum(start, 0)]
+    age = np.where(start == 0, TRACK_AGE_CAP_S, np.minimum(age, TRACK_AGE_CAP_S))
+    return np.where(tracked, age, 0.0)
+
+
+def cn0_std_dbhz(time_gps_s: np.ndarray, cn0_dbhz: np.ndarray, tracked: np.ndarray) -> np.ndarray:
+    """(T, N) standard deviation of C/N0 [dB-Hz] over the last ``CN0_STD_WINDOW_S`` of each satellite's track.
+
+    Multipath makes C/N0 fade and recover as the receiver moves; a steady line of sight does not. 0 for a
+    track's first epoch and where untracked.
+    """
+    t = np.asarray(time_gps_s, float)
+    start = track_start(t, tracked)
+    x = np.where(tracked, np.nan_to_num(cn0_dbhz), 0.0)
+    zero = np.zeros((1, x.shape[1]))
+    s1, s2 = np.vstack([zero, np.cumsum(x, axis=0)]), np.vstack([zero, np.cumsum(x * x, axis=0)])
+    first = np.searchsorted(t, t - CN0_STD_WINDOW_S + 1e-6)          # first epoch inside each epoch's window
+    lo = np.maximum(first[:, None], start)                            # ... and inside the current track
+    hi = np.arange(len(t))[:, None] + 1
+    cols = np.arange(x.shape[1])[None, :]
+    lo = np.maximum(lo, 0)
+    n = np.maximum(hi - lo, 1)
+    mean = (s1[hi, cols] - s1[lo, cols]) / n
+    var = (s2[hi, cols] - s2[lo, cols]) / n - mean * mean
+    return np.where(tracked & (n > 1), np.sqrt(np.maximum(var, 0.0)), 0.0)
+
+
 def heading_rad(vel_ecef_m_s: np.ndarray, ref_ecef_m: np.ndarray,
                 min_speed_m_s: float = HEADING_MIN_SPEED_M_S) -> np.ndarray:
     """(T,) direction of travel, clockwise from north [rad], from ECEF velocities (T, 3) [m/s]; NaN if unknown.
@@ -164,22 +217,24 @@ def system_median_m(values_m: np.ndarray, mask: np.ndarray, system_index: np.nda
 
 def pack_features(names: tuple[str, ...], *, cn0_dbhz, el_rad, az_rad, residual_m, dpc, system_index,
                   systems: tuple[str, ...], mask, residual_weighted_m=None, code_doppler_m=None,
-                  cross_street=None) -> np.ndarray:
+                  cross_street=None, track_age_s=None, cn0_std_dbhz=None) -> np.ndarray:
     """(T, N, d) raw features by name; zeros in masked slots.
 
     ``code_doppler`` is ``log10(1 + code_doppler_m)`` (``code_doppler_disagreement_m``): the raw metres are
-    heavy-tailed, and the network sees standardised inputs.
+    heavy-tailed, and the network sees standardised inputs; so is ``track_age``, ``log10(1 + track_age_s)``.
     """
     if "residual_weighted" in names and residual_weighted_m is None:
         raise ValueError("the residual_weighted feature needs residual_weighted_m")
     if "code_doppler" in names and code_doppler_m is None:
         raise ValueError("the code_doppler feature needs code_doppler_m")
-    if "cross_street" in names and cross_street is None:
-        raise ValueError("the cross_street feature needs cross_street")
+    for name, given in (("cross_street", cross_street), ("track_age", track_age_s), ("cn0_std", cn0_std_dbhz)):
+        if name in names and given is None:
+            raise ValueError(f"the {name} feature needs its values")
     columns = {"cn0": cn0_dbhz, "elevation": el_rad, "azimuth": az_rad, "residual": residual_m,
                "residual_weighted": residual_weighted_m,
                "code_doppler": None if code_doppler_m is None else np.log10(1.0 + code_doppler_m),
-               "cross_street": cross_street,
+               "cross_street": cross_street, "cn0_std": cn0_std_dbhz,
+               "track_age": None if track_age_s is None else np.log10(1.0 + track_age_s),
                "dpc_gdop": dpc[..., 0], "dpc_pdop": dpc[..., 1], "dpc_hdop": dpc[..., 2], "dpc_vdop": dpc[..., 3]}
     for letter in SYSTEMS:
         idx = systems.index(letter) if letter in systems else -2
@@ -247,9 +302,13 @@ def build_sequence(meas: Measurements, fix: CoarseFix, *, feature_names: tuple[s
         vel = doppler_velocity(np.where(prr_mask, prr, 0.0), prr_mask, meas.sat_pos_ecef_m, meas.sat_vel_ecef_m_s,
                                ref, sigma_m_s=sigma)
         across = cross_street(az, heading_rad(vel.vel_ecef_m_s, np.median(ref, axis=0)))
+    tracked = np.isfinite(meas.obs.pr_m)
+    age = track_age_s(meas.time_gps_s, tracked) if "track_age" in feature_names else None
+    spread = cn0_std_dbhz(meas.time_gps_s, meas.cn0_dbhz, tracked) if "cn0_std" in feature_names else None
     feats = pack_features(tuple(feature_names), cn0_dbhz=cn0, el_rad=el, az_rad=az, residual_m=residual, dpc=dpc,
                           system_index=sysi, systems=meas.systems, mask=mask, residual_weighted_m=weighted,
-                          code_doppler_m=code_doppler, cross_street=across)
+                          code_doppler_m=code_doppler, cross_street=across, track_age_s=age,
+                          cn0_std_dbhz=spread)
     coarse_clock = _reference_clock(fix, np.broadcast_to(meas.system_index, fix.used.shape))
     coarse_clock = np.where(fix.ok[:, None], coarse_clock, np.nan)
     truth = np.full((n_t, 3), np.nan) if truth_ecef_m is None else np.asarray(truth_ecef_m, float)

@@ -222,3 +222,38 @@ def test_cross_street_without_dopplers_is_the_unknown_value(sample):
     seq = lfgnss.build_sequence(no_doppler, fix, feature_names=DEFAULT_FEATURES + ("cross_street",))
     assert not seq.prr_mask.any()
     np.testing.assert_allclose(seq.features[..., 8][seq.mask], CROSS_STREET_UNKNOWN)
+
+
+def test_track_age_counts_seconds_of_continuous_pseudoranges_and_restarts_after_a_gap():
+    from lfgnss.features import TRACK_AGE_CAP_S, track_age_s
+    t = np.array([0.0, 1.0, 2.0, 3.0, 6.0, 7.0, 8.0])     # a 3 s hole in the epochs before t = 6
+    tracked = np.array([[1, 0], [1, 1], [0, 1], [1, 1], [1, 1], [1, 0], [1, 1]], bool)
+    age = track_age_s(t, tracked)
+    # satellite 0: tracked from the first epoch (unknown age: the cap), lost, back at t = 3, restarted by the hole
+    np.testing.assert_array_equal(age[:, 0], [TRACK_AGE_CAP_S, TRACK_AGE_CAP_S, 0, 0, 0, 1, 2])
+    np.testing.assert_array_equal(age[:, 1], [0, 0, 1, 2, 0, 0, 0])
+    long = track_age_s(np.arange(100.0), np.vstack([np.zeros((1, 1), bool), np.ones((99, 1), bool)]))
+    assert long[1, 0] == 0 and long[-1, 0] == TRACK_AGE_CAP_S
+
+
+def test_cn0_std_is_the_spread_over_the_last_seconds_of_the_current_track():
+    from lfgnss.features import CN0_STD_WINDOW_S, cn0_std_dbhz
+    t = np.arange(12.0)
+    cn0 = np.array([40.0, 42.0, 40.0, 42.0, 40.0, 42.0, 30.0, 30.0, 30.0, 30.0, 30.0, 30.0])[:, None]
+    tracked = np.ones((12, 1), bool)
+    tracked[6] = False                                     # a lost epoch: the track restarts at t = 7
+    std = cn0_std_dbhz(t, cn0, tracked)[:, 0]
+    assert std[0] == 0.0 and std[1] == pytest.approx(1.0)
+    assert std[5] == pytest.approx(np.std(cn0[6 - int(CN0_STD_WINDOW_S):6, 0]))   # the last 5 s only
+    assert std[6] == 0.0 and np.all(std[7:] == 0.0)        # a steady new track: no spread from the old one
+
+
+def test_track_features_on_the_sample(sample):
+    meas, fix, seq = sample
+    names = DEFAULT_FEATURES + ("track_age", "cn0_std")
+    more = lfgnss.build_sequence(meas, fix, feature_names=names)
+    np.testing.assert_array_equal(more.features[..., :8], seq.features)
+    age, spread = more.features[..., 8], more.features[..., 9]
+    assert np.all(age[~more.mask] == 0.0) and np.all(spread[~more.mask] == 0.0)
+    assert np.all((age >= 0) & (age <= np.log10(61.0))) and np.all((spread >= 0) & (spread < 30))
+    assert np.any(age[more.mask] < 1.0)                      # some satellites are (re)acquired during the drive
