@@ -77,12 +77,17 @@ DEFAULT_CONFIG: dict[str, Any] = {
     "model": {"d_model": 64, "n_heads": 4, "hidden": [64, 128, 64], "r_floor_m2": 0.01, "r_scale_m2": 1.0,
               "r_init_m2": None, "r_prior": "none", "compensation": True, "innovation": False},
     "train": {"epochs": 200, "batch_size": 16, "lr": 1.0e-3, "t_max": 50, "eta_min": 1.0e-4, "grad_clip": 0.0,
-              "feature_noise": 0.0, "weight_decay": 0.0, "select": "val", "ema_decay": 0.0, "init": "", "smooth": False},
+              "feature_noise": 0.0, "weight_decay": 0.0, "select": "val", "ema_decay": 0.0, "init": "", "smooth": False,
+              "freeze": []},
     "loss": {"kind": "hem", "alpha": 0.75, "gamma": 1.5, "lambda": 1.0, "up_weight": 1.0},
     "ekf": {},
 }
 
 _FORBIDDEN_SPLITS = ("test",)
+
+#: The network's parts by name (``learning.network.LfgnssNet``), for ``train.freeze``: these keep their initial
+#: (``train.init``) weights while the rest is trained.
+NETWORK_PARTS = ("embed", "attention", "norm", "mlp", "head")
 
 
 # --------------------------------------------------------------------------- configuration
@@ -228,6 +233,11 @@ def check_config(config: dict) -> dict:
     _check_number(config, "data.synthetic.nlos_fraction", 0, 1)
     if _setting(config, "model.r_init_m2") is not None:
         _check_number(config, "model.r_init_m2", 0, above=True)
+    frozen = _setting(config, "train.freeze")
+    if isinstance(frozen, str):
+        config["train"]["freeze"] = frozen = [frozen]
+    if not isinstance(frozen, list) or not all(isinstance(f, str) and f in NETWORK_PARTS for f in frozen):
+        raise ValueError(f"train.freeze must be a list of network parts ({', '.join(NETWORK_PARTS)}), got {frozen!r}")
     for key, low in (("model.hidden", 1), ("data.synthetic.train_seeds", 0), ("data.synthetic.val_seeds", 0)):
         items = _setting(config, key)
         if not isinstance(items, list) or not all(type(i) is int and i >= low for i in items):
@@ -660,8 +670,12 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
     out.mkdir(parents=True, exist_ok=True)
     decay = float(tr.get("weight_decay", 0.0))
     # Adam as in the paper; decoupled weight decay (AdamW) only when asked for, so 0 is the paper's optimiser.
-    optimiser = (torch.optim.AdamW(model.parameters(), lr=float(tr["lr"]), weight_decay=decay) if decay > 0
-                 else torch.optim.Adam(model.parameters(), lr=float(tr["lr"])))
+    frozen = tuple(tr.get("freeze", ()))       # runs from before the setting resume with nothing frozen
+    for name, param in model.named_parameters():
+        param.requires_grad_(name.split(".")[0] not in frozen)
+    trained = [p for p in model.parameters() if p.requires_grad]
+    optimiser = (torch.optim.AdamW(trained, lr=float(tr["lr"]), weight_decay=decay) if decay > 0
+                 else torch.optim.Adam(trained, lr=float(tr["lr"])))
     scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, T_max=int(tr["t_max"]),
                                                            eta_min=float(tr["eta_min"]))
     ema_decay = float(tr.get("ema_decay", 0.0))

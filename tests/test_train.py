@@ -288,6 +288,29 @@ def test_fine_tuning_starts_from_a_model_file(config, full_run, tmp_path, capsys
         load_config("learning/configs/default.toml", ["train.init=3"])
 
 
+def test_frozen_parts_keep_their_initial_weights(config, full_run, tmp_path):
+    """train.freeze: the named network parts keep the train.init weights; the others are trained; a part the
+    network lacks is one clear error naming the setting."""
+    import copy
+
+    out, _ = full_run
+    start = load_model(out / "model.npz")
+    cfg = copy.deepcopy(config)
+    cfg["train"].update(init=str(out / "model.npz"), epochs=1, lr=1e-2, select="last",
+                        freeze=["embed", "attention", "norm"])
+    train(cfg, tmp_path / "frozen", progress=False)
+    tuned = load_model(tmp_path / "frozen" / "model.npz")
+    for name, value in start.params.items():
+        if name.split(".")[0] in ("embed", "attention", "norm"):
+            np.testing.assert_array_equal(tuned.params[name], value, err_msg=name)
+        else:
+            assert not np.array_equal(tuned.params[name], value), name
+    with pytest.raises(ValueError, match=r"^train.freeze must be a list of network parts \(embed, attention, "
+                                         r"norm, mlp, head\), got \['encoder'\]$"):
+        load_config("learning/configs/default.toml", ["train.freeze=['encoder']"])
+    assert load_config("learning/configs/default.toml", ["train.freeze=head"])["train"]["freeze"] == ["head"]
+
+
 def test_every_config_file_loads():
     """Each file in learning/configs parses with known keys; a bundled init model it names exists."""
     from pathlib import Path
