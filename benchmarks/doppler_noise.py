@@ -19,7 +19,7 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from smoothing_lag import DATASETS, command_line, publish, save_figure, script_parser  # noqa: E402  (a sibling script)
+from smoothing_lag import command_line, publish, save_figure, script_parser  # noqa: E402  (a sibling script)
 
 DOC = REPO / "docs" / "doppler_noise.md"
 FIGURE = REPO / "docs" / "figures" / "doppler_noise.png"

@@ -22,7 +22,7 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from smoothing_lag import DATASETS, command_line, estimators_for, publish, script_parser  # noqa: E402  (a sibling script)
+from smoothing_lag import command_line, estimators_for, publish, script_parser  # noqa: E402  (a sibling script)
 
 DOC = REPO / "docs" / "rtklib_epochs.md"
 SPLITS = ("train", "val", "test")

@@ -21,7 +21,7 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from smoothing_lag import DATASETS, command_line, estimators_for, publish, save_figure, script_parser  # noqa: E402  (a sibling script)
+from smoothing_lag import command_line, estimators_for, publish, save_figure, script_parser  # noqa: E402  (a sibling script)
 
 DOC = REPO / "docs" / "truth_weights.md"
 FIGURE = REPO / "docs" / "figures" / "truth_weights.png"

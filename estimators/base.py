@@ -4,12 +4,17 @@ from __future__ import annotations
 import difflib
 import importlib
 import inspect
-from dataclasses import dataclass, field
-from typing import Callable, Iterable, Protocol, runtime_checkable
+from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING, Callable, Iterable, Protocol, runtime_checkable
 
 import numpy as np
 
+from lfgnss.frames import ecef_to_enu, ecef_to_lla
+from lfgnss.metrics import enu_rotations
 from lfgnss.sequence import Sequence
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 #: Per-epoch status codes of a Solution.
 STATUS_NONE = 0        # no position (before the first fix)
@@ -23,7 +28,8 @@ STATUS_NAMES = {STATUS_NONE: "none", STATUS_UPDATED: "updated", STATUS_COASTED: 
 class Solution:
     """Per-epoch output of an estimator, shapes (T, ...).
 
-    ``pos_ecef_m`` is NaN only where ``status == STATUS_NONE``.
+    ``pos_ecef_m`` is NaN only where ``status == STATUS_NONE``. ``geodetic()``, ``enu_m()``, ``sd_enu_m()`` and
+    ``to_frame()`` convert it (NaN where an epoch has no position); ``subset()`` selects epochs.
     """
 
     backend: str
@@ -41,6 +47,60 @@ class Solution:
         """(T,) bool, True where the estimator gave a position."""
         return self.status != STATUS_NONE
 
+    def __len__(self) -> int:
+        return int(np.shape(self.time_gps_s)[0])
+
+    def _positions(self) -> np.ndarray:
+        """(T, 3) ECEF [m], NaN where the epoch has no position (status none or not finite), as the writers skip."""
+        pos = np.asarray(self.pos_ecef_m, float)
+        has = (np.asarray(self.status) != STATUS_NONE) & np.isfinite(pos).all(axis=-1)
+        return np.where(has[:, None], pos, np.nan)
+
+    def geodetic(self) -> np.ndarray:
+        """(T, 3) WGS84 latitude [deg], longitude [deg], ellipsoidal height [m]; NaN where no position."""
+        llh = ecef_to_lla(self._positions()).reshape(-1, 3)
+        return np.column_stack([np.degrees(llh[:, 0]), np.degrees(llh[:, 1]), llh[:, 2]])
+
+    def enu_m(self, ref_ecef_m: np.ndarray | None = None) -> np.ndarray:
+        """(T, 3) east, north, up [m] from ``ref_ecef_m`` (3,) [m], default the first position; NaN where none."""
+        pos = self._positions()
+        if ref_ecef_m is None:
+            found = np.flatnonzero(np.isfinite(pos).all(axis=-1))
+            if not found.size:
+                return np.full(pos.shape, np.nan)
+            ref_ecef_m = pos[found[0]]
+        ref = np.asarray(ref_ecef_m, float)
+        if ref.shape != (3,) or not np.isfinite(ref).all():
+            raise ValueError(f"Solution.enu_m: ref_ecef_m must be 3 finite ECEF coordinates [m], got {ref_ecef_m!r}")
+        return ecef_to_enu(pos, ref).reshape(-1, 3)
+
+    def sd_enu_m(self) -> np.ndarray:
+        """(T, 3) standard deviations east, north, up [m], the covariance in each epoch's local frame; NaN if none."""
+        pos = self._positions()
+        cov = np.asarray(self.cov_ecef_m2, float)
+        ok = np.isfinite(pos).all(axis=-1) & np.isfinite(cov).all(axis=(1, 2))
+        out = np.full(pos.shape, np.nan)
+        rot = enu_rotations(pos[ok]).reshape(-1, 3, 3)
+        out[ok] = np.sqrt(np.maximum(np.einsum("tij,tjk,tik->ti", rot, cov[ok], rot), 0.0))
+        return out
+
+    def subset(self, index: slice | np.ndarray | int) -> "Solution":
+        """Epochs selected by a slice, boolean mask, index array or one index, as a new Solution (and info's arrays)."""
+        t = len(self)
+        index = np.array([index]) if isinstance(index, (int, np.integer)) else index
+        per_epoch = {k: np.asarray(v)[index] for k, v in self.info.items()
+                     if isinstance(v, np.ndarray) and v.ndim and v.shape[0] == t}
+        arrays = {k: getattr(self, k)[index] for k in ("time_gps_s", "pos_ecef_m", "cov_ecef_m2", "clock_m",
+                                                       "n_used", "status")}
+        vel = None if self.vel_ecef_m_s is None else self.vel_ecef_m_s[index]
+        return replace(self, vel_ecef_m_s=vel, info=self.info | per_epoch, **arrays)
+
+    def to_frame(self, truth_ecef_m: np.ndarray | None = None) -> "pd.DataFrame":
+        """pandas DataFrame, one row per epoch, with the CSV writer's columns [m, deg] (``lfgnss.outputs.solution_frame``)."""
+        from lfgnss.outputs import solution_frame
+
+        return solution_frame(self, truth_ecef_m)
+
 
 @runtime_checkable
 class Estimator(Protocol):
@@ -54,6 +114,48 @@ class Estimator(Protocol):
 
 
 _REGISTRY: dict[str, Callable[..., Estimator]] = {}
+
+
+def check_sequence(sequence: object, owner: str) -> Sequence:
+    """``sequence`` if it is a Sequence with finite epoch times; TypeError or ValueError naming ``owner`` otherwise."""
+    if not isinstance(sequence, Sequence):
+        what = type(sequence).__name__
+        hint = ("lfgnss.build_sequence(meas, lfgnss.spp(meas)), lfgnss.process(obs, nav) or lfgnss.load_sequence(path)"
+                if what in ("Measurements", "CoarseFix", "str", "PosixPath", "WindowsPath", "Observations")
+                else "lfgnss.build_sequence or lfgnss.process")
+        raise TypeError(f"{owner}.solve: expected an lfgnss.Sequence, got {what}; make one with {hint}")
+    bad = ~np.isfinite(np.asarray(sequence.time_gps_s, float))
+    if bad.any():
+        raise ValueError(f"{owner}: epoch time of {sequence.name!r} is not finite at epoch {int(np.argmax(bad))}")
+    return sequence
+
+
+def usable_measurements(sequence: Sequence) -> np.ndarray:
+    """(T, N) bool: masked-in slots with finite pseudorange and satellite position and a known system."""
+    c = len(sequence.systems)
+    return (sequence.mask & np.isfinite(sequence.pr_m) & np.isfinite(sequence.sat_pos_ecef_m).all(-1)
+            & (sequence.system_index >= 0) & (sequence.system_index < c))
+
+
+def usable_doppler(sequence: Sequence) -> np.ndarray:
+    """(T, N) bool: usable slots whose Doppler is marked and finite, with a finite satellite velocity."""
+    return (usable_measurements(sequence) & sequence.prr_mask & np.isfinite(sequence.prr_m_s)
+            & np.isfinite(sequence.sat_vel_ecef_m_s).all(-1))
+
+
+def usable_sequence(sequence: Sequence) -> Sequence:
+    """``sequence`` with unusable masked-in slots (non-finite pseudorange, satellite state or Doppler) masked out.
+
+    The same object when every masked-in slot is usable, as in every Sequence ``lfgnss.build_sequence`` makes.
+    """
+    usable, doppler = usable_measurements(sequence), usable_doppler(sequence)
+    if np.array_equal(usable, sequence.mask) and np.array_equal(doppler, sequence.prr_mask):
+        return sequence
+    return replace(sequence, mask=usable, pr_m=np.where(usable, sequence.pr_m, 0.0),
+                   sat_pos_ecef_m=np.where(usable[..., None], sequence.sat_pos_ecef_m, 0.0),
+                   system_index=np.where(usable, sequence.system_index, -1), prr_mask=doppler,
+                   prr_m_s=np.where(doppler, sequence.prr_m_s, 0.0),
+                   sat_vel_ecef_m_s=np.where(doppler[..., None], sequence.sat_vel_ecef_m_s, 0.0))
 
 
 def register(name: str) -> Callable:
@@ -132,8 +234,11 @@ def _check_options(name: str, options: dict) -> None:
     raise TypeError(f"estimators.create({name!r}): backend {name!r} has no option{plural} {listed}; {takes}")
 
 
-def create(name: str, **options) -> Estimator:
+def create(name: str, /, **options: object) -> Estimator:
     """Instantiate the registered estimator ``name`` with keyword options; TypeError for an option it does not take."""
+    if not isinstance(name, str):
+        raise TypeError(f"estimators.create: the backend name must be a string, one of {', '.join(available())}; "
+                        f"got {type(name).__name__}")
     _check_options(name, options)
     return _REGISTRY[name](**options)
 

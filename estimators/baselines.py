@@ -10,8 +10,8 @@ from lfgnss.features import fill_from_nearest_epoch
 from lfgnss.sequence import Sequence
 from lfgnss.weighted_fix import weighted_least_squares
 
-from .base import STATUS_NONE, STATUS_UPDATED, Solution, register
-from .noise import HeuristicNoise, NoiseModel, checked_noise, resolve_noise
+from .base import STATUS_NONE, STATUS_UPDATED, Solution, check_sequence, register, usable_sequence
+from .noise import HeuristicNoise, NoiseModel, checked_noise, noise_output, resolve_noise
 
 
 @dataclass
@@ -20,11 +20,13 @@ class _LeastSquares:
     noise: NoiseModel | None
 
     def solve(self, sequence: Sequence) -> Solution:
-        """Least-squares fix of each epoch on its own (no filtering)."""
+        """Least-squares fix of each epoch on its own (no filtering); positions [m], covariances [m^2]."""
+        sequence = usable_sequence(check_sequence(sequence, self.name))   # NaN-free slots (the same on valid input)
         if self.noise is None:
             r = np.ones(sequence.mask.shape)
         else:
-            r, _ = checked_noise(self.name, sequence.name, sequence.mask, *self.noise(sequence))
+            r, _ = checked_noise(self.name, sequence.name, sequence.mask,
+                                 *noise_output(self.name, self.noise(sequence)))
         fix = weighted_least_squares(sequence.pr_m, sequence.sat_pos_ecef_m, sequence.system_index, sequence.mask,
                                      len(sequence.systems), fill_from_nearest_epoch(sequence.coarse_ecef_m), r,
                                      scale_by_residuals=self.noise is None)

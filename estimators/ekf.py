@@ -39,22 +39,16 @@ from lfgnss.features import innovation_feature
 from lfgnss.sequence import Sequence
 
 from . import models
-from .base import STATUS_COASTED, STATUS_NONE, STATUS_RESET, STATUS_UPDATED, Solution, epoch_range, options_of, register
+from .base import (STATUS_COASTED, STATUS_NONE, STATUS_RESET, STATUS_UPDATED, Solution, check_sequence, epoch_range,
+                   options_of, register, usable_doppler, usable_measurements)
 from .models import EkfConfig
-from .noise import HeuristicNoise, NoiseModel, checked_noise, default_noise, resolve_noise
+from .noise import HeuristicNoise, NoiseModel, checked_noise, default_noise, noise_output, resolve_noise
 from .smoother import lag_horizon, rts_smooth
 
 
 def compensated_pseudorange(pr_m: np.ndarray, vc_m: np.ndarray) -> np.ndarray:
     """The one place the innovation compensation enters: ``z = pr + v^c`` [m], so ``v + v^c = z - h``."""
     return pr_m + vc_m
-
-
-def usable_measurements(sequence: Sequence) -> np.ndarray:
-    """(T, N) bool: masked-in slots with finite pseudorange and satellite position and a known system."""
-    c = len(sequence.systems)
-    return (sequence.mask & np.isfinite(sequence.pr_m) & np.isfinite(sequence.sat_pos_ecef_m).all(-1)
-            & (sequence.system_index >= 0) & (sequence.system_index < c))
 
 
 def coarse_available(sequence: Sequence) -> np.ndarray:
@@ -120,6 +114,9 @@ class LfgnssEkf:
         if not smooth and 0 < smooth_lag_s < math.inf:
             raise ValueError(f"{type(self).__name__}: smooth_lag_s={float(smooth_lag_s):g} needs smooth=True (without "
                              f"it the forward filter runs, whose lag is 0)")
+        if config is not None and not isinstance(config, EkfConfig):
+            raise TypeError(f"{type(self).__name__}: config must be an estimators.EkfConfig (EkfConfig(**settings) "
+                            f"for a dict), got {type(config).__name__}")
         noise = resolve_noise(noise, type(self).__name__)
         self.noise = HeuristicNoise() if noise is None else noise
         self.config = config_of(self.noise) if config is None else config
@@ -131,7 +128,7 @@ class LfgnssEkf:
 
     def noise_arrays(self, sequence: Sequence, usable: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(r_m2, vc_m), each (T, N), from the noise model, checked on the usable slots."""
-        return self._checked(sequence, usable, *self.noise(sequence))
+        return self._checked(sequence, usable, *noise_output(type(self).__name__, self.noise(sequence)))
 
     def _checked(self, sequence: Sequence, usable: np.ndarray, r: object, vc: object
                  ) -> tuple[np.ndarray, np.ndarray]:
@@ -141,7 +138,8 @@ class LfgnssEkf:
         return r, vc
 
     def solve(self, sequence: Sequence) -> Solution:
-        """Filter every epoch of ``sequence``; one Solution row per epoch."""
+        """Filter every epoch of ``sequence``; one Solution row per epoch (positions [m], covariances [m^2])."""
+        sequence = check_sequence(sequence, type(self).__name__)
         cfg = self.config
         n_sys = len(sequence.systems)
         t_len, _ = sequence.mask.shape
@@ -163,7 +161,7 @@ class LfgnssEkf:
             vc_all = np.where(usable, vc_all, 0.0)
         z_all = compensated_pseudorange(pr_all, vc_all)
         r_all = np.where(usable, r_all, 1.0)
-        doppler_ok = usable & sequence.prr_mask if cfg.doppler_sigma_m_s > 0 else np.zeros_like(usable)
+        doppler_ok = usable_doppler(sequence) if cfg.doppler_sigma_m_s > 0 else np.zeros_like(usable)
         prr_all = np.where(doppler_ok, sequence.prr_m_s, 0.0)
         satvel_all = sequence.sat_vel_ecef_m_s
         r_doppler_all = models.used_doppler_variance_m2_s2(sequence.cn0_dbhz, doppler_ok, cfg, type(self).__name__,
@@ -229,8 +227,8 @@ class LfgnssEkf:
             innovation = np.zeros(usable.shape[1])
             if prior_x is not None:
                 innovation[idx] = models.prior_innovation_m(prior_x, sat_all[k, idx], sys_all[k, idx], pr_all[k, idx])
-            r, vc = self._checked(sequence, usable[k], *self.noise.predict(features[k], sequence.mask[k],
-                                                                             innovation_feature(innovation)))
+            r, vc = self._checked(sequence, usable[k], *noise_output(type(self).__name__, self.noise.predict(
+                features[k], sequence.mask[k], innovation_feature(innovation))))
             r_all[k] = np.where(usable[k], r, 1.0)
             vc_all[k] = np.where(usable[k], vc, 0.0)
             z_all[k] = compensated_pseudorange(pr_all[k], vc_all[k])

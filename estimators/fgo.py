@@ -52,6 +52,7 @@ whose snapshot is rank deficient the previous covariance propagated by the motio
 """
 from __future__ import annotations
 
+import numbers
 import os
 import time
 
@@ -66,9 +67,10 @@ from lfgnss.frames import ecef_to_lla, enu_rotation
 from lfgnss.sequence import Sequence
 from lfgnss.velocity import DopplerVelocity, doppler_velocity
 
-from .base import (STATUS_COASTED, STATUS_NONE, STATUS_UPDATED, Solution, epoch_range, options_of, register)
+from .base import (STATUS_COASTED, STATUS_NONE, STATUS_UPDATED, Solution, check_sequence, epoch_range, options_of,
+                   register, usable_sequence)
 from .models import EkfConfig, used_doppler_variance_m2_s2
-from .noise import HeuristicNoise, NoiseModel, checked_noise, default_noise, resolve_noise
+from .noise import HeuristicNoise, NoiseModel, checked_noise, default_noise, noise_output, resolve_noise
 
 MODES = ("batch", "fixed-lag")
 ROBUST_KERNELS = ("huber", "cauchy")
@@ -233,6 +235,19 @@ class LfgnssFgo:
                  progress: bool = False) -> None:
         if mode not in MODES:
             raise ValueError(f"estimators/fgo.py: mode {mode!r} not in {MODES}")
+        for key, value in (("lag_s", lag_s), ("robust_k", robust_k), ("prior_pos_sigma_m", prior_pos_sigma_m),
+                           ("prior_vel_sigma_m_s", prior_vel_sigma_m_s), ("max_iterations", max_iterations),
+                           ("fixed_lag_iterations", fixed_lag_iterations), ("doppler_sigma_m_s", doppler_sigma_m_s)):
+            if value is None and key == "robust_k":
+                continue
+            if isinstance(value, bool) or not isinstance(value, numbers.Real) or not np.isfinite(value):
+                raise ValueError(f"estimators/fgo.py: {key} must be a finite number, got {value!r}")
+        for key, value in (("prior_pos_sigma_m", prior_pos_sigma_m), ("prior_vel_sigma_m_s", prior_vel_sigma_m_s)):
+            if not value > 0:
+                raise ValueError(f"estimators/fgo.py: {key} must be > 0, got {value}")
+        for key, value in (("max_iterations", max_iterations), ("fixed_lag_iterations", fixed_lag_iterations)):
+            if not (value >= 1 and float(value).is_integer()):
+                raise ValueError(f"estimators/fgo.py: {key} must be a whole number >= 1, got {value}")
         if robust == "auto":
             robust, default_k = DEFAULT_KERNEL[mode]
             robust_k = default_k if robust_k is None else robust_k
@@ -342,14 +357,15 @@ class LfgnssFgo:
 
     # ------------------------------------------------------------------ solve
     def solve(self, sequence: Sequence) -> Solution:
-        """Estimate every epoch of ``sequence``; epochs before the first coarse fix get STATUS_NONE."""
-        seq = sequence
+        """Estimate every epoch of ``sequence`` (positions [m]); epochs before the first coarse fix get STATUS_NONE."""
+        seq = usable_sequence(check_sequence(sequence, type(self).__name__))   # the same object on valid input
         t = np.asarray(seq.time_gps_s, float)
         n_t = len(seq)
         if n_t > 1 and np.any(np.diff(t) <= 0):
             k = int(np.flatnonzero(np.diff(t) <= 0)[0])
             raise ValueError(f"estimators/fgo.py: {seq.name!r}: time not increasing at epoch {k + 1}")
-        r_m2, vc_m = checked_noise(type(self).__name__, seq.name, seq.mask, *self.noise(seq))
+        r_m2, vc_m = checked_noise(type(self).__name__, seq.name, seq.mask,
+                                   *noise_output(type(self).__name__, self.noise(seq)))
         z_m = np.where(seq.mask, seq.pr_m + vc_m, 0.0)
         sigma_m = np.sqrt(np.where(seq.mask, r_m2, 1.0))
 

@@ -49,6 +49,7 @@ them from differences of noisy pseudoranges.
 """
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass, fields
 from typing import TYPE_CHECKING, Union
 
@@ -177,6 +178,23 @@ class EkfConfig:
     huber_k: float | None = None
 
     def __post_init__(self) -> None:
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if f.name in ("q_vel_up_m2_s3", "doppler_cn0_ref_dbhz", "huber_k"):   # None allowed; checked below
+                continue
+            if isinstance(value, bool) or not isinstance(value, numbers.Real):
+                raise ValueError(f"estimators/models.py: EkfConfig.{f.name} must be a number, got {value!r}")
+        for name in ("p0_pos_m2", "p0_vel_m2_s2", "p0_clock_m2", "p0_drift_m2_s2", "p0_isb_m2", "q_pos_m2_s",
+                     "q_vel_m2_s3", "q_clock_m2_s", "q_drift_m2_s3", "q_isb_m2_s", "doppler_sigma_m_s"):
+            if not np.isfinite(getattr(self, name)):
+                raise ValueError(f"estimators/models.py: EkfConfig.{name} must be finite, got {getattr(self, name)}")
+        for name in ("reset_min_sats", "min_sats_for_update"):
+            if not float(getattr(self, name)).is_integer():
+                raise ValueError(f"estimators/models.py: EkfConfig.{name} must be a whole number, "
+                                 f"got {getattr(self, name)!r}")
+        if not self.reset_gated_fraction >= 0:
+            raise ValueError(f"estimators/models.py: EkfConfig.reset_gated_fraction must be >= 0 (>= 1 disables), "
+                             f"got {self.reset_gated_fraction}")
         for name in ("p0_pos_m2", "p0_vel_m2_s2", "p0_clock_m2", "p0_drift_m2_s2", "p0_isb_m2"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"estimators/models.py: EkfConfig.{name} must be > 0, got {getattr(self, name)}")

@@ -5,7 +5,9 @@ Padded/masked slots may hold any finite value; estimators ignore them.
 """
 from __future__ import annotations
 
+import numbers
 import os
+import warnings
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import Protocol
@@ -49,6 +51,18 @@ def resolve_noise(noise: object, owner: str) -> NoiseModel | None:
     return noise
 
 
+def noise_output(owner: str, out: object) -> tuple[object, object]:
+    """A noise model's return value as its two parts ``(r_m2, vc_m)``; TypeError naming ``owner`` otherwise."""
+    try:
+        if len(out) == 2:
+            return out[0], out[1]
+    except TypeError:
+        pass
+    got = (f"{len(out)} values" if isinstance(out, (tuple, list))
+           else f"an array of shape {out.shape}" if isinstance(out, np.ndarray) else type(out).__name__)
+    raise TypeError(f"{owner}: a noise model must return (r_m2, vc_m), two (T, N) arrays [m^2, m]; got {got}")
+
+
 def checked_noise(owner: str, sequence_name: str, usable: np.ndarray, r_m2: object, vc_m: object
                   ) -> tuple[np.ndarray, np.ndarray]:
     """A noise model's ``(r_m2, vc_m)`` as float arrays shaped like ``usable``; ValueError naming the first bad epoch.
@@ -85,7 +99,23 @@ class HeuristicNoise:
     elevation_power: float = weighted_fix.ELEVATION_POWER
     el_min_rad: float = weighted_fix.EL_MIN_RAD
 
+    def __post_init__(self) -> None:
+        for name in ("floor_m", "cn0_scale_m2", "elevation_power", "el_min_rad"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, numbers.Real) or not np.isfinite(value) or value < 0:
+                raise ValueError(f"estimators/noise.py: HeuristicNoise.{name} must be a finite number >= 0, got {value!r}")
+        if not self.floor_m > 0 and not self.cn0_scale_m2 > 0:
+            raise ValueError("estimators/noise.py: HeuristicNoise needs floor_m > 0 or cn0_scale_m2 > 0 (else R = 0)")
+        if not 0 < self.el_min_rad <= np.pi / 2:
+            raise ValueError(f"estimators/noise.py: HeuristicNoise.el_min_rad must be in (0, pi/2] [rad], "
+                             f"got {self.el_min_rad!r}")
+
     def __call__(self, sequence: Sequence) -> tuple[np.ndarray, np.ndarray]:
+        """(r_m2, vc_m), each (T, N): R [m^2] from C/N0 and elevation, v^c = 0 [m]."""
+        bad = sequence.mask & ~(np.isfinite(sequence.cn0_dbhz) & np.isfinite(sequence.el_rad))
+        if bad.any():
+            raise ValueError(f"HeuristicNoise: C/N0 or elevation is not finite on a masked-in satellite of "
+                             f"{sequence.name!r} (first at epoch {int(np.argwhere(bad)[0, 0])})")
         cn0 = np.where(sequence.mask, sequence.cn0_dbhz, 45.0)
         el = np.where(sequence.mask, sequence.el_rad, np.pi / 2)
         r = weighted_fix.cn0_elevation_variance_m2(cn0, el, floor_m=self.floor_m, cn0_scale_m2=self.cn0_scale_m2,
@@ -104,6 +134,7 @@ class FixedNoise:
     vc_m: np.ndarray
 
     def __call__(self, sequence: Sequence) -> tuple[np.ndarray, np.ndarray]:
+        """The stored (r_m2, vc_m) [m^2, m], after checking they are shaped like ``sequence``'s (T, N) slots."""
         shape = sequence.mask.shape
         if np.shape(self.r_m2) != shape or np.shape(self.vc_m) != shape:
             raise ValueError(f"estimators/noise.py: FixedNoise arrays {np.shape(self.r_m2)}, {np.shape(self.vc_m)} "
@@ -128,7 +159,11 @@ class TruthNoise:
             raise ValueError(f"estimators/noise.py: TruthNoise.floor_m must be > 0 [m], got {self.floor_m!r}")
 
     def __call__(self, sequence: Sequence) -> tuple[np.ndarray, np.ndarray]:
+        """(r_m2, vc_m), each (T, N): R [m^2] from the true pseudorange errors, v^c = 0 [m]."""
         labelled = np.all(np.isfinite(sequence.truth_ecef_m), axis=-1)
+        if len(labelled) and not labelled.any():
+            warnings.warn(f"TruthNoise: sequence {sequence.name!r} has no ground truth (build_sequence(..., "
+                          f"truth_ecef_m=...)); every epoch takes the fallback's R, a plain EKF", stacklevel=2)
         ok = sequence.mask & labelled[:, None]
         truth = np.where(labelled[:, None], sequence.truth_ecef_m, 0.0)
         raw = np.where(ok, sequence.pr_m - geometric_range_m(sequence.sat_pos_ecef_m, truth[:, None, :]), np.nan)

@@ -23,7 +23,7 @@ import csv
 import json
 import re
 from pathlib import Path
-from typing import Mapping, Sequence
+from typing import TYPE_CHECKING, Mapping, Sequence
 from xml.sax.saxutils import escape
 
 import numpy as np
@@ -36,6 +36,9 @@ from .frames import ecef_to_lla, lla_to_ecef
 from .metrics import enu_errors, enu_rotations
 from .time import GPS_EPOCH, SECONDS_PER_WEEK, gps_s_to_week_tow, utc_to_gps_s
 
+if TYPE_CHECKING:
+    import pandas as pd
+
 #: RTKLIB solution quality codes (rtklib.h).
 Q_SINGLE = 5
 Q_DR = 7
@@ -47,6 +50,18 @@ _POS_WIDTHS = (14, 14, 10, 3, 3, 8, 8, 8, 8, 8, 8, 6, 6)
 
 
 # ---------------------------------------------------------------- helpers
+def _check_args(writer: str, path: object, solution: object, where: str = "path") -> None:
+    """TypeError naming ``writer`` when ``solution`` is not a Solution or ``path`` not a path (arguments swapped)."""
+    call = f"{writer}({where}, solution)"
+    if isinstance(path, Solution) and not isinstance(solution, Solution):
+        raise TypeError(f"{call}: the arguments are swapped, the {where} comes first")
+    if not isinstance(solution, Solution):
+        raise TypeError(f"{call}: solution must be an estimators.Solution (what an estimator's solve returns), "
+                        f"got {type(solution).__name__}")
+    if not isinstance(path, (str, Path)) and not hasattr(path, "__fspath__"):
+        raise TypeError(f"{call}: {where} must be a str or Path, got {type(path).__name__}")
+
+
 def _has_position(solution: Solution) -> np.ndarray:
     """(T,) bool: status is not none and the ECEF position is finite."""
     return (np.asarray(solution.status) != STATUS_NONE) & np.isfinite(solution.pos_ecef_m).all(axis=1)
@@ -115,6 +130,7 @@ def write_pos(path: str | Path, solution: Solution, *, time_format: str = "calen
     Path
         The file written.
     """
+    _check_args("write_pos", path, solution)
     if time_format not in ("calendar", "tow"):
         raise ValueError(f"write_pos {path}: time_format must be 'calendar' or 'tow', got {time_format!r}")
     path = Path(path)
@@ -281,44 +297,63 @@ def write_csv(path: str | Path, solution: Solution, truth_ecef_m: np.ndarray | N
     ``truth_ecef_m`` (T, 3) is given (empty where the epoch is unlabelled). Epochs without a position
     have empty numeric fields and status ``none``.
     """
+    _check_args("write_csv", path, solution)
     path = Path(path)
     t = len(solution.time_gps_s)
+    if truth_ecef_m is not None and np.shape(truth_ecef_m) != (t, 3):
+        raise ValueError(f"write_csv {path}: truth_ecef_m has shape {np.shape(truth_ecef_m)}, expected ({t}, 3)")
+    frame = solution_frame(solution, truth_ecef_m)
     ok = _has_position(solution)
+    digits = {"time_gps_s": 3, "tow_s": 3, "lat_deg": 9, "lon_deg": 9}      # the others: 4 (0.1 mm)
+    text = {}
+    for col in frame.columns:
+        values = frame[col].to_numpy()
+        if col in ("time_gpst", "status"):
+            text[col] = values
+        elif col in ("week", "n_used"):
+            text[col] = [str(int(v)) if has or col == "week" else "" for v, has in zip(values, ok)]
+        else:
+            text[col] = [_fmt(v, digits.get(col, 4)) for v in values]
+    with open(path, "w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(frame.columns)
+        writer.writerows(zip(*text.values()))
+    return path
+
+
+def solution_frame(solution: Solution, truth_ecef_m: np.ndarray | None = None) -> "pd.DataFrame":
+    """pandas DataFrame of a Solution, one row per epoch, with :func:`write_csv`'s columns [m, deg, s].
+
+    Numbers as floats (NaN where the epoch has no position or covariance, never in the CSV), ``status`` by name,
+    ``time_gpst`` as text; with ``truth_ecef_m`` (T, 3) [m] also :data:`CSV_TRUTH_COLUMNS`.
+    """
+    import pandas as pd
+
+    if not isinstance(solution, Solution):
+        raise TypeError(f"solution_frame: expected an estimators.Solution, got {type(solution).__name__}")
+    t = len(solution.time_gps_s)
+    ok = _has_position(solution)
+    pos = np.where(ok[:, None], np.asarray(solution.pos_ecef_m, float), np.nan)
     week, tow = gps_s_to_week_tow(solution.time_gps_s)
-    times = _calendar(_gpst_ms(solution.time_gps_s))
-    pos = np.where(ok[:, None], solution.pos_ecef_m, np.nan)
-    llh = np.full((t, 3), np.nan)
-    llh[ok] = ecef_to_lla(pos[ok]).reshape(-1, 3)
-    cov = _enu_cov(solution)
-    cov_ok = np.isfinite(np.asarray(solution.cov_ecef_m2, float)).all(axis=(1, 2)) & ok
-    sd = np.where(cov_ok[:, None], np.sqrt(np.maximum(np.diagonal(cov, axis1=1, axis2=2), 0.0)), np.nan)
-    cols = list(CSV_COLUMNS)
-    err = None
+    llh = solution.geodetic()
+    sd = solution.sd_enu_m()
+    status = np.asarray(solution.status)
+    columns = {"time_gpst": _calendar(_gpst_ms(solution.time_gps_s)) if t else [],
+               "time_gps_s": np.asarray(solution.time_gps_s, float), "week": np.asarray(week, int),
+               "tow_s": np.asarray(tow, float), "x_m": pos[:, 0], "y_m": pos[:, 1], "z_m": pos[:, 2],
+               "lat_deg": llh[:, 0], "lon_deg": llh[:, 1], "h_m": llh[:, 2], "sd_e_m": sd[:, 0], "sd_n_m": sd[:, 1],
+               "sd_u_m": sd[:, 2], "n_used": np.where(ok, np.asarray(solution.n_used), 0).astype(int),
+               "status": [STATUS_NAMES.get(int(v), str(int(v))) if has else STATUS_NAMES[STATUS_NONE]
+                          for v, has in zip(status, ok)]}
     if truth_ecef_m is not None:
         truth = np.asarray(truth_ecef_m, dtype=float)
         if truth.shape != (t, 3):
-            raise ValueError(f"write_csv {path}: truth_ecef_m has shape {truth.shape}, expected ({t}, 3)")
-        e = enu_errors(pos, truth)
-        err = np.column_stack([e, np.hypot(e[:, 0], e[:, 1]), np.linalg.norm(e, axis=1)])
-        cols += CSV_TRUTH_COLUMNS
-    status = np.asarray(solution.status)
-    with open(path, "w", newline="") as fh:
-        writer = csv.writer(fh)
-        writer.writerow(cols)
-        for k in range(t):
-            name = STATUS_NAMES.get(int(status[k]), str(int(status[k]))) if ok[k] else STATUS_NAMES[STATUS_NONE]
-            row = [times[k], f"{solution.time_gps_s[k]:.3f}", str(int(week[k])), f"{tow[k]:.3f}"]
-            if ok[k]:
-                row += [_fmt(v, 4) for v in pos[k]]
-                row += [_fmt(np.degrees(llh[k, 0]), 9), _fmt(np.degrees(llh[k, 1]), 9), _fmt(llh[k, 2], 4)]
-            else:
-                row += [""] * 6
-            row += [_fmt(v, 4) for v in sd[k]]
-            row += [str(int(solution.n_used[k])) if ok[k] else "", name]
-            if err is not None:
-                row += [_fmt(v, 4) for v in err[k]]
-            writer.writerow(row)
-    return path
+            raise ValueError(f"solution_frame: truth_ecef_m has shape {truth.shape}, expected ({t}, 3)")
+        e = enu_errors(pos, truth).reshape(-1, 3)
+        for key, value in zip(CSV_TRUTH_COLUMNS, (e[:, 0], e[:, 1], e[:, 2], np.hypot(e[:, 0], e[:, 1]),
+                                                  np.linalg.norm(e, axis=1))):
+            columns[key] = value
+    return pd.DataFrame(columns)
 
 
 # ---------------------------------------------------------------- GeoJSON / KML
@@ -335,6 +370,7 @@ def write_geojson(path: str | Path, solution: Solution, *, points: bool = False)
     A ``LineString`` feature of the track (when at least two positions), and with ``points=True``
     one ``Point`` feature per epoch with ``time_gps_s``, ``status`` and ``n_used`` properties.
     """
+    _check_args("write_geojson", path, solution)
     path = Path(path)
     idx, lonlath = _track(solution)
     coords = [[round(float(a), 9), round(float(b), 9), round(float(c), 4)] for a, b, c in lonlath]
@@ -361,6 +397,7 @@ def write_kml(path: str | Path, solution: Solution, *, points: bool = False) -> 
     Heights are ellipsoidal while KML altitudes are above mean sea level, so the track uses
     ``altitudeMode clampToGround``. With ``points=True`` one Placemark per epoch as well.
     """
+    _check_args("write_kml", path, solution)
     path = Path(path)
     idx, lonlath = _track(solution)
     coord_text = " ".join(f"{a:.9f},{b:.9f},{c:.4f}" for a, b, c in lonlath)
@@ -437,6 +474,7 @@ def plot_solution(out_dir: str | Path, solution: Solution, truth_ecef_m: np.ndar
     list of Path
         The files written, in the order above.
     """
+    _check_args("plot_solution", out_dir, solution, "out_dir")
     import matplotlib
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure

@@ -1,7 +1,9 @@
 """The padded per-epoch sequence that every estimator and the trainer consume."""
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, fields, replace
+from typing import Iterable
 
 import numpy as np
 
@@ -109,8 +111,10 @@ class Sequence:
         """Number of padded satellite slots N."""
         return int(self.mask.shape[1])
 
-    def subset(self, index: slice | np.ndarray, name: str | None = None) -> "Sequence":
-        """Epochs selected by a slice, boolean mask or index array, as a new Sequence."""
+    def subset(self, index: slice | np.ndarray | int, name: str | None = None) -> "Sequence":
+        """Epochs selected by a slice, boolean mask, index array or one index, as a new Sequence."""
+        if isinstance(index, (int, np.integer)) and not isinstance(index, bool):
+            index = np.array([index])
         per_epoch = {f.name: getattr(self, f.name)[index] for f in fields(self)
                      if isinstance(getattr(self, f.name), np.ndarray)}
         return replace(self, name=name or self.name, **per_epoch)
@@ -136,14 +140,39 @@ class Sequence:
                        prr_mask=pad(self.prr_mask, False), sat_vel_ecef_m_s=pad(self.sat_vel_ecef_m_s, 0.0))
 
 
-def save_sequence(path, seq: Sequence) -> None:
+def concat_sequences(parts: Iterable[Sequence], name: str | None = None) -> Sequence:
+    """Sequences of one receiver, one after another, as one Sequence (slots padded to the widest; times in GPS s)."""
+    parts = list(parts)
+    if not parts:
+        raise ValueError("concat_sequences: no sequences given")
+    for k, part in enumerate(parts):
+        if not isinstance(part, Sequence):
+            raise TypeError(f"concat_sequences: part {k} is a {type(part).__name__}, not an lfgnss.Sequence")
+    first = parts[0]
+    for part in parts[1:]:
+        for key in ("systems", "feature_names"):
+            if getattr(part, key) != getattr(first, key):
+                raise ValueError(f"concat_sequences: {part.name!r} has {key} {getattr(part, key)}, {first.name!r} "
+                                 f"{getattr(first, key)}; build every part with the same systems and feature_names")
+    for before, part in zip(parts, parts[1:]):
+        if len(before) and len(part) and not part.time_gps_s[0] > before.time_gps_s[-1]:
+            raise ValueError(f"concat_sequences: {part.name!r} starts at {part.time_gps_s[0]:.3f} s, not after "
+                             f"{before.name!r} ends ({before.time_gps_s[-1]:.3f} s GPS); give the parts in time order")
+    width = max(part.n_slots for part in parts)
+    parts = [part.pad_to(width) for part in parts]
+    arrays = {f.name: np.concatenate([getattr(part, f.name) for part in parts]) for f in fields(first)
+              if isinstance(getattr(first, f.name), np.ndarray)}
+    return replace(first, name=name or first.name, **arrays)
+
+
+def save_sequence(path: str | os.PathLike, seq: Sequence) -> None:
     """Write a Sequence to an ``.npz`` file."""
     arrays = {f.name: getattr(seq, f.name) for f in fields(seq) if isinstance(getattr(seq, f.name), np.ndarray)}
     np.savez_compressed(path, _name=np.array(seq.name), _systems=np.array(seq.systems),
                         _feature_names=np.array(seq.feature_names), **arrays)
 
 
-def load_sequence(path) -> Sequence:
+def load_sequence(path: str | os.PathLike) -> Sequence:
     """Read a Sequence written by ``save_sequence``."""
     with np.load(path, allow_pickle=False) as z:
         arrays = {k: z[k] for k in z.files if not k.startswith("_")}

@@ -1,0 +1,192 @@
+"""The public Python API as a library user meets it: Solution conversions, slicing and joining, and misuse that
+must fail in one clear line (never a deep numpy/gtsam traceback, never a silent NaN) on the bundled drive."""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+import estimators
+import lfgnss
+from estimators import EkfConfig, FixedNoise, HeuristicNoise, TruthNoise
+from lfgnss import outputs
+from lfgnss.frames import ecef_to_lla
+
+BACKENDS = ["ekf", "plain-ekf", "fgo", "wls", "wls-weighted"]
+
+
+@pytest.fixture(scope="module")
+def seq():
+    """The first 120 epochs of the bundled Berlin drive, with Doppler (no truth)."""
+    from lfgnss.solve import SAMPLE_NAV, SAMPLE_OBS
+
+    return lfgnss.process(SAMPLE_OBS, SAMPLE_NAV).subset(slice(0, 120))
+
+
+@pytest.fixture(scope="module")
+def solution(seq):
+    return estimators.create("plain-ekf").solve(seq)
+
+
+def _broken(seq, field, value, rows=slice(10, 20)):
+    """``seq`` with ``field`` set to ``value`` on the masked-in slots of ``rows``."""
+    a = getattr(seq, field).copy()
+    a[rows][seq.mask[rows]] = value
+    return replace(seq, **{field: a})
+
+
+# ------------------------------------------------------------------ Solution conversions
+def test_geodetic_enu_and_sigmas_agree_with_the_frames(solution):
+    llh = solution.geodetic()
+    ref = ecef_to_lla(solution.pos_ecef_m)
+    np.testing.assert_allclose(llh[:, :2], np.degrees(ref[:, :2]))
+    np.testing.assert_allclose(llh[:, 2], ref[:, 2])
+    assert 52 < llh[0, 0] < 53 and 13 < llh[0, 1] < 14                   # Berlin
+    enu = solution.enu_m()
+    np.testing.assert_allclose(enu[0], 0.0, atol=1e-6)                   # about the first position by default
+    np.testing.assert_allclose(np.linalg.norm(enu, axis=1),
+                               np.linalg.norm(solution.pos_ecef_m - solution.pos_ecef_m[0], axis=1), atol=1e-6)
+    sd = solution.sd_enu_m()
+    np.testing.assert_allclose((sd ** 2).sum(1), np.trace(solution.cov_ecef_m2, axis1=1, axis2=2), rtol=1e-9)
+    with pytest.raises(ValueError, match="ref_ecef_m"):
+        solution.enu_m(np.zeros(2))
+
+
+def test_to_frame_matches_the_csv_writer(solution, seq, tmp_path):
+    pd = pytest.importorskip("pandas")
+    truth = solution.pos_ecef_m + [1.0, 0.0, 0.0]
+    frame = solution.to_frame(truth)
+    written = pd.read_csv(outputs.write_csv(tmp_path / "s.csv", solution, truth))
+    assert list(frame.columns) == list(written.columns) and len(frame) == len(seq)
+    for col in frame.columns:
+        if written[col].dtype.kind == "f":
+            np.testing.assert_allclose(frame[col], written[col], atol=1e-3, err_msg=col)
+    assert (frame["status"] == written["status"]).all() and frame["err_3d_m"].max() == pytest.approx(1.0)
+
+
+def test_epochs_without_a_position_are_nan_in_every_conversion(seq):
+    coarse = seq.coarse_ecef_m.copy()
+    coarse[:3] = np.nan                                # no fix before epoch 3: status none
+    sol = estimators.create("plain-ekf").solve(replace(seq, coarse_ecef_m=coarse))
+    assert (sol.status[:3] == estimators.STATUS_NONE).all()
+    for values in (sol.geodetic(), sol.enu_m(), sol.sd_enu_m()):
+        assert np.isnan(values[:3]).all() and np.isfinite(values[3:]).all()
+    assert list(sol.to_frame()["status"][:4]) == ["none", "none", "none", "reset"]
+
+
+def test_solution_subset_slices_every_per_epoch_array(solution):
+    part = solution.subset(slice(10, 30))
+    assert len(part) == 20 and part.info["n_gated"].shape == (20,)
+    np.testing.assert_array_equal(part.pos_ecef_m, solution.pos_ecef_m[10:30])
+    assert part.info["config"] is solution.info["config"]
+    assert len(solution.subset(5)) == 1
+
+
+# ------------------------------------------------------------------ Sequences: slices, joins, re-use
+def test_an_estimator_reused_and_a_joined_sequence_give_the_same_run(seq):
+    ekf = estimators.create("ekf")
+    first = ekf.solve(seq)
+    np.testing.assert_array_equal(ekf.solve(seq).pos_ecef_m, first.pos_ecef_m)
+    joined = lfgnss.concat_sequences([seq.subset(slice(0, 50)), seq.subset(slice(50, None)).pad_to(seq.n_slots + 4)])
+    assert len(joined) == len(seq) and joined.n_slots == seq.n_slots + 4
+    np.testing.assert_allclose(ekf.solve(joined).pos_ecef_m, first.pos_ecef_m, atol=1e-6)
+    assert len(seq.subset(7)) == 1
+    with pytest.raises(ValueError, match="systems"):
+        lfgnss.concat_sequences([seq, replace(seq, systems=("G", "E"))])
+    with pytest.raises(TypeError, match="part 1"):
+        lfgnss.concat_sequences([seq, "b.obs"])
+    with pytest.raises(ValueError, match="not after .* ends .*; give the parts in time order$"):
+        lfgnss.concat_sequences([seq.subset(slice(50, None)), seq.subset(slice(0, 50))])
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_empty_and_single_epoch_sequences(seq, backend):
+    assert len(estimators.create(backend).solve(seq.subset(slice(0, 0)))) == 0
+    one = estimators.create(backend).solve(seq.subset(slice(5, 6)))
+    assert one.available.all() and np.isfinite(one.pos_ecef_m).all()
+
+
+# ------------------------------------------------------------------ misuse: one clear line
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("wrong", [None, "rover.obs", {}])
+def test_solve_names_a_wrong_argument(seq, backend, wrong):
+    with pytest.raises(TypeError, match="expected an lfgnss.Sequence"):
+        estimators.create(backend).solve(wrong)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_a_non_finite_epoch_time_is_named(seq, backend):
+    t = seq.time_gps_s.copy()
+    t[50] = np.nan
+    with pytest.raises(ValueError, match="not finite at epoch 50"):
+        estimators.create(backend).solve(replace(seq, time_gps_s=t))
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("field", ["pr_m", "sat_pos_ecef_m", "prr_m_s", "sat_vel_ecef_m_s"])
+def test_nan_measurements_are_left_out_not_spread(seq, backend, field):
+    """A NaN on a masked-in slot: the slot is dropped; no epoch has status updated with a NaN position."""
+    sol = estimators.create(backend).solve(_broken(seq, field, np.nan))
+    assert np.isfinite(sol.pos_ecef_m[sol.available]).all()
+    assert sol.available[20:].all()
+
+
+def test_backend_name_and_options(seq):
+    assert estimators.create("plain-ekf", name="mine").solve(seq.subset(slice(0, 3))).backend == "mine"
+    with pytest.raises(TypeError, match="backend name must be a string"):
+        estimators.create(estimators.LfgnssEkf)
+    with pytest.raises(TypeError, match="config must be an estimators.EkfConfig"):
+        estimators.create("ekf", config={"gate_sigma": 3.0})
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"gate_sigma": "3"}, "gate_sigma must be a number"),
+    ({"p0_pos_m2": None}, "p0_pos_m2 must be a number"),
+    ({"q_vel_m2_s3": float("inf")}, "q_vel_m2_s3 must be finite"),
+    ({"min_sats_for_update": 1.5}, "min_sats_for_update must be a whole number"),
+    ({"reset_gated_fraction": -1.0}, "reset_gated_fraction must be >= 0"),
+])
+def test_ekf_config_names_a_bad_setting(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        EkfConfig(**kwargs)
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"lag_s": "10"}, "lag_s must be a finite number"),
+    ({"prior_pos_sigma_m": -1.0}, "prior_pos_sigma_m must be > 0"),
+    ({"max_iterations": 0}, "max_iterations must be a whole number >= 1"),
+])
+def test_fgo_names_a_bad_option(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        estimators.create("fgo", **kwargs)
+
+
+@pytest.mark.parametrize("backend", ["ekf", "fgo", "wls-weighted"])
+@pytest.mark.parametrize("returned, got", [(None, "NoneType"), ((1, 2, 3), "3 values"), ("array", "shape")])
+def test_a_noise_model_returning_the_wrong_thing_is_named(seq, backend, returned, got):
+    out = np.ones(seq.mask.shape) if returned == "array" else returned
+    with pytest.raises(TypeError, match=f"must return \\(r_m2, vc_m\\).*{got}"):
+        estimators.create(backend, noise=lambda s: out).solve(seq)
+
+
+def test_noise_models_check_their_settings_and_inputs(seq):
+    for bad in ({"floor_m": "2"}, {"floor_m": -1.0}, {"el_min_rad": 0.0}, {"floor_m": 0.0, "cn0_scale_m2": 0.0}):
+        with pytest.raises(ValueError, match="HeuristicNoise"):
+            HeuristicNoise(**bad)
+    with pytest.raises(ValueError, match="C/N0 or elevation is not finite .* epoch 10"):
+        estimators.create("plain-ekf").solve(_broken(seq, "cn0_dbhz", np.nan))
+    with pytest.warns(UserWarning, match="no ground truth"):
+        TruthNoise()(seq)
+    t, n = seq.mask.shape
+    with pytest.raises(ValueError, match="do not fit"):
+        estimators.LfgnssEkf(noise=FixedNoise(np.ones((t, n)), np.zeros((t, n)))).solve(seq.subset(slice(0, 10)))
+
+
+@pytest.mark.parametrize("writer", ["write_pos", "write_csv", "write_geojson", "write_kml", "plot_solution"])
+def test_writers_name_swapped_or_wrong_arguments(solution, seq, tmp_path, writer):
+    write = getattr(outputs, writer)
+    with pytest.raises(TypeError, match="arguments are swapped"):
+        write(solution, tmp_path / "x")
+    with pytest.raises(TypeError, match="must be an estimators.Solution.*got Sequence"):
+        write(tmp_path / "x", seq)
