@@ -25,7 +25,12 @@ with its own ``--out``; the pooled row is written only when every fold ran.
 same recipe) again on its held-out block, under this run's ``[ekf]`` settings, e.g. ``--set ekf.huber_k=2``: an
 inference-time variant of the filter judged on every block in a minute instead of a retraining. Anything else that
 differs from the saved run's configuration (seed included) is refused; so is a held-out block whose data changed.
-The "untrained" and "best" columns are empty there.
+The "untrained" and "best" columns are empty there; a fold checkpoint that did not reach ``train.epochs`` (its fold was
+interrupted or diverged), or whose weights do not load or are not finite, is refused.
+
+A run stopped among its folds (Ctrl-C, a diverged fold, a bad checkpoint) writes the finished folds' rows to
+``crossval.csv`` / ``crossval.md`` before it ends; bad options and an unusable ``--out`` are refused before any work
+(docs/bad_input.md, "Command lines").
 """
 from __future__ import annotations
 
@@ -33,13 +38,14 @@ import argparse
 import copy
 import csv
 import math
+import os
 import sys
 from pathlib import Path
 
 import numpy as np
 
 from lfgnss.datasets import contiguous_runs
-from lfgnss.errors import INPUT_ERRORS, one_line
+from lfgnss.errors import INPUT_ERRORS, InputError, input_line, one_line, path_option
 from lfgnss.metrics import accuracy_table, markdown_table
 from lfgnss.sequence import Sequence
 
@@ -156,7 +162,33 @@ def saved_fold(reuse_dir: str | Path, fold: int, config: dict, held: list[Sequen
     if trained_on != [(s.name, fingerprint(s)) for s in held]:
         raise ValueError(f"{path}: its held-out block is not this run's (another --folds, or the data changed since "
                          "it was trained)")
+    _check_weights(path, saved)
     return saved
+
+
+def _check_weights(path: Path, saved: dict) -> None:
+    """ValueError naming ``path`` unless the checkpoint's weights load into its network, are finite, and are those of
+    its last training epoch (a fold interrupted or diverged mid-training leaves an earlier epoch's ``last.pt``)."""
+    import torch
+
+    from .normalise import Normaliser
+    from .train import build_model
+
+    try:
+        epoch, epochs = int(saved["epoch"]), int(saved["config"]["train"]["epochs"])
+        normaliser = Normaliser.from_dict(saved["normaliser"])
+        int(saved["n_systems"])
+        build_model(saved["config"], len(normaliser.feature_names), normaliser).load_state_dict(saved["model"])
+        bad = [k for k, v in saved["model"].items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
+    except Exception as exc:            # whatever a damaged checkpoint makes torch or the normaliser raise
+        text = one_line(exc)
+        raise ValueError(f"{path}: not a usable learning.train checkpoint ({type(exc).__name__}: "
+                         f"{text if len(text) <= 200 else text[:197] + '...'})") from None
+    if bad:
+        raise ValueError(f"{path}: not a usable learning.train checkpoint (non-finite weights in {bad[0]})")
+    if epoch < epochs:
+        raise ValueError(f"{path}: saved at epoch {epoch} of {epochs} (train.epochs): the fold was interrupted or "
+                         "diverged; cross-validate that fold again (--fold J) before rescoring it")
 
 
 def _fold_row(fold: int, held: list[Sequence], config: dict, learned: dict) -> dict:
@@ -193,16 +225,24 @@ def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = 
     ``reuse``: train nothing, score the folds' saved models in that folder under ``config``'s EKF (``saved_fold``).
     """
     out = Path(out_dir)
-    chosen = sorted(set(range(folds) if only is None else only))
-    if not chosen or not all(0 <= j < folds for j in chosen):
+    if isinstance(folds, bool) or not isinstance(folds, int) or folds < 2:
+        raise ValueError(f"folds must be a whole number >= 2 (--folds), got {folds!r}")
+    chosen = range(folds) if only is None else sorted(set(only))     # a range: --folds 10**9 allocates nothing
+    if only is not None and (not chosen or not all(0 <= j < folds for j in chosen)):
         raise ValueError(f"folds to run must be among 0..{folds - 1}, got {only}")
-    if (out / "crossval.csv").exists() or (out / "fold0").exists():
-        raise ValueError(f"{out}: already holds a cross-validation; choose another --out")
-    missing = [] if reuse is None else [p for j in chosen if not (p := Path(reuse) / f"fold{j}" / "last.pt").is_file()]
-    if missing:
-        raise ValueError(f"{missing[0]}: no saved fold model (--reuse takes the --out folder of an earlier "
-                         "cross-validation of the same recipe)")
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        if out.exists() and not out.is_dir():
+            raise InputError(out, "--out is a file, not a folder")
+        if any((out / name).exists() for name in ("crossval.csv", "crossval.md", "fold0")):
+            raise ValueError(f"{out}: already holds a cross-validation; choose another --out")
+        missing = [] if reuse is None else [p for j in chosen
+                                            if not (p := Path(reuse) / f"fold{j}" / "last.pt").is_file()]
+        if missing:
+            raise ValueError(f"{missing[0]}: no saved fold model (--reuse takes the --out folder of an earlier "
+                             "cross-validation of the same recipe)")
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:              # a name too long, a file in the path, a read-only or missing disk
+        raise InputError(out, f"cannot create the output folder ({err.strerror or err})") from None
     config = adopt_init(config)
     data = config["data"]
     init = init_model(config)
@@ -213,8 +253,60 @@ def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = 
     whole = {ds: load_sequences(ds, data["train_split"], config) + load_sequences(ds, data["val_split"], config)
              for ds in data["datasets"]}
     rows = []
+    try:
+        _run_folds(rows, chosen, folds, whole, config, out, progress, reuse)
+    except BaseException as exc:        # Ctrl-C, a diverged fold, a bad checkpoint: the finished folds' rows are kept
+        exc.crossval_stopped = (out, None, [])
+        if rows:
+            try:
+                _write_results(out, rows)
+                exc.crossval_stopped = (out, out / "crossval.csv", [r["fold"] for r in rows])
+            except UnwrittenResults:
+                pass
+        raise
+    keys = ["plain_ekf_rmse_3d_m", "untrained_rmse_3d_m", "last_rmse_3d_m", "best_rmse_3d_m",
+            "plain_ekf_smoothed_rmse_3d_m", "last_smoothed_rmse_3d_m", "plain_ekf_rmse_2d_m", "last_rmse_2d_m"]
+    if len(chosen) == folds:
+        rows.append({"fold": "pooled", "held_out_epochs": sum(r["held_out_epochs"] for r in rows),
+                     **{k: pooled_rmse([r[k] for r in rows], [r["held_out_epochs"] for r in rows]) for k in keys},
+                     "best_epoch": "-"})
+    _write_results(out, rows)
+    return rows
+
+
+class UnwrittenResults(InputError):
+    """crossval.csv or crossval.md could not be written (a full disk, a folder in the way); ``rows`` are the results."""
+
+    def __init__(self, path: Path, err: OSError, rows: list[dict]) -> None:
+        super().__init__(err.filename or path, f"cannot write ({err.strerror or one_line(err)})")
+        self.rows = rows
+
+
+def _write_results(out: Path, rows: list[dict]) -> None:
+    """``crossval.csv`` and ``crossval.md`` of ``rows`` in ``out``; UnwrittenResults (with the rows) if one fails."""
+    path = out / "crossval.csv"
+    try:
+        with open(path, "w", newline="") as fh:
+            w = csv.DictWriter(fh, fieldnames=COLUMNS)
+            w.writeheader()
+            w.writerows(rows)
+        path = out / "crossval.md"
+        path.write_text(markdown_table(rows, COLUMNS))
+    except OSError as err:
+        raise UnwrittenResults(path, err, rows) from None
+
+
+def _run_folds(rows: list[dict], chosen, folds: int, whole: dict, config: dict, out: Path, progress: bool,
+               reuse) -> None:
+    """Train (or with ``reuse`` rescore) each chosen fold, appending its row to ``rows`` as soon as it is done."""
+    data = config["data"]
     for j in chosen:
-        parts = {ds: fold_sequences(seqs, folds, j) for ds, seqs in whole.items()}
+        parts = {}
+        for ds, seqs in whole.items():
+            try:
+                parts[ds] = fold_sequences(seqs, folds, j)
+            except ValueError as exc:
+                raise ValueError(f"{ds}: {exc} (--folds {folds})") from None
 
         def source(ds: str, split: str, _config: dict, parts=parts) -> list[Sequence]:
             return parts[ds][0] if split == data["train_split"] else parts[ds][1]
@@ -238,22 +330,31 @@ def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = 
             "untrained_rmse_3d_m": history[0]["val_rmse_3d_m"], "last_rmse_3d_m": history[-1]["val_rmse_3d_m"],
             "best_rmse_3d_m": best["val_rmse_3d_m"], "best_epoch": best["epoch"],
             "last_smoothed_rmse_3d_m": last_smoothed_3d, "last_rmse_2d_m": last_2d}))
-    keys = ["plain_ekf_rmse_3d_m", "untrained_rmse_3d_m", "last_rmse_3d_m", "best_rmse_3d_m",
-            "plain_ekf_smoothed_rmse_3d_m", "last_smoothed_rmse_3d_m", "plain_ekf_rmse_2d_m", "last_rmse_2d_m"]
-    if len(chosen) == folds:
-        rows.append({"fold": "pooled", "held_out_epochs": sum(r["held_out_epochs"] for r in rows),
-                     **{k: pooled_rmse([r[k] for r in rows], [r["held_out_epochs"] for r in rows]) for k in keys},
-                     "best_epoch": "-"})
-    with open(out / "crossval.csv", "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=COLUMNS)
-        w.writeheader()
-        w.writerows(rows)
-    (out / "crossval.md").write_text(markdown_table(rows, COLUMNS))
-    return rows
+
+
+def _kept(exc: BaseException) -> str:
+    """What a run stopped among its folds leaves behind, for its last line: the finished folds' rows (written by
+    ``crossval``) and the folds' checkpoints."""
+    stopped = getattr(exc, "crossval_stopped", None)
+    if stopped is None:                 # stopped before the first fold: nothing of this run to keep
+        return ""
+    out, path, done = stopped
+    note = f"; the rows of the finished fold(s) {', '.join(map(str, done))} are in {path}" if path else ""
+    try:
+        if any(out.glob("fold*/last.pt")):
+            note += f"; the folds' checkpoints are kept in {out}"
+    except OSError:
+        pass
+    return note
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Command-line entry point."""
+    """Command-line entry point.
+
+    Exit status 0; 2 for bad input (one line ``PROG: error: ...``, before any training where it can be seen then) or
+    results that could not be written (printed all the same); 3 for a diverged fold or an internal error; 130 for
+    Ctrl-C. A run that stops keeps its finished folds' rows in ``crossval.csv`` / ``crossval.md``.
+    """
     p = argparse.ArgumentParser(prog="python -m learning.crossval", description=__doc__.split("\n")[0])
     p.add_argument("--config", help="TOML configuration (default: built-in defaults)")
     p.add_argument("--folds", type=int, default=3, help="number of contiguous blocks (default 3)")
@@ -262,22 +363,34 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--fold", dest="only", type=int, action="append", metavar="J",
                    help="run only fold J (repeatable; no pooled row unless every fold runs): folds in parallel "
                         "processes, each with its own --out")
-    p.add_argument("--reuse", metavar="DIR",
+    p.add_argument("--reuse", metavar="DIR", type=path_option,
                    help="train nothing: score the saved fold models of an earlier run (its --out) again on their "
                         "held-out blocks under this run's [ekf] settings (--set ekf.KEY=VALUE)")
-    p.add_argument("--out", help="output folder (default: runs/cv-<config name>)")
+    p.add_argument("--out", type=path_option, help="output folder (default: runs/cv-<config name>)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     args = p.parse_args(argv)
     out = Path(args.out or Path("runs") / f"cv-{Path(args.config).stem if args.config else 'default'}")
     try:
         config = load_config(args.config, args.overrides)
         crossval(config, args.folds, out, progress=not args.no_progress, only=args.only, reuse=args.reuse)
-    except INPUT_ERRORS as exc:
+    except UnwrittenResults as exc:           # computed, not written: the table goes to stdout all the same
+        print(markdown_table(exc.rows, COLUMNS), end="")
         exit_on_input_error(p, exc)
+    except (*INPUT_ERRORS, OSError) as exc:
+        p.exit(2, f"{p.prog}: error: {input_line(exc)}{_kept(exc)}\n")
     except FloatingPointError as exc:         # a fold diverged: not bad input (exit 3, as learning.train)
-        p.exit(3, f"{p.prog}: error: {one_line(exc)}: cross-validation stopped (exit status 3); the folds' "
-                  f"checkpoints are kept in {out}; check [loss], or try a lower train.lr or a train.grad_clip > 0\n")
-    print((out / "crossval.md").read_text(), end="")
+        p.exit(3, f"{p.prog}: error: {one_line(exc)}: cross-validation stopped (exit status 3){_kept(exc)}; "
+                  "check [loss], or try a lower train.lr or a train.grad_clip > 0\n")
+    except KeyboardInterrupt as exc:
+        p.exit(130, f"{p.prog}: interrupted{_kept(exc)}\n")
+    except Exception as exc:  # a bug, not bad input: still one line, no traceback, a distinct exit code
+        p.exit(3, f"{p.prog}: error: internal error ({type(exc).__name__}: {one_line(exc)}){_kept(exc)}; "
+                  "please report it\n")
+    try:
+        print((out / "crossval.md").read_text(), end="")
+        sys.stdout.flush()
+    except BrokenPipeError:                   # the reader went away (| head): the results are written
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
     return 0
 
 

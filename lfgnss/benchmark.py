@@ -10,6 +10,8 @@ the plain EKF runs in that filter too, so that the learned noise's share of the 
 Writes a Markdown results table (all test epochs, and the epochs RTKLIB solved, and each learned row against the
 targets and yardstick of BENCHMARK.md), CDF and track PNGs per dataset.
 
+An ``rnx2rtkp`` that fails, hangs or writes an unreadable solution costs the RTKLIB row only (a warning says why).
+
 ``--models`` names another folder of such files, or one model file (a training run's ``model.npz``), which then
 takes the shipped model's rows on every dataset; ``--register my-drive.toml`` adds a user's dataset
 (``lfgnss.datasets.register_toml``) to the run.
@@ -17,6 +19,7 @@ takes the shipped model's rows on every dataset; ``--register my-drive.toml`` ad
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import tempfile
 import time
@@ -27,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from . import datasets
-from .errors import INPUT_ERRORS, InputError, one_line
+from .errors import INPUT_ERRORS, InputError, input_line, one_line, path_option
 from .metrics import METRIC_COLUMNS, accuracy_table, format_markdown, format_text, markdown_table
 from .paths import bundled_data_dir
 from .sequence import Sequence
@@ -183,14 +186,23 @@ def rtklib_solution(spec, workdir: Path):
 
     None without ``rnx2rtkp``, or (with a line on stderr) for a dataset of several obs files.
     """
-    from .rtklib import rtklib_available, spp_solution
+    from .rtklib import RtklibError, rtklib_available, spp_solution
 
     if not rtklib_available():
         return None, None
     if len(spec.obs) > 1:     # rnx2rtkp would take a second obs file for a base station's
         print(f"{spec.id}: RTKLIB row left out: the dataset has {len(spec.obs)} obs files", file=sys.stderr)
         return None, None
-    return spp_solution(spec.obs[0], list(spec.nav), workdir / f"{spec.id}.pos", systems=spec.systems or ("G",))
+    try:
+        return spp_solution(spec.obs[0], list(spec.nav), workdir / f"{spec.id}.pos", systems=spec.systems or ("G",))
+    except (RtklibError, ValueError) as err:  # rnx2rtkp failed, hung or wrote an unreadable .pos: an optional row
+        print(f"warning: {spec.id}: RTKLIB row left out: {_short(one_line(err))}", file=sys.stderr)
+        return None, None
+
+
+def _short(text: str, limit: int = 300) -> str:
+    """``text`` cut to ``limit`` characters (an rnx2rtkp command line names every file of the dataset)."""
+    return text if len(text) <= limit else text[:limit - 3] + "..."
 
 
 def _rtklib_on(seq, spec, workdir: Path):
@@ -216,8 +228,12 @@ def whole_test_split(dataset_id: str, feature_names: tuple[str, ...]) -> Sequenc
 
 
 def run(dataset_ids: list[str], *, model_dir: Path = MODEL_DIR, out_dir: Path | None = None,
-        plots: bool = True) -> tuple[list[dict], list[dict]]:
-    """Rows over all test epochs and rows over RTKLIB's solved test epochs, for each dataset."""
+        plots: bool = True, unwritten: list[str] | None = None) -> tuple[list[dict], list[dict]]:
+    """Rows over all test epochs and rows over RTKLIB's solved test epochs, for each dataset.
+
+    ``unwritten``: a list that collects ``FILE: cannot write (reason)`` for figures that could not be written (the
+    run goes on); without it such an OSError is raised.
+    """
     from estimators.base import STATUS_NONE, STATUS_UPDATED, Solution
     from .outputs import plot_solution
 
@@ -254,8 +270,13 @@ def run(dataset_ids: list[str], *, model_dir: Path = MODEL_DIR, out_dir: Path | 
         if plots and out_dir is not None and solutions:
             main_name = "LF-GNSS EKF" if "LF-GNSS EKF" in solutions else next(iter(solutions))
             extra = {k: v for k, v in solutions.items() if k != main_name}
-            plot_solution(out_dir / "figures", solutions[main_name], truth, extra_solutions=extra,
-                          prefix=f"{dataset_id}-", label=main_name)
+            try:
+                plot_solution(out_dir / "figures", solutions[main_name], truth, extra_solutions=extra,
+                              prefix=f"{dataset_id}-", label=main_name)
+            except OSError as err:
+                if unwritten is None:
+                    raise
+                unwritten.append(_cannot_write(err, out_dir / "figures"))
     return all_rows, rtk_rows
 
 
@@ -350,38 +371,111 @@ def write_report(path: Path, all_rows: list[dict], rtk_rows: list[dict], command
     return path
 
 
+def _cannot_write(err: OSError, path: Path) -> str:
+    """``FILE: cannot write (reason)``: the one line an output that could not be written gets."""
+    return f"{err.filename or path}: cannot write ({err.strerror or one_line(err)})"
+
+
+def _prepare_out(out: Path, plots: bool) -> Path:
+    """Create ``--out`` before any work, so that a folder that cannot hold the results costs no run; its results.md."""
+    report, figures = out / "results.md", out / "figures"
+    try:
+        if out.exists() and not out.is_dir():
+            raise InputError(out, "--out is a file, not a folder")
+        out.mkdir(parents=True, exist_ok=True)
+        if report.is_dir():
+            raise InputError(report, "cannot write (a folder of that name is in the way)")
+        if plots and figures.exists() and not figures.is_dir():
+            raise InputError(figures, "cannot write the figures (a file of that name is in the way; --no-plots "
+                                      "skips them)")
+    except OSError as err:
+        raise InputError(err.filename or out, f"cannot create the output folder ({err.strerror or err})") from None
+    return report
+
+
+def _check_cache() -> None:
+    """InputError naming ``$LFGNSS_CACHE`` when the cache folder cannot be made (a file in its place, no such disk)."""
+    from .paths import cache_dir
+
+    try:
+        cache_dir()
+    except OSError as err:
+        where = os.environ.get("LFGNSS_CACHE") or err.filename
+        raise InputError(where, f"cannot be used as the cache folder ($LFGNSS_CACHE): {err.strerror or err}") from None
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Run the benchmark and write the results file."""
+    """Run the benchmark and write the results file.
+
+    Exit status 0; 2 for bad input (one line ``error: ...``, before any work where it can be seen then) or a results
+    file or figure that could not be written (the tables are printed all the same); 3 for an internal error; 130 for
+    Ctrl-C.
+    """
     p = argparse.ArgumentParser(prog="python -m lfgnss.benchmark", description=__doc__.split("\n\n")[0])
     p.add_argument("datasets", nargs="*", default=[],
                    help="dataset ids (default: all three of shared/BENCHMARK.md, or only the --register'ed ones)")
     p.add_argument("--register", action="append", default=[], metavar="FILE.toml",
                    help="a dataset of your own (lfgnss.datasets TOML), run too; repeatable")
-    p.add_argument("--models", type=Path, default=MODEL_DIR,
+    p.add_argument("--models", type=path_option, default=MODEL_DIR,
                    help="folder with lfgnss-*.npz model files, or one model file used for every dataset "
                         "(default: the bundled models)")
-    p.add_argument("--out", type=Path, default=Path("docs"), help="folder for results.md and figures/ (default: docs)")
+    p.add_argument("--out", type=path_option, default=Path("docs"),
+                   help="folder for results.md and figures/ (default: docs)")
     p.add_argument("--no-plots", action="store_true", help="skip the CDF, track and error PNGs")
     args = p.parse_args(argv)
     warnings.simplefilter("ignore", FutureWarning)
     try:
-        ids = resolve_datasets(args.datasets, args.register)
-        for message in check_models(args.models, ids):
-            print(f"warning: {message}", file=sys.stderr)
-        ids = datasets.present(ids)
-        if not ids:
-            raise InputError(args.out / "results.md", "not written: no dataset has all its files")
-        all_rows, rtk_rows = run(ids, model_dir=args.models, out_dir=args.out, plots=not args.no_plots)
-    except INPUT_ERRORS as err:
-        print(f"error: {one_line(err)}", file=sys.stderr)
+        return _main(args, argv)
+    except (*INPUT_ERRORS, OSError) as err:
+        print(f"error: {input_line(err)}", file=sys.stderr)
         return 2
-    print(format_text(_select(all_rows)))
-    if rtk_rows:
-        print("\nOn the epochs RTKLIB solved:")
-        print(format_text(_select(rtk_rows)))
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+    except Exception as err:  # a bug, not bad input: still one line, no traceback, a distinct exit code
+        print(f"error: internal error in the benchmark ({type(err).__name__}: {one_line(err)}); please report it",
+              file=sys.stderr)
+        return 3
+
+
+def _main(args: argparse.Namespace, argv: list[str] | None) -> int:
+    """``main`` after parsing: check everything, run, write results.md, then print the tables."""
+    ids = resolve_datasets(args.datasets, args.register)
+    for message in check_models(args.models, ids):
+        print(f"warning: {message}", file=sys.stderr)
+    asked, ids = ids, datasets.present(ids)
+    if not ids:
+        from .paths import shared_data_dir
+
+        first = datasets.get(asked[0]).missing()[0]
+        where = "; the benchmark data are read from $LFGNSS_SHARED_DATA, else ../shared/data" \
+            if shared_data_dir() in first.parents else ""
+        raise InputError(args.out / "results.md", f"not written: no dataset has all its files (first missing: "
+                                                  f"{first}{where})")
+    report = _prepare_out(args.out, plots=not args.no_plots)
+    _check_cache()
+    unwritten: list[str] = []      # figures and results.md that could not be written: the rest is kept, exit 2
+    all_rows, rtk_rows = run(ids, model_dir=args.models, out_dir=args.out, plots=not args.no_plots,
+                             unwritten=unwritten)
     command = "python -m lfgnss.benchmark" + (" " + " ".join(argv) if argv else "")
-    print(f"\nwritten: {write_report(args.out / 'results.md', all_rows, rtk_rows, command)}")
-    return 0
+    try:                            # before the tables go to stdout, which may be a pipe closed early (| head)
+        written = write_report(report, all_rows, rtk_rows, command)
+    except OSError as err:
+        written = None
+        unwritten.append(_cannot_write(err, report))
+    try:
+        print(format_text(_select(all_rows)))
+        if rtk_rows:
+            print("\nOn the epochs RTKLIB solved:")
+            print(format_text(_select(rtk_rows)))
+        if written is not None:
+            print(f"\nwritten: {written}")
+        sys.stdout.flush()
+    except BrokenPipeError:         # the reader went away: results.md is written, nothing more to say on stdout
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+    for message in unwritten:
+        print(f"error: {message}", file=sys.stderr)
+    return 2 if unwritten else 0
 
 
 if __name__ == "__main__":

@@ -34,3 +34,25 @@ def one_line(exc: BaseException) -> str:
     """The exception's message on one line (without the quotes a KeyError adds, and without line breaks)."""
     text = exc.args[0] if isinstance(exc, KeyError) and len(exc.args) == 1 and isinstance(exc.args[0], str) else str(exc)
     return " ".join(text.split()) or type(exc).__name__
+
+
+def input_line(exc: BaseException) -> str:
+    """One line for bad input; an OSError with a file name as ``FILE: reason`` (not ``[Errno 36] ...: 'FILE'``),
+    saying so where the file is the cache folder ``$LFGNSS_CACHE`` or inside it."""
+    import os
+
+    if isinstance(exc, OSError) and exc.filename:
+        cache = os.environ.get("LFGNSS_CACHE")
+        name = Path(str(exc.filename))
+        what = " (the cache folder, $LFGNSS_CACHE)" if cache and Path(cache) in (name, *name.parents) else ""
+        return f"{exc.filename}{what}: {exc.strerror or one_line(exc)}"
+    return one_line(exc)
+
+
+def path_option(text: str) -> Path:
+    """argparse type of a path option: an empty one (``--out "$UNSET"``) is refused rather than read as ``.``."""
+    import argparse
+
+    if not text.strip():
+        raise argparse.ArgumentTypeError("needs a path, got an empty string")
+    return Path(text)
