@@ -304,6 +304,23 @@ def read_ecef_csv(path: Path, spec: DatasetSpec) -> tuple[np.ndarray, np.ndarray
 TRUTH_READERS = {"urbannav": read_urbannav, "smartloc": read_smartloc, "static": read_static, "ecef-csv": read_ecef_csv}
 
 
+def read_truth(path: str | Path, time_gps_s: np.ndarray, truth_format: str = "urbannav", *,
+               time_origin_gps_s: float | None = None, match_tolerance_s: float | None = None) -> np.ndarray:
+    """(T, 3) ECEF ground truth [m] at epoch times [GPS s] from a truth file; NaN where none lies within the tolerance.
+
+    ``truth_format``: one of ``TRUTH_READERS``; a smartloc file counts its t from ``time_origin_gps_s`` (default:
+    the first epoch). Skipped lines are warned about (the first five, then a count).
+    """
+    if truth_format not in TRUTH_READERS:
+        raise InputError(path, f"unknown truth format {truth_format!r}; use one of {', '.join(TRUTH_READERS)}")
+    spec = DatasetSpec("truth", (), (), path, truth_format, match_tolerance_s=match_tolerance_s,
+                       time_origin_gps_s=time_origin_gps_s)
+    truth, notes = align_truth(time_gps_s, spec)
+    for note in truth_note_summary(path, notes):
+        warnings.warn(note, stacklevel=2)
+    return truth
+
+
 def align_truth(time_gps_s: np.ndarray, spec: DatasetSpec) -> tuple[np.ndarray, list[str]]:
     """(T, 3) ground truth for epoch times [s] (NaN where none within the tolerance) and reader notes.
 

@@ -46,7 +46,8 @@ HEADING_DOPPLER_CN0_REF_DBHZ = 45.0
 
 
 def check_feature_names(names: tuple[str, ...] | list[str]) -> tuple[str, ...]:
-    """The names as a tuple, or a ValueError naming the unknown ones."""
+    """The names as a tuple (one name may be given as a str), or a ValueError naming the unknown ones."""
+    names = (names,) if isinstance(names, str) else names
     unknown = [n for n in names if n not in AVAILABLE_FEATURES]
     if unknown:
         raise ValueError(f"unknown feature(s) {unknown}; available: {', '.join(AVAILABLE_FEATURES)}")
@@ -270,6 +271,14 @@ def build_sequence(meas: Measurements, fix: CoarseFix, *, feature_names: tuple[s
     Epochs without a coarse fix keep their satellites: geometry comes from the nearest fix in time and
     the residual from a per-constellation median clock, so the estimators can still use them.
     """
+    if not isinstance(meas, Measurements) or not isinstance(fix, CoarseFix):
+        raise TypeError(f"lfgnss.build_sequence(meas, fix): expected lfgnss.load's Measurements and lfgnss.spp's "
+                        f"CoarseFix, got {type(meas).__name__} and {type(fix).__name__}")
+    if fix.used.shape != meas.reason.shape or fix.systems != meas.systems:
+        raise ValueError(f"lfgnss.build_sequence: the fix ({fix.used.shape[0]} epochs x {fix.used.shape[1]} "
+                         f"satellites, {''.join(fix.systems)}) is not of these measurements ({meas.reason.shape[0]} x "
+                         f"{meas.reason.shape[1]}, {''.join(meas.systems)}); use lfgnss.spp(meas)")
+    feature_names = check_feature_names(feature_names)
     n_t, n_s = meas.reason.shape
     ref = _reference_positions(fix, meas.obs.approx_ecef_m)
     rng, _, az, el, tropo, iono = _geometry(meas, ref)

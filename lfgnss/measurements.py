@@ -1,6 +1,7 @@
 """Observations joined with broadcast satellite states: what the coarse fix and the features need."""
 from __future__ import annotations
 
+import os
 import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -123,6 +124,17 @@ def load(obs: str | Path | Observations, nav: str | Path | Iterable[str | Path] 
     """
     from .ephemeris import satellite_states
 
+    def is_path(x: object) -> bool:
+        return isinstance(x, (str, os.PathLike))
+
+    if not (isinstance(obs, Observations) or is_path(obs)):
+        raise TypeError(f"lfgnss.load: obs must be a RINEX observation file (str or Path) or an Observations, "
+                        f"got {type(obs).__name__}")
+    if not (isinstance(nav, Navigation) or is_path(nav)):
+        nav = list(nav) if isinstance(nav, Iterable) else nav
+        if not isinstance(nav, list) or not all(is_path(p) for p in nav):
+            raise TypeError(f"lfgnss.load: nav must be a RINEX navigation file (str or Path), a list of them or a "
+                            f"Navigation, got {type(nav).__name__}")
     observations = obs if isinstance(obs, Observations) else load_obs(obs, cache=cache)
     navigation = nav if isinstance(nav, Navigation) else load_nav(nav)
     notes = list(observations.warnings) + list(navigation.warnings)

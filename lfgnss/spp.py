@@ -248,6 +248,8 @@ def spp(meas: Measurements, config: SppConfig = SppConfig()) -> CoarseFix:
     other ISBs are relative to it (the convention of :mod:`lfgnss.dop`). An epoch needs as many used
     satellites as unknowns: 3 + the number of systems present.
     """
+    if not isinstance(meas, Measurements):
+        raise TypeError(f"lfgnss.spp: expected the Measurements that lfgnss.load returns, got {type(meas).__name__}")
     n_t, n_s = meas.reason.shape
     n_sys = len(meas.systems)
     active = meas.reason == qc.OK

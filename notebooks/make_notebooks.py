@@ -24,9 +24,7 @@ from lfgnss.metrics import accuracy_table, enu_errors, format_markdown
 from lfgnss.solve import DEFAULT_MODEL, SAMPLE_NAV, SAMPLE_OBS, SAMPLE_TRUTH"""),
 ("code", """meas = lfgnss.load(SAMPLE_OBS, SAMPLE_NAV)
 fix = lfgnss.spp(meas)
-spec = datasets.DatasetSpec("sample", (SAMPLE_OBS,), SAMPLE_NAV, SAMPLE_TRUTH, "smartloc",
-                            time_origin_gps_s=meas.time_gps_s[0])
-truth, _ = datasets.align_truth(meas.time_gps_s, spec)
+truth = datasets.read_truth(SAMPLE_TRUTH, meas.time_gps_s, "smartloc")   # (T, 3) ECEF [m], NaN where none
 seq = lfgnss.build_sequence(meas, fix, truth_ecef_m=truth)
 print(fix.summary())"""),
 ("code", """def learned():

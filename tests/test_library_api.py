@@ -190,3 +190,43 @@ def test_writers_name_swapped_or_wrong_arguments(solution, seq, tmp_path, writer
         write(solution, tmp_path / "x")
     with pytest.raises(TypeError, match="must be an estimators.Solution.*got Sequence"):
         write(tmp_path / "x", seq)
+
+
+# ------------------------------------------------------------------ the front end's entry points
+def test_front_end_misuse_is_one_clear_error():
+    from lfgnss.solve import SAMPLE_NAV, SAMPLE_OBS
+
+    with pytest.raises(TypeError, match=r"^lfgnss.load: nav must be a RINEX navigation file .* got NoneType$"):
+        lfgnss.load(SAMPLE_OBS, None)
+    with pytest.raises(TypeError, match=r"^lfgnss.load: obs must be a RINEX observation file .* got int$"):
+        lfgnss.load(123, SAMPLE_NAV)
+    meas = lfgnss.load(SAMPLE_OBS, iter(SAMPLE_NAV))               # any iterable of paths
+    fix = lfgnss.spp(meas)
+    with pytest.raises(TypeError, match=r"^lfgnss.spp: expected the Measurements .* got Sequence$"):
+        lfgnss.spp(lfgnss.build_sequence(meas, fix))
+    with pytest.raises(TypeError, match=r"got CoarseFix and Measurements$"):
+        lfgnss.build_sequence(fix, meas)
+    gps_only = lfgnss.spp(lfgnss.load(SAMPLE_OBS, SAMPLE_NAV, systems="G"))
+    with pytest.raises(ValueError, match=r"^lfgnss.build_sequence: the fix \(1375 epochs x 12 satellites, G\) is not "
+                                         r"of these measurements \(1375 x 20, GR\); use lfgnss.spp\(meas\)$"):
+        lfgnss.build_sequence(meas, gps_only)
+    one = lfgnss.build_sequence(meas, fix, feature_names="cn0")      # one name, not its letters
+    assert one.feature_names == ("cn0",) and one.features.shape[-1] == 1
+
+
+def test_read_truth_is_align_truth_in_one_call(tmp_path):
+    from lfgnss.datasets import DatasetSpec, align_truth, read_truth
+    from lfgnss.errors import InputError
+    from lfgnss.solve import SAMPLE_NAV, SAMPLE_OBS, SAMPLE_TRUTH
+
+    t = lfgnss.load(SAMPLE_OBS, SAMPLE_NAV).time_gps_s
+    truth = read_truth(SAMPLE_TRUTH, t, "smartloc")
+    spec = DatasetSpec("s", (SAMPLE_OBS,), SAMPLE_NAV, SAMPLE_TRUTH, "smartloc", time_origin_gps_s=t[0])
+    np.testing.assert_array_equal(truth, align_truth(t, spec)[0])
+    assert truth.shape == (len(t), 3) and np.isfinite(truth).all(1).mean() > 0.9
+    bad = tmp_path / "gt.txt"
+    bad.write_text(SAMPLE_TRUTH.read_text().replace("point3", "garbage", 1))
+    with pytest.warns(UserWarning, match=f"^{bad}:"):
+        read_truth(bad, t, "smartloc")
+    with pytest.raises(InputError, match="unknown truth format 'gpx'; use one of urbannav, smartloc"):
+        read_truth(SAMPLE_TRUTH, t, "gpx")
