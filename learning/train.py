@@ -318,7 +318,10 @@ def ekf_config(config: dict):
     unknown = sorted(set(config["ekf"]) - known)
     if unknown:
         raise ValueError(f"unknown [ekf] keys {unknown}; EkfConfig has {sorted(known)}")
-    return EkfConfig(**config["ekf"])
+    try:
+        return EkfConfig(**config["ekf"])
+    except ValueError as err:                # "estimators/models.py: EkfConfig.KEY ...": name the setting instead
+        raise ValueError(str(err).replace("estimators/models.py: EkfConfig.", "ekf.")) from None
 
 
 def init_model(config: dict):

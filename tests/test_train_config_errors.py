@@ -41,6 +41,8 @@ BAD_SETTINGS = [
     ("data.datasets=[1]", "data.datasets must be a non-empty list of dataset ids"),
     ("ekf.gate_sigma='3'", "ekf.gate_sigma must be a number, got '3'"),
     ("ekf.gate_sigma=nan", "ekf.gate_sigma must be a number, got nan"),
+    ("ekf.gate_sigma=-3", "ekf.gate_sigma must be >= 0, got -3"),
+    ("ekf.q_vel_m2_s3=inf", "ekf.q_vel_m2_s3 must be finite, got inf"),
 ]
 
 
