@@ -150,7 +150,6 @@ def cn0_std_dbhz(time_gps_s: np.ndarray, cn0_dbhz: np.ndarray, tracked: np.ndarr
     lo = np.maximum(first[:, None], start)                            # ... and inside the current track
     hi = np.arange(len(t))[:, None] + 1
     cols = np.arange(x.shape[1])[None, :]
-    lo = np.maximum(lo, 0)
     n = np.maximum(hi - lo, 1)
     mean = (s1[hi, cols] - s1[lo, cols]) / n
     var = (s2[hi, cols] - s2[lo, cols]) / n - mean * mean
