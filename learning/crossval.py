@@ -19,7 +19,9 @@ is picked on the held-out block itself); and the plain EKF and the last epoch wi
 the hand-set R prior. Writes ``crossval.csv`` and ``crossval.md``
 in ``--out`` and each fold's run (``log.csv``, ``curves.png``, ``best.pt``, ``last.pt``) in ``--out/fold<j>/``.
 ``--fold J`` (repeatable) runs only those folds, e.g. one process per fold on a machine with spare cores, each
-with its own ``--out``; the pooled row is written only when every fold ran.
+with its own ``--out``; the pooled row is written only when every fold ran. With several datasets each fold also
+gets a row per dataset (``J:ID``, its last epoch on that dataset's held-out pieces) and each dataset a pooled row
+(``pooled:ID``): the overall pooled row is dominated by the datasets with the most epochs.
 
 ``--reuse DIR`` trains nothing: it scores each fold's saved model (``DIR/fold<j>/last.pt``, from an earlier run of the
 same recipe) again on its held-out block, under this run's ``[ekf]`` settings, e.g. ``--set ekf.huber_k=2``: an
@@ -260,16 +262,23 @@ def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = 
         if rows:
             try:
                 _write_results(out, rows)
-                exc.crossval_stopped = (out, out / "crossval.csv", [r["fold"] for r in rows])
+                exc.crossval_stopped = (out, out / "crossval.csv", [r["fold"] for r in rows
+                                                                     if isinstance(r["fold"], int)])
             except UnwrittenResults:
                 pass
         raise
     keys = ["plain_ekf_rmse_3d_m", "untrained_rmse_3d_m", "last_rmse_3d_m", "best_rmse_3d_m",
             "plain_ekf_smoothed_rmse_3d_m", "last_smoothed_rmse_3d_m", "plain_ekf_rmse_2d_m", "last_rmse_2d_m"]
+
+    def pooled(label: str, group: list[dict]) -> dict:
+        counts = [r["held_out_epochs"] for r in group]
+        return {"fold": label, "held_out_epochs": sum(counts),
+                **{k: pooled_rmse([r[k] for r in group], counts) for k in keys}, "best_epoch": "-"}
+
     if len(chosen) == folds:
-        rows.append({"fold": "pooled", "held_out_epochs": sum(r["held_out_epochs"] for r in rows),
-                     **{k: pooled_rmse([r[k] for r in rows], [r["held_out_epochs"] for r in rows]) for k in keys},
-                     "best_epoch": "-"})
+        rows.append(pooled("pooled", [r for r in rows if isinstance(r["fold"], int)]))
+        for ds in whole if len(whole) > 1 else ():
+            rows.append(pooled(f"pooled:{ds}", [r for r in rows if str(r["fold"]).endswith(f":{ds}")]))
     _write_results(out, rows)
     return rows
 
@@ -318,7 +327,9 @@ def _run_folds(rows: list[dict], chosen, folds: int, whole: dict, config: dict, 
             threads = torch.get_num_threads()
             torch.set_num_threads(int(config["threads"]))       # as train() runs: a shared machine stays shared
             try:
-                rows.append(_rescored_row(j, saved_fold(reuse, j, config, held), config, held))
+                saved = saved_fold(reuse, j, config, held)
+                rows.append(_rescored_row(j, saved, config, held))
+                rows.extend(_dataset_rows(j, saved, config, parts))
             finally:
                 torch.set_num_threads(threads)
             continue
@@ -330,6 +341,19 @@ def _run_folds(rows: list[dict], chosen, folds: int, whole: dict, config: dict, 
             "untrained_rmse_3d_m": history[0]["val_rmse_3d_m"], "last_rmse_3d_m": history[-1]["val_rmse_3d_m"],
             "best_rmse_3d_m": best["val_rmse_3d_m"], "best_epoch": best["epoch"],
             "last_smoothed_rmse_3d_m": last_smoothed_3d, "last_rmse_2d_m": last_2d}))
+        if len(parts) > 1:
+            import torch
+
+            saved = torch.load(out / f"fold{j}" / "last.pt", map_location="cpu", weights_only=False)
+            rows.extend(_dataset_rows(j, saved, config, parts))
+
+
+def _dataset_rows(fold: int, saved: dict, config: dict, parts: dict) -> list[dict]:
+    """With several datasets, one row per dataset (fold ``"J:ID"``) of the fold's model on that dataset's held-out
+    pieces: a pooled row is dominated by the datasets with the most epochs, and can hide a loss on the others."""
+    if len(parts) < 2:
+        return []
+    return [_rescored_row(f"{fold}:{ds}", saved, config, held) for ds, (_, held) in parts.items() if held]
 
 
 def _kept(exc: BaseException) -> str:

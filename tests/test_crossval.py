@@ -207,3 +207,42 @@ def test_recipe_comparison_fills_defaults_and_resolves_paths(tmp_path, monkeypat
     assert _recipe(older) == _recipe(config)
     older["train"]["init"] = "other/m.npz"
     assert _recipe(older) != _recipe(config)
+
+
+def test_several_datasets_get_a_row_each_per_fold_and_pooled(monkeypatch, tmp_path):
+    """With two datasets each fold also gets one row per dataset (its model on that dataset's held-out pieces), and
+    the pooled row of each dataset; the overall pooled row pools the fold rows only. Trained and rescored alike."""
+    from dataclasses import replace
+
+    import learning.crossval as cv
+    import learning.train as train_module
+    from learning.train import load_config, load_sequences
+
+    hashes = train_module.source_file_hashes
+
+    def two_sets(dataset_id, split, config):
+        if dataset_id == "other":                   # a second dataset: the simulator's sequences under another name
+            return [replace(s, name=s.name.replace("synthetic", "other"))
+                    for s in load_sequences("synthetic", split, config)]
+        return load_sequences(dataset_id, split, config)
+
+    monkeypatch.setattr(cv, "load_sequences", two_sets)
+    monkeypatch.setattr(train_module, "source_file_hashes", lambda ds: hashes("synthetic" if ds == "other" else ds))
+    config = load_config("learning/configs/default.toml", [
+        "data.datasets=['synthetic', 'other']", "data.synthetic.n_epochs=60", "data.window=20", "data.stride=10",
+        "train.batch_size=4", "train.epochs=1", "threads=1"])
+    rows = cv.crossval(config, 2, tmp_path / "cv", progress=False)
+    folds = [r["fold"] for r in rows]
+    assert folds == [0, "0:synthetic", "0:other", 1, "1:synthetic", "1:other", "pooled", "pooled:synthetic",
+                     "pooled:other"]
+    by = {r["fold"]: r for r in rows}
+    for j in (0, 1):
+        parts = [by[f"{j}:{ds}"] for ds in ("synthetic", "other")]
+        assert sum(p["held_out_epochs"] for p in parts) == by[j]["held_out_epochs"]
+        assert by[j]["last_rmse_3d_m"] == pytest.approx(cv.pooled_rmse([p["last_rmse_3d_m"] for p in parts],
+                                                                       [p["held_out_epochs"] for p in parts]))
+    assert by["pooled"]["held_out_epochs"] == by[0]["held_out_epochs"] + by[1]["held_out_epochs"]
+    rescored = cv.crossval(config, 2, tmp_path / "again", progress=False, reuse=tmp_path / "cv")
+    assert [r["fold"] for r in rescored] == folds
+    for a, b in zip(rows, rescored):
+        assert a["last_rmse_3d_m"] == pytest.approx(b["last_rmse_3d_m"]), a["fold"]
