@@ -17,7 +17,7 @@ import math
 
 import torch
 
-from lfgnss.constants import WGS84_A_M, WGS84_F
+from lfgnss.constants import WGS84_F
 
 _TINY = 1e-12
 _B_OVER_A_SQ = (1.0 - WGS84_F) ** 2

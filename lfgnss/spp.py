@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import qc
-from .constants import GPS_L1_HZ, SPEED_OF_LIGHT_M_S
+from .constants import GPS_L1_HZ
 from .corrections import geometric_range_m, klobuchar_m, saastamoinen_m
 from .frames import ecef_to_lla
 from .measurements import Measurements
