@@ -50,11 +50,26 @@ class Solution:
     def __len__(self) -> int:
         return int(np.shape(self.time_gps_s)[0])
 
+    def has_position(self) -> np.ndarray:
+        """(T,) bool: status is not none and the ECEF position is finite (the epochs the writers write)."""
+        return (np.asarray(self.status) != STATUS_NONE) & np.isfinite(np.asarray(self.pos_ecef_m, float)).all(axis=-1)
+
     def _positions(self) -> np.ndarray:
-        """(T, 3) ECEF [m], NaN where the epoch has no position (status none or not finite), as the writers skip."""
-        pos = np.asarray(self.pos_ecef_m, float)
-        has = (np.asarray(self.status) != STATUS_NONE) & np.isfinite(pos).all(axis=-1)
-        return np.where(has[:, None], pos, np.nan)
+        """(T, 3) ECEF [m], NaN where the epoch has no position (``has_position``)."""
+        return np.where(self.has_position()[:, None], np.asarray(self.pos_ecef_m, float), np.nan)
+
+    def cov_enu_m2(self) -> np.ndarray:
+        """(T, 3, 3) position covariance in each estimate's local ENU frame [m^2]; 0 where unknown.
+
+        ``C_enu = R C_ecef R^T`` (RTKLIB ``covenu``); rows with a non-finite covariance or position get 0.
+        """
+        pos = np.asarray(self.pos_ecef_m, dtype=float)
+        cov = np.asarray(self.cov_ecef_m2, dtype=float)
+        ok = np.isfinite(cov).all(axis=(1, 2)) & np.isfinite(pos).all(axis=1)
+        out = np.zeros((len(pos), 3, 3))
+        rot = enu_rotations(pos[ok]).reshape(-1, 3, 3)
+        out[ok] = np.einsum("tij,tjk,tlk->til", rot, cov[ok], rot)
+        return out
 
     def geodetic(self) -> np.ndarray:
         """(T, 3) WGS84 latitude [deg], longitude [deg], ellipsoidal height [m]; NaN where no position."""
@@ -76,13 +91,9 @@ class Solution:
 
     def sd_enu_m(self) -> np.ndarray:
         """(T, 3) standard deviations east, north, up [m], the covariance in each epoch's local frame; NaN if none."""
-        pos = self._positions()
-        cov = np.asarray(self.cov_ecef_m2, float)
-        ok = np.isfinite(pos).all(axis=-1) & np.isfinite(cov).all(axis=(1, 2))
-        out = np.full(pos.shape, np.nan)
-        rot = enu_rotations(pos[ok]).reshape(-1, 3, 3)
-        out[ok] = np.sqrt(np.maximum(np.einsum("tij,tjk,tik->ti", rot, cov[ok], rot), 0.0))
-        return out
+        known = self.has_position() & np.isfinite(np.asarray(self.cov_ecef_m2, float)).all(axis=(1, 2))
+        sd = np.sqrt(np.maximum(np.diagonal(self.cov_enu_m2(), axis1=1, axis2=2), 0.0))
+        return np.where(known[:, None], sd, np.nan)
 
     def subset(self, index: slice | np.ndarray | int) -> "Solution":
         """Epochs selected by a slice, boolean mask, index array or one index, as a new Solution (and info's arrays)."""

@@ -47,7 +47,7 @@ from pathlib import Path
 import numpy as np
 
 from lfgnss.datasets import contiguous_runs
-from lfgnss.errors import INPUT_ERRORS, InputError, input_line, one_line, path_option
+from lfgnss.errors import INPUT_ERRORS, InputError, cannot_write, input_line, one_line, path_option
 from lfgnss.metrics import accuracy_table, markdown_table
 from lfgnss.sequence import Sequence
 
@@ -287,7 +287,7 @@ class UnwrittenResults(InputError):
     """crossval.csv or crossval.md could not be written (a full disk, a folder in the way); ``rows`` are the results."""
 
     def __init__(self, path: Path, err: OSError, rows: list[dict]) -> None:
-        super().__init__(err.filename or path, f"cannot write ({err.strerror or one_line(err)})")
+        super().__init__(err.filename or path, cannot_write(err))
         self.rows = rows
 
 

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from . import datasets
-from .errors import INPUT_ERRORS, InputError, input_line, one_line, path_option
+from .errors import INPUT_ERRORS, InputError, cannot_write, input_line, one_line, path_option
 from .metrics import METRIC_COLUMNS, accuracy_table, format_markdown, format_text, markdown_table
 from .paths import bundled_data_dir
 from .sequence import Sequence
@@ -276,7 +276,7 @@ def run(dataset_ids: list[str], *, model_dir: Path = MODEL_DIR, out_dir: Path | 
             except OSError as err:
                 if unwritten is None:
                     raise
-                unwritten.append(_cannot_write(err, out_dir / "figures"))
+                unwritten.append(f"{err.filename or out_dir / 'figures'}: {cannot_write(err)}")
     return all_rows, rtk_rows
 
 
@@ -371,11 +371,6 @@ def write_report(path: Path, all_rows: list[dict], rtk_rows: list[dict], command
     return path
 
 
-def _cannot_write(err: OSError, path: Path) -> str:
-    """``FILE: cannot write (reason)``: the one line an output that could not be written gets."""
-    return f"{err.filename or path}: cannot write ({err.strerror or one_line(err)})"
-
-
 def _prepare_out(out: Path, plots: bool) -> Path:
     """Create ``--out`` before any work, so that a folder that cannot hold the results costs no run; its results.md."""
     report, figures = out / "results.md", out / "figures"
@@ -462,7 +457,7 @@ def _main(args: argparse.Namespace, argv: list[str] | None) -> int:
         written = write_report(report, all_rows, rtk_rows, command)
     except OSError as err:
         written = None
-        unwritten.append(_cannot_write(err, report))
+        unwritten.append(f"{err.filename or report}: {cannot_write(err)}")
     try:
         print(format_text(_select(all_rows)))
         if rtk_rows:

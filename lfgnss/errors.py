@@ -36,6 +36,11 @@ def one_line(exc: BaseException) -> str:
     return " ".join(text.split()) or type(exc).__name__
 
 
+def cannot_write(err: OSError) -> str:
+    """The reason an output could not be written, ``cannot write (REASON)``; its file is ``err.filename``."""
+    return f"cannot write ({err.strerror or one_line(err)})"
+
+
 def input_line(exc: BaseException) -> str:
     """One line for bad input; an OSError with a file name as ``FILE: reason`` (not ``[Errno 36] ...: 'FILE'``),
     saying so where the file is the cache folder ``$LFGNSS_CACHE`` or inside it."""

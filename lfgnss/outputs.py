@@ -62,25 +62,6 @@ def _check_args(writer: str, path: object, solution: object, where: str = "path"
         raise TypeError(f"{call}: {where} must be a str or Path, got {type(path).__name__}")
 
 
-def _has_position(solution: Solution) -> np.ndarray:
-    """(T,) bool: status is not none and the ECEF position is finite."""
-    return (np.asarray(solution.status) != STATUS_NONE) & np.isfinite(solution.pos_ecef_m).all(axis=1)
-
-
-def _enu_cov(solution: Solution) -> np.ndarray:
-    """Position covariance in the local ENU frame of each estimate (T, 3, 3) [m^2]; 0 where unknown.
-
-    ``C_enu = R C_ecef R^T`` (RTKLIB ``covenu``); rows with a non-finite covariance or position get 0.
-    """
-    pos = np.asarray(solution.pos_ecef_m, dtype=float)
-    cov = np.asarray(solution.cov_ecef_m2, dtype=float)
-    ok = np.isfinite(cov).all(axis=(1, 2)) & np.isfinite(pos).all(axis=1)
-    out = np.zeros((len(pos), 3, 3))
-    rot = enu_rotations(pos[ok]).reshape(-1, 3, 3)
-    out[ok] = np.einsum("tij,tjk,tlk->til", rot, cov[ok], rot)
-    return out
-
-
 def _sqvar(c: np.ndarray) -> np.ndarray:
     """Signed square root of a covariance (RTKLIB ``sqvar``)."""
     return np.sign(c) * np.sqrt(np.abs(c))
@@ -134,11 +115,11 @@ def write_pos(path: str | Path, solution: Solution, *, time_format: str = "calen
     if time_format not in ("calendar", "tow"):
         raise ValueError(f"write_pos {path}: time_format must be 'calendar' or 'tow', got {time_format!r}")
     path = Path(path)
-    ok = _has_position(solution)
+    ok = solution.has_position()
     ms_all = _gpst_ms(solution.time_gps_s)
     ms = ms_all[ok]
     llh = ecef_to_lla(solution.pos_ecef_m[ok])
-    cov = _enu_cov(solution)[ok]
+    cov = solution.cov_enu_m2()[ok]
     status = np.asarray(solution.status)[ok]
     q = np.where(status == STATUS_COASTED, coasted_q, Q_SINGLE)
     ns = np.asarray(solution.n_used)[ok].astype(int)
@@ -303,7 +284,7 @@ def write_csv(path: str | Path, solution: Solution, truth_ecef_m: np.ndarray | N
     if truth_ecef_m is not None and np.shape(truth_ecef_m) != (t, 3):
         raise ValueError(f"write_csv {path}: truth_ecef_m has shape {np.shape(truth_ecef_m)}, expected ({t}, 3)")
     frame = solution_frame(solution, truth_ecef_m)
-    ok = _has_position(solution)
+    ok = solution.has_position()
     digits = {"time_gps_s": 3, "tow_s": 3, "lat_deg": 9, "lon_deg": 9}      # the others: 4 (0.1 mm)
     text = {}
     for col in frame.columns:
@@ -332,7 +313,7 @@ def solution_frame(solution: Solution, truth_ecef_m: np.ndarray | None = None) -
     if not isinstance(solution, Solution):
         raise TypeError(f"solution_frame: expected an estimators.Solution, got {type(solution).__name__}")
     t = len(solution.time_gps_s)
-    ok = _has_position(solution)
+    ok = solution.has_position()
     pos = np.where(ok[:, None], np.asarray(solution.pos_ecef_m, float), np.nan)
     week, tow = gps_s_to_week_tow(solution.time_gps_s)
     llh = solution.geodetic()
@@ -359,7 +340,7 @@ def solution_frame(solution: Solution, truth_ecef_m: np.ndarray | None = None) -
 # ---------------------------------------------------------------- GeoJSON / KML
 def _track(solution: Solution) -> tuple[np.ndarray, np.ndarray]:
     """Indices of epochs with a position and their (lon [deg], lat [deg], h [m]) rows."""
-    idx = np.flatnonzero(_has_position(solution))
+    idx = np.flatnonzero(solution.has_position())
     llh = ecef_to_lla(solution.pos_ecef_m[idx]).reshape(-1, 3)
     return idx, np.column_stack([np.degrees(llh[:, 1]), np.degrees(llh[:, 0]), llh[:, 2]])
 
@@ -430,7 +411,7 @@ def align_to(time_gps_s: np.ndarray, other: Solution) -> np.ndarray:
     """
     key = np.round(np.asarray(time_gps_s, dtype=float) * 10.0).astype(np.int64)
     okey = np.round(np.asarray(other.time_gps_s, dtype=float) * 10.0).astype(np.int64)
-    opos = np.where(_has_position(other)[:, None], other.pos_ecef_m, np.nan)
+    opos = np.where(other.has_position()[:, None], other.pos_ecef_m, np.nan)
     order = np.argsort(okey, kind="stable")
     sk = okey[order]
     j = np.clip(np.searchsorted(sk, key), 0, max(len(sk) - 1, 0))
@@ -483,7 +464,7 @@ def plot_solution(out_dir: str | Path, solution: Solution, truth_ecef_m: np.ndar
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     t = np.asarray(solution.time_gps_s, dtype=float)
-    runs = [(label or solution.backend, np.where(_has_position(solution)[:, None], solution.pos_ecef_m, np.nan))]
+    runs = [(label or solution.backend, np.where(solution.has_position()[:, None], solution.pos_ecef_m, np.nan))]
     runs += [(name, align_to(t, s)) for name, s in _named(extra_solutions)]
     truth = None
     if truth_ecef_m is not None:

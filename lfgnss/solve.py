@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import INPUT_ERRORS, InputError, LfgnssError, RinexError, one_line
+from .errors import INPUT_ERRORS, InputError, LfgnssError, RinexError, cannot_write, one_line
 from .paths import bundled_data_dir, default_model_path
 
 SAMPLE_DIR = bundled_data_dir() / "berlin-potsdamer-platz"
@@ -187,7 +187,7 @@ def run(args) -> int:
         try:
             written += job(path)
         except OSError as err:
-            failed.append(f"{err.filename or path}: cannot write ({err.strerror or err})")
+            failed.append(f"{err.filename or path}: {cannot_write(err)}")
 
     if not args.quiet:
         summary = fix.summary()
