@@ -55,6 +55,8 @@ PLAIN_OWN_FILTER = "plain EKF in the per-dataset model's filter"
 OWN_EKF = "LF-GNSS EKF, per-dataset model"
 RTS = " + RTS smoother"
 RTKLIB = "RTKLIB rnx2rtkp"
+#: Splits ``--warm-up`` may start the filters at (it must come before the test split).
+WARM_UP = ("train", "val")
 
 
 @dataclass
@@ -218,58 +220,59 @@ def whole_test_split(dataset_id: str, feature_names: tuple[str, ...]) -> Sequenc
 
     Epochs inside it without truth are solved but not scored; ``load_split`` would cut the split there.
     """
+    return test_span(dataset_id, feature_names)[0]
+
+
+def test_span(dataset_id: str, feature_names: tuple[str, ...], warm_up: str | None = None) -> tuple[Sequence, int]:
+    """The Sequence the estimators solve and how many of its first epochs precede the test split (unscored).
+
+    Without ``warm_up`` it is ``whole_test_split``'s span. With a split name (``WARM_UP``) it starts at that split's
+    first labelled epoch, which must come before the test split: the filters then enter the test split warm, as a
+    receiver that has been running does. Only observations of the warm-up epochs are used, never their truth.
+    """
     spec = datasets.get(dataset_id)
     seq = datasets.build(dataset_id, feature_names=feature_names)
     idx = np.flatnonzero(datasets.split_index(seq, spec, "test"))
     if idx.size == 0:
         raise InputError(spec.truth, f"dataset {dataset_id}: no labelled epoch in its test split {spec.splits['test']} "
                                      f"(axis {spec.split_axis})")
-    return seq.subset(slice(idx[0], idx[-1] + 1), name=f"{dataset_id}/test")
+    start = idx[0]
+    if warm_up is not None:
+        warm = np.flatnonzero(datasets.split_index(seq, spec, warm_up))
+        if warm.size == 0 or warm[0] >= idx[0]:
+            raise InputError(spec.truth, f"dataset {dataset_id}: --warm-up {warm_up} needs labelled epochs of that "
+                                         f"split before the test split (splits {spec.splits})")
+        start = warm[0]
+    name = f"{dataset_id}/test" if warm_up is None else f"{dataset_id}/{warm_up}+test"
+    return seq.subset(slice(start, idx[-1] + 1), name=name), int(idx[0] - start)
 
 
 def run(dataset_ids: list[str], *, model_dir: Path = MODEL_DIR, out_dir: Path | None = None,
-        plots: bool = True, unwritten: list[str] | None = None) -> tuple[list[dict], list[dict]]:
+        plots: bool = True, unwritten: list[str] | None = None, warm_up: str | None = None,
+        failed: list[str] | None = None) -> tuple[list[dict], list[dict]]:
     """Rows over all test epochs and rows over RTKLIB's solved test epochs, for each dataset.
 
     ``unwritten``: a list that collects ``FILE: cannot write (reason)`` for figures that could not be written (the
-    run goes on); without it such an OSError is raised.
+    run goes on); without it such an OSError is raised. ``warm_up``: a split of ``WARM_UP`` the estimators start at
+    (``test_span``); the rows still score the test split only. ``failed``: a list that collects ``ID: reason`` for a
+    dataset whose files turn out bad (the other datasets still run); without it that error is raised.
     """
-    from estimators.base import STATUS_NONE, STATUS_UPDATED, Solution
     from .outputs import plot_solution
 
     all_rows, rtk_rows = [], []
     for dataset_id in datasets.present(dataset_ids):
-        spec = datasets.get(dataset_id)
-        plugins = [(m.name, m.create()) for m in methods(model_dir, dataset_id)]
-        test = whole_test_split(dataset_id, _features_for(e for _, e in plugins))
-        truth = test.truth_ecef_m
-        with tempfile.TemporaryDirectory() as tmp:
-            rtk_pos, rtk_s = _rtklib_on(test, spec, Path(tmp))
-        solutions = {}
-        if rtk_pos is not None:
-            ok = np.all(np.isfinite(rtk_pos), axis=1)
-            all_rows.append(accuracy_table(rtk_pos, truth, ok, dataset=dataset_id, method=RTKLIB,
-                                           trained_on="-") | {"epochs_per_s": float("nan")})
-        for name, estimator in plugins:
-            start = time.perf_counter()
-            sol = estimator.solve(test)
-            rate = len(test) / (time.perf_counter() - start)
-            solutions[name] = sol
-            trained = _trained_on(getattr(estimator, "noise", None))
-            all_rows.append(accuracy_table(sol.pos_ecef_m, truth, sol.available, dataset=dataset_id, method=name,
-                                           trained_on=trained) | {"epochs_per_s": rate})
-            if rtk_pos is not None and ok.any():
-                rtk_rows.append(accuracy_table(sol.pos_ecef_m[ok], truth[ok], sol.available[ok], dataset=dataset_id,
-                                               method=name, trained_on=trained))
-        if rtk_pos is not None and ok.any():
-            rtk_rows.append(accuracy_table(rtk_pos[ok], truth[ok], ok[ok], dataset=dataset_id,
-                                           method=RTKLIB, trained_on="-"))
-            solutions["RTKLIB"] = Solution("rtklib", test.time_gps_s, rtk_pos, np.zeros((len(test), 3, 3)),
-                                           np.zeros(len(test)), np.zeros(len(test), int),
-                                           np.where(ok, STATUS_UPDATED, STATUS_NONE))
+        try:
+            rows, rtk, solutions, truth = dataset_rows(dataset_id, model_dir, warm_up)
+        except INPUT_ERRORS as err:
+            if failed is None:
+                raise
+            failed.append(f"{dataset_id}: not run ({input_line(err)})")
+            continue
+        all_rows += rows
+        rtk_rows += rtk
         if plots and out_dir is not None and solutions:
             main_name = "LF-GNSS EKF" if "LF-GNSS EKF" in solutions else next(iter(solutions))
-            extra = {k: v for k, v in solutions.items() if k != main_name}
+            extra = {name: sol for name, sol in solutions.items() if name != main_name}
             try:
                 plot_solution(out_dir / "figures", solutions[main_name], truth, extra_solutions=extra,
                               prefix=f"{dataset_id}-", label=main_name)
@@ -278,6 +281,43 @@ def run(dataset_ids: list[str], *, model_dir: Path = MODEL_DIR, out_dir: Path | 
                     raise
                 unwritten.append(f"{err.filename or out_dir / 'figures'}: {cannot_write(err)}")
     return all_rows, rtk_rows
+
+
+def dataset_rows(dataset_id: str, model_dir: Path = MODEL_DIR, warm_up: str | None = None):
+    """One dataset's rows over all test epochs and over RTKLIB's solved ones, the Solutions by row name, the truth."""
+    from estimators.base import STATUS_NONE, STATUS_UPDATED, Solution
+
+    spec = datasets.get(dataset_id)
+    plugins = [(m.name, m.create()) for m in methods(model_dir, dataset_id)]
+    span, k = test_span(dataset_id, _features_for(e for _, e in plugins), warm_up)
+    test = span.subset(slice(k, None))
+    truth = test.truth_ecef_m
+    with tempfile.TemporaryDirectory() as tmp:
+        rtk_pos, _ = _rtklib_on(test, spec, Path(tmp))
+    rows, rtk_rows, solutions = [], [], {}
+    ok = np.zeros(len(test), bool) if rtk_pos is None else np.all(np.isfinite(rtk_pos), axis=1)
+    if rtk_pos is not None:
+        rows.append(accuracy_table(rtk_pos, truth, ok, dataset=dataset_id, method=RTKLIB,
+                                   trained_on="-") | {"epochs_per_s": float("nan")})
+    for name, estimator in plugins:
+        start = time.perf_counter()
+        sol = estimator.solve(span)
+        rate = len(span) / (time.perf_counter() - start)
+        sol = sol.subset(slice(k, None)) if k else sol
+        solutions[name] = sol
+        trained = _trained_on(getattr(estimator, "noise", None))
+        rows.append(accuracy_table(sol.pos_ecef_m, truth, sol.available, dataset=dataset_id, method=name,
+                                   trained_on=trained) | {"epochs_per_s": rate})
+        if ok.any():
+            rtk_rows.append(accuracy_table(sol.pos_ecef_m[ok], truth[ok], sol.available[ok], dataset=dataset_id,
+                                           method=name, trained_on=trained))
+    if ok.any():
+        rtk_rows.append(accuracy_table(rtk_pos[ok], truth[ok], ok[ok], dataset=dataset_id,
+                                       method=RTKLIB, trained_on="-"))
+        solutions["RTKLIB"] = Solution("rtklib", test.time_gps_s, rtk_pos, np.zeros((len(test), 3, 3)),
+                                       np.zeros(len(test)), np.zeros(len(test), int),
+                                       np.where(ok, STATUS_UPDATED, STATUS_NONE))
+    return rows, rtk_rows, solutions, truth
 
 
 def _trained_on(noise) -> str:
@@ -335,16 +375,26 @@ def target_rows(all_rows: list[dict], rtk_rows: list[dict]) -> list[dict]:
     return out
 
 
-def write_report(path: Path, all_rows: list[dict], rtk_rows: list[dict], command: str) -> Path:
-    """Markdown results file with both tables and how they were made."""
+def write_report(path: Path, all_rows: list[dict], rtk_rows: list[dict], command: str,
+                 warm_up: str | None = None, figures: bool = True, failed: list[str] = ()) -> Path:
+    """Markdown results file with both tables and how they were made.
+
+    ``warm_up``: the split the filters started at; ``failed``: ``ID: reason`` of datasets that could not be run.
+    """
     targets = target_rows(all_rows, rtk_rows)
+    start = "" if warm_up is None else (
+        f" Every estimator starts at the first labelled epoch of the {warm_up} split and runs on through the test "
+        f"split, so the filters enter it warm, as in a receiver that has been running; the {warm_up} epochs' "
+        "observations are used, never their truth, and only test epochs are scored (`--warm-up`). Without it the "
+        "filters start cold on the test split's first epoch (docs/results.md).")
     text = [
-        "# lfgnss benchmark results",
+        "# lfgnss benchmark results" + ("" if warm_up is None else f", filters warmed up on the {warm_up} split"),
         "",
         f"Produced by `{command}` (protocol: shared/BENCHMARK.md; test splits only; RMSE in metres in the local "
         "ENU frame of the ground truth; availability = share of labelled test epochs with a solution; "
-        "epochs/s = estimator stage only, this machine, one run).",
+        "epochs/s = estimator stage only, this machine, one run)." + start,
         "",
+        *([f"**Not run** (bad input; the tables leave these datasets out): {'; '.join(failed)}.", ""] if failed else []),
         "## All labelled test epochs",
         "",
         format_markdown(_select(all_rows)),
@@ -363,7 +413,7 @@ def write_report(path: Path, all_rows: list[dict], rtk_rows: list[dict], command
         "",
         markdown_table(targets) if targets else "No learned rows (no model files).\n",
         "",
-        "Figures: `figures/<dataset>-cdf.png`, `-track.png`, `-errors.png`.",
+        "Figures: `figures/<dataset>-cdf.png`, `-track.png`, `-errors.png`." if figures else "No figures (`--no-plots`).",
         "",
     ]
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -414,10 +464,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--models", type=path_option, default=MODEL_DIR,
                    help="folder with lfgnss-*.npz model files, or one model file used for every dataset "
                         "(default: the bundled models)")
-    p.add_argument("--out", type=path_option, default=Path("docs"),
-                   help="folder for results.md and figures/ (default: docs)")
+    p.add_argument("--out", type=path_option, default=None,
+                   help="folder for results.md and figures/ (default: docs, or docs/warm-up-SPLIT with --warm-up)")
+    p.add_argument("--warm-up", choices=WARM_UP, default=None, metavar="SPLIT",
+                   help="start every estimator at the first epoch of this split (train or val; its observations, "
+                        "never its truth) and score the test split only, so the filters enter it warm")
     p.add_argument("--no-plots", action="store_true", help="skip the CDF, track and error PNGs")
     args = p.parse_args(argv)
+    if args.out is None:
+        args.out = Path("docs") if args.warm_up is None else Path("docs") / f"warm-up-{args.warm_up}"
     warnings.simplefilter("ignore", FutureWarning)
     try:
         return _main(args, argv)
@@ -450,11 +505,17 @@ def _main(args: argparse.Namespace, argv: list[str] | None) -> int:
     report = _prepare_out(args.out, plots=not args.no_plots)
     _check_cache()
     unwritten: list[str] = []      # figures and results.md that could not be written: the rest is kept, exit 2
+    failed: list[str] = []         # datasets whose files turned out bad: the others are kept, exit 2
     all_rows, rtk_rows = run(ids, model_dir=args.models, out_dir=args.out, plots=not args.no_plots,
-                             unwritten=unwritten)
+                             unwritten=unwritten, warm_up=args.warm_up, failed=failed)
+    if failed and not all_rows:    # an empty table never replaces a results file
+        for message in failed[:-1]:
+            print(f"error: {message}", file=sys.stderr)
+        raise InputError(report, f"not written: no dataset could be run ({failed[-1]})")
+    argv = sys.argv[1:] if argv is None else argv
     command = "python -m lfgnss.benchmark" + (" " + " ".join(argv) if argv else "")
     try:                            # before the tables go to stdout, which may be a pipe closed early (| head)
-        written = write_report(report, all_rows, rtk_rows, command)
+        written = write_report(report, all_rows, rtk_rows, command, args.warm_up, not args.no_plots, failed)
     except OSError as err:
         written = None
         unwritten.append(f"{err.filename or report}: {cannot_write(err)}")
@@ -468,9 +529,9 @@ def _main(args: argparse.Namespace, argv: list[str] | None) -> int:
         sys.stdout.flush()
     except BrokenPipeError:         # the reader went away: results.md is written, nothing more to say on stdout
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-    for message in unwritten:
+    for message in failed + unwritten:
         print(f"error: {message}", file=sys.stderr)
-    return 2 if unwritten else 0
+    return 2 if failed or unwritten else 0
 
 
 if __name__ == "__main__":

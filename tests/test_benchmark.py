@@ -188,3 +188,60 @@ def test_a_test_split_with_a_truth_gap_is_scored_whole_and_an_empty_one_refused(
     datasets.register_toml(sample_toml("empty", splits=((0, 150), (150, 180), (5000, 6000))))
     with pytest.raises(InputError, match="no labelled epoch in its test split"):
         whole_test_split("empty", DEFAULT_FEATURES)
+
+
+def test_warm_up_starts_the_filters_earlier_and_scores_the_test_split_only(tmp_path, monkeypatch, sample_toml):
+    from lfgnss.benchmark import run, test_span, whole_test_split
+
+    monkeypatch.setattr(datasets, "_REGISTRY", {}, raising=False)
+    datasets.register_toml(sample_toml("drive"))
+    cold = whole_test_split("drive", DEFAULT_FEATURES)
+    span, k = test_span("drive", DEFAULT_FEATURES, "val")
+    assert k > 0 and len(span) == len(cold) + k and span.time_gps_s[k] == cold.time_gps_s[0]
+    rows, _ = run(["drive"], model_dir=tmp_path, plots=False, warm_up="val")
+    cold_rows, _ = run(["drive"], model_dir=tmp_path, plots=False)
+    by_name = {r["method"]: r for r in rows}
+    for r in cold_rows:                                  # the same labelled epochs are scored in both modes
+        assert by_name[r["method"]]["n_labelled"] == r["n_labelled"] == int(cold.labelled.sum())
+    assert by_name["least squares (equal weight)"]["rmse_3d_m"] == pytest.approx(
+        next(r for r in cold_rows if r["method"] == "least squares (equal weight)")["rmse_3d_m"])   # epoch by epoch
+    assert by_name[PLAIN]["rmse_3d_m"] != next(r for r in cold_rows if r["method"] == PLAIN)["rmse_3d_m"]
+    datasets.register_toml(sample_toml("late", splits=((0, 150), (190, 200), (180, 190))))
+    with pytest.raises(InputError, match="--warm-up val needs labelled epochs of that split before the test split"):
+        test_span("late", DEFAULT_FEATURES, "val")
+
+
+def test_the_warm_up_command_line_writes_its_own_results_file(tmp_path, monkeypatch, capsys, sample_toml):
+    monkeypatch.setattr(datasets, "_REGISTRY", {}, raising=False)
+    monkeypatch.chdir(tmp_path)
+    shutil.copy(MODEL_DIR / "lfgnss-default.npz", tmp_path / "model.npz")
+    assert main(["my-drive", "--register", str(sample_toml("my-drive")), "--models", str(tmp_path / "model.npz"),
+                 "--warm-up", "val", "--no-plots"]) == 0
+    text = (tmp_path / "docs" / "warm-up-val" / "results.md").read_text()
+    assert not (tmp_path / "docs" / "results.md").exists()            # the cold results are not overwritten
+    assert text.startswith("# lfgnss benchmark results, filters warmed up on the val split")
+    assert "--warm-up val --no-plots" in text and "No figures (`--no-plots`)." in text
+
+
+def test_a_dataset_with_bad_files_costs_its_own_rows_only(tmp_path, monkeypatch, capsys, sample_toml):
+    monkeypatch.setattr(datasets, "_REGISTRY", {}, raising=False)
+    monkeypatch.setenv("LFGNSS_CACHE", str(tmp_path / "cache"))
+    good = sample_toml("good")
+    bad_obs = tmp_path / "bad.obs"
+    bad_obs.write_text("this is not RINEX\n")
+    bad = tmp_path / "bad.toml"
+    bad.write_text(sample_toml("bad").read_text().replace(
+        str(SAMPLE_DIR / "Berlin_Potsdamer_Platz.obs.gz"), str(bad_obs)))
+    shutil.copy(MODEL_DIR / "lfgnss-default.npz", tmp_path / "model.npz")
+    args = ["--models", str(tmp_path / "model.npz"), "--out", str(tmp_path / "out"), "--no-plots"]
+    assert main(["bad", "good", "--register", str(bad), "--register", str(good), *args]) == 2
+    captured = capsys.readouterr()
+    assert captured.err.count("\n") == 1 and captured.err.startswith("error: bad: not run (") and "bad.obs" in captured.err
+    text = (tmp_path / "out" / "results.md").read_text()
+    assert "**Not run** (bad input; the tables leave these datasets out): bad: not run (" in text
+    assert "| good | LF-GNSS EKF |" in text and "| bad |" not in text
+    (tmp_path / "out" / "results.md").unlink()
+    assert main(["bad", "--register", str(bad), *args]) == 2            # nothing ran: no results file at all
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "not written: no dataset could be run (bad: not run (" in err
+    assert not (tmp_path / "out" / "results.md").exists()
