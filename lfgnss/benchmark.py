@@ -283,7 +283,8 @@ def run(dataset_ids: list[str], *, model_dir: Path = MODEL_DIR, out_dir: Path | 
     return all_rows, rtk_rows
 
 
-def dataset_rows(dataset_id: str, model_dir: Path = MODEL_DIR, warm_up: str | None = None):
+def dataset_rows(dataset_id: str, model_dir: Path = MODEL_DIR,
+                 warm_up: str | None = None) -> tuple[list[dict], list[dict], dict, np.ndarray]:
     """One dataset's rows over all test epochs and over RTKLIB's solved ones, the Solutions by row name, the truth."""
     from estimators.base import STATUS_NONE, STATUS_UPDATED, Solution
 
