@@ -335,10 +335,12 @@ def init_model(config: dict):
 
 
 def adopt_init(config: dict) -> dict:
-    """A copy of ``config`` whose ``[model]`` and data features are those the ``train.init`` model was trained with.
+    """A copy of ``config`` whose ``[model]``, data features and filter are those the ``train.init`` model was trained with.
 
     Fine-tuning keeps the network and the meaning of its inputs, so these come from the model file; a note
-    on stderr says when the given configuration asked for something else.
+    on stderr says when the given configuration asked for something else. The filter (``[ekf]``) is the model's
+    too, except for the keys the configuration sets itself: a model fine-tuned in another filter would learn,
+    and then run, in that filter (a note lists what is taken from the model).
     """
     model = init_model(config)
     if model is None:
@@ -354,7 +356,22 @@ def adopt_init(config: dict) -> dict:
     if config["model"] != out["model"] or tuple(given) != model.feature_names:
         print(f"train.init: the network and features are those of {model.path} ([model] and data.features of "
               "the configuration are replaced)", file=sys.stderr)
+    adopted = {k: v for k, v in _own_filter(model).items() if k not in config["ekf"]}
+    out["ekf"] = {**adopted, **config["ekf"]}
+    if adopted:
+        print(f"train.init: fine-tuned in the filter {model.path} was trained in: "
+              f"{', '.join(f'ekf.{k} = {v}' for k, v in adopted.items())} (an [ekf] key of the configuration "
+              "overrides it)", file=sys.stderr)
     return out
+
+
+def _own_filter(model) -> dict:
+    """The ``EkfConfig`` fields in which a model file's filter differs from the defaults."""
+    from estimators.ekf import config_of
+    from estimators.models import EkfConfig
+
+    default = dataclasses.asdict(EkfConfig())
+    return {k: v for k, v in dataclasses.asdict(config_of(model)).items() if default[k] != v}
 
 
 def trained_datasets(model) -> list[str]:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import sys
 import warnings
 from pathlib import Path
@@ -99,8 +100,10 @@ def run(args) -> int:
     from .outputs import plot_solution, write_csv, write_geojson, write_kml, write_pos
     from .spp import spp
 
-    if args.smooth_lag is not None and not (args.smooth and args.smooth_lag >= 0):
-        raise ValueError(f"--smooth-lag needs --smooth and a lag >= 0 seconds, got {args.smooth_lag}")
+    if args.smooth_lag is not None and not args.smooth:
+        raise ValueError(f"--smooth-lag needs --smooth (--smooth --smooth-lag {args.smooth_lag:g})")
+    if args.smooth_lag is not None and args.smooth_lag < 0:
+        raise ValueError(f"--smooth-lag must be a lag >= 0 seconds, got {args.smooth_lag:g}")
     if args.smooth and args.backend not in SMOOTHABLE_BACKENDS:
         raise ValueError(f"--smooth applies to --backend {' and '.join(SMOOTHABLE_BACKENDS)}, not {args.backend}"
                          + (" (the factor graph's batch mode already uses every epoch)" if args.backend == "fgo" else ""))
@@ -122,6 +125,8 @@ def run(args) -> int:
     obs = SAMPLE_OBS if sample else args.obs
     nav = list(SAMPLE_NAV) if sample else (args.nav or [])
     if not nav:
+        if not Path(obs).exists():                  # the missing file first: --nav alone would not make it run
+            raise InputError(obs, "cannot read file (No such file or directory)")
         raise InputError(obs, "no navigation file given (--nav)")
     truth_path = SAMPLE_TRUTH if (sample and args.truth is None) else args.truth
     truth_format = "smartloc" if (sample and args.truth is None) else (args.truth_format or "urbannav")
@@ -191,7 +196,8 @@ def run(args) -> int:
 
     if not args.quiet:
         summary = fix.summary()
-        print(f"{obs}: {summary['epochs']} epochs, systems {''.join(meas.systems)}, backend {label} "
+        shown = label.removesuffix(" (hand-set noise)")    # noise_text says it
+        print(f"{obs}: {summary['epochs']} epochs, systems {''.join(meas.systems)}, backend {shown} "
               f"({noise_text})")
         print(f"coarse fix: {summary['epoch_status']}; observations: {summary['observations']}")
         if meas.warnings:
@@ -267,6 +273,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:   # stdout closed early (| head): the files are written before anything is printed
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
     except Exception as err:  # a bug, not bad input: still one line, no traceback, a distinct exit code
         message = " ".join(str(err).split())
         print(f"error: internal error while solving {args.obs or SAMPLE_OBS} ({type(err).__name__}: {message}); "

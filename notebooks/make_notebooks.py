@@ -6,6 +6,8 @@ def nb(cells, path):
     n = nbf.v4.new_notebook()
     n.metadata["kernelspec"] = {"name": "python3", "display_name": "Python 3", "language": "python"}
     n.cells = [nbf.v4.new_markdown_cell(c[1]) if c[0] == "md" else nbf.v4.new_code_cell(c[1]) for c in cells]
+    for k, cell in enumerate(n.cells):
+        cell.id = f"cell-{k}"       # not nbformat's random ids: a rerun rewrites only what changed
     nbf.write(n, path)
 
 nb([
@@ -127,7 +129,7 @@ print(spec.id, [p.name for p in spec.files()])"""),
 sol = estimators.create("plain-ekf").solve(test)
 print(accuracy_table(sol.pos_ecef_m, test.truth_ecef_m, sol.available, method="plain-ekf"))
 print(write_pos(folder / "my-drive.pos", sol), write_csv(folder / "my-drive.csv", sol, test.truth_ecef_m))"""),
-("md", "## Fine-tune the shipped model on your drive\n\nWith a few minutes of labelled data, start from the shipped model rather than from scratch: `train.init` loads its weights, network, features and normalisation, and the new model file records what it started from. `data.register` names your dataset TOML files. One epoch here, to keep the notebook quick (the bundled drive is also one the shipped model was trained on, so this shows the mechanics, not a gain). The same from the shell:\n\n    python -m learning.train --config learning/configs/default.toml --set 'data.register=[\"my-drive.toml\"]' --set 'data.datasets=[\"my-drive\"]' --set train.init=lfgnss/data/model/lfgnss-default.npz --out runs/my-drive\n\n`python -m lfgnss.datasets --register my-drive.toml` prints the alignment report."),
+("md", "## Fine-tune the shipped model on your drive\n\nWith a few minutes of labelled data, start from the shipped model rather than from scratch: `train.init` loads its weights, network, features, normalisation and filter (the `[ekf]` keys you set win), and the new model file records what it started from. `data.register` names your dataset TOML files. One epoch here, to keep the notebook quick (the bundled drive is also one the shipped model was trained on, so this shows the mechanics, not a gain). The same from the shell:\n\n    python -m learning.train --config learning/configs/default.toml --set 'data.register=[\"my-drive.toml\"]' --set 'data.datasets=[\"my-drive\"]' --set train.init=lfgnss/data/model/lfgnss-default.npz --out runs/my-drive\n\n`python -m lfgnss.datasets --register my-drive.toml` prints the alignment report."),
 ("code", """from learning.export import load_model
 from learning.train import load_config, train
 from lfgnss.solve import DEFAULT_MODEL

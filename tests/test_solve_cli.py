@@ -19,6 +19,9 @@ from lfgnss.solve import DEFAULT_MODEL, SAMPLE_NAV, SAMPLE_OBS, SAMPLE_TRUTH, ma
     (["--backend", "wls", "--no-model"], "--no-model applies to --backend ekf and fgo, not wls"),
     (["--model", "m.npz", "--no-model"], "--model and --no-model contradict each other"),
     (["--backend", "ekf", "--mode", "fixed-lag"], "--mode applies to --backend fgo, not ekf"),
+    (["--smooth-lag", "5"], "--smooth-lag needs --smooth (--smooth --smooth-lag 5)"),
+    (["--smooth", "--smooth-lag", "-1"], "--smooth-lag must be a lag >= 0 seconds, got -1"),
+    (["--obs", "nope.obs"], "nope.obs: cannot read file (No such file or directory)"),   # not "no --nav"
 ])
 def test_misused_option_is_one_line_before_any_work(tmp_path, capsys, extra, message):
     out = tmp_path / "out"
@@ -95,7 +98,9 @@ def test_truth_matching_no_epoch_warns_and_skips_the_table(tmp_path, capsys):
 
 def test_table_label_names_hand_set_noise_and_fixed_lag(tmp_path, capsys):
     assert main(["--out", str(tmp_path), "--no-plots", "--backend", "fgo", "--mode", "fixed-lag", "--no-model"]) == 0
-    assert "fgo fixed-lag (hand-set noise) " in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "fgo fixed-lag (hand-set noise) " in out                            # the table's row
+    assert "backend fgo fixed-lag (hand-set C/N0 noise)\n" in out             # the header says it once
     assert (tmp_path / "Berlin_Potsdamer_Platz_fgo-fixed-lag-hand-set.pos").exists()
 
 
@@ -134,3 +139,17 @@ def test_one_line_keeps_quotes_of_the_message():
     assert one_line(FileNotFoundError(2, "No such file or directory", "/a b")) == \
         "[Errno 2] No such file or directory: '/a b'"
     assert one_line(ValueError("two\nlines")) == "two lines"
+
+
+def test_stdout_closed_early_keeps_the_outputs_and_exits_0(tmp_path):
+    """``python -m lfgnss.solve | head -1``: the files are written first; no 'internal error' for the pipe."""
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen([sys.executable, "-m", "lfgnss.solve", "--no-model", "--no-plots", "--out", str(tmp_path)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().startswith(str(SAMPLE_OBS))
+    proc.stdout.close()                                           # the reader goes away, as head does
+    assert proc.wait(timeout=120) == 0
+    assert proc.stderr.read() == ""
+    assert sorted(p.suffix for p in tmp_path.iterdir()) == [".csv", ".geojson", ".kml", ".pos"]

@@ -288,6 +288,24 @@ def test_fine_tuning_starts_from_a_model_file(config, full_run, tmp_path, capsys
         load_config("learning/configs/default.toml", ["train.init=3"])
 
 
+def test_fine_tuning_keeps_the_init_models_filter_unless_the_configuration_sets_a_key(capsys):
+    """The shipped model fine-tuned with default.toml (no [ekf] keys) stays in its own filter, and says so; a key
+    the configuration sets wins (hk_finetune.toml's vertical noise over the transfer base's default filter)."""
+    from learning.train import adopt_init
+    from lfgnss.solve import DEFAULT_MODEL
+
+    own = {"q_vel_up_m2_s3": 0.1, "doppler_sigma_m_s": 0.1, "doppler_cn0_ref_dbhz": 45.0}
+    assert adopt_init(load_config("learning/configs/shipped.toml", [f"train.init={DEFAULT_MODEL}"]))["ekf"] == own
+    assert "fine-tuned in the filter" not in capsys.readouterr().err    # its own configuration: nothing to say
+    assert adopt_init(load_config("learning/configs/default.toml", [f"train.init={DEFAULT_MODEL}"]))["ekf"] == own
+    err = capsys.readouterr().err
+    assert "fine-tuned in the filter" in err and "ekf.q_vel_up_m2_s3 = 0.1" in err
+    mine = adopt_init(load_config("learning/configs/default.toml",
+                                  [f"train.init={DEFAULT_MODEL}", "ekf.doppler_sigma_m_s=0.3"]))["ekf"]
+    assert mine == own | {"doppler_sigma_m_s": 0.3}
+    assert adopt_init(load_config("learning/configs/hk_finetune.toml"))["ekf"] == {"q_vel_up_m2_s3": 0.002}
+
+
 def test_frozen_parts_keep_their_initial_weights(config, full_run, tmp_path):
     """train.freeze: the named network parts keep the train.init weights; the others are trained; a part the
     network lacks is one clear error naming the setting."""
