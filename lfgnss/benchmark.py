@@ -158,18 +158,17 @@ def check_models(models: Path, dataset_ids: list[str]) -> list[str]:
     return [f"{models}: not using {', '.join(unused)}: {expected}{hint}"] if unused else []
 
 
-def resolve_datasets(ids: list[str], toml_files: list[str | Path] = ()) -> list[str]:
+def resolve_datasets(ids: list[str], toml_files: list[str | Path] = (),
+                     need_splits: tuple[str, ...] = ("test",)) -> list[str]:
     """Register the TOML datasets, then the ids to run: those given plus the registered ones (default: the three).
 
-    Raises KeyError (listing the known ids) for an unknown id, and InputError for an unusable TOML file.
+    Raises KeyError (listing the known ids) for an unknown id, and InputError for an unusable TOML file or one
+    without the splits the run scores (``need_splits``: the test split, and the ``--warm-up`` one).
     """
-    registered = [datasets.register_toml(path).id for path in toml_files]
+    registered = [datasets.register_toml(path, need_splits=need_splits).id for path in toml_files]
     out = list(dict.fromkeys([*ids, *registered])) or list(DEFAULT_DATASETS)
     for dataset_id in out:
-        try:
-            datasets.get(dataset_id)
-        except KeyError as err:
-            raise KeyError(f"{one_line(err)} (a dataset of your own: --register FILE.toml)") from None
+        datasets.get(dataset_id, hint="a dataset of your own: --register FILE.toml")
     return out
 
 
@@ -491,7 +490,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def _main(args: argparse.Namespace, argv: list[str] | None) -> int:
     """``main`` after parsing: check everything, run, write results.md, then print the tables."""
-    ids = resolve_datasets(args.datasets, args.register)
+    ids = resolve_datasets(args.datasets, args.register, ("test",) + ((args.warm_up,) if args.warm_up else ()))
     for message in check_models(args.models, ids):
         print(f"warning: {message}", file=sys.stderr)
     asked, ids = ids, datasets.present(ids)

@@ -7,7 +7,8 @@ file (``register_toml``)::
     obs = ["rover.obs"]               # paths relative to this file; several files of one receiver are
                                       # joined in time order (they must not overlap in time)
     nav = ["brdc.nav"]
-    systems = ["G", "C"]              # optional
+    systems = ["G", "C"]              # optional: constellation letters of G, C, E, R, J (default: all)
+    description = "my first drive"    # optional
     [truth]
     file = "truth.csv"
     format = "urbannav"               # urbannav | smartloc | static | ecef-csv
@@ -15,14 +16,17 @@ file (``register_toml``)::
                                       # default 0.05 for smartloc, else 0.5 (as python -m lfgnss.solve)
     time_origin_gps_s = 1149246641.7  # optional, smartloc: GPS seconds of the truth's t = 0, also the 0 of
                                       # relative_s splits; default the first observation epoch (as --truth-origin)
-    [splits]                          # [start, stop) on the split axis
+    [splits]                          # [start, stop) on the split axis; at least one split
     axis = "tow"                      # tow | relative_s | epoch
-    train = [46701, 46941]
-    val = [46941, 47001]
+    train = [46701, 46941]            # learning.train fits train and selects on val (data.train_split,
+    val = [46941, 47001]              # data.val_split); lfgnss.benchmark scores test
     test = [47001, 47186]
+
+A key not listed here (a typo) is refused, naming the file, the key and the keys known there.
 """
 from __future__ import annotations
 
+import difflib
 import hashlib
 import json
 import math
@@ -34,6 +38,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from .constants import SYSTEMS
 from .errors import InputError
 from .frames import lla_to_ecef
 from .paths import cache_dir, shared_data_dir
@@ -74,6 +79,7 @@ class DatasetSpec:
     match_tolerance_s: float | None = None        # [s]; None: 0.05 for smartloc, else 0.5
     time_origin_gps_s: float | None = None        # [GPS s] smartLoc t = 0 and relative_s 0; None: first epoch
     description: str = ""
+    source: Path | None = None                    # the TOML file it was registered from (register_toml)
 
     def __post_init__(self) -> None:
         def paths(value) -> tuple[Path, ...]:
@@ -92,6 +98,14 @@ class DatasetSpec:
     def missing(self) -> list[Path]:
         """Input files that do not exist."""
         return [p for p in self.files() if not p.exists()]
+
+    def missing_note(self) -> str:
+        """``missing FILE`` for the first missing input file ('' if none), with its key and TOML file if registered."""
+        missing = self.missing()
+        if not missing or self.source is None:
+            return f"missing {missing[0]}" if missing else ""
+        key = "obs" if missing[0] in self.obs else "nav" if missing[0] in self.nav else "[truth] file"
+        return f"missing {missing[0]} ({key} in {self.source})"
 
 
 def _shared(folder: str, *names: str) -> tuple[Path, ...]:
@@ -134,48 +148,117 @@ def register(spec: DatasetSpec) -> DatasetSpec:
     return spec
 
 
-def register_toml(path: str | Path) -> DatasetSpec:
-    """Register a user dataset described by a TOML file (see the module docstring)."""
+#: The keys a dataset TOML may hold, at the top and in its tables (see the module docstring).
+TOML_KEYS = ("id", "obs", "nav", "systems", "description", "truth", "splits")
+TRUTH_KEYS = ("file", "format", "match_tolerance_s", "time_origin_gps_s")
+SPLIT_KEYS = ("axis", *SPLITS)
+#: What ``get`` says about an unknown id: how a dataset of one's own becomes known, for every command.
+REGISTER_HINT = ("register a dataset of your own first: --register FILE.toml, data.register = [\"FILE.toml\"] in "
+                 "a training config, or lfgnss.datasets.register_toml in Python")
+
+
+def _refuse_unknown_keys(path: Path, table: dict, known: tuple[str, ...], where: str = "") -> None:
+    """InputError for the first key of ``table`` not in ``known``: the key, a close known one, and the known ones."""
+    tables = () if where else ("truth", "splits")        # the top level's tables are shown as [truth], [splits]
+    for key, value in table.items():
+        if key in known:
+            continue
+        what = f"table [{key}]" if isinstance(value, dict) else f"key {key!r}"
+        close = difflib.get_close_matches(key, known, n=1)
+        guess = "" if not close else f" (did you mean [{close[0]}]?)" if close[0] in tables else \
+            f" (did you mean {close[0]!r}?)"
+        shown = ", ".join(f"[{k}]" if k in tables else k for k in known)
+        raise InputError(path, f"unknown {what}{where}{guess}; known keys{where}: {shown}")
+
+
+def _split_bounds(path: Path, name: str, value, axis: str) -> tuple[float, float]:
+    """A ``[splits]`` entry as (start, stop), or an InputError saying what it must be."""
+    ok = (isinstance(value, list) and len(value) == 2
+          and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value)
+          and value[0] < value[1])
+    if not ok:
+        raise InputError(path, f"[splits] {name} must be [start, stop] with start < stop (on the {axis} axis), "
+                               f"got {value!r}")
+    return value[0], value[1]
+
+
+def register_toml(path: str | Path, *, need_splits: tuple[str, ...] = ()) -> DatasetSpec:
+    """Register a user dataset described by a TOML file (see the module docstring).
+
+    Unknown keys, unknown constellation letters and a ``[splits]`` table without a split are refused (InputError
+    naming the file and the key), as is the lack of a split named in ``need_splits`` (the splits a caller uses).
+    """
     path = Path(path)
     try:
         cfg = tomllib.loads(path.read_text())
     except (OSError, tomllib.TOMLDecodeError) as err:
         raise InputError(path, f"unreadable dataset config ({getattr(err, 'strerror', None) or err})") from None
     base = path.parent
+    _refuse_unknown_keys(path, cfg, TOML_KEYS)
     for key in ("truth", "splits"):
         if not isinstance(cfg.get(key, {}), dict):
             raise InputError(path, f"[{key}] must be a table (e.g. [{key}] with file = ... / train = [a, b]), "
                                    f"got {cfg[key]!r}")
+    _refuse_unknown_keys(path, cfg.get("truth", {}), TRUTH_KEYS, " in [truth]")
+    _refuse_unknown_keys(path, cfg.get("splits", {}), SPLIT_KEYS, " in [splits]")
+    for key in ("id", "obs", "nav", "truth"):
+        if key not in cfg:
+            raise InputError(path, f"dataset config lacks {'[truth] with file = ...' if key == 'truth' else key}")
+    if "file" not in cfg["truth"]:
+        raise InputError(path, "dataset config lacks file in [truth] (the ground-truth file)")
     axis = cfg.get("splits", {}).get("axis", "tow")
     if axis not in SPLIT_AXES:
         raise InputError(path, f"unknown split axis {axis!r} in [splits]; use one of {', '.join(SPLIT_AXES)}")
+    splits = {k: _split_bounds(path, k, v, axis) for k, v in cfg.get("splits", {}).items() if k in SPLITS}
+    if not splits:
+        what = "[splits] has no train, val or test" if "splits" in cfg else "dataset config has no [splits] table"
+        raise InputError(path, f"{what}; give [splits] train, val and test = [start, stop] (learning.train uses "
+                               f"train and val, lfgnss.benchmark test)")
+    lacking = [k for k in need_splits if k not in splits]
+    if lacking:
+        raise InputError(path, f"[splits] has no {' or '.join(lacking)}, which this command uses; give "
+                               f"{lacking[0]} = [start, stop] on the {axis} axis (it has {', '.join(splits)})")
+    systems = cfg.get("systems")
+    if systems is not None:
+        if isinstance(systems, str):
+            systems = list(systems)                    # "GR": the letters
+        if not isinstance(systems, list) or not systems or not all(isinstance(s, str) for s in systems):
+            raise InputError(path, f"systems must be a list of constellation letters of {''.join(SYSTEMS)} "
+                                   f"(e.g. [\"G\", \"C\"]), got {cfg['systems']!r}")
+        unknown = sorted({s.upper() for s in systems} - set(SYSTEMS))
+        if unknown:
+            raise InputError(path, f"unknown constellation letter(s) {''.join(unknown)} in systems; "
+                                   f"use {''.join(SYSTEMS)}")
     for key in ("obs", "nav"):
         if isinstance(cfg.get(key), str):
             cfg[key] = [cfg[key]]                      # one file may be given without a list
-        if key in cfg and not cfg[key]:
+        if not cfg[key]:
             raise InputError(path, f"dataset config lists no {key} file")
     try:
         truth = cfg["truth"]
-        splits = {k: tuple(v) for k, v in cfg.get("splits", {}).items() if k in SPLITS}
         tolerance, origin = truth.get("match_tolerance_s"), truth.get("time_origin_gps_s")
         spec = DatasetSpec(
             id=str(cfg["id"]), obs=tuple(base / p for p in cfg["obs"]), nav=tuple(base / p for p in cfg["nav"]),
             truth=base / truth["file"], truth_format=str(truth.get("format", "urbannav")), splits=splits,
-            split_axis=str(axis), systems=tuple(cfg["systems"]) if "systems" in cfg else None,
+            split_axis=str(axis), systems=None if systems is None else tuple(systems),
             match_tolerance_s=None if tolerance is None else float(tolerance),
-            time_origin_gps_s=None if origin is None else float(origin), description=str(cfg.get("description", "")))
+            time_origin_gps_s=None if origin is None else float(origin), description=str(cfg.get("description", "")),
+            source=path)
     except (KeyError, TypeError, ValueError) as err:
         raise InputError(path, f"dataset config lacks or misuses {err}") from None
     if spec.truth_format not in TRUTH_READERS:
-        raise InputError(path, f"unknown truth format {spec.truth_format!r}; use one of {', '.join(TRUTH_READERS)}")
+        raise InputError(path, f"unknown truth format {spec.truth_format!r} in [truth]; "
+                               f"use one of {', '.join(TRUTH_READERS)}")
     return register(spec)
 
 
-def get(dataset_id: str) -> DatasetSpec:
-    """The spec of a dataset id, or a KeyError listing the known ones."""
+def get(dataset_id: str, *, hint: str | None = None) -> DatasetSpec:
+    """The spec of a dataset id, or a KeyError listing the known ones and ``hint`` (default ``REGISTER_HINT``)."""
     specs = registered()
     if dataset_id not in specs:
-        raise KeyError(f"unknown dataset {dataset_id!r}; known: {', '.join(sorted(specs))}")
+        more = REGISTER_HINT if hint is None else hint
+        raise KeyError(f"unknown dataset {dataset_id!r}; known: {', '.join(sorted(specs))}"
+                       + (f" ({more})" if more else ""))
     return specs[dataset_id]
 
 
@@ -335,7 +418,9 @@ def align_truth(time_gps_s: np.ndarray, spec: DatasetSpec) -> tuple[np.ndarray, 
         other = _readable_as(spec.truth, spec.truth_format) if spec.truth_format in _ROW_LAYOUTS else None
         if other is None:
             raise
-        raise InputError(err.path, f"{err.reason} (the file reads as truth format {other!r})", line=err.line) from None
+        give = f'format = "{other}" in [truth] of {spec.source}' if spec.source else f"--truth-format {other}"
+        raise InputError(err.path, f"{err.reason} (read as truth format {spec.truth_format!r}; the file reads as "
+                                   f"{other!r}: give {give})", line=err.line) from None
     if spec.truth_format == "static":
         return np.broadcast_to(xyz[0], (time_gps_s.size, 3)).copy(), bad
     order = np.argsort(t_truth)
@@ -423,7 +508,8 @@ def build(dataset_id: str, *, feature_names: tuple[str, ...] = DEFAULT_FEATURES,
     spec = get(dataset_id)
     missing = spec.missing()
     if missing:
-        raise FileNotFoundError(f"dataset {dataset_id}: missing {', '.join(map(str, missing))}")
+        note = spec.missing_note() if spec.source else f"missing {', '.join(map(str, missing))}"
+        raise FileNotFoundError(f"dataset {dataset_id}: {note}")
     feature_names = check_feature_names(feature_names)
     target = cache_dir() / "sequences" / f"{dataset_id}-{_fingerprint(spec, feature_names)}.npz"
     seq = None
@@ -450,7 +536,8 @@ def build(dataset_id: str, *, feature_names: tuple[str, ...] = DEFAULT_FEATURES,
 def split_index(seq: Sequence, spec: DatasetSpec, split: str) -> np.ndarray:
     """(T,) bool: epochs of ``seq`` in the split (only labelled epochs count for 'epoch' axes)."""
     if split not in spec.splits:
-        raise KeyError(f"dataset {spec.id} has no split {split!r}; it has {', '.join(spec.splits)}")
+        where = f"; give {split} = [start, stop] under [splits] in {spec.source}" if spec.source else ""
+        raise KeyError(f"dataset {spec.id} has no split {split!r}; it has {', '.join(spec.splits) or 'none'}{where}")
     start, stop = spec.splits[split]
     labelled = seq.labelled
     if spec.split_axis == "tow":
@@ -467,12 +554,13 @@ def split_index(seq: Sequence, spec: DatasetSpec, split: str) -> np.ndarray:
 
 
 def present(dataset_ids, report=print) -> list[str]:
-    """The ids whose files are all there; ``report`` gets one "ID: skipped, missing PATH" line for each other."""
+    """The ids whose files are all there; ``report`` gets one "ID: skipped, missing PATH" line for each other
+    (``DatasetSpec.missing_note``: with the key and TOML file naming it for a registered one)."""
     ids = []
     for dataset_id in dataset_ids:
-        missing = get(dataset_id).missing()
-        if missing:
-            report(f"{dataset_id}: skipped, missing {missing[0]}")
+        note = get(dataset_id).missing_note()
+        if note:
+            report(f"{dataset_id}: skipped, {note}")
         else:
             ids.append(dataset_id)
     return ids
@@ -526,7 +614,8 @@ def main(argv: list[str] | None = None) -> int:
     """``python -m lfgnss.datasets [ID ...]``: build datasets and print the alignment report.
 
     Bad input (a config, an id, a file) ends in one line ``error: ...`` and exit code 2, as does a dataset
-    asked for by id or ``--register`` whose files are missing; the default benchmark sets are skipped quietly.
+    asked for by id or ``--register`` whose files are missing (a registered one is left out of the report: the
+    error line names its TOML file); the default benchmark sets are skipped quietly.
     """
     import argparse
     import sys
@@ -542,11 +631,13 @@ def main(argv: list[str] | None = None) -> int:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", UserWarning)
             ids = list(dict.fromkeys([*args.ids, *(register_toml(path).id for path in args.register)]))
-            unbuilt = [f"{i}: missing {get(i).missing()[0]}" for i in ids if get(i).missing()]
-            report = alignment_report(ids or None)
+            unbuilt = [f"{i}: {get(i).missing_note()}" for i in ids if get(i).missing()]
+            shown = [i for i in ids if get(i).source is None or not get(i).missing()]
+            report = alignment_report(shown or None) if shown or not ids else ""
         for message in dict.fromkeys(str(w.message) for w in caught):
             print(f"warning: {message}", file=sys.stderr)
-        print(report)
+        if report:
+            print(report)
         if unbuilt:
             print(f"error: dataset not built: {'; '.join(unbuilt)}", file=sys.stderr)
             return 2

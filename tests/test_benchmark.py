@@ -245,3 +245,13 @@ def test_a_dataset_with_bad_files_costs_its_own_rows_only(tmp_path, monkeypatch,
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "not written: no dataset could be run (bad: not run (" in err
     assert not (tmp_path / "out" / "results.md").exists()
+
+
+def test_a_toml_without_the_splits_the_run_scores_is_refused_before_the_run(tmp_path, monkeypatch, capsys, sample_toml):
+    monkeypatch.setattr(datasets, "_REGISTRY", {}, raising=False)
+    path = sample_toml("no-val")
+    path.write_text(path.read_text().replace("val = [150, 180]\n", ""))
+    assert main(["--register", str(path), "--out", str(tmp_path / "out"), "--no-plots", "--warm-up", "val"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"{path}: [splits] has no val, which this command uses" in err
+    assert not (tmp_path / "out").exists()

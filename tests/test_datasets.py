@@ -1,4 +1,5 @@
 """Dataset layer: benchmark splits and truth alignment on shared data, user TOML datasets, bad truth lines."""
+import dataclasses
 import re
 import warnings
 
@@ -107,9 +108,13 @@ def test_a_wrong_truth_format_is_named_with_the_one_the_file_reads_as(tmp_path, 
     path = tmp_path / "truth.txt"
     path.write_text("\n".join(rows) + "\n")
     spec = datasets.DatasetSpec(id="x", obs=(path,), nav=(path,), truth=path, truth_format=given)
-    with pytest.raises(InputError, match=re.escape(f"(the file reads as truth format {hint!r})") + "$") as err:
+    expected = f"(read as truth format {given!r}; the file reads as {hint!r}: give --truth-format {hint})"
+    with pytest.raises(InputError, match=re.escape(expected) + "$") as err:
         datasets.align_truth(np.array([1.2e9]), spec)
     assert str(err.value).startswith(f"{path}:1: no readable ground-truth line")
+    toml = tmp_path / "my.toml"                      # a dataset TOML's spec: the key to change, where
+    with pytest.raises(InputError, match=re.escape(f'give format = "{hint}" in [truth] of {toml})') + "$"):
+        datasets.align_truth(np.array([1.2e9]), dataclasses.replace(spec, source=toml))
     path.write_text("nothing here\n")               # no format reads it: no hint
     with pytest.raises(InputError, match="no readable ground-truth line; the first: [^(]*$"):
         datasets.align_truth(np.array([1.2e9]), spec)

@@ -1,0 +1,166 @@
+"""Dataset TOML files (user review): typos, splits, constellation letters, missing files and unknown ids are one
+line naming the TOML file (and the key), never silently ignored, never a traceback."""
+from __future__ import annotations
+
+import re
+
+import pytest
+
+from lfgnss import benchmark, datasets
+from lfgnss.errors import InputError
+from lfgnss.simulate import simulate_sequence
+
+
+@pytest.fixture
+def clean_registry(tmp_path, monkeypatch):
+    monkeypatch.setenv("LFGNSS_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setattr(datasets, "_REGISTRY", {})
+
+
+def _edited(sample_toml, name: str, old: str, new: str):
+    """``sample_toml(name)`` with one line changed (``old`` must be in it)."""
+    path = sample_toml(name)
+    text = path.read_text()
+    assert old in text
+    path.write_text(text.replace(old, new))
+    return path
+
+
+@pytest.mark.parametrize("old, new, message", [
+    ("systems =", "sytems =", "unknown key 'sytems' (did you mean 'systems'?); known keys: id, obs, nav, systems, "
+                              "description, [truth], [splits]"),
+    ("test =", "tset =", "unknown key 'tset' in [splits] (did you mean 'test'?); known keys in [splits]: "
+                         "axis, train, val, test"),
+    ("format =", "fromat =", "unknown key 'fromat' in [truth] (did you mean 'format'?); known keys in [truth]: "
+                             "file, format, match_tolerance_s, time_origin_gps_s"),
+    ("[truth]", "[truht]", "unknown table [truht] (did you mean [truth]?)"),
+    ("axis =", "colour = 3\naxis =", "unknown key 'colour' in [splits]; known keys in [splits]: axis, train"),
+], ids=["top", "splits", "truth", "table", "no-suggestion"])
+def test_a_typo_at_any_level_is_refused_with_the_file_the_key_and_the_known_keys(
+        sample_toml, clean_registry, capsys, old, new, message):
+    """Defect: sytems, tset and fromat were ignored (all systems, no test split, the default truth format)."""
+    path = _edited(sample_toml, "typo", old, new)
+    with pytest.raises(InputError, match=re.escape(f"{path}: {message}")):
+        datasets.register_toml(path)
+    assert "typo" not in datasets.registered()
+    assert datasets.main(["--register", str(path)]) == 2          # used to exit 0 for tset
+    captured = capsys.readouterr()
+    assert captured.out == "" and captured.err.startswith(f"error: {path}: {message}") and captured.err.count("\n") == 1
+
+
+@pytest.mark.parametrize("case", ["no-table", "empty-table", "bad-bounds"])
+def test_a_toml_without_usable_splits_is_refused_at_registration(tmp_path, sample_toml, clean_registry, capsys, case):
+    """Defect: without [splits] the benchmark ended in '...has no split 'test'; it has))', not naming the TOML."""
+    path = sample_toml("no-splits")
+    head, _ = path.read_text().split("[splits]")
+    text, message = {
+        "no-table": (head, "dataset config has no [splits] table; give [splits] train, val and test = [start, stop]"),
+        "empty-table": (head + '[splits]\naxis = "relative_s"\n', "[splits] has no train, val or test; give"),
+        "bad-bounds": (head + "[splits]\ntrain = [150, 0]\n",
+                       "[splits] train must be [start, stop] with start < stop (on the tow axis), got [150, 0]"),
+    }[case]
+    path.write_text(text)
+    with pytest.raises(InputError, match=re.escape(f"{path}: {message}")):
+        datasets.register_toml(path)
+    code = benchmark.main(["no-splits", "--register", str(path), "--out", str(tmp_path / "out"), "--no-plots"])
+    err = capsys.readouterr().err
+    assert code == 2 and err.startswith(f"error: {path}: {message}") and err.count("\n") == 1
+
+
+def test_splits_a_caller_needs_are_checked_at_registration_and_others_stay_optional(sample_toml, clean_registry):
+    """A TOML with train and test only (no val) stays valid; a caller naming the splits it uses is refused early."""
+    path = _edited(sample_toml, "no-val", "val = [150, 180]", "")
+    spec = datasets.register_toml(path)
+    assert sorted(spec.splits) == ["test", "train"] and spec.source == path
+    assert datasets.register_toml(path, need_splits=("test",)).id == "no-val"
+    with pytest.raises(InputError, match=re.escape(f"{path}: [splits] has no val, which this command uses; give "
+                                                   f"val = [start, stop] on the relative_s axis (it has train, test)")):
+        datasets.register_toml(path, need_splits=("train", "val"))
+
+
+def test_a_missing_split_is_named_whole_and_with_its_toml(sample_toml, clean_registry):
+    seq = simulate_sequence(5)
+    spec = datasets.DatasetSpec("py", ("r.obs",), ("n.nav",), "t.csv", "urbannav")        # made in Python: no splits
+    with pytest.raises(KeyError) as err:
+        datasets.split_index(seq, spec, "test")
+    assert err.value.args[0] == "dataset py has no split 'test'; it has none"
+    path = _edited(sample_toml, "no-test", "test = [180, 200]", "")
+    spec = datasets.register_toml(path)
+    with pytest.raises(KeyError) as err:
+        datasets.split_index(seq, spec, "test")
+    assert err.value.args[0] == (f"dataset no-test has no split 'test'; it has train, val; give test = [start, stop] "
+                                 f"under [splits] in {path}")
+
+
+@pytest.mark.parametrize("systems, message", [
+    ('["X"]', "unknown constellation letter(s) X in systems; use GCERJ"),
+    ('["G", "Q", "X"]', "unknown constellation letter(s) QX in systems; use GCERJ"),
+    ("[]", "systems must be a list of constellation letters of GCERJ"),
+    ("[1]", "systems must be a list of constellation letters of GCERJ"),
+])
+def test_unknown_constellation_letters_name_the_toml(sample_toml, clean_registry, systems, message):
+    """Defect: 'unknown constellation letter(s) X in the requested systems' came at build time without the TOML."""
+    path = _edited(sample_toml, "letters", 'systems = ["G", "R"]', f"systems = {systems}")
+    with pytest.raises(InputError, match=re.escape(f"{path}: {message}")):
+        datasets.register_toml(path)
+
+
+def test_lower_case_and_string_systems_are_still_letters(sample_toml, clean_registry):
+    assert datasets.register_toml(_edited(sample_toml, "lower", '["G", "R"]', '["g", "r"]')).systems == ("g", "r")
+    assert datasets.register_toml(_edited(sample_toml, "string", '["G", "R"]', '"GR"')).systems == ("G", "R")
+
+
+def test_a_missing_obs_file_is_one_line_naming_the_toml_and_the_file(tmp_path, sample_toml, clean_registry, capsys):
+    """Defect: 'my-drive: skipped, missing nope.obs' then 'error: dataset not built: ...', neither naming the TOML."""
+    path = tmp_path / "bad.toml"
+    path.write_text(re.sub(r'(?m)^obs = .*$', 'obs = ["nope.obs"]', sample_toml("my-drive").read_text()))
+    assert datasets.main(["--register", str(path)]) == 2
+    captured = capsys.readouterr()
+    missing = f"missing {tmp_path / 'nope.obs'} (obs in {path})"
+    assert captured.out == ""
+    assert captured.err == f"error: dataset not built: my-drive: {missing}\n"
+    spec = datasets.get("my-drive")
+    assert spec.missing_note() == missing
+    lines = []
+    assert datasets.present(["my-drive"], lines.append) == [] and lines == [f"my-drive: skipped, {missing}"]
+    with pytest.raises(FileNotFoundError, match=re.escape(f"dataset my-drive: {missing}")):
+        datasets.build("my-drive")
+    truth = tmp_path / "truth.txt"                                  # the truth file is named by its key too
+    path.write_text(re.sub(r'(?m)^file = .*$', 'file = "truth.txt"', sample_toml("my-drive").read_text()))
+    datasets.register_toml(path)
+    assert datasets.get("my-drive").missing_note() == f"missing {truth} ([truth] file in {path})"
+
+
+def test_built_in_datasets_without_shared_data_keep_their_skipped_line(tmp_path, monkeypatch, capsys):
+    """The benchmark sets' absent shared data stay an informational line (quiet for the default run)."""
+    monkeypatch.setenv("LFGNSS_SHARED_DATA", str(tmp_path))
+    lines = []
+    assert datasets.present(["berlin-pp"], lines.append) == []
+    assert lines == [f"berlin-pp: skipped, missing {datasets.get('berlin-pp').missing()[0]}"]
+    assert datasets.main([]) == 0
+    captured = capsys.readouterr()
+    assert captured.err == "" and captured.out.count(": skipped, missing ") == 3
+    assert datasets.main(["berlin-pp"]) == 2
+    captured = capsys.readouterr()
+    assert "berlin-pp: skipped, missing " in captured.out and captured.err.startswith("error: dataset not built: ")
+
+
+def test_an_unknown_id_says_how_to_register_for_every_command(tmp_path, capsys):
+    """Defect: learning.train said only 'unknown dataset ...; known: ...'; its way in is data.register."""
+    from learning.train import main as train_main
+
+    with pytest.raises(KeyError) as err:
+        datasets.get("my-drive")
+    message = err.value.args[0]
+    assert message.startswith("unknown dataset 'my-drive'; known: berlin-pp, hk-tst-2019")   # and what else is registered
+    assert '--register FILE.toml' in message and 'data.register = ["FILE.toml"]' in message
+    assert "register_toml" in message
+    for hint, end in (("--register FILE.toml", " (--register FILE.toml)"), ("", ")")):   # its own hint, or none
+        with pytest.raises(KeyError) as err:
+            datasets.get("my-drive", hint=hint)
+        assert err.value.args[0].endswith(end) == bool(hint)
+    with pytest.raises(SystemExit) as exit_info:
+        train_main(["--set", 'data.datasets=["my-drive"]', "--out", str(tmp_path / "run")])
+    err_text = capsys.readouterr().err
+    assert exit_info.value.code == 2 and err_text.count("\n") == 1
+    assert "unknown dataset 'my-drive'" in err_text and 'data.register = ["FILE.toml"]' in err_text
