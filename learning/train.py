@@ -79,7 +79,7 @@ DEFAULT_CONFIG: dict[str, Any] = {
     "train": {"epochs": 200, "batch_size": 16, "lr": 1.0e-3, "t_max": 50, "eta_min": 1.0e-4, "grad_clip": 0.0,
               "feature_noise": 0.0, "weight_decay": 0.0, "select": "val", "ema_decay": 0.0, "init": "", "smooth": False,
               "freeze": []},
-    "loss": {"kind": "hem", "alpha": 0.75, "gamma": 1.5, "lambda": 1.0, "up_weight": 1.0},
+    "loss": {"kind": "hem", "alpha": 0.75, "gamma": 1.5, "lambda": 1.0, "up_weight": 1.0, "balance": "none"},
     "ekf": {},
 }
 
@@ -215,7 +215,7 @@ def check_config(config: dict) -> dict:
         if not isinstance(_setting(config, key), str):
             raise ValueError(f"{key} must be {what} (a string), got {_setting(config, key)!r}")
     for key, choices in (("train.select", ("val", "last")), ("model.r_prior", ("none", "heuristic")),
-                         ("loss.kind", ("hem", "rmse"))):
+                         ("loss.kind", ("hem", "rmse")), ("loss.balance", ("none", "plain_ekf"))):
         if _setting(config, key) not in choices:
             raise ValueError(f"{key} must be {' or '.join(map(repr, choices))}, got {_setting(config, key)!r}")
     for key in ("train.smooth", "model.compensation", "model.innovation"):
@@ -540,6 +540,7 @@ class Prepared:
     fingerprints: list[dict]
     source_files: dict[str, dict[str, str]]
     init: Any = None                # the train.init LfgnssModel, or None
+    window_scale: np.ndarray | None = None   # (windows,) factor on each window's errors in the loss (loss.balance)
 
 
 def prepare(config: dict, source=None) -> Prepared:
@@ -553,13 +554,15 @@ def prepare(config: dict, source=None) -> Prepared:
         if data[key] in _FORBIDDEN_SPLITS:
             raise ValueError(f"data.{key} = {data[key]!r}: the test split may not be used for training or selection")
     source = source or load_sequences
-    train_seqs, val_seqs, prints = [], [], []
+    train_seqs, val_seqs, prints, train_ds = [], [], [], []
     for ds in data["datasets"]:
         for split, bucket in ((data["train_split"], train_seqs), (data["val_split"], val_seqs)):
             seqs = source(ds, split, config)
             if not seqs:
                 raise ValueError(f"dataset {ds!r} split {split!r} gave no sequence")
             bucket.extend(seqs)
+            if bucket is train_seqs:
+                train_ds.extend([ds] * len(seqs))
             prints.extend({"dataset": ds, "split": split, "sequence": s.name, "epochs": len(s),
                            "sha256_16": fingerprint(s)} for s in seqs)
     names = resolve_feature_names(data["features"], data["drop_features"])
@@ -580,7 +583,35 @@ def prepare(config: dict, source=None) -> Prepared:
     train_batch = collate(train_seqs, windows, normaliser, n_slots=n_slots, n_systems=n_systems)
     val_batches = [sequence_batch(s, normaliser, n_systems=n_systems) for s in val_seqs]
     files = {ds: source_file_hashes(ds) for ds in data["datasets"]}
-    return Prepared(names, normaliser, windows, train_batch, val_batches, n_systems, prints, files, init)
+    scale = None
+    if config["loss"].get("balance", "none") == "plain_ekf":
+        per_dataset = dataset_balance(train_seqs, train_ds, ekf_config(config))
+        scale = np.array([per_dataset[train_ds[w.seq_index]] for w in windows])
+    return Prepared(names, normaliser, windows, train_batch, val_batches, n_systems, prints, files, init, scale)
+
+
+def dataset_balance(sequences: list[Sequence], dataset_ids: list[str], ekf_cfg) -> dict[str, float]:
+    """``loss.balance = "plain_ekf"``: each dataset's factor on its errors, c / s_d [1].
+
+    s_d is the 3D RMSE [m] of the plain EKF (hand-set noise, the training filter) over dataset d's labelled training
+    epochs, c their geometric mean: each dataset's errors count relative to how hard it is, so one with large errors
+    (a deep urban drive) does not drown the others in a joint loss, while the loss stays near metres.
+    """
+    import estimators
+
+    plain = estimators.create("plain-ekf", config=ekf_cfg)
+    squares: dict[str, list[np.ndarray]] = {}
+    for seq, ds in zip(sequences, dataset_ids):
+        if not seq.labelled.any():
+            continue
+        sol = plain.solve(seq)
+        err = sol.pos_ecef_m[seq.labelled] - seq.truth_ecef_m[seq.labelled]
+        squares.setdefault(ds, []).append(np.sum(err ** 2, axis=1))
+    rmse = {ds: float(np.sqrt(np.nanmean(np.concatenate(v)))) for ds, v in squares.items()}
+    c = float(np.exp(np.mean(np.log(list(rmse.values())))))
+    print("loss.balance: plain EKF 3D RMSE on the training epochs "
+          + ", ".join(f"{ds} {v:.2f} m (x{c / v:.2f})" for ds, v in rmse.items()), file=sys.stderr)
+    return {ds: c / v for ds, v in rmse.items()}
 
 
 def _write_log(path: Path, history: list[dict]) -> None:
@@ -758,6 +789,10 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
         for idx in chunks:
             batch = jitter_features(_index_batch(train_batch, idx), feature_noise, jitter)
             pos = run_filter(model, batch, n_systems=prep.n_systems, ekf_cfg=ekf_cfg, smooth=smooth)
+            if prep.window_scale is not None:       # errors scaled per dataset (loss.balance)
+                k = torch.as_tensor(prep.window_scale[idx], dtype=pos.dtype, device=pos.device)[:, None, None]
+                truth = batch.truth_ecef_m
+                pos = truth + k * (pos - truth)
             loss = loss_fn(pos, batch.truth_ecef_m)
             if not torch.isfinite(loss):
                 raise FloatingPointError(f"epoch {epoch}: non-finite training loss {float(loss.detach())}")

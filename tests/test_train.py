@@ -306,6 +306,45 @@ def test_fine_tuning_keeps_the_init_models_filter_unless_the_configuration_sets_
     assert adopt_init(load_config("learning/configs/hk_finetune.toml"))["ekf"] == {"q_vel_up_m2_s3": 0.002}
 
 
+def test_loss_balance_weighs_each_dataset_by_its_plain_ekf_error():
+    """loss.balance = "plain_ekf": factor c / s_d, s_d the plain EKF's 3D RMSE on dataset d, c their geometric mean."""
+    import estimators
+    from estimators.models import EkfConfig
+    from learning.train import dataset_balance
+    from lfgnss.simulate import simulate_sequence
+
+    easy = [simulate_sequence(120, nlos_fraction=0.0, seed=s, name=f"easy/{s}") for s in (1, 2)]
+    hard = [simulate_sequence(120, nlos_fraction=0.5, seed=3, name="hard/3")]
+    k = dataset_balance(easy + hard, ["easy", "easy", "hard"], EkfConfig())
+
+    def rmse(seqs):
+        err = [estimators.create("plain-ekf").solve(q).pos_ecef_m - q.truth_ecef_m for q in seqs]
+        return float(np.sqrt(np.mean(np.concatenate([np.sum(e ** 2, axis=1) for e in err]))))
+
+    s_easy, s_hard = rmse(easy), rmse(hard)
+    assert s_hard > s_easy
+    assert k["easy"] == pytest.approx(np.sqrt(s_hard / s_easy)) and k["hard"] == pytest.approx(np.sqrt(s_easy / s_hard))
+
+
+def test_loss_balance_with_one_dataset_changes_nothing(config, tmp_path):
+    """One dataset: its factor is 1, so the run is the unbalanced one to the last bit."""
+    import copy
+
+    runs = []
+    for balance in ("none", "plain_ekf"):
+        cfg = copy.deepcopy(config)
+        cfg["train"]["epochs"] = 1
+        cfg["loss"]["balance"] = balance
+        prep = prepare(cfg)
+        assert (prep.window_scale is None) == (balance == "none")
+        if prep.window_scale is not None:
+            np.testing.assert_allclose(prep.window_scale, 1.0, rtol=1e-12)
+        runs.append(train(cfg, tmp_path / balance, progress=False, prepared=prep))
+    assert runs[0][1]["train_loss"] == pytest.approx(runs[1][1]["train_loss"], rel=1e-9)
+    with pytest.raises(ValueError, match="loss.balance must be 'none' or 'plain_ekf'"):
+        load_config("learning/configs/default.toml", ['loss.balance="per_dataset"'])
+
+
 def test_frozen_parts_keep_their_initial_weights(config, full_run, tmp_path):
     """train.freeze: the named network parts keep the train.init weights; the others are trained; a part the
     network lacks is one clear error naming the setting."""
