@@ -14,8 +14,9 @@ average of the end-of-epoch weights, ``w_avg = d w_avg + (1 - d) w`` (``torch.op
 steadies a fixed schedule's last epoch; training itself goes on from the raw weights.
 With ``train.init`` = a model file (``.npz``, e.g. the shipped one), training starts from that model's weights
 instead of random ones (fine-tuning on your own data): the network, its features and their normalisation are
-the model's, so ``[model]`` and ``data.features``/``data.drop_features`` are taken from the file, and the new
-model file records the one it started from (``init_model``: path, hash, and the data it was trained on).
+the model's, so ``[model]`` and ``data.features``/``data.drop_features`` are taken from the file, and so is its
+filter (``[ekf]``) except for the keys the configuration sets; the new model file records the one it started
+from (``init_model``: path, hash, and the data it was trained on).
 The test split is never loaded here: asking for it raises.
 ``device`` = "cuda" (or "auto") trains on a GPU; it pays off only with large batches (docs/training_speed.md).
 Exit status: 0 done; 2 bad input (a one-line error naming the file or setting; nothing is written for a bad
@@ -335,7 +336,7 @@ def init_model(config: dict):
 
 
 def adopt_init(config: dict) -> dict:
-    """A copy of ``config`` whose ``[model]``, data features and filter are those the ``train.init`` model was trained with.
+    """A copy of ``config`` whose network, features and filter are those the ``train.init`` model was trained with.
 
     Fine-tuning keeps the network and the meaning of its inputs, so these come from the model file; a note
     on stderr says when the given configuration asked for something else. The filter (``[ekf]``) is the model's
@@ -607,11 +608,18 @@ def dataset_balance(sequences: list[Sequence], dataset_ids: list[str], ekf_cfg) 
         sol = plain.solve(seq)
         err = sol.pos_ecef_m[seq.labelled] - seq.truth_ecef_m[seq.labelled]
         squares.setdefault(ds, []).append(np.sum(err ** 2, axis=1))
-    rmse = {ds: float(np.sqrt(np.nanmean(np.concatenate(v)))) for ds, v in squares.items()}
-    c = float(np.exp(np.mean(np.log(list(rmse.values())))))
+    with warnings.catch_warnings():         # an all-NaN dataset is reported below, not as a RuntimeWarning
+        warnings.simplefilter("ignore", RuntimeWarning)
+        rmse = {ds: float(np.sqrt(np.nanmean(np.concatenate(v)))) for ds, v in squares.items()}
+    bad = [ds for ds, v in rmse.items() if not (np.isfinite(v) and v > 0)]
+    if bad:
+        raise ValueError(f"loss.balance: the plain EKF has no finite, non-zero error on the training epochs of "
+                         f"{', '.join(bad)} to scale by ({', '.join(f'{rmse[d]}' for d in bad)} m)")
+    log_c = float(np.mean(np.log(list(rmse.values()))))
+    factors = {ds: float(np.exp(log_c - np.log(v))) for ds, v in rmse.items()}   # exactly 1 for one dataset
     print("loss.balance: plain EKF 3D RMSE on the training epochs "
-          + ", ".join(f"{ds} {v:.2f} m (x{c / v:.2f})" for ds, v in rmse.items()), file=sys.stderr)
-    return {ds: c / v for ds, v in rmse.items()}
+          + ", ".join(f"{ds} {v:.2f} m (x{factors[ds]:.2f})" for ds, v in rmse.items()), file=sys.stderr)
+    return factors
 
 
 def _write_log(path: Path, history: list[dict]) -> None:

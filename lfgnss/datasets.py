@@ -16,7 +16,7 @@ file (``register_toml``)::
                                       # default 0.05 for smartloc, else 0.5 (as python -m lfgnss.solve)
     time_origin_gps_s = 1149246641.7  # optional, smartloc: GPS seconds of the truth's t = 0, also the 0 of
                                       # relative_s splits; default the first observation epoch (as --truth-origin)
-    [splits]                          # [start, stop) on the split axis; a command refuses a TOML without the splits it uses
+    [splits]                          # [start, stop) on the split axis (a command needs the splits it uses)
     axis = "tow"                      # tow | relative_s | epoch
     train = [46701, 46941]            # learning.train fits train and selects on val (data.train_split,
     val = [46941, 47001]              # data.val_split); lfgnss.benchmark scores test
@@ -174,19 +174,20 @@ def _refuse_unknown_keys(path: Path, table: dict, known: tuple[str, ...], where:
 def _split_bounds(path: Path, name: str, value, axis: str) -> tuple[float, float]:
     """A ``[splits]`` entry as (start, stop), or an InputError saying what it must be."""
     ok = (isinstance(value, list) and len(value) == 2
-          and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value)
+          and all(isinstance(v, (int, float)) and not isinstance(v, bool) and not math.isnan(v) for v in value)
           and value[0] < value[1])
     if not ok:
-        raise InputError(path, f"[splits] {name} must be [start, stop] with start < stop (on the {axis} axis), "
-                               f"got {value!r}")
+        raise InputError(path, f"[splits] {name} must be [start, stop], two numbers (inf allowed) with start < stop "
+                               f"(on the {axis} axis), got {value!r}")
     return value[0], value[1]
 
 
 def register_toml(path: str | Path, *, need_splits: tuple[str, ...] = ()) -> DatasetSpec:
     """Register a user dataset described by a TOML file (see the module docstring).
 
-    Unknown keys, unknown constellation letters and a ``[splits]`` table without a split are refused (InputError
-    naming the file and the key), as is the lack of a split named in ``need_splits`` (the splits a caller uses).
+    Unknown keys, unknown constellation letters and malformed split bounds are refused (InputError naming the file
+    and the key), as is the lack of a split named in ``need_splits`` (the splits a caller uses); a TOML without
+    splits is valid where none is needed (``python -m lfgnss.summary``).
     """
     path = Path(path)
     try:
@@ -213,7 +214,8 @@ def register_toml(path: str | Path, *, need_splits: tuple[str, ...] = ()) -> Dat
     lacking = [k for k in need_splits if k not in splits]
     if lacking:
         raise InputError(path, f"[splits] has no {' or '.join(lacking)}, which this command uses; give "
-                               f"{lacking[0]} = [start, stop] on the {axis} axis (it has {', '.join(splits) or 'none'})")
+                               f"{lacking[0]} = [start, stop] on the {axis} axis "
+                               f"(it has {', '.join(splits) or 'none'})")
     systems = cfg.get("systems")
     if systems is not None:
         if isinstance(systems, str):

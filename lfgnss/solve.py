@@ -194,24 +194,28 @@ def run(args) -> int:
         except OSError as err:
             failed.append(f"{err.filename or path}: {cannot_write(err)}")
 
-    if not args.quiet:
-        summary = fix.summary()
-        shown = label.removesuffix(" (hand-set noise)")    # noise_text says it
-        print(f"{obs}: {summary['epochs']} epochs, systems {''.join(meas.systems)}, backend {shown} "
-              f"({noise_text})")
-        print(f"coarse fix: {summary['epoch_status']}; observations: {summary['observations']}")
-        if meas.warnings:
-            print(f"input notes: {len(meas.warnings)} (damaged records or epochs skipped, constellations dropped, "
-                  f"stand-ins used){'; the first 5:' if len(meas.warnings) > 5 else ':'}")
-        for note in meas.warnings[:5]:
-            print(f"warning: {note}")
-        files = [p for p in written if not str(p).endswith(".png")]
-        plots = len(written) - len(files)
-        print(f"outputs: {', '.join(str(p) for p in files) or 'none'}" + (f" and {plots} plots" if plots else ""))
-    if truth is not None:
-        rows = [accuracy_table(fix.pos_ecef_m, truth, fix.ok, method="least squares (coarse)"),
-                accuracy_table(solution.pos_ecef_m, truth, solution.available, method=label)]
-        print(format_text(rows))
+    try:                      # stdout may be a pipe closed early (| head): the files are written by now
+        if not args.quiet:
+            summary = fix.summary()
+            shown = label.removesuffix(" (hand-set noise)")    # noise_text says it
+            print(f"{obs}: {summary['epochs']} epochs, systems {''.join(meas.systems)}, backend {shown} "
+                  f"({noise_text})")
+            print(f"coarse fix: {summary['epoch_status']}; observations: {summary['observations']}")
+            if meas.warnings:
+                print(f"input notes: {len(meas.warnings)} (damaged records or epochs skipped, constellations dropped, "
+                      f"stand-ins used){'; the first 5:' if len(meas.warnings) > 5 else ':'}")
+            for note in meas.warnings[:5]:
+                print(f"warning: {note}")
+            files = [p for p in written if not str(p).endswith(".png")]
+            plots = len(written) - len(files)
+            print(f"outputs: {', '.join(str(p) for p in files) or 'none'}" + (f" and {plots} plots" if plots else ""))
+        if truth is not None:
+            rows = [accuracy_table(fix.pos_ecef_m, truth, fix.ok, method="least squares (coarse)"),
+                    accuracy_table(solution.pos_ecef_m, truth, solution.available, method=label)]
+            print(format_text(rows))
+        sys.stdout.flush()
+    except BrokenPipeError:   # nothing more to say on stdout; the errors below still reach stderr
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
     for message in failed:
         print(f"error: {message}", file=sys.stderr)
     return 2 if failed else 0
@@ -273,9 +277,6 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
-    except BrokenPipeError:   # stdout closed early (| head): the files are written before anything is printed
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-        return 0
     except Exception as err:  # a bug, not bad input: still one line, no traceback, a distinct exit code
         message = " ".join(str(err).split())
         print(f"error: internal error while solving {args.obs or SAMPLE_OBS} ({type(err).__name__}: {message}); "

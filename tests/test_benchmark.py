@@ -191,12 +191,12 @@ def test_a_test_split_with_a_truth_gap_is_scored_whole_and_an_empty_one_refused(
 
 
 def test_warm_up_starts_the_filters_earlier_and_scores_the_test_split_only(tmp_path, monkeypatch, sample_toml):
-    from lfgnss.benchmark import run, test_span, whole_test_split
+    from lfgnss.benchmark import run, scored_span, whole_test_split
 
     monkeypatch.setattr(datasets, "_REGISTRY", {}, raising=False)
     datasets.register_toml(sample_toml("drive"))
     cold = whole_test_split("drive", DEFAULT_FEATURES)
-    span, k = test_span("drive", DEFAULT_FEATURES, "val")
+    span, k = scored_span("drive", DEFAULT_FEATURES, "val")
     assert k > 0 and len(span) == len(cold) + k and span.time_gps_s[k] == cold.time_gps_s[0]
     rows, _ = run(["drive"], model_dir=tmp_path, plots=False, warm_up="val")
     cold_rows, _ = run(["drive"], model_dir=tmp_path, plots=False)
@@ -208,7 +208,7 @@ def test_warm_up_starts_the_filters_earlier_and_scores_the_test_split_only(tmp_p
     assert by_name[PLAIN]["rmse_3d_m"] != next(r for r in cold_rows if r["method"] == PLAIN)["rmse_3d_m"]
     datasets.register_toml(sample_toml("late", splits=((0, 150), (190, 200), (180, 190))))
     with pytest.raises(InputError, match="--warm-up val needs labelled epochs of that split before the test split"):
-        test_span("late", DEFAULT_FEATURES, "val")
+        scored_span("late", DEFAULT_FEATURES, "val")
 
 
 def test_the_warm_up_command_line_writes_its_own_results_file(tmp_path, monkeypatch, capsys, sample_toml):
@@ -240,6 +240,15 @@ def test_a_dataset_with_bad_files_costs_its_own_rows_only(tmp_path, monkeypatch,
     text = (tmp_path / "out" / "results.md").read_text()
     assert "**Not run** (bad input; the tables leave these datasets out): bad: not run (" in text
     assert "| good | LF-GNSS EKF |" in text and "| bad |" not in text
+    for name, obs in (("gone", tmp_path / "nope.obs"), ("folder", tmp_path)):   # missing; a folder (OSError)
+        toml = tmp_path / f"{name}.toml"
+        toml.write_text(sample_toml(name).read_text().replace(str(SAMPLE_DIR / "Berlin_Potsdamer_Platz.obs.gz"),
+                                                             str(obs)))
+        assert main([name, "good", "--register", str(toml), "--register", str(good), *args]) == 2
+        captured = capsys.readouterr()
+        assert captured.err.count("\n") == 1 and captured.err.startswith(f"error: {name}: not run (")
+        assert (f"{name}.toml" in captured.err) if name == "gone" else ("Is a directory" in captured.err)
+        assert "| good | LF-GNSS EKF |" in (tmp_path / "out" / "results.md").read_text()
     (tmp_path / "out" / "results.md").unlink()
     assert main(["bad", "--register", str(bad), *args]) == 2            # nothing ran: no results file at all
     err = capsys.readouterr().err
@@ -255,3 +264,21 @@ def test_a_toml_without_the_splits_the_run_scores_is_refused_before_the_run(tmp_
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and f"{path}: [splits] has no val, which this command uses" in err
     assert not (tmp_path / "out").exists()
+
+
+def test_an_estimator_bug_is_not_reported_as_a_dataset_not_run(tmp_path, monkeypatch, sample_toml):
+    """Only reading a dataset's files is caught per dataset; an estimator's error ends the run (no results.md row)."""
+    import estimators
+    from lfgnss.benchmark import run
+
+    monkeypatch.setattr(datasets, "_REGISTRY", {}, raising=False)
+    datasets.register_toml(sample_toml("drive"))
+
+    def broken(self, sequence):
+        raise ValueError("operands could not be broadcast")
+
+    monkeypatch.setattr(type(estimators.create("plain-ekf")), "solve", broken)
+    failed: list[str] = []
+    with pytest.raises(ValueError, match="broadcast"):
+        run(["drive"], model_dir=tmp_path, plots=False, failed=failed)
+    assert failed == []

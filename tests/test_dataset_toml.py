@@ -64,7 +64,7 @@ def test_a_toml_without_usable_splits_is_refused_where_they_are_needed(tmp_path,
         "empty-table": (head + '[splits]\naxis = "relative_s"\n', "[splits] has no test, which this command uses; "
                                                                   "give test = [start, stop] on the relative_s axis"),
         "bad-bounds": (head + "[splits]\ntrain = [150, 0]\n",
-                       "[splits] train must be [start, stop] with start < stop (on the tow axis), got [150, 0]"),
+                       "[splits] train must be [start, stop], two numbers (inf allowed) with start < stop (on the tow axis), got [150, 0]"),
     }[case]
     path.write_text(text)
     if case == "bad-bounds":
@@ -75,6 +75,12 @@ def test_a_toml_without_usable_splits_is_refused_where_they_are_needed(tmp_path,
     code = benchmark.main(["no-splits", "--register", str(path), "--out", str(tmp_path / "out"), "--no-plots"])
     err = capsys.readouterr().err
     assert code == 2 and err.startswith(f"error: {path}: {message}") and err.count("\n") == 1
+
+
+def test_an_open_ended_split_stays_valid(sample_toml, clean_registry):
+    """``test = [180, inf]`` (to the end of the drive) was valid before the bounds were checked, and stays so."""
+    path = _edited(sample_toml, "open", "test = [180, 200]", "test = [180, inf]")
+    assert datasets.register_toml(path).splits["test"] == (180, float("inf"))
 
 
 def test_splits_a_caller_needs_are_checked_at_registration_and_others_stay_optional(sample_toml, clean_registry):
