@@ -211,6 +211,14 @@ def register_toml(path: str | Path, *, need_splits: tuple[str, ...] = ()) -> Dat
     if axis not in SPLIT_AXES:
         raise InputError(path, f"unknown split axis {axis!r} in [splits]; use one of {', '.join(SPLIT_AXES)}")
     splits = {k: _split_bounds(path, k, v, axis) for k, v in cfg.get("splits", {}).items() if k in SPLITS}
+    names = [k for k in SPLITS if k in splits]
+    for i, a in enumerate(names):                 # a model must never be trained or selected on test epochs
+        for b in names[i + 1:]:
+            if splits[a][0] < splits[b][1] and splits[b][0] < splits[a][1]:
+                raise InputError(path, f"[splits] {a} {list(splits[a])} and {b} {list(splits[b])} overlap (on the "
+                                       f"{axis} axis, [start, stop)); splits must not share epochs")
+    if str(cfg.get("id")) in _builtin():
+        raise InputError(path, f"id {cfg['id']!r} is a benchmark dataset of shared/BENCHMARK.md; give yours another id")
     lacking = [k for k in need_splits if k not in splits]
     if lacking:
         raise InputError(path, f"[splits] has no {' or '.join(lacking)}, which this command uses; give "

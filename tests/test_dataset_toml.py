@@ -180,3 +180,18 @@ def test_an_unknown_id_says_how_to_register_for_every_command(tmp_path, capsys, 
     err_text = capsys.readouterr().err
     assert exit_info.value.code == 2 and err_text.count("\n") == 1
     assert "unknown dataset 'my-drive'" in err_text and 'data.register = ["FILE.toml"]' in err_text
+
+
+@pytest.mark.parametrize("old, new, message", [
+    ("train = [0, 150]", "train = [0, 200]", "[splits] train [0, 200] and val [150, 180] overlap (on the relative_s"),
+    ("val = [150, 180]", "val = [150, 190]", "[splits] val [150, 190] and test [180, 200] overlap"),
+    ('id = "shadow"', 'id = "berlin-pp"', "id 'berlin-pp' is a benchmark dataset of shared/BENCHMARK.md; give yours "
+                                          "another id"),
+], ids=["train-test", "val-test", "builtin-id"])
+def test_overlapping_splits_and_a_benchmark_id_are_refused(sample_toml, clean_registry, old, new, message):
+    """Defects: train = [0, 200] with test = [180, ...] trained on test epochs; id = "berlin-pp" replaced the benchmark
+    set (549 'test' epochs scored against its targets)."""
+    path = _edited(sample_toml, "shadow", old, new)
+    with pytest.raises(InputError, match=re.escape(f"{path}: {message}")):
+        datasets.register_toml(path)
+    assert datasets.get("berlin-pp").source is None
