@@ -238,8 +238,13 @@ def _run_tag(args: argparse.Namespace, options: dict) -> str:
     tag += "-fixed-lag" if options.get("mode") == "fixed-lag" else ""
     tag += "-rts" if args.smooth else ""
     tag += f"-lag{args.smooth_lag:g}s" if args.smooth_lag is not None else ""
-    tag += f"-{Path(args.model).stem}" if args.model is not None else ""
+    tag += f"-{_model_tag(Path(args.model))}" if args.model is not None else ""
     return tag + ("-hand-set" if args.no_model else "")
+
+
+def _model_tag(path: Path) -> str:
+    """A model file's name in output names; a training run's ``model.npz`` goes by its run folder (``runs/a``: ``a``)."""
+    return path.parent.resolve().name or path.stem if path.stem == "model" else path.stem
 
 
 def _make_output_folder(out: Path) -> None:

@@ -211,14 +211,14 @@ def test_warm_up_starts_the_filters_earlier_and_scores_the_test_split_only(tmp_p
         scored_span("late", DEFAULT_FEATURES, "val")
 
 
-def test_the_warm_up_command_line_writes_its_own_results_file(tmp_path, monkeypatch, capsys, sample_toml):
+def test_the_warm_up_and_own_runs_write_their_own_results_files(tmp_path, monkeypatch, capsys, sample_toml):
     monkeypatch.setattr(datasets, "_REGISTRY", {}, raising=False)
     monkeypatch.chdir(tmp_path)
     shutil.copy(MODEL_DIR / "lfgnss-default.npz", tmp_path / "model.npz")
     assert main(["my-drive", "--register", str(sample_toml("my-drive")), "--models", str(tmp_path / "model.npz"),
                  "--warm-up", "val", "--no-plots"]) == 0
-    text = (tmp_path / "docs" / "warm-up-val" / "results.md").read_text()
-    assert not (tmp_path / "docs" / "results.md").exists()            # the cold results are not overwritten
+    text = (tmp_path / "lfgnss-benchmark" / "warm-up-val" / "results.md").read_text()
+    assert not (tmp_path / "docs").exists()      # a run of one's own never writes over the committed results
     assert text.startswith("# lfgnss benchmark results, filters warmed up on the val split")
     assert "--warm-up val --no-plots" in text and "No figures (`--no-plots`)." in text
 
@@ -282,3 +282,15 @@ def test_an_estimator_bug_is_not_reported_as_a_dataset_not_run(tmp_path, monkeyp
     with pytest.raises(ValueError, match="broadcast"):
         run(["drive"], model_dir=tmp_path, plots=False, failed=failed)
     assert failed == []
+
+
+def test_the_shipped_models_filter_brings_the_plain_ekf_in_that_filter_as_its_bar():
+    """The joint model runs in its own filter (vertical noise, Doppler law): its "vs plain EKF" bar is the plain EKF
+    in that filter, so the table does not credit the learning with what the filter settings give."""
+    from lfgnss.benchmark import PLAIN_MAIN_FILTER, own_filter
+    from learning.export import load_model
+
+    rows = {m.name: m for m in methods(MODEL_DIR, "hk-tst-static-2020")}
+    assert rows[PLAIN_MAIN_FILTER].options["config"] == own_filter(load_model(MODEL_DIR / "lfgnss-default.npz"))
+    table = [_row("x", PLAIN, 30.0, 20.0), _row("x", PLAIN_MAIN_FILTER, 20.0, 10.0), _row("x", "LF-GNSS EKF", 15.0, 9.0)]
+    assert target_rows(table, [])[0]["3D vs plain EKF"] == "15.00 vs 20.00 (yes)"

@@ -110,6 +110,13 @@ def test_a_model_of_ones_own_is_in_the_output_names(tmp_path):
     shutil.copy(DEFAULT_MODEL, tmp_path / "mine.npz")
     assert main(["--out", str(tmp_path / "o"), "--quiet", "--no-plots", "--model", str(tmp_path / "mine.npz")]) == 0
     assert (tmp_path / "o" / "Berlin_Potsdamer_Platz_ekf-mine.csv").exists()
+    for run in ("a", "b"):                   # training runs all export model.npz: named by their run folder
+        (tmp_path / run).mkdir()
+        shutil.copy(DEFAULT_MODEL, tmp_path / run / "model.npz")
+        assert main(["--out", str(tmp_path / "o"), "--quiet", "--no-plots", "--model",
+                     str(tmp_path / run / "model.npz")]) == 0
+    assert {p.name for p in (tmp_path / "o").glob("*ekf-[ab].csv")} == {"Berlin_Potsdamer_Platz_ekf-a.csv",
+                                                                       "Berlin_Potsdamer_Platz_ekf-b.csv"}
 
 
 def test_back_ends_compared_in_one_folder_keep_their_own_outputs(tmp_path, capsys):
