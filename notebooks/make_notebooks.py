@@ -74,7 +74,8 @@ from learning.export import load_model
 import estimators
 from lfgnss.simulate import simulate_sequence
 from lfgnss.metrics import accuracy_table"""),
-("code", """# learning/configs/synthetic.toml, spelled out so the notebook runs from any folder
+("code", """# simulated drives, as learning/configs/synthetic.toml, but shorter (120 epochs, 20-epoch windows, 3 training
+# epochs) so the notebook runs in seconds; spelled out so it runs from any folder
 config = load_config(None, ['data.datasets=["synthetic"]', "train.epochs=3", "data.synthetic.n_epochs=120",
                             "data.window=20"])
 print({k: config[k] for k in ("data", "loss")})"""),
