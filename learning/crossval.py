@@ -232,6 +232,10 @@ def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = 
     chosen = range(folds) if only is None else sorted(set(only))     # a range: --folds 10**9 allocates nothing
     if only is not None and (not chosen or not all(0 <= j < folds for j in chosen)):
         raise ValueError(f"folds to run must be among 0..{folds - 1}, got {only}")
+    if config["data"]["val_split"] == config["data"]["train_split"]:
+        raise ValueError(f"data.val_split is data.train_split ({config['data']['val_split']!r}): cross-validation "
+                         "cuts the train and validation epochs into blocks, so each epoch would be there twice, held "
+                         "out and trained on; give two different splits")
     try:
         if out.exists() and not out.is_dir():
             raise InputError(out, "--out is a file, not a folder")

@@ -19,8 +19,13 @@ filter (``[ekf]``) except for the keys the configuration sets; the new model fil
 from (``init_model``: path, hash, and the data it was trained on).
 The test split is never loaded here: asking for it raises.
 ``device`` = "cuda" (or "auto") trains on a GPU; it pays off only with large batches (docs/training_speed.md).
+``--resume`` goes on from ``last.pt`` with the run's own configuration (the one the model file will record): only
+``--set train.epochs=N`` (to extend the schedule), ``threads`` and ``device`` may change (``RESUME_FREE``); any other
+``--set`` that differs from the checkpoint's is refused, and so is a ``--config`` other than the unchanged file the run
+was started from. Every file is written to a temporary file and renamed (atomic): a kill mid-write keeps the last one.
 Exit status: 0 done; 2 bad input (a one-line error naming the file or setting; nothing is written for a bad
-setting); 3 the training loss became non-finite (one line; ``last.pt``/``best.pt`` of the epochs before are kept).
+setting); 3 the training loss became non-finite (one line; ``last.pt``/``best.pt`` of the epochs before are kept);
+130 Ctrl-C (one line naming the epoch ``last.pt`` holds and the ``--resume`` command that goes on).
 
 Sequences come from one pluggable function, ``load_sequences(dataset_id, split, config)``:
 dataset ``"synthetic"`` uses ``lfgnss.simulate.simulate_sequence``, any other id goes to
@@ -30,9 +35,11 @@ named in ``data.register``, e.g. ``--set 'data.register=["my-drive.toml"]' --set
 from __future__ import annotations
 
 import argparse
+import contextlib
 import copy
 import csv
 import dataclasses
+import difflib
 import hashlib
 import math
 import os
@@ -42,7 +49,7 @@ import time
 import warnings
 import tomllib
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import torch
@@ -90,14 +97,39 @@ _FORBIDDEN_SPLITS = ("test",)
 #: (``train.init``) weights while the rest is trained.
 NETWORK_PARTS = ("embed", "attention", "norm", "mlp", "head")
 
+#: Settings ``--resume`` may change: how far the schedule runs, and how the run uses the machine. Every other one is
+#: the checkpoint's (the saved optimiser and scheduler fix train.lr, weight_decay, t_max and eta_min; the rest would
+#: make the model file say the whole run used what only its later epochs did).
+RESUME_FREE = ("train.epochs", "threads", "device")
+_RESUME_RULE = ("a resumed run goes on with the configuration it was started with: only --set train.epochs=N "
+                "(to extend the schedule), threads and device may change")
+
 
 # --------------------------------------------------------------------------- configuration
+
+def _flat(table: dict, prefix: str = "") -> dict:
+    """Nested tables as one dict of dotted keys, e.g. ``{"train.epochs": 200}``."""
+    out = {}
+    for key, value in table.items():
+        if isinstance(value, dict):
+            out.update(_flat(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
+def _did_you_mean(key: str, known: list[str]) -> str:
+    """`` (did you mean 'train.epochs'?)`` for the one of ``known`` closest to ``key``, or "" when none is close."""
+    close = difflib.get_close_matches(key, known, n=1) or [k for k in known if k.split(".")[-1] == key.split(".")[-1]]
+    return f" (did you mean {close[0]!r}?)" if close else ""
+
 
 def _merge(base: dict, update: dict, where: str = "") -> dict:
     out = copy.deepcopy(base)
     for key, value in update.items():
         if key not in out and where != "ekf." and not where.startswith("ekf."):
-            raise ValueError(f"unknown configuration key {where + key!r}")
+            known = list(_flat(DEFAULT_CONFIG)) + ["data", "data.synthetic", "model", "train", "loss", "ekf"]
+            raise ValueError(f"unknown configuration key {where + key!r}{_did_you_mean(where + key, known)}")
         if isinstance(out.get(key), dict) and not isinstance(value, dict):    # ekf = 3, --set data=1
             raise ValueError(f"{where + key} must be a table of settings, got {value!r}")
         if isinstance(value, dict) and isinstance(out.get(key), dict):
@@ -211,6 +243,11 @@ def check_config(config: dict) -> dict:
         needed = key in ("datasets", "features")
         if not isinstance(items, list) or not all(isinstance(i, str) for i in items) or (needed and not items):
             raise ValueError(f"data.{key} must be a {'non-empty ' * needed}list of {what}, got {items!r}")
+    datasets = _setting(config, "data.datasets")
+    twice = sorted({d for d in datasets if datasets.count(d) > 1})
+    if twice:                                             # each would be loaded, trained on and validated on twice
+        raise ValueError(f"data.datasets names {', '.join(map(repr, twice))} more than once (its data would count "
+                         f"twice); name each dataset once, got {datasets!r}")
     for key, what in (("data.train_split", "a split name"), ("data.val_split", "a split name"),
                       ("train.init", "the path of a model file")):
         if not isinstance(_setting(config, key), str):
@@ -318,7 +355,8 @@ def ekf_config(config: dict):
     known = {f.name for f in dataclasses.fields(EkfConfig)}
     unknown = sorted(set(config["ekf"]) - known)
     if unknown:
-        raise ValueError(f"unknown [ekf] keys {unknown}; EkfConfig has {sorted(known)}")
+        hint = _did_you_mean(f"ekf.{unknown[0]}", [f"ekf.{k}" for k in sorted(known)])
+        raise ValueError(f"unknown [ekf] keys {unknown}{hint}; EkfConfig has {sorted(known)}")
     try:
         return EkfConfig(**config["ekf"])
     except ValueError as err:                # "estimators/models.py: EkfConfig.KEY ...": name the setting instead
@@ -622,11 +660,30 @@ def dataset_balance(sequences: list[Sequence], dataset_ids: list[str], ekf_cfg) 
     return factors
 
 
+def _replace_atomically(path: Path, write: Callable[[Path], object]) -> None:
+    """``write(tmp)`` to ``.NAME.partial`` beside ``path``, then renamed onto ``path`` (``os.replace``, atomic): a run
+    killed mid-write keeps the previous file whole (and at most a stray partial file, which the next write replaces)."""
+    tmp = path.with_name(f".{path.stem}.partial{path.suffix}")
+    try:
+        write(tmp)
+        with open(tmp, "r+b") as fh:            # on the disk before the rename, so a power cut leaves one or the other
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
+
+
 def _write_log(path: Path, history: list[dict]) -> None:
-    with open(path, "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=["epoch", "train_loss", "val_rmse_3d_m", "val_availability", "lr", "seconds"])
-        w.writeheader()
-        w.writerows(history)
+    def write(tmp: Path) -> None:
+        with open(tmp, "w", newline="") as fh:
+            w = csv.DictWriter(fh, fieldnames=["epoch", "train_loss", "val_rmse_3d_m", "val_availability", "lr",
+                                               "seconds"])
+            w.writeheader()
+            w.writerows(history)
+
+    _replace_atomically(path, write)
 
 
 def _plot(path: Path, history: list[dict]) -> None:
@@ -644,12 +701,86 @@ def _plot(path: Path, history: list[dict]) -> None:
     for a in (a1, a2):
         a.grid(alpha=0.3)
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    _replace_atomically(path, lambda tmp: fig.savefig(tmp, dpi=100, format="png"))
     plt.close(fig)
 
 
+def load_checkpoint(path: str | Path) -> dict:
+    """A ``last.pt`` of ``learning.train``, or ValueError naming it in one line (a truncated or foreign file)."""
+    try:
+        saved = torch.load(path, map_location="cpu", weights_only=False)
+        if not isinstance(saved, dict) or not isinstance(saved.get("config"), dict):
+            raise ValueError("no training configuration in it")
+        int(saved["epoch"])
+    except Exception as exc:            # torch.load raises many kinds on a file that is not a whole checkpoint
+        raise _unreadable(path, exc) from None
+    return saved
+
+
+def _unreadable(path: str | Path, exc: BaseException) -> ValueError:
+    """The one-line error of a checkpoint that cannot be resumed from."""
+    text = one_line(exc)
+    return ValueError(f"{path}: cannot read the checkpoint ({type(exc).__name__}: "
+                      f"{text if len(text) <= 200 else text[:197] + '...'}); start a new --out")
+
+
+def resumed_config(saved: dict, overrides: list[str], where: str | Path) -> dict:
+    """The configuration a resumed run goes on with: the checkpoint ``saved``'s, with only the RESUME_FREE settings
+    of ``overrides``; ValueError naming a setting they would change otherwise (with both values), or a
+    ``train.epochs`` below the epoch the checkpoint holds."""
+    before = _merge_free(DEFAULT_CONFIG, saved["config"])        # a run from before a key: its default
+    given = check_config(apply_overrides(before, list(overrides)))
+    was, now = _flat(before), _flat(given)
+    for config, flat in ((before, was), (given, now)):            # the filter as it runs: an unset key is its default
+        flat.update({f"ekf.{k}": v for k, v in dataclasses.asdict(ekf_config(config)).items()})
+    given_keys = [item.split("=", 1)[0].strip() for item in overrides]          # named in the order given
+    changed = sorted((k for k in was.keys() | now.keys()
+                      if k not in RESUME_FREE and was.get(k, "(unset)") != now.get(k, "(unset)")),
+                     key=lambda k: (given_keys.index(k) if k in given_keys else len(given_keys), k))
+    if changed:
+        k = changed[0]
+        also = f"; nor can {', '.join(changed[1:])}" if len(changed) > 1 else ""
+        raise ValueError(f"{where}: {k} cannot change on --resume ({was.get(k, '(unset)')!r} -> "
+                         f"{now.get(k, '(unset)')!r}{also}); {_RESUME_RULE} (start a new --out to train otherwise)")
+    epoch, epochs = int(saved["epoch"]), int(given["train"]["epochs"])
+    if epochs < epoch:
+        raise ValueError(f"{where}: holds epoch {epoch} already, train.epochs = {epochs} is fewer; --resume can only "
+                         f"extend the schedule (train.epochs >= {epoch})")
+    config = copy.deepcopy(saved["config"])
+    for key in RESUME_FREE:
+        if _setting(given, key) != _setting(config, key):
+            *parents, leaf = key.split(".")
+            table = config
+            for part in parents:
+                table = table.setdefault(part, {})
+            table[leaf] = _setting(given, key)
+    return config
+
+
+def _config_file_record(config_file: str | Path) -> dict:
+    """What a checkpoint keeps of the ``--config`` file its run was started from: the path, and the settings read."""
+    return {"path": str(Path(config_file).resolve()), "settings": _read_toml(Path(config_file))}
+
+
+def _check_config_file(config_file: str | Path, record: dict | None, where: Path) -> None:
+    """ValueError unless ``config_file`` (``--config`` given with ``--resume``) is the file, unchanged, that the run
+    of the checkpoint ``where`` was started from (its ``record``): a resumed run reads nothing new from it."""
+    leave_out = f"{_RESUME_RULE}; leave out --config (--resume --out {where.parent})"
+    started = (record or {}).get("path")
+    if str(Path(config_file).resolve()) != started:
+        origin = f"from {started}" if started else "without a --config it recorded"
+        raise ValueError(f"--config {config_file}: {where} was started {origin}; {leave_out}")
+    was, now = _flat(record.get("settings") or {}), _flat(_read_toml(Path(config_file)))
+    changed = sorted(k for k in was.keys() | now.keys() if was.get(k, "(unset)") != now.get(k, "(unset)"))
+    if changed:
+        k = changed[0]
+        raise ValueError(f"{config_file}: {k} is {now.get(k, '(unset)')!r} now, {was.get(k, '(unset)')!r} when {where} "
+                         f"was started; {leave_out}")
+
+
 def train(config: dict, out_dir: str | Path, *, resume: bool = False, overrides: list[str] = (),
-          progress: bool = True, prepared: Prepared | None = None, export: bool = True) -> list[dict]:
+          progress: bool = True, prepared: Prepared | None = None, export: bool = True,
+          config_file: str | Path | None = None) -> list[dict]:
     """Run (or resume) training; returns the history rows (epoch 0 = untrained model).
 
     Parameters
@@ -660,10 +791,14 @@ def train(config: dict, out_dir: str | Path, *, resume: bool = False, overrides:
         Run folder for ``last.pt``, ``best.pt``, ``log.csv``, ``curves.png``, ``model.npz``.
     resume : bool
         Continue from ``out_dir/last.pt`` exactly (same shuffles, optimiser and scheduler state). The
-        checkpoint's configuration is used, updated by ``overrides`` (e.g. ``["train.epochs=300"]``; not
-        ``train.lr`` or ``train.weight_decay``, which the saved optimiser fixes); ``config`` is then ignored.
+        checkpoint's configuration is the run's (``config`` is ignored): ``overrides`` may change only
+        ``RESUME_FREE`` settings (e.g. ``["train.epochs=300"]``, to extend the schedule); any other that differs from
+        the checkpoint's is refused (``resumed_config``).
     prepared : Prepared, optional
         Pre-built data (tests reuse it across runs); built from ``config`` otherwise.
+    config_file : path, optional
+        The ``--config`` file ``config`` was read from: recorded in the checkpoints; with ``resume``, refused unless
+        it is that run's own file, unchanged.
     """
     out = Path(out_dir)                       # made only once the settings and the data are found good (_train)
     last_path = out / "last.pt"
@@ -671,18 +806,23 @@ def train(config: dict, out_dir: str | Path, *, resume: bool = False, overrides:
     if resume:
         if not last_path.exists():
             raise ValueError(f"{last_path}: no checkpoint to resume from")
-        checkpoint = torch.load(last_path, map_location="cpu", weights_only=False)
-        config = apply_overrides(checkpoint["config"], list(overrides))
-        for key in ("lr", "weight_decay", "ema_decay"):
-            # load_state_dict restores the optimiser (and the average) as saved: these would be silently ignored
-            if config["train"].get(key) != checkpoint["config"]["train"].get(key):
-                raise ValueError(f"{last_path}: train.{key} cannot change on --resume "
-                                 f"({checkpoint['config']['train'].get(key)} -> {config['train'].get(key)})")
+        checkpoint = load_checkpoint(last_path)
+        record = checkpoint.get("config_file")
+        if config_file is not None:
+            _check_config_file(config_file, record, last_path)
+        config = resumed_config(checkpoint, list(overrides), last_path)
     elif last_path.exists():
         raise ValueError(f"{last_path}: a run already exists here; pass --resume or choose another --out")
+    else:
+        record = None if config_file is None else _config_file_record(config_file)
     check_config(config)
     if checkpoint is None:
         config = adopt_init(config)     # a resumed run's checkpoint config has adopted it already
+    data = config["data"]
+    if data["val_split"] == data["train_split"]:
+        print(f"warning: data.val_split is data.train_split ({data['val_split']!r}): the run is validated (and with "
+              "train.select = \"val\" its epoch chosen) on its own training data, so its validation RMSE is "
+              "optimistic; use a held-out split", file=sys.stderr)
 
     threads, deterministic = torch.get_num_threads(), torch.are_deterministic_algorithms_enabled()
     torch.set_num_threads(int(config["threads"]))
@@ -693,19 +833,24 @@ def train(config: dict, out_dir: str | Path, *, resume: bool = False, overrides:
         print("note: on CUDA a run repeats to rounding, not bit for bit (torch has no deterministic CUDA nanmedian "
               "or attention backward); it matches the CPU to about 1e-5 m", file=sys.stderr)
     torch.use_deterministic_algorithms(True, warn_only=True)
+    last_saved = {"epoch": None if checkpoint is None else int(checkpoint["epoch"])}   # the epoch last.pt holds
     try:
         with warnings.catch_warnings():
             if on_gpu:                                  # said once above instead of at every kernel
                 warnings.filterwarnings("ignore", ".*does not have a deterministic implementation", UserWarning)
                 warnings.filterwarnings("ignore", ".*defaults to a non-deterministic algorithm", UserWarning)
-            return _train(config, out, checkpoint, progress=progress, prepared=prepared, export=export)
+            return _train(config, out, checkpoint, progress=progress, prepared=prepared, export=export,
+                          config_record=record, last_saved=last_saved)
+    except KeyboardInterrupt as exc:                    # main says what is kept and how to go on
+        exc.last_saved_epoch = last_saved["epoch"]
+        raise
     finally:
         torch.set_num_threads(threads)
         torch.use_deterministic_algorithms(deterministic)
 
 
 def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, prepared: Prepared | None,
-           export: bool) -> list[dict]:
+           export: bool, config_record: dict | None = None, last_saved: dict | None = None) -> list[dict]:
     last_path, best_path = out / "last.pt", out / "best.pt"
     seed = int(config["seed"])
     torch.manual_seed(seed)
@@ -740,7 +885,7 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
     ema_decay = float(tr.get("ema_decay", 0.0))
     averaged = (torch.optim.swa_utils.AveragedModel(
         model, multi_avg_fn=torch.optim.swa_utils.get_ema_multi_avg_fn(ema_decay)) if ema_decay > 0 else None)
-    kept = model if averaged is None else averaged.module       # the weights validated, saved and exported
+    weights = model if averaged is None else averaged.module    # the weights validated, saved and exported
     lc = config["loss"]
     loss_fn = make_loss(lc["kind"], alpha=float(lc["alpha"]), gamma=float(lc["gamma"]), lam=float(lc["lambda"]),
                         up_weight=float(lc.get("up_weight", 1.0)))   # runs from before it resume
@@ -751,28 +896,34 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
     def save(path: Path, epoch: int) -> None:
         extra = {} if averaged is None else {"trained_model": model.state_dict(),
                                              "ema_n_averaged": int(averaged.n_averaged)}
-        torch.save({"model": kept.state_dict(), **extra, "model_hparams": model.hyperparameters(),
-                    "optimiser": optimiser.state_dict(), "scheduler": scheduler.state_dict(), "epoch": epoch,
-                    "history": history, "best_val_rmse_3d_m": best, "rng": _rng_state(),
-                    "normaliser": prep.normaliser.to_dict(), "feature_names": list(prep.feature_names),
-                    "n_systems": prep.n_systems, "config": config, "ekf_config": dataclasses.asdict(ekf_cfg),
-                    "data_fingerprints": prep.fingerprints, "source_files": prep.source_files,
-                    "init_model": started_from}, path)
+        state = {"model": weights.state_dict(), **extra, "model_hparams": model.hyperparameters(),
+                 "optimiser": optimiser.state_dict(), "scheduler": scheduler.state_dict(), "epoch": epoch,
+                 "history": history, "best_val_rmse_3d_m": best, "rng": _rng_state(),
+                 "normaliser": prep.normaliser.to_dict(), "feature_names": list(prep.feature_names),
+                 "n_systems": prep.n_systems, "config": config, "ekf_config": dataclasses.asdict(ekf_cfg),
+                 "data_fingerprints": prep.fingerprints, "source_files": prep.source_files,
+                 "init_model": started_from, "config_file": config_record}
+        _replace_atomically(path, lambda tmp: torch.save(state, tmp))
+        if path == last_path and last_saved is not None:
+            last_saved["epoch"] = epoch
 
     if checkpoint is not None:
-        model.load_state_dict(checkpoint["model" if averaged is None else "trained_model"])
-        if averaged is not None:
-            averaged.module.load_state_dict(checkpoint["model"])
-            averaged.n_averaged.fill_(int(checkpoint["ema_n_averaged"]))
-        optimiser.load_state_dict(checkpoint["optimiser"])
-        scheduler.load_state_dict(checkpoint["scheduler"])
-        history = list(checkpoint["history"])
-        best = float(checkpoint["best_val_rmse_3d_m"])
-        start_epoch = int(checkpoint["epoch"]) + 1
-        _set_rng_state(checkpoint["rng"])
+        try:
+            model.load_state_dict(checkpoint["model" if averaged is None else "trained_model"])
+            if averaged is not None:
+                averaged.module.load_state_dict(checkpoint["model"])
+                averaged.n_averaged.fill_(int(checkpoint["ema_n_averaged"]))
+            optimiser.load_state_dict(checkpoint["optimiser"])
+            scheduler.load_state_dict(checkpoint["scheduler"])
+            history = list(checkpoint["history"])
+            best = float(checkpoint["best_val_rmse_3d_m"])
+            start_epoch = int(checkpoint["epoch"]) + 1
+            _set_rng_state(checkpoint["rng"])
+        except Exception as exc:            # a checkpoint that reads but does not fit this network or optimiser
+            raise _unreadable(last_path, exc) from None
     else:
         t0 = time.perf_counter()
-        val, avail = evaluate(kept, val_batches, n_systems=prep.n_systems, ekf_cfg=ekf_cfg, smooth=smooth)
+        val, avail = evaluate(weights, val_batches, n_systems=prep.n_systems, ekf_cfg=ekf_cfg, smooth=smooth)
         history.append({"epoch": 0, "train_loss": float("nan"), "val_rmse_3d_m": val, "val_availability": avail,
                         "lr": optimiser.param_groups[0]["lr"], "seconds": time.perf_counter() - t0})
         best = val
@@ -816,7 +967,7 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
         scheduler.step()
         if averaged is not None:
             averaged.update_parameters(model)
-        val, avail = evaluate(kept, val_batches, n_systems=prep.n_systems, ekf_cfg=ekf_cfg, smooth=smooth)
+        val, avail = evaluate(weights, val_batches, n_systems=prep.n_systems, ekf_cfg=ekf_cfg, smooth=smooth)
         history.append({"epoch": epoch, "train_loss": total / count, "val_rmse_3d_m": val, "val_availability": avail,
                         "lr": lr, "seconds": time.perf_counter() - t0})
         if val < best:
@@ -832,7 +983,8 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
     if export:
         from .export import export_model
 
-        export_model(last_path if tr.get("select", "val") == "last" else best_path, out / "model.npz")
+        chosen = last_path if tr.get("select", "val") == "last" else best_path
+        _replace_atomically(out / "model.npz", lambda tmp: export_model(chosen, tmp))
     return history
 
 
@@ -841,22 +993,44 @@ def exit_on_input_error(parser: argparse.ArgumentParser, exc: BaseException) -> 
     parser.exit(2, f"{parser.prog}: error: {one_line(exc)}\n")
 
 
+def _resume_hint(exc: BaseException, out: Path) -> str:
+    """What an interrupted run keeps, for its one line: the epoch ``last.pt`` holds and the command that goes on."""
+    import shlex
+
+    last, epoch = out / "last.pt", getattr(exc, "last_saved_epoch", None)
+    go_on = f"continue with --resume --out {shlex.quote(str(out))}"
+    if epoch is not None:
+        return f"; {last} holds epoch {epoch}: {go_on}"
+    if last.is_file():                        # stopped while reading it: as it was
+        return f"; {last} is as it was: {go_on}"
+    return " before the first checkpoint was written (nothing to resume)"
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Command-line entry point."""
+    """Command-line entry point.
+
+    Exit status 0; 2 for bad input (one line ``PROG: error: ...``); 3 for a non-finite training loss; 130 for Ctrl-C
+    (one line naming the epoch ``last.pt`` holds, and how to resume).
+    """
     p = argparse.ArgumentParser(prog="python -m learning.train", description=__doc__.split("\n")[0])
     p.add_argument("--config", help="TOML configuration (default: built-in defaults)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override a configuration key, e.g. --set train.epochs=5 (repeatable)")
     p.add_argument("--out", help="run folder (default: runs/<config name>)")
-    p.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
+    p.add_argument("--resume", action="store_true",
+                   help="continue from OUT/last.pt with the run's own configuration (only --set train.epochs=N, "
+                        "threads and device may change)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     args = p.parse_args(argv)
     out = args.out or str(Path("runs") / (Path(args.config).stem if args.config else "default"))
     try:
         config = load_config(args.config, args.overrides)
-        history = train(config, out, resume=args.resume, overrides=args.overrides, progress=not args.no_progress)
+        history = train(config, out, resume=args.resume, overrides=args.overrides, progress=not args.no_progress,
+                        config_file=args.config)
     except INPUT_ERRORS as exc:
         exit_on_input_error(p, exc)
+    except KeyboardInterrupt as exc:          # Ctrl-C: one line saying what is kept and how to go on
+        p.exit(130, f"{p.prog}: interrupted{_resume_hint(exc, Path(out))}\n")
     except FloatingPointError as exc:         # diverged: not bad input (exit 3, not 2); the checkpoints stay
         p.exit(3, f"{p.prog}: error: {one_line(exc)}: training stopped (exit status 3); the checkpoints of the "
                   f"epochs before it are kept in {out} (last.pt, best.pt); check [loss], or try a lower train.lr or "

@@ -43,6 +43,14 @@ BAD_SETTINGS = [
     ("ekf.gate_sigma=nan", "ekf.gate_sigma must be a number, got nan"),
     ("ekf.gate_sigma=-3", "ekf.gate_sigma must be >= 0, got -3"),
     ("ekf.q_vel_m2_s3=inf", "ekf.q_vel_m2_s3 must be finite, got inf"),
+    ("train.epoch=5", "unknown configuration key 'train.epoch' (did you mean 'train.epochs'?)"),
+    ("epochs=5", "unknown configuration key 'epochs' (did you mean 'train.epochs'?)"),
+    ("data.synthetic.n_epoch=5", "unknown configuration key 'data.synthetic.n_epoch' (did you mean "
+                                 "'data.synthetic.n_epochs'?)"),
+    ("ekf.gate_sigm=5", "unknown [ekf] keys ['gate_sigm'] (did you mean 'ekf.gate_sigma'?); EkfConfig has"),
+    ("data.datasets=['synthetic', 'synthetic']",
+     "data.datasets names 'synthetic' more than once (its data would count twice); name each dataset once, "
+     "got ['synthetic', 'synthetic']"),
 ]
 
 
@@ -73,7 +81,7 @@ def test_a_bad_setting_is_named_in_one_line_before_anything_is_written(setting, 
     ("[loss]\nalpha = nan\n", "loss.alpha must be a finite number > 0, got nan"),
     ("[data]\nwindow = 0\n", "data.window must be a whole number >= 1, got 0"),
     ("[data]\nsynthetic = 3\n", "data.synthetic must be a table of settings, got 3"),
-    ("[trian]\nepochs = 3\n", "unknown configuration key 'trian'"),
+    ("[trian]\nepochs = 3\n", "unknown configuration key 'trian' (did you mean 'train'?)"),
 ])
 def test_a_bad_setting_of_a_file_names_the_file(text, expected, tmp_path, capsys):
     path = tmp_path / "bad.toml"
@@ -124,3 +132,31 @@ def test_a_non_finite_training_loss_is_one_line_and_keeps_the_checkpoints(tmp_pa
     assert "epoch 1: non-finite training loss" in err and "training stopped" in err and str(out) in err
     assert (out / "last.pt").exists() and (out / "best.pt").exists()
     assert not (out / "model.npz").exists()
+
+
+def test_a_key_with_nothing_close_gets_no_suggestion(capsys):
+    err = _fails(["--set", "zzz=1"], capsys)
+    assert err.strip().endswith("error: unknown configuration key 'zzz'"), err
+
+
+def test_validating_on_the_training_split_is_warned_and_cross_validation_refuses_it(tmp_path, capsys):
+    """data.val_split = data.train_split: learning.train runs (a dataset may have no validation split; with
+    train.select = "last" the figure is only reported) but says in one line that its validation is optimistic;
+    learning.crossval, which pools both splits into blocks, refuses it (each epoch would be there twice)."""
+    from learning.crossval import main as crossval_main
+
+    argv = [x for s in TINY + ["data.val_split='train'"] for x in ("--set", s)] + ["--no-progress"]
+    assert main(argv + ["--out", str(tmp_path / "run")]) == 0
+    err = capsys.readouterr().err
+    assert "warning: data.val_split is data.train_split ('train'): the run is validated (and with train.select = " \
+           "\"val\" its epoch chosen) on its own training data, so its validation RMSE is optimistic; use a held-out " \
+           "split" in err, err
+    assert err.count("warning") == 1
+    with pytest.raises(SystemExit) as exit_info:
+        crossval_main(argv + ["--out", str(tmp_path / "cv")])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert "error: data.val_split is data.train_split ('train'): cross-validation cuts the train and validation " \
+           "epochs into blocks, so each epoch would be there twice, held out and trained on; give two different " \
+           "splits" in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "cv").exists()
