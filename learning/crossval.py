@@ -51,7 +51,7 @@ from lfgnss.errors import INPUT_ERRORS, InputError, cannot_write, input_line, on
 from lfgnss.metrics import accuracy_table, markdown_table
 from lfgnss.sequence import Sequence
 
-from .train import (DEFAULT_CONFIG, _merge_free, adopt_init, ekf_config, exit_on_input_error, init_model,
+from .train import (DEFAULT_CONFIG, _flat, _merge_free, adopt_init, ekf_config, exit_on_input_error, init_model,
                     load_config, load_sequences, prepare, train, trained_datasets)
 
 COLUMNS = ["fold", "held_out_epochs", "plain_ekf_rmse_3d_m", "untrained_rmse_3d_m", "last_rmse_3d_m",
@@ -118,17 +118,6 @@ def _model_rmse_m(saved: dict, config: dict, normaliser, batches: list, n_system
 
 #: Settings a rescore (``--reuse``) may change: the filter's, and how the run uses the machine.
 RESCORE_FREE = ("ekf", "threads", "device")
-
-
-def _flat(table: dict, prefix: str = "") -> dict:
-    """Nested tables as one dict of dotted keys, e.g. ``{"ekf.gate_sigma": 3.0}``."""
-    out = {}
-    for key, value in table.items():
-        if isinstance(value, dict):
-            out.update(_flat(value, f"{prefix}{key}."))
-        else:
-            out[f"{prefix}{key}"] = value
-    return out
 
 
 def _recipe(config: dict) -> dict:
