@@ -40,14 +40,14 @@ import argparse
 import copy
 import csv
 import math
-import os
 import sys
 from pathlib import Path
 
 import numpy as np
 
 from lfgnss.datasets import contiguous_runs
-from lfgnss.errors import INPUT_ERRORS, InputError, cannot_write, input_line, one_line, path_option
+from lfgnss.errors import (INPUT_ERRORS, InputError, cannot_write, input_line, one_line, path_option, shortened,
+                           stdout_gone)
 from lfgnss.metrics import accuracy_table, markdown_table
 from lfgnss.sequence import Sequence
 
@@ -172,9 +172,8 @@ def _check_weights(path: Path, saved: dict) -> None:
         build_model(saved["config"], len(normaliser.feature_names), normaliser).load_state_dict(saved["model"])
         bad = [k for k, v in saved["model"].items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
     except Exception as exc:            # whatever a damaged checkpoint makes torch or the normaliser raise
-        text = one_line(exc)
         raise ValueError(f"{path}: not a usable learning.train checkpoint ({type(exc).__name__}: "
-                         f"{text if len(text) <= 200 else text[:197] + '...'})") from None
+                         f"{shortened(one_line(exc), 200)})") from None
     if bad:
         raise ValueError(f"{path}: not a usable learning.train checkpoint (non-finite weights in {bad[0]})")
     if epoch < epochs:
@@ -407,7 +406,7 @@ def main(argv: list[str] | None = None) -> int:
         print((out / "crossval.md").read_text(), end="")
         sys.stdout.flush()
     except BrokenPipeError:                   # the reader went away (| head): the results are written
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        stdout_gone()
     return 0
 
 

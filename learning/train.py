@@ -54,7 +54,7 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from lfgnss.errors import INPUT_ERRORS, one_line
+from lfgnss.errors import INPUT_ERRORS, one_line, shortened
 from lfgnss.sequence import DEFAULT_FEATURES, Sequence
 
 from .data import Window, make_windows, collate, resolve_feature_names, sequence_batch
@@ -719,9 +719,8 @@ def load_checkpoint(path: str | Path) -> dict:
 
 def _unreadable(path: str | Path, exc: BaseException) -> ValueError:
     """The one-line error of a checkpoint that cannot be resumed from."""
-    text = one_line(exc)
     return ValueError(f"{path}: cannot read the checkpoint ({type(exc).__name__}: "
-                      f"{text if len(text) <= 200 else text[:197] + '...'}); start a new --out")
+                      f"{shortened(one_line(exc), 200)}); start a new --out")
 
 
 def resumed_config(saved: dict, overrides: list[str], where: str | Path) -> dict:

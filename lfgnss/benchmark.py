@@ -30,7 +30,8 @@ from pathlib import Path
 import numpy as np
 
 from . import datasets
-from .errors import INPUT_ERRORS, InputError, cannot_write, input_line, one_line, path_option
+from .errors import (INPUT_ERRORS, InputError, cannot_write, input_line, one_line, path_option, shortened,
+                     stdout_gone)
 from .metrics import METRIC_COLUMNS, accuracy_table, format_markdown, format_text, markdown_table
 from .paths import bundled_data_dir
 from .sequence import Sequence
@@ -84,28 +85,28 @@ class Method:
 def methods(model_dir: Path = MODEL_DIR, dataset_id: str | None = None) -> list[Method]:
     """Baselines always; learned rows where their model file exists (per-dataset ones for ``dataset_id``).
 
-    A per-dataset model trained in a filter other than the default also brings the plain EKF in that filter
-    (``PLAIN_OWN_FILTER``; its file is read here for the settings). ``model_dir`` is a folder of ``lfgnss-*.npz``
-    files, or one model file that takes the rows of the shipped (joint) model on every dataset.
+    A model trained in a filter other than the default also brings the plain EKF in that filter (``PLAIN_OWN_FILTER``
+    for the per-dataset model, ``PLAIN_MAIN_FILTER`` for the shipped one; its file is read here for the settings).
+    ``model_dir`` is a folder of ``lfgnss-*.npz`` files, or one model file that takes the rows of the shipped (joint)
+    model on every dataset.
     """
+    from learning.export import load_model
+
+    def plain_in_its_filter(model: Path, name: str) -> list[Method]:
+        """The hand-set noise in the learned rows' filter: what the learning adds (none in the default filter)."""
+        config = own_filter(load_model(model))
+        return [] if config is None else [Method(name, "plain-ekf", options={"config": config})]
+
     rows = [Method("least squares (equal weight)", "wls"), Method("least squares (C/N0-weighted)", "wls-weighted"),
             Method(PLAIN, "plain-ekf"), Method(PLAIN_RTS, "plain-ekf", options={"smooth": True})]
     model_dir = Path(model_dir)
     own = model_dir / f"lfgnss-{dataset_id}.npz"
     has_own = dataset_id is not None and model_dir.is_dir() and own.exists()
     if has_own:
-        from learning.export import load_model
-
-        config = own_filter(load_model(own))
-        if config is not None:          # the hand-set noise in the learned row's filter: what the learning adds
-            rows.append(Method(PLAIN_OWN_FILTER, "plain-ekf", options={"config": config}))
+        rows += plain_in_its_filter(own, PLAIN_OWN_FILTER)
     default = model_dir if model_dir.is_file() else model_dir / DEFAULT_MODEL
     if default.is_file():
-        from learning.export import load_model
-
-        config = own_filter(load_model(default))
-        if config is not None:          # the same for the shipped (or given) model's rows
-            rows.append(Method(PLAIN_MAIN_FILTER, "plain-ekf", options={"config": config}))
+        rows += plain_in_its_filter(default, PLAIN_MAIN_FILTER)
         rows += [Method("LF-GNSS EKF", "ekf", default), Method("LF-GNSS EKF" + RTS, "ekf", default, {"smooth": True}),
                  Method("LF-GNSS FGO", "fgo", default)]
     if not model_dir.is_dir():
@@ -203,13 +204,9 @@ def rtklib_solution(spec, workdir: Path):
     try:
         return spp_solution(spec.obs[0], list(spec.nav), workdir / f"{spec.id}.pos", systems=spec.systems or ("G",))
     except (RtklibError, ValueError) as err:  # rnx2rtkp failed, hung or wrote an unreadable .pos: an optional row
-        print(f"warning: {spec.id}: RTKLIB row left out: {_short(one_line(err))}", file=sys.stderr)
+        # cut: an rnx2rtkp command line names every file of the dataset
+        print(f"warning: {spec.id}: RTKLIB row left out: {shortened(one_line(err), 300)}", file=sys.stderr)
         return None, None
-
-
-def _short(text: str, limit: int = 300) -> str:
-    """``text`` cut to ``limit`` characters (an rnx2rtkp command line names every file of the dataset)."""
-    return text if len(text) <= limit else text[:limit - 3] + "..."
 
 
 def _rtklib_on(seq, spec, workdir: Path):
@@ -506,19 +503,25 @@ def main(argv: list[str] | None = None) -> int:
         return 3
 
 
+def _nothing_run(failed: list[str], report: Path) -> InputError:
+    """The error of a run in which no dataset could be run (``report`` is not written); the other failures are
+    printed first, one line each."""
+    for message in failed[:-1]:
+        print(f"error: {message}", file=sys.stderr)
+    return InputError(report, f"not written: no dataset could be run ({failed[-1]})")
+
+
 def _main(args: argparse.Namespace, argv: list[str] | None) -> int:
     """``main`` after parsing: check everything, run, write results.md, then print the tables."""
     ids = resolve_datasets(args.datasets, args.register, ("test",) + ((args.warm_up,) if args.warm_up else ()))
     for message in check_models(args.models, ids):
         print(f"warning: {message}", file=sys.stderr)
     # a dataset of one's own whose files are missing is an error (exit 2); the benchmark sets' absent data a note
-    failed = [f"{i}: not run ({datasets.get(i).missing_note()})" for i in ids
-              if datasets.get(i).source is not None and datasets.get(i).missing()]
-    asked, ids = ids, datasets.present([i for i in ids if not datasets.get(i).missing() or not datasets.get(i).source])
+    lost = [i for i in ids if datasets.get(i).source is not None and datasets.get(i).missing()]
+    failed = [f"{i}: not run ({datasets.get(i).missing_note()})" for i in lost]
+    asked, ids = ids, datasets.present([i for i in ids if i not in lost])
     if not ids and failed:
-        for message in failed[:-1]:
-            print(f"error: {message}", file=sys.stderr)
-        raise InputError(args.out / "results.md", f"not written: no dataset could be run ({failed[-1]})")
+        raise _nothing_run(failed, args.out / "results.md")
     if not ids:
         from .paths import shared_data_dir
 
@@ -534,9 +537,7 @@ def _main(args: argparse.Namespace, argv: list[str] | None) -> int:
     all_rows, rtk_rows = run(ids, model_dir=args.models, out_dir=args.out, plots=not args.no_plots,
                              unwritten=unwritten, warm_up=args.warm_up, failed=failed)
     if failed and not all_rows:    # an empty table never replaces a results file
-        for message in failed[:-1]:
-            print(f"error: {message}", file=sys.stderr)
-        raise InputError(report, f"not written: no dataset could be run ({failed[-1]})")
+        raise _nothing_run(failed, report)
     argv = sys.argv[1:] if argv is None else argv
     command = "python -m lfgnss.benchmark" + (" " + " ".join(argv) if argv else "")
     try:                            # before the tables go to stdout, which may be a pipe closed early (| head)
@@ -553,7 +554,7 @@ def _main(args: argparse.Namespace, argv: list[str] | None) -> int:
             print(f"\nwritten: {written}")
         sys.stdout.flush()
     except BrokenPipeError:         # the reader went away: results.md is written, nothing more to say on stdout
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        stdout_gone()
     for message in failed + unwritten:
         print(f"error: {message}", file=sys.stderr)
     return 2 if failed or unwritten else 0

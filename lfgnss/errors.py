@@ -1,6 +1,8 @@
 """Exceptions with one-line messages that name the file (and line) at fault."""
 from __future__ import annotations
 
+import os
+import sys
 from pathlib import Path
 
 
@@ -34,6 +36,17 @@ def one_line(exc: BaseException) -> str:
     """The exception's message on one line (without the quotes a KeyError adds, and without line breaks)."""
     text = exc.args[0] if isinstance(exc, KeyError) and len(exc.args) == 1 and isinstance(exc.args[0], str) else str(exc)
     return " ".join(text.split()) or type(exc).__name__
+
+
+def shortened(text: str, limit: int) -> str:
+    """``text`` cut to ``limit`` characters, ending in ``...`` where cut (a command line, a torch message)."""
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
+def stdout_gone() -> None:
+    """After a BrokenPipeError on stdout (the reader of ``| head`` went away): point stdout at the null device, so
+    that nothing more, the interpreter's last flush included, fails on it."""
+    os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
 
 
 def cannot_write(err: OSError) -> str:

@@ -8,14 +8,13 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 import sys
 import warnings
 from pathlib import Path
 
 import numpy as np
 
-from .errors import INPUT_ERRORS, InputError, LfgnssError, RinexError, cannot_write, one_line
+from .errors import INPUT_ERRORS, InputError, LfgnssError, RinexError, cannot_write, one_line, stdout_gone
 from .paths import bundled_data_dir, default_model_path
 
 SAMPLE_DIR = bundled_data_dir() / "berlin-potsdamer-platz"
@@ -215,7 +214,7 @@ def run(args) -> int:
             print(format_text(rows))
         sys.stdout.flush()
     except BrokenPipeError:   # nothing more to say on stdout; the errors below still reach stderr
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        stdout_gone()
     for message in failed:
         print(f"error: {message}", file=sys.stderr)
     return 2 if failed else 0
@@ -244,7 +243,9 @@ def _run_tag(args: argparse.Namespace, options: dict) -> str:
 
 def _model_tag(path: Path) -> str:
     """A model file's name in output names; a training run's ``model.npz`` goes by its run folder (``runs/a``: ``a``)."""
-    return path.parent.resolve().name or path.stem if path.stem == "model" else path.stem
+    if path.stem != "model":
+        return path.stem
+    return path.parent.resolve().name or path.stem
 
 
 def _make_output_folder(out: Path) -> None:
