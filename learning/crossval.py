@@ -19,7 +19,10 @@ is picked on the held-out block itself); and the plain EKF and the last epoch wi
 the hand-set R prior. Writes ``crossval.csv`` and ``crossval.md``
 in ``--out`` and each fold's run (``log.csv``, ``curves.png``, ``best.pt``, ``last.pt``) in ``--out/fold<j>/``.
 ``--fold J`` (repeatable) runs only those folds, e.g. one process per fold on a machine with spare cores, each
-with its own ``--out``; the pooled row is written only when every fold ran. With several datasets each fold also
+with its own ``--out``; the pooled row is written only when every fold ran. ``--pool DIR`` (repeatable) then puts
+those runs' folds in one table with the pooled rows, training and scoring nothing (each fold once, one recipe):
+``python -m learning.crossval --folds 3 --pool cv/f0 --pool cv/f1 --pool cv/f2 --out cv/all``.
+crossval.md starts with the command that made it and the code's git commit. With several datasets each fold also
 gets a row per dataset (``J:ID``, its last epoch on that dataset's held-out pieces) and each dataset a pooled row
 (``pooled:ID``): the overall pooled row is dominated by the datasets with the most epochs.
 
@@ -51,6 +54,7 @@ from lfgnss.errors import (INPUT_ERRORS, InputError, cannot_write, input_line, o
 from lfgnss.metrics import accuracy_table, markdown_table
 from lfgnss.sequence import Sequence
 
+from .provenance import code_text, command_line, git_state
 from .train import (DEFAULT_CONFIG, _flat, _merge_free, adopt_init, ekf_config, exit_on_input_error, init_model,
                     load_config, load_sequences, prepare, train, trained_datasets)
 
@@ -209,10 +213,11 @@ def pooled_rmse(rmse: list[float], counts: list[int]) -> float:
 
 
 def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = True,
-             only: list[int] | None = None, reuse: str | Path | None = None) -> list[dict]:
+             only: list[int] | None = None, reuse: str | Path | None = None, command: str | None = None) -> list[dict]:
     """Train ``config`` on each fold (or the folds ``only``); one row per fold, plus a ``pooled`` row when all ran.
 
     ``reuse``: train nothing, score the folds' saved models in that folder under ``config``'s EKF (``saved_fold``).
+    ``command``: the command line, recorded at the top of crossval.md and in the folds' checkpoints.
     """
     out = Path(out_dir)
     if isinstance(folds, bool) or not isinstance(folds, int) or folds < 2:
@@ -233,7 +238,8 @@ def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = 
                                             if not (p := Path(reuse) / f"fold{j}" / "last.pt").is_file()]
         if missing:
             raise ValueError(f"{missing[0]}: no saved fold model (--reuse takes the --out folder of an earlier "
-                             "cross-validation of the same recipe)")
+                             f"cross-validation of the same recipe and --folds; --folds {folds} asks for fold "
+                             f"{missing[0].parent.name[4:]})")
         out.mkdir(parents=True, exist_ok=True)
     except OSError as err:              # a name too long, a file in the path, a read-only or missing disk
         raise InputError(out, f"cannot create the output folder ({err.strerror or err})") from None
@@ -248,31 +254,110 @@ def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = 
              for ds in data["datasets"]}
     rows = []
     try:
-        _run_folds(rows, chosen, folds, whole, config, out, progress, reuse)
+        _run_folds(rows, chosen, folds, whole, config, out, progress, reuse, command)
     except BaseException as exc:        # Ctrl-C, a diverged fold, a bad checkpoint: the finished folds' rows are kept
         exc.crossval_stopped = (out, None, [])
         if rows:
             try:
-                _write_results(out, rows)
+                _write_results(out, rows, command)
                 exc.crossval_stopped = (out, out / "crossval.csv", [r["fold"] for r in rows
                                                                      if isinstance(r["fold"], int)])
             except UnwrittenResults:
                 pass
         raise
-    keys = ["plain_ekf_rmse_3d_m", "untrained_rmse_3d_m", "last_rmse_3d_m", "best_rmse_3d_m",
-            "plain_ekf_smoothed_rmse_3d_m", "last_smoothed_rmse_3d_m", "plain_ekf_rmse_2d_m", "last_rmse_2d_m"]
+    if len(chosen) == folds:
+        rows.extend(pooled_rows(rows, list(whole) if len(whole) > 1 else []))
+    _write_results(out, rows, command)
+    return rows
+
+
+def pooled_rows(rows: list[dict], datasets: list[str]) -> list[dict]:
+    """The ``pooled`` row of the fold rows (fold an int), and with several ``datasets`` a ``pooled:ID`` row each."""
+    keys = [k for k in COLUMNS if k.endswith("_m")]
 
     def pooled(label: str, group: list[dict]) -> dict:
         counts = [r["held_out_epochs"] for r in group]
         return {"fold": label, "held_out_epochs": sum(counts),
                 **{k: pooled_rmse([r[k] for r in group], counts) for k in keys}, "best_epoch": "-"}
 
-    if len(chosen) == folds:
-        rows.append(pooled("pooled", [r for r in rows if isinstance(r["fold"], int)]))
-        for ds in whole if len(whole) > 1 else ():
-            rows.append(pooled(f"pooled:{ds}", [r for r in rows if str(r["fold"]).endswith(f":{ds}")]))
-    _write_results(out, rows)
+    return ([pooled("pooled", [r for r in rows if isinstance(r["fold"], int)])]
+            + [pooled(f"pooled:{ds}", [r for r in rows if str(r["fold"]).endswith(f":{ds}")]) for ds in datasets])
+
+
+def pool(run_dirs: list[str | Path], folds: int, out_dir: str | Path, command: str | None = None) -> list[dict]:
+    """One table, pooled rows included, of parallel ``--fold J`` runs (their ``--out`` folders): nothing is trained
+    or scored again. Each fold of ``folds`` must come from exactly one run, and every run from the same recipe."""
+    import torch
+
+    out = Path(out_dir)
+    if isinstance(folds, bool) or not isinstance(folds, int) or folds < 2:
+        raise ValueError(f"folds must be a whole number >= 2 (--folds), got {folds!r}")
+    rows, source, recipe = [], {}, None
+    for d in map(Path, run_dirs):
+        table = d / "crossval.csv"
+        try:
+            with open(table, newline="") as fh:
+                found = [_csv_row(r) for r in csv.DictReader(fh)]
+        except OSError as err:
+            raise InputError(table, f"cannot read it ({err.strerror or err}); --pool takes the --out folders of "
+                             "crossval runs") from None
+        except (KeyError, ValueError) as err:
+            raise InputError(table, f"not a crossval.csv ({err})") from None
+        for r in found:
+            j = r["fold"] if isinstance(r["fold"], int) else None
+            if j is None:
+                if not str(r["fold"]).startswith("pooled"):
+                    rows.append(r)                                  # a "J:ID" row
+                continue
+            if j in source:
+                raise InputError(table, f"fold {j} is in {source[j]} too; pool each fold once")
+            if not 0 <= j < folds:
+                raise InputError(table, f"fold {j} is not one of --folds {folds} (0..{folds - 1})")
+            source[j] = table
+            try:
+                saved = torch.load(d / f"fold{j}" / "last.pt", map_location="cpu", weights_only=False)["config"]
+            except Exception as exc:            # torch.load raises many kinds on a file that is not a checkpoint
+                raise InputError(d / f"fold{j}" / "last.pt", f"not a usable fold checkpoint ({type(exc).__name__})"
+                                 ", so its recipe cannot be checked") from None
+            flat = {k: v for k, v in _flat(_merge_free(DEFAULT_CONFIG, saved)).items()
+                    if k.split(".")[0] not in ("threads", "device")}
+            if recipe is not None and flat != recipe[1]:
+                k = sorted(k for k in flat.keys() | recipe[1].keys() if flat.get(k) != recipe[1].get(k))[0]
+                raise InputError(table, f"fold {j} was trained with {k} = {flat.get(k, '(unset)')!r}, fold "
+                                 f"{recipe[0]} with {recipe[1].get(k, '(unset)')!r}; pool runs of one recipe")
+            recipe = recipe or (j, flat)
+            rows.append(r)
+    missing = [j for j in range(folds) if j not in source]
+    if missing:
+        raise ValueError(f"fold(s) {', '.join(map(str, missing))} of --folds {folds} are in none of the --pool "
+                         "folders")
+    rows.sort(key=lambda r: (int(str(r["fold"]).split(":")[0]), str(r["fold"])))
+    datasets = list(dict.fromkeys(str(r["fold"]).split(":", 1)[1] for r in rows if ":" in str(r["fold"])))
+    rows.extend(pooled_rows(rows, datasets))
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise InputError(out, f"cannot create the output folder ({err.strerror or err})") from None
+    _write_results(out, rows, command)
     return rows
+
+
+def _csv_row(row: dict) -> dict:
+    """A crossval.csv row as crossval made it: the fold an int where it is one, RMSEs and counts as numbers."""
+    out = {k: row[k] for k in COLUMNS}
+    out["fold"] = int(row["fold"]) if row["fold"].isdigit() else row["fold"]
+    out["held_out_epochs"] = int(row["held_out_epochs"])
+    for k in COLUMNS:
+        if k.endswith("_m"):
+            out[k] = float(row[k]) if row[k] != "" else math.nan
+    return out
+
+
+def _made_by(command: str | None) -> str:
+    """crossval.md's first lines: the command and the code it ran (``learning.provenance``), or nothing."""
+    if command is None:
+        return ""
+    return f"Produced by `{command}` ({code_text(git_state())}).\n\n"
 
 
 class UnwrittenResults(InputError):
@@ -283,8 +368,9 @@ class UnwrittenResults(InputError):
         self.rows = rows
 
 
-def _write_results(out: Path, rows: list[dict]) -> None:
-    """``crossval.csv`` and ``crossval.md`` of ``rows`` in ``out``; UnwrittenResults (with the rows) if one fails."""
+def _write_results(out: Path, rows: list[dict], command: str | None = None) -> None:
+    """``crossval.csv`` and ``crossval.md`` of ``rows`` in ``out`` (the .md headed by ``command`` and the code's git
+    commit); UnwrittenResults (with the rows) if one fails."""
     path = out / "crossval.csv"
     try:
         with open(path, "w", newline="") as fh:
@@ -292,13 +378,13 @@ def _write_results(out: Path, rows: list[dict]) -> None:
             w.writeheader()
             w.writerows(rows)
         path = out / "crossval.md"
-        path.write_text(markdown_table(rows, COLUMNS))
+        path.write_text(_made_by(command) + markdown_table(rows, COLUMNS))
     except OSError as err:
         raise UnwrittenResults(path, err, rows) from None
 
 
 def _run_folds(rows: list[dict], chosen, folds: int, whole: dict, config: dict, out: Path, progress: bool,
-               reuse) -> None:
+               reuse, command: str | None = None) -> None:
     """Train (or with ``reuse`` rescore) each chosen fold, appending its row to ``rows`` as soon as it is done."""
     data = config["data"]
     for j in chosen:
@@ -326,7 +412,8 @@ def _run_folds(rows: list[dict], chosen, folds: int, whole: dict, config: dict, 
                 torch.set_num_threads(threads)
             continue
         prep = prepare(config, source)
-        history = train(copy.deepcopy(config), out / f"fold{j}", progress=progress, prepared=prep, export=False)
+        history = train(copy.deepcopy(config), out / f"fold{j}", progress=progress, prepared=prep, export=False,
+                        command=command)
         best = min(history, key=lambda h: h["val_rmse_3d_m"])
         last_smoothed_3d, last_2d = _saved_rmse_m(out / f"fold{j}" / "last.pt", config, prep)
         rows.append(_fold_row(j, held, config, {
@@ -382,13 +469,25 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--reuse", metavar="DIR", type=path_option,
                    help="train nothing: score the saved fold models of an earlier run (its --out) again on their "
                         "held-out blocks under this run's [ekf] settings (--set ekf.KEY=VALUE)")
+    p.add_argument("--pool", metavar="DIR", type=path_option, action="append",
+                   help="train and score nothing: put the folds of parallel --fold runs (their --out folders, "
+                        "repeat --pool) in one table with the pooled rows, written to --out")
     p.add_argument("--out", type=path_option, help="output folder (default: runs/cv-<config name>)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     args = p.parse_args(argv)
+    if args.pool and (args.reuse or args.only or args.config or args.overrides or not args.out):
+        p.error("--pool takes only --folds and an --out of its own (the recipe is the runs' own)")
     out = Path(args.out or Path("runs") / f"cv-{Path(args.config).stem if args.config else 'default'}")
+    command = command_line(p.prog, sys.argv[1:] if argv is None else list(argv))
     try:
-        config = load_config(args.config, args.overrides)
-        crossval(config, args.folds, out, progress=not args.no_progress, only=args.only, reuse=args.reuse)
+        if args.pool:
+            if (out / "crossval.csv").exists():
+                raise ValueError(f"{out}: already holds a cross-validation; choose another --out")
+            pool(args.pool, args.folds, out, command)
+        else:
+            config = load_config(args.config, args.overrides)
+            crossval(config, args.folds, out, progress=not args.no_progress, only=args.only, reuse=args.reuse,
+                     command=command)
     except UnwrittenResults as exc:           # computed, not written: the table goes to stdout all the same
         print(markdown_table(exc.rows, COLUMNS), end="")
         exit_on_input_error(p, exc)

@@ -8,8 +8,10 @@ Format (``FORMAT_NAME`` version ``FORMAT_VERSION``), arrays in one uncompressed 
                         (per sequence: dataset, split, name, epochs, content sha256), source_files
                         (dataset -> file name -> sha256 of the input files), init_model (the
                         model file fine-tuning started from: path, sha256, datasets, its data
-                        fingerprints and its own init_model; null when trained from scratch), epoch,
-                        val_rmse_3d_m, versions (lfgnss, torch, numpy), created_utc
+                        fingerprints and its own init_model; null when trained from scratch),
+                        config_file (the --config file's path and settings), provenance (the command
+                        line, working folder, git commit, dataset TOML texts; ``learning.provenance``),
+                        epoch, val_rmse_3d_m, versions (lfgnss, torch, numpy), created_utc
     normaliser_mean     (d,) float64   per-feature mean of the training split (valid slots)
     normaliser_std      (d,) float64   per-feature std
     param/<name>        float32        every tensor of ``LfgnssNet.state_dict()``
@@ -94,6 +96,8 @@ def export_model(checkpoint_path: str | Path, out_path: str | Path, *, extra_met
         "data_fingerprints": ckpt.get("data_fingerprints", []),
         "source_files": ckpt.get("source_files", {}),
         "init_model": ckpt.get("init_model"),
+        "config_file": ckpt.get("config_file"),
+        "provenance": ckpt.get("provenance"),
         "epoch": ckpt.get("epoch"),
         "val_rmse_3d_m": row.get("val_rmse_3d_m"),
         "versions": {"lfgnss": lfgnss.__version__, "torch": torch.__version__, "numpy": np.__version__},
@@ -445,3 +449,76 @@ def load_model(path: str | Path, expected_features: Iterable[str] | None = None)
     if not (np.all(np.isfinite(r)) and np.all(r > 0) and np.all(np.isfinite(vc))):
         raise ModelFileError(path, "the network gives non-finite or non-positive noise on a test input")
     return model
+
+
+# --------------------------------------------------------------------------- command line
+
+def trained_on(metadata: dict) -> str:
+    """The data a model file was trained on, e.g. 'berlin-pp (train)' or '... (train), fine-tuned from X (train)'."""
+    data = (metadata.get("config") or {}).get("data", {})
+    trained = "+".join(data.get("datasets", [])) + f" ({data.get('train_split', 'train')})"
+    init = metadata.get("init_model")
+    return trained if not init else f"{trained}, fine-tuned from {'+'.join(init.get('datasets', []))} (train)"
+
+
+def describe_model(model: LfgnssModel) -> list[str]:
+    """Readable lines on a model file: data, epoch, validation RMSE, filter settings, and how it was made."""
+    from estimators.models import EkfConfig
+
+    from .provenance import describe
+
+    meta = model.metadata
+    defaults = dataclasses.asdict(EkfConfig())
+    filter_changes = {k: v for k, v in (meta.get("ekf_config") or {}).items() if defaults.get(k, v) != v}
+    config_file = (meta.get("config_file") or {}).get("path")
+    val = meta.get("val_rmse_3d_m")
+    versions = meta.get("versions") or {}
+    return [f"{model.path}",
+            f"trained on: {trained_on(meta)}; epoch {meta.get('epoch')}, validation 3D RMSE "
+            f"{'-' if val is None else f'{val:.3f} m'}",
+            f"features: {', '.join(model.feature_names)}",
+            "filter (EkfConfig settings other than the defaults): "
+            + (", ".join(f"{k} = {v}" for k, v in filter_changes.items()) or "none"),
+            f"configuration file: {config_file or 'not recorded'} (the full configuration is in the file)",
+            *describe(meta.get("provenance")),
+            f"written {meta.get('created_utc', '?')} by lfgnss {versions.get('lfgnss', '?')}, torch "
+            f"{versions.get('torch', '?')}"]
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m learning.export CHECKPOINT OUT.npz`` writes a model file; ``--show MODEL.npz`` describes one.
+
+    Exit status 0; 2 for bad input (one line naming the file).
+    """
+    import argparse
+
+    from lfgnss.errors import INPUT_ERRORS, input_line, path_option
+
+    p = argparse.ArgumentParser(prog="python -m learning.export",
+                                description="Write a training checkpoint (best.pt / last.pt of learning.train) as a "
+                                            "model file, or describe a model file.")
+    p.add_argument("checkpoint", nargs="?", type=path_option, help="best.pt or last.pt of a learning.train run")
+    p.add_argument("out", nargs="?", type=path_option, help="model file to write (.npz)")
+    p.add_argument("--show", metavar="MODEL", type=path_option,
+                   help="describe a model file: its data, filter and how it was made (command, git commit)")
+    args = p.parse_args(argv)
+    if (args.show is None) == (args.checkpoint is None) or (args.checkpoint is not None and args.out is None):
+        p.error("give CHECKPOINT OUT.npz to export, or --show MODEL.npz to describe a model file")
+    try:
+        if args.show is not None:
+            if str(args.show).endswith(".pt"):
+                raise InputError(args.show, "a training checkpoint, not a model file: export it first "
+                                            f"(python -m learning.export {args.show} model.npz)")
+            print("\n".join(describe_model(load_model(args.show))))
+            return 0
+        if not str(args.out).endswith(".npz"):
+            raise InputError(args.out, "give the model file a .npz name (numpy would add it)")
+        written = export_model(args.checkpoint, args.out)
+        print(f"{written}: model of {args.checkpoint} (epoch {load_model(written).metadata.get('epoch')})")
+    except INPUT_ERRORS as exc:
+        p.exit(2, f"{p.prog}: error: {input_line(exc)}\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -57,6 +57,7 @@ import torch
 from lfgnss.errors import INPUT_ERRORS, one_line, shortened
 from lfgnss.sequence import DEFAULT_FEATURES, Sequence
 
+from . import provenance
 from .data import Window, make_windows, collate, resolve_feature_names, sequence_batch
 from .export import model_settings
 from .loss import error_norm_m, make_loss
@@ -779,7 +780,7 @@ def _check_config_file(config_file: str | Path, record: dict | None, where: Path
 
 def train(config: dict, out_dir: str | Path, *, resume: bool = False, overrides: list[str] = (),
           progress: bool = True, prepared: Prepared | None = None, export: bool = True,
-          config_file: str | Path | None = None) -> list[dict]:
+          config_file: str | Path | None = None, command: str | None = None) -> list[dict]:
     """Run (or resume) training; returns the history rows (epoch 0 = untrained model).
 
     Parameters
@@ -798,6 +799,9 @@ def train(config: dict, out_dir: str | Path, *, resume: bool = False, overrides:
     config_file : path, optional
         The ``--config`` file ``config`` was read from: recorded in the checkpoints; with ``resume``, refused unless
         it is that run's own file, unchanged.
+    command : str, optional
+        The command line that started (or resumed) the run: recorded with the git commit and the dataset TOMLs
+        (``learning.provenance``) in the checkpoints and the model file.
     """
     out = Path(out_dir)                       # made only once the settings and the data are found good (_train)
     last_path = out / "last.pt"
@@ -817,6 +821,10 @@ def train(config: dict, out_dir: str | Path, *, resume: bool = False, overrides:
     check_config(config)
     if checkpoint is None:
         config = adopt_init(config)     # a resumed run's checkpoint config has adopted it already
+    made = provenance.run_record(command, config)
+    if checkpoint is not None:          # the run's own record, with this resumption added
+        started = checkpoint.get("provenance") or {}
+        made = {**started, "resumes": [*started.get("resumes", []), made]}
     data = config["data"]
     if data["val_split"] == data["train_split"]:
         print(f"warning: data.val_split is data.train_split ({data['val_split']!r}): the run is validated (and with "
@@ -839,7 +847,7 @@ def train(config: dict, out_dir: str | Path, *, resume: bool = False, overrides:
                 warnings.filterwarnings("ignore", ".*does not have a deterministic implementation", UserWarning)
                 warnings.filterwarnings("ignore", ".*defaults to a non-deterministic algorithm", UserWarning)
             return _train(config, out, checkpoint, progress=progress, prepared=prepared, export=export,
-                          config_record=record, last_saved=last_saved)
+                          config_record=record, last_saved=last_saved, made=made)
     except KeyboardInterrupt as exc:                    # main says what is kept and how to go on
         exc.last_saved_epoch = last_saved["epoch"]
         raise
@@ -849,7 +857,8 @@ def train(config: dict, out_dir: str | Path, *, resume: bool = False, overrides:
 
 
 def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, prepared: Prepared | None,
-           export: bool, config_record: dict | None = None, last_saved: dict | None = None) -> list[dict]:
+           export: bool, config_record: dict | None = None, last_saved: dict | None = None,
+           made: dict | None = None) -> list[dict]:
     last_path, best_path = out / "last.pt", out / "best.pt"
     seed = int(config["seed"])
     torch.manual_seed(seed)
@@ -901,7 +910,7 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
                  "normaliser": prep.normaliser.to_dict(), "feature_names": list(prep.feature_names),
                  "n_systems": prep.n_systems, "config": config, "ekf_config": dataclasses.asdict(ekf_cfg),
                  "data_fingerprints": prep.fingerprints, "source_files": prep.source_files,
-                 "init_model": started_from, "config_file": config_record}
+                 "init_model": started_from, "config_file": config_record, "provenance": made}
         _replace_atomically(path, lambda tmp: torch.save(state, tmp))
         if path == last_path and last_saved is not None:
             last_saved["epoch"] = epoch
@@ -1025,7 +1034,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         config = load_config(args.config, args.overrides)
         history = train(config, out, resume=args.resume, overrides=args.overrides, progress=not args.no_progress,
-                        config_file=args.config)
+                        config_file=args.config,
+                        command=provenance.command_line(p.prog, sys.argv[1:] if argv is None else list(argv)))
     except INPUT_ERRORS as exc:
         exit_on_input_error(p, exc)
     except KeyboardInterrupt as exc:          # Ctrl-C: one line saying what is kept and how to go on

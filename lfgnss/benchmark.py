@@ -328,13 +328,10 @@ def dataset_rows(dataset_id: str, plugins: list[tuple[str, object]], span: Seque
 
 def _trained_on(noise) -> str:
     """Datasets and split a learned noise model was trained on ('-' for hand-set noise)."""
+    from learning.export import trained_on
+
     meta = getattr(noise, "metadata", None)
-    if meta is None:
-        return "-"
-    data = (meta.get("config") or {}).get("data", {})
-    trained = "+".join(data.get("datasets", [])) + f" ({data.get('train_split', 'train')})"
-    init = meta.get("init_model")
-    return trained if not init else f"{trained}, fine-tuned from {'+'.join(init.get('datasets', []))} (train)"
+    return "-" if meta is None else trained_on(meta)
 
 
 _COLUMNS = ("dataset", "method", "trained_on", *METRIC_COLUMNS, "epochs_per_s")

@@ -111,6 +111,10 @@ def test_reuse_scores_the_saved_fold_models_again_under_new_filter_settings(trai
     with pytest.raises(SystemExit) as exit_info:
         main(RECIPE + ["--out", str(tmp_path / "y"), "--reuse", str(tmp_path / "none")])
     assert exit_info.value.code == 2 and "none/fold0/last.pt: no saved fold model" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_info:                            # a run of 2 folds rescored as 3
+        main(RECIPE + ["--folds", "3", "--out", str(tmp_path / "v"), "--reuse", str(run)])
+    assert exit_info.value.code == 2 and "fold2/last.pt: no saved fold model (--reuse takes the --out folder of an " \
+        "earlier cross-validation of the same recipe and --folds; --folds 3 asks for fold 2)" in capsys.readouterr().err
     assert not (tmp_path / "y").exists()
     tampered = tmp_path / "tampered" / "fold0"
     tampered.mkdir(parents=True)
@@ -246,3 +250,51 @@ def test_several_datasets_get_a_row_each_per_fold_and_pooled(monkeypatch, tmp_pa
     assert [r["fold"] for r in rescored] == folds
     for a, b in zip(rows, rescored):
         assert a["last_rmse_3d_m"] == pytest.approx(b["last_rmse_3d_m"]), a["fold"]
+
+
+def test_pool_puts_parallel_fold_runs_in_one_table_with_the_pooled_rows(trained_run, tmp_path, capsys):
+    """``--pool`` of one folder per fold (as ``--fold J`` runs leave them) gives the whole run's table back, pooled
+    row included, training nothing; a fold missing or given twice, or folds of two recipes, is one line, exit 2."""
+    import shlex
+    import shutil
+
+    import torch
+
+    run, args = trained_run
+    whole = _rows(run)
+    command = f"python -m learning.crossval {shlex.join(args)}"
+    assert (run / "crossval.md").read_text().startswith(f"Produced by `{command}` (")   # then the code's git commit
+    for j in (0, 1):                                    # what `--fold j --out part<j>` leaves
+        shutil.copytree(run / f"fold{j}", tmp_path / f"part{j}" / f"fold{j}")
+        with open(tmp_path / f"part{j}" / "crossval.csv", "w", newline="") as fh:
+            w = csv.DictWriter(fh, fieldnames=list(whole[0]))
+            w.writeheader()
+            w.writerow(whole[j])
+    parts = ["--pool", str(tmp_path / "part0"), "--pool", str(tmp_path / "part1")]
+    assert main(["--folds", "2", *parts, "--out", str(tmp_path / "all")]) == 0
+    pooled = _rows(tmp_path / "all")
+    assert [r["fold"] for r in pooled] == ["0", "1", "pooled"]
+    for a, b in zip(pooled, whole):
+        for key, value in b.items():
+            assert value == a[key] if key in ("fold", "held_out_epochs", "best_epoch") else \
+                float(a[key]) == pytest.approx(float(value), rel=1e-12), key
+    assert "| pooled | 180 | " in capsys.readouterr().out
+    for argv, message in (
+            (["--folds", "3", *parts], "fold(s) 2 of --folds 3 are in none of the --pool folders"),
+            (["--folds", "2", *parts, "--pool", str(run)], "fold 0 is in"),
+            (["--folds", "2", "--pool", str(tmp_path / "part0")], "fold(s) 1 of --folds 2 are in none"),
+            (["--folds", "2", "--pool", str(tmp_path / "nowhere")], "nowhere/crossval.csv: cannot read it")):
+        with pytest.raises(SystemExit) as exit_info:
+            main(argv + ["--out", str(tmp_path / "x")])
+        err = capsys.readouterr().err
+        assert exit_info.value.code == 2 and message in err and len(err.strip().splitlines()) == 1, err
+    saved = torch.load(tmp_path / "part1" / "fold1" / "last.pt", map_location="cpu", weights_only=False)
+    saved["config"]["seed"] = 7
+    torch.save(saved, tmp_path / "part1" / "fold1" / "last.pt")
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--folds", "2", *parts, "--out", str(tmp_path / "y")])
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and "fold 1 was trained with seed = 7, fold 0 with 0; pool runs of one recipe" in err
+    with pytest.raises(SystemExit) as exit_info:        # the recipe is the runs' own: --set is refused, not ignored
+        main(["--folds", "2", *parts, "--set", "seed=1", "--out", str(tmp_path / "z")])
+    assert exit_info.value.code == 2 and "--pool takes only --folds and an --out" in capsys.readouterr().err

@@ -1,0 +1,117 @@
+"""A model file says how it was made (learning.provenance), and ``python -m learning.export`` writes and shows one."""
+import shlex
+import shutil
+import subprocess
+
+import numpy as np
+import pytest
+
+from learning import provenance
+from learning.export import load_model, main as export_main
+from learning.train import main as train_main
+
+CONFIG = "learning/configs/default.toml"
+TINY = ["data.datasets=['synthetic']", "data.synthetic.n_epochs=150", "data.window=20", "data.stride=10",
+        "train.batch_size=4", "threads=1", "train.epochs=1"]
+
+
+def _sets(settings):
+    return [x for s in settings for x in ("--set", s)]
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    """A 1-epoch training run from the command line: (its --out folder, its arguments)."""
+    out = tmp_path_factory.mktemp("prov") / "run"
+    argv = ["--config", CONFIG, "--out", str(out), "--no-progress"] + _sets(TINY)
+    assert train_main(argv) == 0
+    return out, argv
+
+
+def _head() -> str | None:
+    try:
+        return subprocess.run(["git", "-C", str(provenance.CODE_ROOT), "rev-parse", "HEAD"], capture_output=True,
+                              text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return None
+
+
+def test_the_model_file_records_the_command_the_code_and_the_config_file(run):
+    out, argv = run
+    meta = load_model(out / "model.npz").metadata
+    made = meta["provenance"]
+    assert made["command"] == "python -m learning.train " + shlex.join(argv)
+    assert made["git"] == (None if _head() is None else {"commit": _head(), "dirty": made["git"]["dirty"]})
+    assert made["dataset_tomls"] == {} and made["started_utc"].endswith("+00:00")
+    assert meta["config_file"]["path"].endswith("learning/configs/default.toml")
+    assert meta["config_file"]["settings"]["train"]["epochs"] == 200         # the file's own, before --set
+
+
+def test_a_resumed_run_keeps_its_start_and_adds_the_resumption(run, tmp_path):
+    out, argv = run
+    again = tmp_path / "run"
+    shutil.copytree(out, again)
+    resume = ["--resume", "--out", str(again), "--no-progress", "--set", "train.epochs=2"]
+    assert train_main(resume) == 0
+    made = load_model(again / "model.npz").metadata["provenance"]
+    assert made["command"] == "python -m learning.train " + shlex.join(argv)
+    assert [r["command"] for r in made["resumes"]] == ["python -m learning.train " + shlex.join(resume)]
+    lines = provenance.describe(made)
+    assert lines[0].startswith("trained ") and any(line.startswith("resumed ") for line in lines)
+
+
+def test_registered_dataset_tomls_are_kept_whole(tmp_path):
+    toml = tmp_path / "my-drive.toml"
+    toml.write_text('id = "my-drive"\n')
+    kept = provenance.registered_tomls({"data": {"register": [str(toml), str(tmp_path / "gone.toml")]}})
+    assert kept[str(toml)] == 'id = "my-drive"\n'
+    assert kept[str(tmp_path / "gone.toml")].startswith("(not readable: ")
+    assert provenance.git_state(tmp_path) is None                            # not a checkout: no commit claimed
+    assert "not recorded" in provenance.describe(None)[0]
+
+
+def test_export_command_writes_the_runs_model_and_show_describes_it(run, tmp_path, capsys):
+    out, argv = run
+    written = tmp_path / "best.npz"
+    assert export_main([str(out / "best.pt"), str(written)]) == 0
+    mine, runs = load_model(written), load_model(out / "model.npz")          # select = "val": model.npz is best.pt
+    assert mine.metadata["epoch"] == runs.metadata["epoch"]
+    assert all(np.array_equal(mine.params[k], runs.params[k]) for k in runs.params)
+    capsys.readouterr()
+    assert export_main(["--show", str(written)]) == 0
+    shown = capsys.readouterr().out
+    assert "trained on: synthetic (train); epoch " in shown
+    assert f"  command: python -m learning.train {shlex.join(argv)}" in shown
+    assert "configuration file: " in shown and "default.toml" in shown
+
+
+def test_show_of_a_bundled_model_says_what_is_not_recorded(capsys):
+    assert export_main(["--show", "lfgnss/data/model/lfgnss-berlin-pp.npz"]) == 0
+    shown = capsys.readouterr().out
+    assert "trained on: berlin-pp (train); epoch 120" in shown
+    assert "huber_k = 2.0" in shown and "q_vel_up_m2_s3 = 0.1" in shown
+    assert "provenance: not recorded" in shown
+
+
+@pytest.mark.parametrize("argv", [[], ["a.pt"], ["a.pt", "b.npz", "--show", "c.npz"]])
+def test_export_command_usage(argv, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        export_main(argv)
+    usage, error = capsys.readouterr().err.strip().splitlines()              # argparse's usage line, then the error
+    assert exit_info.value.code == 2 and usage.startswith("usage: python -m learning.export")
+    assert error.endswith("give CHECKPOINT OUT.npz to export, or --show MODEL.npz to describe a model file")
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["a.pt", "model"], "model: give the model file a .npz name"),
+    (["missing.pt", "m.npz"], "missing.pt: not a usable training checkpoint"),
+    (["--show", "x.pt"], "x.pt: a training checkpoint, not a model file: export it first"),
+    (["--show", "missing.npz"], "missing.npz: no such model file"),
+])
+def test_export_command_bad_input_is_one_line(argv, message, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as exit_info:
+        export_main(argv)
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and message in err and len(err.strip().splitlines()) == 1, err
+    assert not list(tmp_path.iterdir())
