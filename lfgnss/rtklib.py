@@ -96,9 +96,14 @@ def options_text(systems: Iterable[str], elevation_mask_deg: float = 10.0, overr
     return "".join(f"{k.ljust(width)} ={v}\n" for k, v in opts.items())
 
 
+def default_timeout_s(inputs: Iterable[str | Path]) -> float:
+    """Wall-clock limit [s] for rnx2rtkp on ``inputs``: 60 s, plus 30 s per MB (about 30 times its usual time)."""
+    return 60.0 + 30.0 * sum(Path(p).stat().st_size for p in inputs) / 1e6
+
+
 def run_rnx2rtkp(obs: str | Path, navs: str | Path | Sequence[str | Path], out_pos: str | Path, *,
                  systems: Iterable[str], elevation_mask_deg: float = 10.0, extra_args: Sequence[str] = (),
-                 options: dict | None = None, timeout_s: float = 600.0) -> tuple[Path, float]:
+                 options: dict | None = None, timeout_s: float | None = None) -> tuple[Path, float]:
     """Single-point positioning of ``obs`` with RTKLIB, benchmark settings; returns (``out_pos``, seconds).
 
     Parameters
@@ -111,7 +116,8 @@ def run_rnx2rtkp(obs: str | Path, navs: str | Path | Sequence[str | Path], out_p
     extra_args : more rnx2rtkp arguments, e.g. ``("-ts", "2019/04/28", "12:58:00", "-te", ...)``;
         command-line options take precedence over the options file.
     options : more ``-k`` options (name -> value), e.g. ``{"pos1-snrmask_r": "on"}``.
-    timeout_s : wall-clock limit.
+    timeout_s : wall-clock limit [s]; None: ``default_timeout_s`` of the inputs (rnx2rtkp reads a few MB a second,
+        so a hung process is stopped in minutes, not left for ten).
 
     The seconds returned are the wall time of the rnx2rtkp process alone.
 
@@ -138,6 +144,7 @@ def run_rnx2rtkp(obs: str | Path, navs: str | Path | Sequence[str | Path], out_p
         conf = Path(tmp) / "spp.conf"
         conf.write_text(text)
         cmd = [exe, "-k", str(conf), *map(str, extra_args), "-o", str(out_pos), *map(str, inputs)]
+        timeout_s = default_timeout_s(inputs) if timeout_s is None else timeout_s
         t0 = time.perf_counter()
         try:
             proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s)

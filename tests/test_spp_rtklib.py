@@ -100,3 +100,20 @@ def test_run_rnx2rtkp_missing_input(rnx2rtkp, tmp_path):
 
     with pytest.raises(FileNotFoundError, match="a.obs"):
         rtklib.run_rnx2rtkp(tmp_path / "a.obs", [tmp_path / "b.nav"], tmp_path / "o.pos", systems="G")
+
+
+def test_a_hung_rnx2rtkp_is_stopped_by_a_limit_that_grows_with_the_input(tmp_path, monkeypatch):
+    """No real RTKLIB needed: a stand-in that never finishes is stopped (one line naming the command), and the
+    default limit is 60 s plus 30 s per MB of input."""
+    from lfgnss import rtklib
+
+    hung = tmp_path / "rnx2rtkp"
+    hung.write_text("#!/bin/sh\nsleep 30\n")
+    hung.chmod(0o755)
+    monkeypatch.setenv("LFGNSS_RNX2RTKP", str(hung))
+    obs, nav = tmp_path / "a.obs", tmp_path / "b.nav"
+    obs.write_bytes(b"x" * 2_000_000)
+    nav.write_bytes(b"x" * 1_000_000)
+    assert rtklib.default_timeout_s([obs, nav]) == pytest.approx(150.0)
+    with pytest.raises(rtklib.RtklibError, match=r"rnx2rtkp timed out after 0.5 s: .*rnx2rtkp -k "):
+        rtklib.run_rnx2rtkp(obs, [nav], tmp_path / "o.pos", systems="G", timeout_s=0.5)
