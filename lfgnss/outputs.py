@@ -423,8 +423,12 @@ def align_to(time_gps_s: np.ndarray, other: Solution) -> np.ndarray:
 
 
 def _legend(ax) -> None:
-    """Legend only when something is labelled (no matplotlib warning on empty plots)."""
-    if ax.get_legend_handles_labels()[0]:
+    """Legend only when something is labelled (no matplotlib warning on empty plots); beside the axes, not over the
+    curves, when there are more than four entries."""
+    n = len(ax.get_legend_handles_labels()[0])
+    if n > 4:
+        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize="small", borderaxespad=0.0)
+    elif n:
         ax.legend(loc="best")
 
 
@@ -516,6 +520,9 @@ def plot_solution(out_dir: str | Path, solution: Solution, truth_ecef_m: np.ndar
         ax2.plot(t_rel, np.hypot(e[:, 0], e[:, 1]), ".-", ms=3, lw=0.8, color=colour[name], label=name)
         axu.plot(t_rel, e[:, 2], ".-", ms=3, lw=0.8, color=colour[name], label=name)
     ax2.set_ylabel("2D error [m]")
+    ax2.set_yscale("log")                   # 0.5 m and 50 m both readable when estimators differ tenfold
+    ax2.yaxis.set_major_formatter(ScalarFormatter())
+    ax2.yaxis.set_minor_formatter(NullFormatter())
     axu.set_ylabel("up error [m]")
     axu.set_xlabel("time since first epoch [s]")
     for a in (ax2, axu):
