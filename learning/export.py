@@ -188,6 +188,14 @@ class LfgnssModel:
         if (innovation is not None) != self.online or (innovation is not None and np.shape(innovation) != mask.shape):
             raise ValueError(f"{self.path}: this model {'needs' if self.online else 'takes no'} innovations shaped "
                              f"like the mask {mask.shape}")
+        bad = mask[..., None] & ~np.isfinite(features)
+        if bad.any():   # the normaliser would put the training mean there and the network would run on it unseen
+            first = tuple(np.argwhere(bad)[0])
+            *where, slot, k = first
+            epoch = f"epoch {where[-1]}, " if where else ""
+            raise ValueError(f"{self.path}: feature {self.feature_names[k]!r} is {features[first]} at {epoch}satellite "
+                             f"slot {slot} ({int(bad.any(-1).sum())} satellite slot(s) in all); give finite features "
+                             "on every masked-in slot (or mask the slot out)")
         lead, n = mask.shape[:-1], mask.shape[-1]
         x = self.normaliser.apply(features, mask)
         if self.online:

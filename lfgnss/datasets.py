@@ -40,7 +40,7 @@ import numpy as np
 
 from .constants import SYSTEMS
 from .errors import InputError
-from .frames import lla_to_ecef
+from .frames import NEAR_SURFACE_RADIUS_M, lla_to_ecef
 from .paths import cache_dir, shared_data_dir
 from .sequence import DEFAULT_FEATURES, Sequence, load_sequence, save_sequence
 from .time import gps_s_to_week_tow, week_tow_to_gps_s
@@ -272,7 +272,7 @@ def get(dataset_id: str, *, hint: str | None = None) -> DatasetSpec:
 
 #: A ground truth point is near the Earth's surface: ECEF radius [m] within these bounds (ocean floor to airliner
 #: height and more), ellipsoidal height [m] within TRUTH_HEIGHT_M.
-TRUTH_RADIUS_M = (6.0e6, 6.6e6)
+TRUTH_RADIUS_M = NEAR_SURFACE_RADIUS_M
 TRUTH_HEIGHT_M = (-1.0e4, 1.0e5)
 
 
@@ -416,6 +416,7 @@ def align_truth(time_gps_s: np.ndarray, spec: DatasetSpec) -> tuple[np.ndarray, 
     A spec without ``time_origin_gps_s`` counts smartloc truth times from the first epoch, ``time_gps_s[0]``.
     """
     time_gps_s = np.asarray(time_gps_s, dtype=float)
+    guessed = spec.time_origin_gps_s is None and spec.truth_format == "smartloc"
     if spec.time_origin_gps_s is None:
         spec = replace(spec, time_origin_gps_s=float(time_gps_s[0]) if time_gps_s.size else 0.0)
     try:
@@ -435,6 +436,13 @@ def align_truth(time_gps_s: np.ndarray, spec: DatasetSpec) -> tuple[np.ndarray, 
     left = np.clip(right - 1, 0, t_truth.size - 1)
     nearest = np.where(np.abs(t_truth[left] - time_gps_s) <= np.abs(t_truth[right] - time_gps_s), left, right)
     ok = np.abs(t_truth[nearest] - time_gps_s) <= spec.match_tolerance_s
+    inside = (time_gps_s >= t_truth[0]) & (time_gps_s <= t_truth[-1])
+    if guessed and inside.sum() >= 10 and ok[inside].mean() < 0.9:
+        # smartloc truth is stamped at the receiver's epochs: a right origin matches nearly every epoch it spans
+        warnings.warn(f"{spec.truth}: only {int(ok[inside].sum())} of {int(inside.sum())} epochs within the truth's "
+                      f"time span match a truth time when its t = 0 is taken as the first epoch given (GPS "
+                      f"{spec.time_origin_gps_s:.1f} s); if these epochs do not start where the truth does, give the "
+                      "GPS time of its t = 0 (time_origin_gps_s, --truth-origin)", stacklevel=3)
     return np.where(ok[:, None], xyz[nearest], np.nan), bad
 
 

@@ -62,3 +62,23 @@ def azimuth_elevation(rcv_ecef_m: np.ndarray, sat_ecef_m: np.ndarray) -> tuple[n
     az = np.mod(np.arctan2(enu[..., 0], enu[..., 1]), 2.0 * np.pi)
     el = np.arctan2(enu[..., 2], np.hypot(enu[..., 0], enu[..., 1]))
     return az, el
+
+
+#: Distance from the Earth's centre [m] a ground or airborne receiver's ECEF position lies within.
+NEAR_SURFACE_RADIUS_M = (6.0e6, 6.6e6)
+
+
+def check_near_surface(owner: str, name: str, ecef_m: np.ndarray) -> None:
+    """ValueError unless every finite row of ``ecef_m`` (..., 3) [m] lies near the Earth's surface (ECEF metres).
+
+    Catches positions given in other units, e.g. latitude/longitude/height or kilometres, before they give RMSEs of
+    thousands of kilometres; NaN rows (no position) pass.
+    """
+    xyz = np.asarray(ecef_m, dtype=float).reshape(-1, 3)
+    r = np.linalg.norm(xyz[np.isfinite(xyz).all(axis=1)], axis=1)
+    low, high = NEAR_SURFACE_RADIUS_M
+    far = (r < low) | (r > high)
+    if far.any():
+        raise ValueError(f"{owner}: {name} has {int(far.sum())} row(s) {r[far][0]:.6g} m (first) from the Earth's "
+                         f"centre, outside [{low:g}, {high:g}]: it must be ECEF metres (convert latitude/longitude/"
+                         "height (radians, metres) with lfgnss.frames.lla_to_ecef)")

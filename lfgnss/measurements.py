@@ -159,6 +159,9 @@ def load(obs: str | Path | Observations, nav: str | Path | Iterable[str | Path] 
         raise RinexError(observations.path, f"no observations of the requested constellations {''.join(wanted)} "
                                             f"(the file has {''.join(s for s in SYSTEMS if s in present)})")
 
+    if observations.pr_m.shape[0] == 0:
+        raise RinexError(observations.path, "no epoch: the Observations given hold none (an empty selection of the "
+                                            "file?)")
     # C/N0 of 0 (written by converters for "not recorded"), negative or absurd (damaged field): missing
     cn0 = observations.cn0_dbhz.copy()
     cn0[~((cn0 > 0.0) & (cn0 <= qc_config.cn0_max_dbhz))] = np.nan

@@ -9,7 +9,7 @@ from typing import Iterable, Mapping
 
 import numpy as np
 
-from .frames import ecef_to_lla
+from .frames import check_near_surface, ecef_to_lla
 
 #: Keys of an accuracy row, in table order, with column titles.
 METRIC_COLUMNS: dict[str, str] = {
@@ -99,6 +99,12 @@ def accuracy_table(est_ecef_m: np.ndarray, truth_ecef_m: np.ndarray, available: 
     avail = np.isfinite(est).all(axis=-1) if available is None else np.asarray(available, dtype=bool)
     if avail.shape != (t,):
         raise ValueError(f"accuracy_table: available has shape {avail.shape}, expected ({t},)")
+    check_near_surface("accuracy_table", "truth_ecef_m", truth)
+    inner = np.linalg.norm(np.where(np.isfinite(est), est, np.inf), axis=-1) < 1.0e6   # a diverged fix is not in there
+    if inner.any():
+        raise ValueError(f"accuracy_table: est_ecef_m has {int(inner.sum())} row(s) within 1000 km of the Earth's "
+                         f"centre (first {est[inner][0].tolist()}): it must be ECEF metres, not latitude/longitude/"
+                         "height (Solution.pos_ecef_m, not Solution.geodetic())")
     err = enu_errors(est, truth)
     labelled = np.isfinite(truth).all(axis=1)
     solved = labelled & avail & np.isfinite(est).all(axis=1)
