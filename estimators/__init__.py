@@ -22,6 +22,11 @@ def __getattr__(name: str):
         return LfgnssFgo
     raise AttributeError(f"module 'estimators' has no attribute {name!r}")
 
+
+def __dir__() -> list[str]:
+    """The module's names and the lazy ``LfgnssFgo`` (tab completion, ``dir(estimators)``)."""
+    return sorted(set(globals()) | {"LfgnssFgo"})
+
 __all__ = ["Estimator", "Solution", "available", "backend_options", "create", "register", "STATUS_NONE",
            "STATUS_UPDATED", "STATUS_COASTED", "STATUS_RESET", "STATUS_NAMES", "EkfConfig", "NoiseModel",
            "HeuristicNoise", "FixedNoise", "TruthNoise", "LfgnssEkf", "LfgnssFgo", "PlainEkf"]

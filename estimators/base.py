@@ -4,6 +4,9 @@ from __future__ import annotations
 import difflib
 import importlib
 import inspect
+import os
+import sys
+import warnings
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Callable, Iterable, Protocol, runtime_checkable
 
@@ -11,7 +14,7 @@ import numpy as np
 
 from lfgnss.frames import ecef_to_enu, ecef_to_lla
 from lfgnss.metrics import enu_rotations
-from lfgnss.sequence import Sequence
+from lfgnss.sequence import Sequence, share_text, time_span_text
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -24,12 +27,13 @@ STATUS_RESET = 3       # state re-initialised from the coarse fix (start or dive
 STATUS_NAMES = {STATUS_NONE: "none", STATUS_UPDATED: "updated", STATUS_COASTED: "coasted", STATUS_RESET: "reset"}
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False, repr=False)
 class Solution:
     """Per-epoch output of an estimator, shapes (T, ...).
 
     ``pos_ecef_m`` is NaN only where ``status == STATUS_NONE``. ``geodetic()``, ``enu_m()``, ``sd_enu_m()`` and
-    ``to_frame()`` convert it (NaN where an epoch has no position); ``subset()`` selects epochs.
+    ``to_frame()`` convert it (NaN where an epoch has no position); ``subset()`` selects epochs. ``repr`` is one
+    line (backend, epochs, time span, statuses); ``==`` is identity, as the arrays have no single truth value.
     """
 
     backend: str
@@ -49,6 +53,19 @@ class Solution:
 
     def __len__(self) -> int:
         return int(np.shape(self.time_gps_s)[0])
+
+    def __repr__(self) -> str:
+        """One line: backend, epochs, time span, share with a position and the status counts (no arrays)."""
+        status = np.asarray(self.status).ravel()
+        counts = ", ".join(f"{name} {int(np.count_nonzero(status == code))}" for code, name in STATUS_NAMES.items()
+                           if np.any(status == code))
+        smoothed = ""
+        if self.info.get("smooth"):
+            lag = float(self.info.get("smooth_lag_s", np.inf))
+            smoothed = ", smoothed (RTS" + (f", lag {lag:g} s)" if np.isfinite(lag) else ")")
+        return (f"<Solution {self.backend!r}: {len(self)} epochs, {time_span_text(self.time_gps_s)}, "
+                f"{share_text(self.has_position(), 'with a position')}" + (f" ({counts})" if counts else "")
+                + smoothed + ">")
 
     def has_position(self) -> np.ndarray:
         """(T,) bool: status is not none and the ECEF position is finite (the epochs the writers write)."""
@@ -126,6 +143,24 @@ class Estimator(Protocol):
 
 _REGISTRY: dict[str, Callable[..., Estimator]] = {}
 
+_PACKAGE_DIR = os.path.normcase(os.path.dirname(os.path.abspath(__file__)))
+
+
+def caller_stacklevel() -> int:
+    """``stacklevel`` for ``warnings.warn`` in the calling function that names the first frame outside this package."""
+    frame, level = sys._getframe(1), 1
+    while frame is not None and os.path.normcase(os.path.dirname(os.path.abspath(frame.f_code.co_filename))) \
+            == _PACKAGE_DIR:
+        frame, level = frame.f_back, level + 1
+    return level
+
+
+def check_flag(value: object, key: str, owner: str) -> bool:
+    """``value`` as a bool if it is True or False (numpy's too); TypeError naming ``owner`` and ``key`` otherwise."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise TypeError(f"{owner}: {key} must be True or False, got {value!r}")
+    return bool(value)
+
 
 def check_sequence(sequence: object, owner: str) -> Sequence:
     """``sequence`` if it is a Sequence with finite epoch times; TypeError or ValueError naming ``owner`` otherwise."""
@@ -154,12 +189,31 @@ def usable_doppler(sequence: Sequence) -> np.ndarray:
             & np.isfinite(sequence.sat_vel_ecef_m_s).all(-1))
 
 
-def usable_sequence(sequence: Sequence) -> Sequence:
+def warn_unusable(sequence: Sequence, usable: np.ndarray, owner: str) -> None:
+    """One warning naming ``sequence`` and how many masked-in slots (and epochs) ``usable`` (T, N) leaves out.
+
+    Masked-in slots with a non-finite pseudorange or satellite position, or no known system, are skipped; an epoch
+    left with none is coasted (or has no position). Nothing when every masked-in slot is usable.
+    """
+    dropped = np.asarray(sequence.mask, bool) & ~usable
+    if not dropped.any():
+        return
+    epochs = dropped.any(axis=1)
+    emptied = int(np.count_nonzero(epochs & ~usable.any(axis=1)))
+    warnings.warn(f"{owner}: {int(dropped.sum())} masked-in slots in {int(epochs.sum())} epochs of {sequence.name!r} "
+                  f"(first at epoch {int(np.argmax(epochs))}) have a non-finite pseudorange or satellite position "
+                  f"(or no known system) and are skipped; {emptied} epochs are left without a usable satellite",
+                  UserWarning, stacklevel=caller_stacklevel())
+
+
+def usable_sequence(sequence: Sequence, owner: str = "estimators") -> Sequence:
     """``sequence`` with unusable masked-in slots (non-finite pseudorange, satellite state or Doppler) masked out.
 
-    The same object when every masked-in slot is usable, as in every Sequence ``lfgnss.build_sequence`` makes.
+    The same object when every masked-in slot is usable, as in every Sequence ``lfgnss.build_sequence`` makes;
+    otherwise ``warn_unusable`` says, once, how many pseudorange slots ``owner`` skips.
     """
     usable, doppler = usable_measurements(sequence), usable_doppler(sequence)
+    warn_unusable(sequence, usable, owner)
     if np.array_equal(usable, sequence.mask) and np.array_equal(doppler, sequence.prr_mask):
         return sequence
     return replace(sequence, mask=usable, pr_m=np.where(usable, sequence.pr_m, 0.0),

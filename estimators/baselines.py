@@ -21,7 +21,8 @@ class _LeastSquares:
 
     def solve(self, sequence: Sequence) -> Solution:
         """Least-squares fix of each epoch on its own (no filtering); positions [m], covariances [m^2]."""
-        sequence = usable_sequence(check_sequence(sequence, self.name))   # NaN-free slots (the same on valid input)
+        # NaN-free slots (the same object on valid input)
+        sequence = usable_sequence(check_sequence(sequence, self.name), self.name)
         if self.noise is None:
             r = np.ones(sequence.mask.shape)
         else:

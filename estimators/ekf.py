@@ -39,10 +39,12 @@ from lfgnss.features import innovation_feature
 from lfgnss.sequence import Sequence
 
 from . import models
-from .base import (STATUS_COASTED, STATUS_NONE, STATUS_RESET, STATUS_UPDATED, Solution, check_sequence, epoch_range,
-                   options_of, register, usable_doppler, usable_measurements)
+from .base import (STATUS_COASTED, STATUS_NONE, STATUS_RESET, STATUS_UPDATED, Solution, caller_stacklevel,
+                   check_flag, check_sequence, epoch_range, options_of, register, usable_doppler, usable_measurements,
+                   warn_unusable)
 from .models import EkfConfig
-from .noise import HeuristicNoise, NoiseModel, checked_noise, default_noise, noise_output, resolve_noise
+from .noise import (HeuristicNoise, NoiseModel, checked_noise, default_noise, describe_noise, noise_output,
+                    resolve_noise)
 from .smoother import lag_horizon, rts_smooth
 
 
@@ -64,8 +66,23 @@ def config_of(noise: NoiseModel) -> EkfConfig:
     if unknown:
         warnings.warn(f"estimators/ekf.py: the model file's filter settings {unknown} are unknown "
                       f"to this version of lfgnss and ignored: the model runs in a filter other than its own "
-                      f"(update lfgnss)", stacklevel=2)
+                      f"(update lfgnss)", stacklevel=caller_stacklevel())
     return models.stored_ekf_config(stored)
+
+
+def smoothed_name(base: str, smooth: bool, smooth_lag_s: float) -> str:
+    """Backend label of a run as ``python -m lfgnss.solve`` names its files: ``ekf``, ``ekf-rts``, ``ekf-rts-lag2s``."""
+    if not smooth:
+        return base
+    return base + "-rts" + (f"-lag{smooth_lag_s:g}s" if math.isfinite(smooth_lag_s) else "")
+
+
+def config_changes(config: EkfConfig) -> str:
+    """``EkfConfig(...)`` with only the settings that differ from the defaults (``EkfConfig()`` when none do)."""
+    default = EkfConfig()
+    changed = ", ".join(f"{f.name}={getattr(config, f.name)!r}" for f in fields(EkfConfig)
+                        if getattr(config, f.name) != getattr(default, f.name))
+    return f"EkfConfig({changed})"
 
 
 def _given(_x: np.ndarray, value: np.ndarray) -> np.ndarray:
@@ -85,14 +102,16 @@ class LfgnssEkf:
     config : EkfConfig
         Process noise, initial covariance, gate and reset settings; default: those the noise model
         was trained with (``config_of``), else ``EkfConfig()``.
-    name : str
-        Backend label written into the Solution.
+    name : str, optional
+        Backend label written into the Solution; default the backend's name, with ``smooth`` as the command line
+        names the run's files (``smoothed_name``: ``ekf-rts``, ``ekf-rts-lag2s``).
     use_compensation : bool
         Add ``v^c`` to the innovation (False: ignore the model's ``v^c``).
     smooth : bool
         Post-process the forward run with the Rauch-Tung-Striebel smoother (``estimators.smoother``): each
         epoch then uses the epochs after it too, up to the next re-initialisation. Gates, resets and
-        statuses are the forward filter's; ``info["filtered_state"]`` keeps its states.
+        statuses are the forward filter's; ``info["filtered_state"]`` keeps its states. Every Solution's
+        ``info["smooth"]`` and ``info["smooth_lag_s"]`` (0 for the forward filter) say which it is.
     smooth_lag_s : float
         With ``smooth``: use only the epochs up to this many seconds later (a fixed-lag smoother, whose
         estimate of an epoch is ready that much later); ``inf``: the whole run. Without ``smooth`` only 0
@@ -102,11 +121,18 @@ class LfgnssEkf:
         Show a tqdm bar over the epochs on a terminal (``python -m lfgnss.solve`` does, unless ``--quiet``).
     """
 
+    #: The backend's name, the start of ``name`` (``smoothed_name``).
+    default_name = "ekf"
+
     def __init__(self, noise: NoiseModel | str | os.PathLike | None = None, config: EkfConfig | None = None,
-                 name: str = "ekf", use_compensation: bool = True, smooth: bool = False,
+                 name: str | None = None, use_compensation: bool = True, smooth: bool = False,
                  smooth_lag_s: float = math.inf, progress: bool = False) -> None:
-        if not isinstance(smooth, (bool, np.bool_)):
-            raise TypeError(f"{type(self).__name__}: smooth must be True or False, got {smooth!r}")
+        owner = type(self).__name__
+        smooth = check_flag(smooth, "smooth", owner)
+        use_compensation = check_flag(use_compensation, "use_compensation", owner)
+        progress = check_flag(progress, "progress", owner)
+        if name is not None and not isinstance(name, str):
+            raise TypeError(f"{owner}: name must be a string, got {type(name).__name__}")
         if isinstance(smooth_lag_s, bool) or not isinstance(smooth_lag_s, numbers.Real):
             raise TypeError(f"{type(self).__name__}: smooth_lag_s must be a number of seconds, got {smooth_lag_s!r}")
         if not smooth_lag_s >= 0:
@@ -120,11 +146,21 @@ class LfgnssEkf:
         noise = resolve_noise(noise, type(self).__name__)
         self.noise = HeuristicNoise() if noise is None else noise
         self.config = config_of(self.noise) if config is None else config
-        self.name = name
-        self.use_compensation = use_compensation
-        self.smooth = bool(smooth)
+        self.smooth = smooth
         self.smooth_lag_s = float(smooth_lag_s)
-        self.progress = bool(progress)
+        self.name = smoothed_name(self.default_name, smooth, self.smooth_lag_s) if name is None else name
+        self.use_compensation = use_compensation
+        self.progress = progress
+
+    def __repr__(self) -> str:
+        """The settings: name, noise model, config changes from the defaults, and options off their defaults."""
+        parts = [f"name={self.name!r}", f"noise={describe_noise(self.noise)}", f"config={config_changes(self.config)}"]
+        parts += ["use_compensation=False"] if not self.use_compensation else []
+        if self.smooth:
+            parts += ["smooth=True"] + ([f"smooth_lag_s={self.smooth_lag_s:g}"] if math.isfinite(self.smooth_lag_s)
+                                        else [])
+        parts += ["progress=True"] if self.progress else []
+        return f"{type(self).__name__}({', '.join(parts)})"
 
     def noise_arrays(self, sequence: Sequence, usable: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(r_m2, vc_m), each (T, N), from the noise model, checked on the usable slots."""
@@ -151,6 +187,7 @@ class LfgnssEkf:
             raise ValueError(f"{type(self).__name__}: epoch times of {sequence.name!r} do not increase at epoch {k}")
 
         usable = usable_measurements(sequence)
+        warn_unusable(sequence, usable, type(self).__name__)
         pr_all = np.where(usable, sequence.pr_m, 0.0)
         online = bool(getattr(self.noise, "online", False))
         if online:
@@ -300,7 +337,7 @@ class LfgnssEkf:
 
         info = {"n_gated": n_gated, "n_usable": usable.sum(1), "n_doppler": n_doppler,
                 "clock_realigned": clock_realigned, "config": cfg, "filtered_state": state, "r_m2": r_all,
-                "vc_m": vc_all}
+                "vc_m": vc_all, "smooth": self.smooth, "smooth_lag_s": self.smooth_lag_s if self.smooth else 0.0}
         if self.smooth:
             horizon = lag_horizon(time, self.smooth_lag_s) if math.isfinite(self.smooth_lag_s) else None
             state, cov = rts_smooth(state, cov, prior, prior_cov, steps, status == STATUS_RESET, horizon)
@@ -321,12 +358,14 @@ def create_lfgnss_ekf(noise: NoiseModel | str | os.PathLike | None = None, **opt
 class PlainEkf(LfgnssEkf):
     """The baseline: the same EKF, gate and resets with hand-set ``HeuristicNoise`` R and no v^c."""
 
+    default_name = "plain-ekf"
+
     def __init__(self, noise: HeuristicNoise | None = None, config: EkfConfig | None = None,
-                 name: str = "plain-ekf", smooth: bool = False, smooth_lag_s: float = math.inf,
+                 name: str | None = None, smooth: bool = False, smooth_lag_s: float = math.inf,
                  progress: bool = False) -> None:
         super().__init__(noise=HeuristicNoise() if noise is None else noise, config=config, name=name,
                          use_compensation=False, smooth=smooth, smooth_lag_s=smooth_lag_s, progress=progress)
 
 
-__all__ = ["config_of", "LfgnssEkf", "create_lfgnss_ekf", "PlainEkf", "compensated_pseudorange", "usable_measurements",
-           "coarse_available"]
+__all__ = ["config_of", "config_changes", "smoothed_name", "LfgnssEkf", "create_lfgnss_ekf", "PlainEkf",
+           "compensated_pseudorange", "usable_measurements", "coarse_available"]

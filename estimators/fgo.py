@@ -52,6 +52,7 @@ whose snapshot is rank deficient the previous covariance propagated by the motio
 """
 from __future__ import annotations
 
+import inspect
 import numbers
 import os
 import time
@@ -67,10 +68,11 @@ from lfgnss.frames import ecef_to_lla, enu_rotation
 from lfgnss.sequence import Sequence
 from lfgnss.velocity import DopplerVelocity, doppler_velocity
 
-from .base import (STATUS_COASTED, STATUS_NONE, STATUS_UPDATED, Solution, check_sequence, epoch_range, options_of,
-                   register, usable_sequence)
+from .base import (STATUS_COASTED, STATUS_NONE, STATUS_UPDATED, Solution, check_flag, check_sequence, epoch_range,
+                   options_of, register, usable_sequence)
 from .models import EkfConfig, used_doppler_variance_m2_s2
-from .noise import HeuristicNoise, NoiseModel, checked_noise, default_noise, noise_output, resolve_noise
+from .noise import (HeuristicNoise, NoiseModel, checked_noise, default_noise, describe_noise, noise_output,
+                    resolve_noise)
 
 MODES = ("batch", "fixed-lag")
 ROBUST_KERNELS = ("huber", "cauchy")
@@ -233,6 +235,8 @@ class LfgnssFgo:
                  covariances: bool = False, max_iterations: int = 50, fixed_lag_iterations: int = 1,
                  doppler_sigma_m_s: float = 0.5, doppler_cn0_ref_dbhz: float | None = None,
                  progress: bool = False) -> None:
+        covariances = check_flag(covariances, "covariances", type(self).__name__)
+        progress = check_flag(progress, "progress", type(self).__name__)
         if mode not in MODES:
             raise ValueError(f"estimators/fgo.py: mode {mode!r} not in {MODES}")
         for key, value in (("lag_s", lag_s), ("robust_k", robust_k), ("prior_pos_sigma_m", prior_pos_sigma_m),
@@ -275,12 +279,25 @@ class LfgnssFgo:
         self.accel_psd_enu_m2_s3 = psd
         self.prior_pos_sigma_m = float(prior_pos_sigma_m)
         self.prior_vel_sigma_m_s = float(prior_vel_sigma_m_s)
-        self.covariances = bool(covariances)
+        self.covariances = covariances
         self.max_iterations = int(max_iterations)
         self.fixed_lag_iterations = int(fixed_lag_iterations)
         self.doppler_sigma_m_s = float(doppler_sigma_m_s)
         self.doppler_cn0_ref_dbhz = None if doppler_cn0_ref_dbhz is None else float(doppler_cn0_ref_dbhz)
-        self.progress = bool(progress)
+        self.progress = progress
+
+    def __repr__(self) -> str:
+        """The settings: noise model, mode (and lag), robust kernel, and every option off its default."""
+        parts = [f"noise={describe_noise(self.noise)}", f"mode={self.mode!r}"]
+        parts += [f"lag_s={self.lag_s:g}"] if self.mode == "fixed-lag" else []
+        parts += [f"robust={self.robust!r}"] + ([f"robust_k={self.robust_k:g}"] if self.robust is not None else [])
+        shown = {"self", "noise", "mode", "lag_s", "robust", "robust_k"}
+        for key, param in inspect.signature(LfgnssFgo.__init__).parameters.items():
+            value = getattr(self, key, None)
+            value = tuple(float(v) for v in value) if key == "accel_psd_enu_m2_s3" else value
+            if key not in shown and value != param.default:
+                parts.append(f"{key}={value!r}")
+        return f"{type(self).__name__}({', '.join(parts)})"
 
     # ------------------------------------------------------------------ building blocks
     def _measurement_model(self, sigma_m: float, kernel: tuple[str | None, float] | None = None
@@ -358,7 +375,7 @@ class LfgnssFgo:
     # ------------------------------------------------------------------ solve
     def solve(self, sequence: Sequence) -> Solution:
         """Estimate every epoch of ``sequence`` (positions [m]); epochs before the first coarse fix get STATUS_NONE."""
-        seq = usable_sequence(check_sequence(sequence, type(self).__name__))   # the same object on valid input
+        seq = usable_sequence(check_sequence(sequence, type(self).__name__), type(self).__name__)  # same on valid input
         t = np.asarray(seq.time_gps_s, float)
         n_t = len(seq)
         if n_t > 1 and np.any(np.diff(t) <= 0):

@@ -10,7 +10,7 @@ import os
 import warnings
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import Protocol
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 
@@ -20,7 +20,10 @@ from lfgnss.features import system_median_m
 from lfgnss.paths import default_model_path
 from lfgnss.sequence import Sequence
 
+from .base import caller_stacklevel
 
+
+@runtime_checkable
 class NoiseModel(Protocol):
     """Maps a Sequence to pseudorange variances R (T, N) [m^2] and compensations v^c (T, N) [m]."""
 
@@ -34,6 +37,22 @@ def default_noise() -> NoiseModel:
     from learning.export import load_model
 
     return load_model(default_model_path())
+
+
+def describe_noise(noise: object) -> str:
+    """A noise model in a few words for reprs: its file for a learned model, its name for a function, else its repr."""
+    path = getattr(noise, "path", None)
+    if isinstance(path, (str, os.PathLike)):
+        return f"{type(noise).__name__}({os.fspath(path)!r})"
+    if isinstance(noise, (HeuristicNoise, FixedNoise, TruthNoise)):
+        return repr(noise)
+    name = getattr(noise, "__qualname__", None)
+    if isinstance(name, str):
+        return f"<function {name}>"
+    if type(noise).__repr__ is object.__repr__:
+        return f"<{type(noise).__qualname__}>"
+    text = repr(noise)
+    return text if len(text) <= 120 else text[:117] + "..."
 
 
 def resolve_noise(noise: object, owner: str) -> NoiseModel | None:
@@ -123,15 +142,19 @@ class HeuristicNoise:
         return r, np.zeros_like(r)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False, repr=False)
 class FixedNoise:
     """Precomputed ``(r_m2, vc_m)`` arrays (T, N), e.g. from an offline network run or a test.
 
-    Calling it checks that the arrays fit the sequence and returns them unchanged.
+    Calling it checks that the arrays fit the sequence and returns them unchanged. ``==`` is identity (arrays).
     """
 
     r_m2: np.ndarray
     vc_m: np.ndarray
+
+    def __repr__(self) -> str:
+        """The arrays' shapes, not their values: ``FixedNoise(r_m2 (T, N), vc_m (T, N))``."""
+        return f"FixedNoise(r_m2 {np.shape(self.r_m2)}, vc_m {np.shape(self.vc_m)})"
 
     def __call__(self, sequence: Sequence) -> tuple[np.ndarray, np.ndarray]:
         """The stored (r_m2, vc_m) [m^2, m], after checking they are shaped like ``sequence``'s (T, N) slots."""
@@ -163,7 +186,8 @@ class TruthNoise:
         labelled = np.all(np.isfinite(sequence.truth_ecef_m), axis=-1)
         if len(labelled) and not labelled.any():
             warnings.warn(f"TruthNoise: sequence {sequence.name!r} has no ground truth (build_sequence(..., "
-                          f"truth_ecef_m=...)); every epoch takes the fallback's R, a plain EKF", stacklevel=2)
+                          f"truth_ecef_m=...)); every epoch takes the fallback's R, a plain EKF",
+                          stacklevel=caller_stacklevel())
         ok = sequence.mask & labelled[:, None]
         truth = np.where(labelled[:, None], sequence.truth_ecef_m, 0.0)
         raw = np.where(ok, sequence.pr_m - geometric_range_m(sequence.sat_pos_ecef_m, truth[:, None, :]), np.nan)

@@ -7,13 +7,38 @@ from typing import Iterable
 
 import numpy as np
 
+from .time import gps_s_to_datetime64
+
 #: Default LF-GNSS feature set, in packing order (see lfgnss.features).
 DEFAULT_FEATURES = ("cn0", "elevation", "azimuth", "residual", "dpc_gdop", "dpc_pdop", "dpc_hdop", "dpc_vdop")
 
 
-@dataclass(frozen=True)
+def time_span_text(time_gps_s: np.ndarray) -> str:
+    """The span of GPS times [s] in words: ``2016-06-06 11:10:41.7 to 11:15:25.1 GPST (283.4 s)``."""
+    t = np.asarray(time_gps_s, float).ravel()
+    t = t[np.isfinite(t)]
+    if not t.size:
+        return "no epoch times"
+    first, last = (str(gps_s_to_datetime64(round(x, 1)).astype("datetime64[ms]")).replace("T", " ")[:-2]
+                   for x in (t.min(), t.max()))                                    # to 0.1 s
+    end = last[11:] if last[:10] == first[:10] else last
+    return f"{first} to {end} GPST ({t.max() - t.min():.1f} s)"
+
+
+def share_text(flags: np.ndarray, what: str) -> str:
+    """``"85.2% labelled"``: the share of True in ``flags`` [%], or ``"none labelled"`` when there are none."""
+    flags = np.asarray(flags, bool)
+    if not flags.size or not flags.any():
+        return f"none {what}"
+    return f"{100.0 * flags.mean():.1f}% {what}"
+
+
+@dataclass(frozen=True, eq=False, repr=False)
 class Sequence:
     """Consecutive epochs of one receiver, padded to ``N`` satellite slots.
+
+    ``repr`` is one line (name, epochs, slots, systems, time span, labelled share); ``==`` is identity, as the
+    arrays have no single truth value (compare fields with ``np.array_equal`` for equal contents).
 
     Shapes: ``T`` epochs, ``N`` slots, ``C = len(systems)`` constellations, ``d`` features.
     Padded or unusable slots have ``mask == False``; their numbers are finite (zeros) and must not
@@ -100,6 +125,11 @@ class Sequence:
 
     def __len__(self) -> int:
         return int(self.mask.shape[0])
+
+    def __repr__(self) -> str:
+        """One line: name, epochs, slots, systems, time span and labelled share (no arrays)."""
+        return (f"<Sequence {self.name!r}: {len(self)} epochs, {self.n_slots} slots, systems {''.join(self.systems)}, "
+                f"{time_span_text(self.time_gps_s)}, {share_text(self.labelled, 'labelled')}>")
 
     @property
     def labelled(self) -> np.ndarray:
