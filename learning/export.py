@@ -471,13 +471,11 @@ def trained_on(metadata: dict) -> str:
 
 def describe_model(model: LfgnssModel) -> list[str]:
     """Readable lines on a model file: data, epoch, validation RMSE, filter settings, and how it was made."""
-    from estimators.models import EkfConfig
+    from estimators.ekf import config_changes, config_of
 
     from .provenance import describe
 
     meta = model.metadata
-    defaults = dataclasses.asdict(EkfConfig())
-    filter_changes = {k: v for k, v in (meta.get("ekf_config") or {}).items() if defaults.get(k, v) != v}
     config_file = (meta.get("config_file") or {}).get("path")
     val = meta.get("val_rmse_3d_m")
     versions = meta.get("versions") or {}
@@ -485,8 +483,7 @@ def describe_model(model: LfgnssModel) -> list[str]:
             f"trained on: {trained_on(meta)}; epoch {meta.get('epoch')}, validation 3D RMSE "
             f"{'-' if val is None else f'{val:.3f} m'}",
             f"features: {', '.join(model.feature_names)}",
-            "filter (EkfConfig settings other than the defaults): "
-            + (", ".join(f"{k} = {v}" for k, v in filter_changes.items()) or "none"),
+            f"filter (settings other than the defaults): {config_changes(config_of(model))}",
             f"configuration file: {config_file or 'not recorded'} (the full configuration is in the file)",
             *describe(meta.get("provenance")),
             f"written {meta.get('created_utc', '?')} by lfgnss {versions.get('lfgnss', '?')}, torch "

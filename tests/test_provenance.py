@@ -89,7 +89,7 @@ def test_show_of_a_bundled_model_says_what_is_not_recorded(capsys):
     assert export_main(["--show", "lfgnss/data/model/lfgnss-berlin-pp.npz"]) == 0
     shown = capsys.readouterr().out
     assert "trained on: berlin-pp (train); epoch 120" in shown
-    assert "huber_k = 2.0" in shown and "q_vel_up_m2_s3 = 0.1" in shown
+    assert "huber_k=2.0" in shown and "q_vel_up_m2_s3=0.1" in shown
     assert "provenance: not recorded" in shown
 
 
