@@ -124,9 +124,9 @@ def _model_rmse_m(saved: dict, config: dict, normaliser, batches: list, n_system
 RESCORE_FREE = ("ekf", "threads", "device")
 
 
-def _recipe(config: dict) -> dict:
-    """What a rescore must not change: ``config`` but RESCORE_FREE, defaults filled in, file paths resolved."""
-    flat = _flat({k: v for k, v in _merge_free(DEFAULT_CONFIG, config).items() if k not in RESCORE_FREE})
+def _recipe(config: dict, free: tuple[str, ...] = RESCORE_FREE) -> dict:
+    """What a rescore must not change: ``config`` but the ``free`` tables, defaults filled in, file paths resolved."""
+    flat = _flat({k: v for k, v in _merge_free(DEFAULT_CONFIG, config).items() if k not in free})
     resolve = lambda p: str(Path(p).resolve()) if p else p          # noqa: E731 -- cfg/m.npz = /abs/cfg/m.npz
     flat["train.init"] = resolve(flat.get("train.init", ""))
     flat["data.register"] = [resolve(p) for p in flat.get("data.register", [])]
@@ -229,20 +229,13 @@ def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = 
         raise ValueError(f"data.val_split is data.train_split ({config['data']['val_split']!r}): cross-validation "
                          "cuts the train and validation epochs into blocks, so each epoch would be there twice, held "
                          "out and trained on; give two different splits")
-    try:
-        if out.exists() and not out.is_dir():
-            raise InputError(out, "--out is a file, not a folder")
-        if any((out / name).exists() for name in ("crossval.csv", "crossval.md", "fold0")):
-            raise ValueError(f"{out}: already holds a cross-validation; choose another --out")
-        missing = [] if reuse is None else [p for j in chosen
-                                            if not (p := Path(reuse) / f"fold{j}" / "last.pt").is_file()]
-        if missing:
-            raise ValueError(f"{missing[0]}: no saved fold model (--reuse takes the --out folder of an earlier "
-                             f"cross-validation of the same recipe and --folds; --folds {folds} asks for fold "
-                             f"{missing[0].parent.name[4:]})")
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as err:              # a name too long, a file in the path, a read-only or missing disk
-        raise InputError(out, f"cannot create the output folder ({err.strerror or err})") from None
+    _refuse_used_out(out)
+    missing = [] if reuse is None else [p for j in chosen if not (p := Path(reuse) / f"fold{j}" / "last.pt").is_file()]
+    if missing:
+        raise ValueError(f"{missing[0]}: no saved fold model (--reuse takes the --out folder of an earlier "
+                         f"cross-validation of the same recipe and --folds; --folds {folds} asks for fold "
+                         f"{missing[0].parent.name[4:]})")
+    _make_out(out)
     config = adopt_init(config)
     data = config["data"]
     init = init_model(config)
@@ -271,6 +264,25 @@ def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = 
     return rows
 
 
+def _refuse_used_out(out: Path) -> None:
+    """InputError or ValueError if ``--out`` is a file or already holds a cross-validation (checked before any work)."""
+    try:
+        if out.exists() and not out.is_dir():
+            raise InputError(out, "--out is a file, not a folder")
+        if any((out / name).exists() for name in ("crossval.csv", "crossval.md", "fold0")):
+            raise ValueError(f"{out}: already holds a cross-validation; choose another --out")
+    except OSError as err:              # a name too long, a file in the path, a missing disk
+        raise InputError(out, f"cannot create the output folder ({err.strerror or err})") from None
+
+
+def _make_out(out: Path) -> None:
+    """Create ``--out`` (and its parents); InputError naming it if that fails (a read-only or full disk)."""
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise InputError(out, f"cannot create the output folder ({err.strerror or err})") from None
+
+
 def pooled_rows(rows: list[dict], datasets: list[str]) -> list[dict]:
     """The ``pooled`` row of the fold rows (fold an int), and with several ``datasets`` a ``pooled:ID`` row each."""
     keys = [k for k in COLUMNS if k.endswith("_m")]
@@ -292,6 +304,7 @@ def pool(run_dirs: list[str | Path], folds: int, out_dir: str | Path, command: s
     out = Path(out_dir)
     if isinstance(folds, bool) or not isinstance(folds, int) or folds < 2:
         raise ValueError(f"folds must be a whole number >= 2 (--folds), got {folds!r}")
+    _refuse_used_out(out)
     rows, source, recipe = [], {}, None
     for d in map(Path, run_dirs):
         table = d / "crossval.csv"
@@ -319,8 +332,7 @@ def pool(run_dirs: list[str | Path], folds: int, out_dir: str | Path, command: s
             except Exception as exc:            # torch.load raises many kinds on a file that is not a checkpoint
                 raise InputError(d / f"fold{j}" / "last.pt", f"not a usable fold checkpoint ({type(exc).__name__})"
                                  ", so its recipe cannot be checked") from None
-            flat = {k: v for k, v in _flat(_merge_free(DEFAULT_CONFIG, saved)).items()
-                    if k.split(".")[0] not in ("threads", "device")}
+            flat = _recipe(saved, free=("threads", "device"))     # the filter too: one recipe, one table
             if recipe is not None and flat != recipe[1]:
                 k = sorted(k for k in flat.keys() | recipe[1].keys() if flat.get(k) != recipe[1].get(k))[0]
                 raise InputError(table, f"fold {j} was trained with {k} = {flat.get(k, '(unset)')!r}, fold "
@@ -334,10 +346,7 @@ def pool(run_dirs: list[str | Path], folds: int, out_dir: str | Path, command: s
     rows.sort(key=lambda r: (int(str(r["fold"]).split(":")[0]), str(r["fold"])))
     datasets = list(dict.fromkeys(str(r["fold"]).split(":", 1)[1] for r in rows if ":" in str(r["fold"])))
     rows.extend(pooled_rows(rows, datasets))
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise InputError(out, f"cannot create the output folder ({err.strerror or err})") from None
+    _make_out(out)
     _write_results(out, rows, command)
     return rows
 
@@ -481,8 +490,6 @@ def main(argv: list[str] | None = None) -> int:
     command = command_line(p.prog, sys.argv[1:] if argv is None else list(argv))
     try:
         if args.pool:
-            if (out / "crossval.csv").exists():
-                raise ValueError(f"{out}: already holds a cross-validation; choose another --out")
             pool(args.pool, args.folds, out, command)
         else:
             config = load_config(args.config, args.overrides)
