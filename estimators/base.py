@@ -189,31 +189,42 @@ def usable_doppler(sequence: Sequence) -> np.ndarray:
             & np.isfinite(sequence.sat_vel_ecef_m_s).all(-1))
 
 
-def warn_unusable(sequence: Sequence, usable: np.ndarray, owner: str) -> None:
-    """One warning naming ``sequence`` and how many masked-in slots (and epochs) ``usable`` (T, N) leaves out.
+def warn_unusable(sequence: Sequence, usable: np.ndarray, owner: str, doppler: np.ndarray | None = None) -> None:
+    """Warnings naming ``sequence`` and how many masked-in slots (and epochs) ``usable`` (T, N) leaves out.
 
     Masked-in slots with a non-finite pseudorange or satellite position, or no known system, are skipped; an epoch
-    left with none is coasted (or has no position). Nothing when every masked-in slot is usable.
+    left with none is coasted (or has no position). With ``doppler`` (T, N, ``usable_doppler``), a second warning
+    counts the marked Dopplers of usable slots it leaves out (non-finite Doppler or satellite velocity). Nothing
+    when every masked-in slot is usable.
     """
     dropped = np.asarray(sequence.mask, bool) & ~usable
-    if not dropped.any():
+    if dropped.any():
+        epochs = dropped.any(axis=1)
+        emptied = int(np.count_nonzero(epochs & ~usable.any(axis=1)))
+        warnings.warn(f"{owner}: {int(dropped.sum())} masked-in slots in {int(epochs.sum())} epochs of "
+                      f"{sequence.name!r} (first at epoch {int(np.argmax(epochs))}) have a non-finite pseudorange or "
+                      f"satellite position (or no known system) and are skipped; {emptied} epochs are left without a "
+                      f"usable satellite", UserWarning, stacklevel=caller_stacklevel())
+    if doppler is None:
         return
-    epochs = dropped.any(axis=1)
-    emptied = int(np.count_nonzero(epochs & ~usable.any(axis=1)))
-    warnings.warn(f"{owner}: {int(dropped.sum())} masked-in slots in {int(epochs.sum())} epochs of {sequence.name!r} "
-                  f"(first at epoch {int(np.argmax(epochs))}) have a non-finite pseudorange or satellite position "
-                  f"(or no known system) and are skipped; {emptied} epochs are left without a usable satellite",
-                  UserWarning, stacklevel=caller_stacklevel())
+    lost = usable & np.asarray(sequence.prr_mask, bool) & ~doppler
+    if lost.any():
+        epochs = lost.any(axis=1)
+        warnings.warn(f"{owner}: {int(lost.sum())} marked Dopplers in {int(epochs.sum())} epochs of {sequence.name!r} "
+                      f"(first at epoch {int(np.argmax(epochs))}) have a non-finite pseudorange rate or satellite "
+                      f"velocity and are skipped (their pseudoranges are used)", UserWarning,
+                      stacklevel=caller_stacklevel())
 
 
-def usable_sequence(sequence: Sequence, owner: str = "estimators") -> Sequence:
+def usable_sequence(sequence: Sequence, owner: str = "estimators", dopplers: bool = True) -> Sequence:
     """``sequence`` with unusable masked-in slots (non-finite pseudorange, satellite state or Doppler) masked out.
 
     The same object when every masked-in slot is usable, as in every Sequence ``lfgnss.build_sequence`` makes;
-    otherwise ``warn_unusable`` says, once, how many pseudorange slots ``owner`` skips.
+    otherwise ``warn_unusable`` says, once, how many pseudorange slots ``owner`` skips, and, when it uses
+    ``dopplers``, how many Dopplers.
     """
     usable, doppler = usable_measurements(sequence), usable_doppler(sequence)
-    warn_unusable(sequence, usable, owner)
+    warn_unusable(sequence, usable, owner, doppler if dopplers else None)
     if np.array_equal(usable, sequence.mask) and np.array_equal(doppler, sequence.prr_mask):
         return sequence
     return replace(sequence, mask=usable, pr_m=np.where(usable, sequence.pr_m, 0.0),

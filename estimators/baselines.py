@@ -22,7 +22,7 @@ class _LeastSquares:
     def solve(self, sequence: Sequence) -> Solution:
         """Least-squares fix of each epoch on its own (no filtering); positions [m], covariances [m^2]."""
         # NaN-free slots (the same object on valid input)
-        sequence = usable_sequence(check_sequence(sequence, self.name), self.name)
+        sequence = usable_sequence(check_sequence(sequence, self.name), self.name, dopplers=False)
         if self.noise is None:
             r = np.ones(sequence.mask.shape)
         else:

@@ -186,8 +186,8 @@ class LfgnssEkf:
             k = int(np.nonzero(~(dt_all > 0))[0][0]) + 1
             raise ValueError(f"{type(self).__name__}: epoch times of {sequence.name!r} do not increase at epoch {k}")
 
-        usable = usable_measurements(sequence)
-        warn_unusable(sequence, usable, type(self).__name__)
+        usable, doppler_ok = usable_measurements(sequence), usable_doppler(sequence)
+        warn_unusable(sequence, usable, type(self).__name__, doppler_ok if cfg.doppler_sigma_m_s > 0 else None)
         pr_all = np.where(usable, sequence.pr_m, 0.0)
         online = bool(getattr(self.noise, "online", False))
         if online:
@@ -198,7 +198,7 @@ class LfgnssEkf:
             vc_all = np.where(usable, vc_all, 0.0)
         z_all = compensated_pseudorange(pr_all, vc_all)
         r_all = np.where(usable, r_all, 1.0)
-        doppler_ok = usable_doppler(sequence) if cfg.doppler_sigma_m_s > 0 else np.zeros_like(usable)
+        doppler_ok = doppler_ok if cfg.doppler_sigma_m_s > 0 else np.zeros_like(usable)
         prr_all = np.where(doppler_ok, sequence.prr_m_s, 0.0)
         satvel_all = sequence.sat_vel_ecef_m_s
         r_doppler_all = models.used_doppler_variance_m2_s2(sequence.cn0_dbhz, doppler_ok, cfg, type(self).__name__,

@@ -224,9 +224,13 @@ class LfgnssFgo:
         3D RMSE went 10.87 / 9.67 -> 9.74 / 13.08 m against the constant 0.5 m/s.
     progress : bool
         Show a tqdm bar over the epochs on a terminal (``python -m lfgnss.solve`` does, unless ``--quiet``).
+    name : str, optional
+        Backend label written into the Solution; default ``fgo``, or ``fgo-fixed-lag`` in fixed-lag mode (as the
+        command line names the run's files).
     """
 
-    name = "fgo"
+    #: The backend's name, the start of ``name``.
+    default_name = "fgo"
 
     def __init__(self, *, noise: NoiseModel | str | os.PathLike | None = None, mode: str = "batch", lag_s: float = 10.0,
                  robust: str | None = "auto", robust_k: float | None = None,
@@ -234,8 +238,10 @@ class LfgnssFgo:
                  prior_pos_sigma_m: float = 100.0, prior_vel_sigma_m_s: float = 10.0,
                  covariances: bool = False, max_iterations: int = 50, fixed_lag_iterations: int = 1,
                  doppler_sigma_m_s: float = 0.5, doppler_cn0_ref_dbhz: float | None = None,
-                 progress: bool = False) -> None:
+                 progress: bool = False, name: str | None = None) -> None:
         covariances = check_flag(covariances, "covariances", type(self).__name__)
+        if name is not None and not isinstance(name, str):
+            raise TypeError(f"{type(self).__name__}: name must be a string, got {type(name).__name__}")
         progress = check_flag(progress, "progress", type(self).__name__)
         if mode not in MODES:
             raise ValueError(f"estimators/fgo.py: mode {mode!r} not in {MODES}")
@@ -273,6 +279,7 @@ class LfgnssFgo:
         noise = resolve_noise(noise, type(self).__name__)
         self.noise = noise if noise is not None else HeuristicNoise()
         self.mode = mode
+        self.name = (self.default_name + ("-fixed-lag" if mode == "fixed-lag" else "")) if name is None else name
         self.lag_s = float(lag_s)
         self.robust = robust
         self.robust_k = float(robust_k)
@@ -287,11 +294,11 @@ class LfgnssFgo:
         self.progress = progress
 
     def __repr__(self) -> str:
-        """The settings: noise model, mode (and lag), robust kernel, and every option off its default."""
-        parts = [f"noise={describe_noise(self.noise)}", f"mode={self.mode!r}"]
+        """The settings: name, noise model, mode (and lag), robust kernel, and every option off its default."""
+        parts = [f"name={self.name!r}", f"noise={describe_noise(self.noise)}", f"mode={self.mode!r}"]
         parts += [f"lag_s={self.lag_s:g}"] if self.mode == "fixed-lag" else []
         parts += [f"robust={self.robust!r}"] + ([f"robust_k={self.robust_k:g}"] if self.robust is not None else [])
-        shown = {"self", "noise", "mode", "lag_s", "robust", "robust_k"}
+        shown = {"self", "name", "noise", "mode", "lag_s", "robust", "robust_k"}
         for key, param in inspect.signature(LfgnssFgo.__init__).parameters.items():
             value = getattr(self, key, None)
             value = tuple(float(v) for v in value) if key == "accel_psd_enu_m2_s3" else value
@@ -375,7 +382,8 @@ class LfgnssFgo:
     # ------------------------------------------------------------------ solve
     def solve(self, sequence: Sequence) -> Solution:
         """Estimate every epoch of ``sequence`` (positions [m]); epochs before the first coarse fix get STATUS_NONE."""
-        seq = usable_sequence(check_sequence(sequence, type(self).__name__), type(self).__name__)  # same on valid input
+        seq = usable_sequence(check_sequence(sequence, type(self).__name__), type(self).__name__,   # same on valid input
+                              dopplers=self.doppler_sigma_m_s > 0)
         t = np.asarray(seq.time_gps_s, float)
         n_t = len(seq)
         if n_t > 1 and np.any(np.diff(t) <= 0):

@@ -9,7 +9,8 @@ COMMANDS = {"lfgnss.solve": "position a RINEX file (EKF, factor graph or least s
             "lfgnss.summary": "feature statistics and plots per dataset",
             "lfgnss.benchmark": "every estimator against RTKLIB on the test splits",
             "learning.train": "train the LF-GNSS network",
-            "learning.crossval": "blocked K-fold cross-validation of a training recipe"}
+            "learning.crossval": "blocked K-fold cross-validation of a training recipe",
+            "learning.export": "export a training checkpoint as a model file, or describe one (--show)"}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -18,7 +18,7 @@ import numpy as np
 from .constants import SYSTEMS
 from .dop import dop_contribution, satellites_per_system
 from .errors import LfgnssError
-from .frames import check_near_surface, ecef_to_lla, enu_rotation
+from .frames import ecef_to_lla, enu_rotation
 from .measurements import Measurements
 from .sequence import DEFAULT_FEATURES, Sequence
 from .spp import CoarseFix, SppConfig, _geometry
@@ -320,7 +320,6 @@ def build_sequence(meas: Measurements, fix: CoarseFix, *, feature_names: tuple[s
     coarse_clock = _reference_clock(fix, np.broadcast_to(meas.system_index, fix.used.shape))
     coarse_clock = np.where(fix.ok[:, None], coarse_clock, np.nan)
     truth = np.full((n_t, 3), np.nan) if truth_ecef_m is None else np.asarray(truth_ecef_m, float)
-    check_near_surface("lfgnss.build_sequence", "truth_ecef_m", truth)
     return Sequence(
         name=name or meas.obs.path, systems=meas.systems, time_gps_s=meas.time_gps_s.copy(),
         sv=np.broadcast_to(meas.sv, (n_t, n_s)).copy(), system_index=sys_used, mask=mask,

@@ -7,6 +7,7 @@ from typing import Iterable
 
 import numpy as np
 
+from .frames import check_near_surface
 from .time import gps_s_to_datetime64
 
 #: Default LF-GNSS feature set, in packing order (see lfgnss.features).
@@ -122,6 +123,7 @@ class Sequence:
             got = np.shape(getattr(self, key))
             if got != shape:
                 raise ValueError(f"Sequence {self.name!r}: {key} has shape {got}, expected {shape}")
+        check_near_surface(f"Sequence {self.name!r}", "truth_ecef_m", self.truth_ecef_m)
 
     def __len__(self) -> int:
         return int(self.mask.shape[0])

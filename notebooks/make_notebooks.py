@@ -89,7 +89,7 @@ seq = simulate_sequence(200, seed=42)
 for name, est in {"plain EKF": estimators.create("plain-ekf"), "learned EKF": estimators.create("ekf", noise=model)}.items():
     sol = est.solve(seq)
     print(name, round(accuracy_table(sol.pos_ecef_m, seq.truth_ecef_m, sol.available)["rmse_3d_m"], 2), "m")"""),
-("md", "## Does the recipe generalise?\n\nA short validation split is one street. `learning.crossval` cuts the train + validation epochs into contiguous blocks, trains on all but one and scores the held-out block next to the plain EKF (`python -m learning.crossval --config ... --folds 3`). \"last\" is the honest figure for a fixed schedule; \"best\" is picked on the held-out block itself. On the real data this showed that the learned EKF generalises on berlin-pp and the static set but not reliably on hk-tst-2019 (`lfgnss/data/model/README.md`)."),
+("md", "## Does the recipe generalise?\n\nA short validation split is one street. `learning.crossval` cuts the train + validation epochs into contiguous blocks, trains on all but one and scores the held-out block next to the plain EKF (`python -m learning.crossval --config ... --folds 3`). \"last\" is the honest figure for a fixed schedule; \"best\" is picked on the held-out block itself. On the real data this showed that the learned EKF generalises on berlin-pp and the static set, and on hk-tst-2019 only fine-tuned from a berlin + static model (better than the plain EKF on two blocks of three; from scratch its 240 train epochs are too few) (`lfgnss/data/model/README.md`)."),
 ("code", """from learning.crossval import crossval
 rows = crossval(config, 2, Path(tempfile.mkdtemp()) / "cv", progress=False)
 for r in rows:

@@ -2,6 +2,7 @@
 ``python -m lfgnss``): one line naming the file or option, the documented exit status, no traceback, and nothing
 already computed lost (docs/bad_input.md, "Command lines")."""
 import csv
+import importlib
 import math
 import os
 import subprocess
@@ -285,6 +286,10 @@ def test_lfgnss_lists_the_commands_and_refuses_arguments(capsys):
     assert lfgnss_main([]) == 0 and lfgnss_main(["--help"]) == 0
     out = capsys.readouterr().out
     assert "python -m lfgnss.benchmark" in out and "python -m learning.crossval" in out
+    assert "python -m learning.export" in out
+    from lfgnss.__main__ import COMMANDS
+    for module in COMMANDS:                             # every listed command has a command line
+        assert callable(importlib.import_module(module).main), module
     assert lfgnss_main(["solve", "--obs", "x.obs"]) == 2
     assert _one_line(capsys.readouterr().err) == ("python -m lfgnss: error: unknown argument 'solve' (this only lists "
                                                   "the commands); run python -m lfgnss.solve")

@@ -241,11 +241,12 @@ def test_epochs_before_first_coarse_fix_are_none():
 # ---------------------------------------------------------------- interface
 def test_registry_and_arguments():
     est = create("fgo", mode="fixed-lag")
-    assert isinstance(est, LfgnssFgo) and est.mode == "fixed-lag" and est.name == "fgo"
+    assert isinstance(est, LfgnssFgo) and est.mode == "fixed-lag" and est.name == "fgo-fixed-lag"
     assert est.noise is default_noise()                                 # the bundled model, as the command line
     assert isinstance(LfgnssFgo().noise, HeuristicNoise)
     sol = est.solve(simulate_sequence(20, seed=9))
-    assert sol.backend == "fgo" and sol.pos_ecef_m.shape == (20, 3)
+    assert sol.backend == "fgo-fixed-lag" and sol.pos_ecef_m.shape == (20, 3)
+    assert LfgnssFgo().name == "fgo" and LfgnssFgo(mode="fixed-lag", name="mine").name == "mine"
     for bad in ({"mode": "smoother"}, {"robust": "tukey"}, {"lag_s": 0.0}, {"accel_psd_enu_m2_s3": (1.0, -1.0, 1.0)}):
         with pytest.raises(ValueError):
             LfgnssFgo(**bad)

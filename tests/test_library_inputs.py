@@ -2,6 +2,7 @@
 never a silently wrong figure."""
 import tomllib
 import warnings
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -58,9 +59,11 @@ def test_positions_in_other_units_than_ecef_metres_are_refused(meas):
     fix = lfgnss.spp(meas)
     truth = read_truth(SAMPLE_TRUTH, meas.time_gps_s, "smartloc")
     lla = np.tile([52.5, 13.37, 70.0], (len(meas.time_gps_s), 1))
-    with pytest.raises(ValueError, match=r"lfgnss.build_sequence: truth_ecef_m has \d+ row\(s\) .* it must be ECEF "
-                                         r"metres"):
+    with pytest.raises(ValueError, match=r"Sequence '.*': truth_ecef_m has \d+ row\(s\) .* it must be ECEF metres"):
         lfgnss.build_sequence(meas, fix, truth_ecef_m=lla)
+    seq = lfgnss.build_sequence(meas, fix, truth_ecef_m=truth)
+    with pytest.raises(ValueError, match=r"Sequence 'mine': truth_ecef_m has \d+ row\(s\) .* it must be ECEF metres"):
+        replace(seq, name="mine", truth_ecef_m=truth / 1000.0)             # a hand-built Sequence is checked too
     with pytest.raises(ValueError, match="accuracy_table: truth_ecef_m has"):
         accuracy_table(truth, truth / 1000.0)                                # kilometres
     with pytest.raises(ValueError, match=r"accuracy_table: est_ecef_m has \d+ row\(s\) within 1000 km of the "

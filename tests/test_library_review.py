@@ -83,7 +83,7 @@ def test_estimator_reprs_show_their_settings(seq):
     assert repr(fixed) == "FixedNoise(r_m2 (40, 14), vc_m (40, 14))"
     assert "FixedNoise(r_m2 (40, 14)" in repr(PlainEkf(noise=fixed))
     fgo = estimators.LfgnssFgo(mode="fixed-lag", covariances=True, accel_psd_enu_m2_s3=(0.5, 0.5, 0.05))
-    assert repr(fgo) == ("LfgnssFgo(noise=" + repr(HeuristicNoise()) + ", mode='fixed-lag', lag_s=10, robust='huber', "
+    assert repr(fgo) == ("LfgnssFgo(name='fgo-fixed-lag', noise=" + repr(HeuristicNoise()) + ", mode='fixed-lag', lag_s=10, robust='huber', "
                          "robust_k=1.5, accel_psd_enu_m2_s3=(0.5, 0.5, 0.05), covariances=True)")
     assert "object at 0x" not in repr(estimators.create("ekf")) + repr(estimators.create("fgo"))
     assert "lfgnss-default.npz" in repr(estimators.create("ekf"))
@@ -141,6 +141,19 @@ def test_nan_pseudoranges_give_one_warning_per_solve(seq, backend):
     assert "4 epochs are left without a usable satellite" in message
     assert caught[0].filename == __file__
     assert not [w for w in _caught(lambda: estimators.create(backend).solve(seq)) if "masked-in" in str(w.message)]
+
+
+@pytest.mark.parametrize("backend", ["ekf", "fgo"])
+def test_nan_dopplers_give_one_warning_per_solve(seq, backend):
+    prr = seq.prr_m_s.copy()
+    marked = seq.prr_mask & seq.mask
+    prr[30:33][marked[30:33]] = np.nan
+    caught = [w for w in _caught(lambda: estimators.create(backend, noise=HeuristicNoise()).solve(
+        replace(seq, prr_m_s=prr))) if "Doppler" in str(w.message)]
+    assert len(caught) == 1 and caught[0].filename == __file__
+    assert (f"{int(marked[30:33].sum())} marked Dopplers in 3 epochs of 'review' (first at epoch 30)"
+            in str(caught[0].message))
+    assert not [w for w in _caught(lambda: estimators.create(backend).solve(seq)) if "Doppler" in str(w.message)]
 
 
 # ------------------------------------------------------------------ 6. warnings point at the user's line
