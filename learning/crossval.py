@@ -56,7 +56,7 @@ from lfgnss.sequence import Sequence
 
 from .provenance import code_text, command_line, git_state
 from .train import (DEFAULT_CONFIG, _flat, _merge_free, adopt_init, ekf_config, exit_on_input_error, init_model,
-                    load_config, load_sequences, prepare, train, trained_datasets)
+                    load_config, load_sequences, prepare, read_checkpoint, train, trained_datasets)
 
 COLUMNS = ["fold", "held_out_epochs", "plain_ekf_rmse_3d_m", "untrained_rmse_3d_m", "last_rmse_3d_m",
            "best_rmse_3d_m", "best_epoch", "plain_ekf_smoothed_rmse_3d_m", "last_smoothed_rmse_3d_m",
@@ -99,12 +99,10 @@ def plain_ekf_rmse_m(sequences: list[Sequence], config: dict, smooth: bool = Fal
     return tuple(pooled_rmse([r[k] for r in rows], counts) for k in ("rmse_3d_m", "rmse_2d_m"))
 
 
-def _saved_rmse_m(checkpoint: Path, config: dict, prep) -> tuple[float, float]:
-    """(RTS-smoothed 3D, forward 2D) RMSE [m] over the held-out block of a fold's saved (exported) weights."""
-    import torch
-
-    saved = torch.load(checkpoint, map_location="cpu", weights_only=False)
-    return _model_rmse_m(saved, config, prep.normaliser, prep.val_batches, prep.n_systems)[1:]
+def _saved_rmse_m(checkpoint: Path, config: dict, prep) -> tuple[dict, float, float]:
+    """A fold's saved checkpoint, read once, and its (RTS-smoothed 3D, forward 2D) RMSE [m] over the held-out block."""
+    saved = read_checkpoint(checkpoint)
+    return (saved, *_model_rmse_m(saved, config, prep.normaliser, prep.val_batches, prep.n_systems)[1:])
 
 
 def _model_rmse_m(saved: dict, config: dict, normaliser, batches: list, n_systems: int) -> tuple[float, float, float]:
@@ -136,13 +134,11 @@ def _recipe(config: dict, free: tuple[str, ...] = RESCORE_FREE) -> dict:
 def saved_fold(reuse_dir: str | Path, fold: int, config: dict, held: list[Sequence]) -> dict:
     """The checkpoint ``reuse_dir/fold<fold>/last.pt``, checked to be of ``config``'s recipe (``[ekf]`` aside)
     and of the held-out pieces ``held``."""
-    import torch
-
     from .train import fingerprint
 
     path = Path(reuse_dir) / f"fold{fold}" / "last.pt"
     try:
-        saved = torch.load(path, map_location="cpu", weights_only=False)
+        saved = read_checkpoint(path)
         saved_config, prints = saved["config"], saved["data_fingerprints"]
     except Exception as exc:            # torch.load raises many kinds on a file that is not a checkpoint
         raise ValueError(f"{path}: not a learning.train checkpoint ({type(exc).__name__}: {exc})") from exc
@@ -299,8 +295,6 @@ def pooled_rows(rows: list[dict], datasets: list[str]) -> list[dict]:
 def pool(run_dirs: list[str | Path], folds: int, out_dir: str | Path, command: str | None = None) -> list[dict]:
     """One table, pooled rows included, of parallel ``--fold J`` runs (their ``--out`` folders): nothing is trained
     or scored again. Each fold of ``folds`` must come from exactly one run, and every run from the same recipe."""
-    import torch
-
     out = Path(out_dir)
     if isinstance(folds, bool) or not isinstance(folds, int) or folds < 2:
         raise ValueError(f"folds must be a whole number >= 2 (--folds), got {folds!r}")
@@ -328,7 +322,7 @@ def pool(run_dirs: list[str | Path], folds: int, out_dir: str | Path, command: s
                 raise InputError(table, f"fold {j} is not one of --folds {folds} (0..{folds - 1})")
             source[j] = table
             try:
-                saved = torch.load(d / f"fold{j}" / "last.pt", map_location="cpu", weights_only=False)["config"]
+                saved = read_checkpoint(d / f"fold{j}" / "last.pt")["config"]
             except Exception as exc:            # torch.load raises many kinds on a file that is not a checkpoint
                 raise InputError(d / f"fold{j}" / "last.pt", f"not a usable fold checkpoint ({type(exc).__name__})"
                                  ", so its recipe cannot be checked") from None
@@ -424,15 +418,12 @@ def _run_folds(rows: list[dict], chosen, folds: int, whole: dict, config: dict, 
         history = train(copy.deepcopy(config), out / f"fold{j}", progress=progress, prepared=prep, export=False,
                         command=command)
         best = min(history, key=lambda h: h["val_rmse_3d_m"])
-        last_smoothed_3d, last_2d = _saved_rmse_m(out / f"fold{j}" / "last.pt", config, prep)
+        saved, last_smoothed_3d, last_2d = _saved_rmse_m(out / f"fold{j}" / "last.pt", config, prep)
         rows.append(_fold_row(j, held, config, {
             "untrained_rmse_3d_m": history[0]["val_rmse_3d_m"], "last_rmse_3d_m": history[-1]["val_rmse_3d_m"],
             "best_rmse_3d_m": best["val_rmse_3d_m"], "best_epoch": best["epoch"],
             "last_smoothed_rmse_3d_m": last_smoothed_3d, "last_rmse_2d_m": last_2d}))
         if len(parts) > 1:
-            import torch
-
-            saved = torch.load(out / f"fold{j}" / "last.pt", map_location="cpu", weights_only=False)
             rows.extend(_dataset_rows(j, saved, config, parts))
 
 

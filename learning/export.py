@@ -68,16 +68,20 @@ def export_model(checkpoint_path: str | Path, out_path: str | Path, *, extra_met
     -------
     Path of the written file.
     """
+    import pickle
+
     import torch
 
     import lfgnss
 
+    from .train import read_checkpoint     # train imports this module
+
     try:
-        ckpt = torch.load(checkpoint_path, map_location="cpu", weights_only=False)
+        ckpt = read_checkpoint(checkpoint_path)
         state = ckpt["model"]
         hparams = ckpt["model_hparams"]
         normaliser = Normaliser.from_dict(ckpt["normaliser"])
-    except (OSError, RuntimeError, KeyError, ValueError, EOFError) as exc:
+    except (OSError, RuntimeError, KeyError, ValueError, EOFError, pickle.UnpicklingError) as exc:
         raise ModelFileError(checkpoint_path, f"not a usable training checkpoint ({type(exc).__name__}: {exc})") from exc
     params = {name: t.detach().cpu().numpy().astype(np.float32) for name, t in state.items()}
     history = ckpt.get("history") or []

@@ -41,6 +41,7 @@ import csv
 import dataclasses
 import difflib
 import hashlib
+import importlib
 import math
 import os
 import random
@@ -706,10 +707,25 @@ def _plot(path: Path, history: list[dict]) -> None:
     plt.close(fig)
 
 
+def _numpy_globals() -> list:
+    """What a checkpoint's numpy arrays (the RNG state) unpickle with, for ``torch.load(weights_only=True)``."""
+    core = "numpy._core.multiarray" if int(np.__version__.split(".")[0]) >= 2 else "numpy.core.multiarray"
+    dtypes = getattr(np, "dtypes", None)
+    return [importlib.import_module(core)._reconstruct, np.ndarray, np.dtype,
+            *(getattr(dtypes, n) for n in dir(dtypes) if n.endswith("DType"))]
+
+
+def read_checkpoint(path: str | Path) -> Any:
+    """``torch.load`` of a checkpoint file on the CPU, unpickling only tensors, plain containers and numpy arrays
+    (``weights_only``: a checkpoint from elsewhere, e.g. a ``--reuse`` folder, cannot run code when read)."""
+    with torch.serialization.safe_globals(_numpy_globals()):
+        return torch.load(path, map_location="cpu", weights_only=True)
+
+
 def load_checkpoint(path: str | Path) -> dict:
     """A ``last.pt`` of ``learning.train``, or ValueError naming it in one line (a truncated or foreign file)."""
     try:
-        saved = torch.load(path, map_location="cpu", weights_only=False)
+        saved = read_checkpoint(path)
         if not isinstance(saved, dict) or not isinstance(saved.get("config"), dict):
             raise ValueError("no training configuration in it")
         int(saved["epoch"])

@@ -236,7 +236,7 @@ def _fake_training(monkeypatch, last_fold):
         return [{"epoch": 0, "val_rmse_3d_m": 2.0}, {"epoch": 1, "val_rmse_3d_m": 1.0}]
 
     monkeypatch.setattr(cv, "train", fake_train)
-    monkeypatch.setattr(cv, "_saved_rmse_m", lambda *a, **k: (1.0, 0.5))
+    monkeypatch.setattr(cv, "_saved_rmse_m", lambda *a, **k: ({}, 1.0, 0.5))
 
 
 def _raise(exc):

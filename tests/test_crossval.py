@@ -141,7 +141,7 @@ def test_one_fold_alone_matches_that_fold_of_the_whole_run(monkeypatch, tmp_path
     config = load_config("learning/configs/default.toml", ["data.datasets=['synthetic']", "data.synthetic.n_epochs=60",
                                                            "data.window=20", "data.stride=10"])
     monkeypatch.setattr(cv, "train", lambda *a, **k: [{"epoch": 0, "val_rmse_3d_m": 1.0}])
-    monkeypatch.setattr(cv, "_saved_rmse_m", lambda *a, **k: (1.0, 0.5))
+    monkeypatch.setattr(cv, "_saved_rmse_m", lambda *a, **k: ({}, 1.0, 0.5))
     whole = cv.crossval(config, 3, tmp_path / "all", progress=False)
     alone = cv.crossval(config, 3, tmp_path / "one", progress=False, only=[2])
     assert [r["fold"] for r in whole] == [0, 1, 2, "pooled"] and [r["fold"] for r in alone] == [2]
@@ -171,7 +171,7 @@ def test_each_fold_trains_on_the_other_blocks_and_scores_the_held_out_one(monkey
 
     monkeypatch.setattr(cv, "prepare", spy_prepare)
     monkeypatch.setattr(cv, "train", lambda *a, **k: [{"epoch": 0, "val_rmse_3d_m": 1.0}])
-    monkeypatch.setattr(cv, "_saved_rmse_m", lambda *a, **k: (1.0, 0.5))
+    monkeypatch.setattr(cv, "_saved_rmse_m", lambda *a, **k: ({}, 1.0, 0.5))
     rows = cv.crossval(config, 3, tmp_path, progress=False)
     for j, (train, held) in enumerate(seen):
         assert all("/cv-train" in s.name for s in train) and all("/cv-held-out" in s.name for s in held)

@@ -115,3 +115,38 @@ def test_export_command_bad_input_is_one_line(argv, message, tmp_path, monkeypat
     err = capsys.readouterr().err
     assert exit_info.value.code == 2 and message in err and len(err.strip().splitlines()) == 1, err
     assert not list(tmp_path.iterdir())
+
+
+class _RunsCode:
+    """Unpickling this (with pickle's full powers) creates a file: a stand-in for a checkpoint that runs code."""
+
+    def __init__(self, mark):
+        self.mark = str(mark)
+
+    def __reduce__(self):
+        return open, (self.mark, "w")
+
+
+def test_a_checkpoint_that_would_run_code_is_refused_not_run(tmp_path):
+    """Checkpoints are read with torch.load(weights_only=True): tensors, containers and numpy arrays only."""
+    import torch
+
+    import learning.crossval as cv
+    from learning.export import ModelFileError, export_model
+    from learning.train import load_checkpoint, read_checkpoint
+
+    mark = tmp_path / "ran"
+    bad = tmp_path / "fold0" / "last.pt"
+    bad.parent.mkdir()
+    torch.save({"config": {}, "epoch": 1, "model": {}, "payload": _RunsCode(mark)}, bad)
+    with pytest.raises(ValueError, match="cannot read the checkpoint"):
+        load_checkpoint(bad)
+    with pytest.raises(ModelFileError, match="not a usable training checkpoint"):
+        export_model(bad, tmp_path / "m.npz")
+    with pytest.raises(ValueError, match="not a learning.train checkpoint"):
+        cv.saved_fold(tmp_path, 0, {}, [])
+    assert not mark.exists()
+    good = tmp_path / "good.pt"                                     # what train saves: numpy RNG state included
+    torch.save({"rng": {"numpy": np.random.get_state()}, "w": torch.ones(2)}, good)
+    back = read_checkpoint(good)
+    assert np.array_equal(back["rng"]["numpy"][1], np.random.get_state()[1]) and back["w"].sum() == 2
