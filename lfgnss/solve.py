@@ -7,15 +7,21 @@ a non-zero exit code; every output already written stays.
 from __future__ import annotations
 
 import argparse
+import datetime as dt
 import math
+import re
 import sys
 import warnings
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from .errors import INPUT_ERRORS, InputError, LfgnssError, RinexError, cannot_write, one_line, stdout_gone
+from .observations import Observations
 from .paths import bundled_data_dir, default_model_path
+from .spp import SppConfig
+from .time import SECONDS_PER_WEEK, gps_s_to_datetime64, gps_s_to_week_tow
 
 SAMPLE_DIR = bundled_data_dir() / "berlin-potsdamer-platz"
 SAMPLE_OBS = SAMPLE_DIR / "Berlin_Potsdamer_Platz.obs.gz"
@@ -25,6 +31,13 @@ DEFAULT_MODEL = default_model_path()
 LEARNED_BACKENDS = ("ekf", "fgo")
 SMOOTHABLE_BACKENDS = ("ekf", "plain-ekf")
 PROGRESS_BACKENDS = ("ekf", "plain-ekf", "fgo")   # a tqdm bar over the epochs on a terminal
+#: The elevation mask of the coarse fix, quality control and features [deg], and of the bundled models' training data.
+DEFAULT_ELEVATION_MASK_DEG = SppConfig().elevation_mask_deg
+#: --start/--end take epochs this close outside the window [s] (RTKLIB's DTTOL of its 100 Hz builds).
+WINDOW_TOLERANCE_S = 0.005
+_WEEK_TOW = re.compile(r"\s*(\d{1,4}):(\d+(?:\.\d*)?)\s*")
+_CALENDAR = re.compile(r"\s*(\d{4})[/-](\d{1,2})[/-](\d{1,2})(?:\s+|T)(\d{1,2}):(\d{1,2}):(\d{1,2}(?:\.\d*)?)\s*")
+_GPS_EPOCH = dt.datetime(1980, 1, 6)
 
 
 class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
@@ -55,6 +68,12 @@ def build_parser() -> argparse.ArgumentParser:
                         "the bundled sample's smartloc truth)")
     p.add_argument("--truth-origin", type=_finite_float, default=None,
                    help="GPS seconds of t=0 for smartloc truth (default: first epoch)")
+    p.add_argument("--start", type=_gps_time, default=None, metavar="TIME",
+                   help='first epoch to solve, GPST: WEEK:TOW (1900:126700.5) or "YYYY/MM/DD HH:MM:SS" (rnx2rtkp -ts)')
+    p.add_argument("--end", type=_gps_time, default=None, metavar="TIME",
+                   help="last epoch to solve, inclusive, in the same forms (rnx2rtkp -te)")
+    p.add_argument("--elevation-mask", type=_elevation_mask, default=DEFAULT_ELEVATION_MASK_DEG, metavar="DEG",
+                   help="elevation mask of the coarse fix, quality control and features [deg]")
     p.add_argument("--mode", default=None, choices=("batch", "fixed-lag"), help="fgo mode (default: batch)")
     p.add_argument("--smooth", action="store_true",
                    help="ekf, plain-ekf: smooth the filter's run backwards (Rauch-Tung-Striebel; post-processing)")
@@ -97,6 +116,7 @@ def run(args) -> int:
     from .measurements import load
     from .metrics import accuracy_table, format_text
     from .outputs import plot_solution, write_csv, write_geojson, write_kml, write_pos
+    from .qc import QcConfig
     from .spp import spp
 
     if args.smooth_lag is not None and not args.smooth:
@@ -113,6 +133,8 @@ def run(args) -> int:
         raise ValueError("--model and --no-model contradict each other")
     if args.mode is not None and args.backend != "fgo":
         raise ValueError(f"--mode applies to --backend fgo, not {args.backend}")
+    if args.start is not None and args.end is not None and args.end < args.start:
+        raise ValueError(f"--end {_gpst_text(args.end)} is before --start {_gpst_text(args.start)}")
     sample = args.obs is None
     if sample and args.nav:
         raise ValueError("--nav needs --obs (without --obs the bundled sample is solved with its own navigation files)")
@@ -133,30 +155,37 @@ def run(args) -> int:
 
     noise, noise_text = _noise(args)
     feature_names = tuple(noise.feature_names) if hasattr(noise, "feature_names") else None
-    meas = load(obs, nav, systems=tuple(args.systems) if args.systems else None)
-    fix = spp(meas)
+    observations, keep = _read_window(obs, args.start, args.end)     # the whole file, and the epochs to solve
+    spp_config = SppConfig(elevation_mask_deg=args.elevation_mask)
+    meas = load(observations.select_epochs(keep), nav, systems=tuple(args.systems) if args.systems else None,
+                qc_config=QcConfig(elevation_mask_deg=args.elevation_mask))
+    fix = spp(meas, spp_config)
     truth = None
     if truth_path is not None:
         if truth_format not in datasets.TRUTH_READERS:
             raise InputError(truth_path, f"unknown truth format {truth_format!r}")
         spec = datasets.DatasetSpec("cli", obs, nav, truth_path, truth_format, time_origin_gps_s=args.truth_origin)
-        truth, bad = datasets.align_truth(meas.time_gps_s, spec)
+        truth, bad = datasets.align_truth(observations.time_gps_s, spec)   # the whole file's epochs, as always
+        truth = truth[keep]
         for line in datasets.truth_note_summary(truth_path, bad):
             print(f"warning: {line}", file=sys.stderr)
         if not np.isfinite(truth).all(axis=1).any():
             hint = " and --truth-origin (GPS seconds of its t = 0)" if truth_format == "smartloc" else ""
-            print(f"warning: {truth_path}: no truth epoch matches an epoch of {obs}; no accuracy table or plots "
-                  f"(check --truth-format {truth_format}{hint})", file=sys.stderr)
+            print(f"warning: {truth_path}: no truth epoch matches an epoch of {obs}{_window_words(args)}; no accuracy "
+                  f"table or plots (check --truth-format {truth_format}{hint})", file=sys.stderr)
             truth = None
     from .sequence import DEFAULT_FEATURES
 
     try:
         seq = build_sequence(meas, fix, feature_names=feature_names or DEFAULT_FEATURES, name=Path(obs).name,
-                             truth_ecef_m=truth)
+                             truth_ecef_m=truth, spp_config=spp_config)
     except LfgnssError as err:  # an error about the data that names no file: it is about the observations
         if isinstance(err, (InputError, RinexError)):
             raise
         raise InputError(obs, str(err)) from None
+    mask_note = _mask_note(noise, args.elevation_mask)      # once the input is known good: an error stays one line
+    if mask_note:
+        print(f"warning: {mask_note}", file=sys.stderr)
     options = {"noise": noise} if noise is not None else {}
     label = args.backend
     if args.backend == "fgo":
@@ -179,7 +208,8 @@ def run(args) -> int:
     stem = args.out / name
     # a file that cannot be written (a folder in its place, a full disk) costs that file only: the solution, the
     # other files and the accuracy table are kept, and the run ends with exit code 2
-    jobs = [(f"{stem}.pos", lambda p: [write_pos(p, solution)]),
+    recorded = replace(solution, backend=solution.backend + _settings_text(args))   # the .pos header's program line
+    jobs = [(f"{stem}.pos", lambda p: [write_pos(p, recorded)]),
             (f"{stem}.csv", lambda p: [write_csv(p, solution, truth)]),
             (f"{stem}.geojson", lambda p: [write_geojson(p, solution)]),
             (f"{stem}.kml", lambda p: [write_kml(p, solution)])]
@@ -197,7 +227,8 @@ def run(args) -> int:
         if not args.quiet:
             summary = fix.summary()
             shown = label.removesuffix(" (hand-set noise)")    # noise_text says it
-            print(f"{obs}: {summary['epochs']} epochs, systems {''.join(meas.systems)}, backend {shown} "
+            of_file = f" of {keep.size} (--start/--end)" if not keep.all() else ""
+            print(f"{obs}: {summary['epochs']} epochs{of_file}, systems {''.join(meas.systems)}, backend {shown} "
                   f"({noise_text})")
             print(f"coarse fix: {summary['epoch_status']}; observations: {summary['observations']}")
             if meas.warnings:
@@ -231,6 +262,95 @@ def _finite_float(text: str) -> float:
     return value
 
 
+def _gps_time(text: str) -> float:
+    """argparse type of --start/--end: GPS seconds [s] from ``WEEK:TOW`` or GPST ``YYYY/MM/DD HH:MM:SS(.s)``."""
+    week_tow, calendar = _WEEK_TOW.fullmatch(text), _CALENDAR.fullmatch(text)
+    if week_tow and float(week_tow[2]) < SECONDS_PER_WEEK:
+        return int(week_tow[1]) * SECONDS_PER_WEEK + float(week_tow[2])
+    if week_tow:
+        raise argparse.ArgumentTypeError(f"the time of week must be below {SECONDS_PER_WEEK:g} s, got {text!r}")
+    if calendar is None:
+        raise argparse.ArgumentTypeError(f'needs a GPS time, WEEK:TOW (1900:126700.5) or "YYYY/MM/DD HH:MM:SS" '
+                                         f'(2016/06/06 11:11:40.5), got {text!r}')
+    seconds = float(calendar[6])
+    try:
+        stamp = dt.datetime(*(int(v) for v in calendar.groups()[:5]), int(seconds))
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(f"not a calendar time ({err}), got {text!r}") from None
+    return (stamp.replace(second=0) - _GPS_EPOCH).total_seconds() + seconds
+
+
+def _elevation_mask(text: str) -> float:
+    """argparse type of --elevation-mask: an elevation in [0, 90) degrees [deg]."""
+    value = _finite_float(text)
+    if not 0.0 <= value < 90.0:
+        raise argparse.ArgumentTypeError(f"needs an elevation in [0, 90) degrees, got {text!r}")
+    return value
+
+
+def _week_tow_text(t: float) -> str:
+    """GPS seconds as ``WEEK:TOW`` [s], to the millisecond: ``1900:126700.5``."""
+    week, tow = gps_s_to_week_tow(round(t, 3))
+    return f"{int(week)}:{_trimmed(f'{tow:.3f}')}"
+
+
+def _gpst_text(t: float) -> str:
+    """GPS seconds [s] in words, to the millisecond: ``2016-06-06 11:11:40.5 GPST (1900:126700.5)``."""
+    stamp = str(gps_s_to_datetime64(round(t, 3)).astype("datetime64[ms]")).replace("T", " ")
+    return f"{_trimmed(stamp)} GPST ({_week_tow_text(t)})"
+
+
+def _trimmed(number: str) -> str:
+    """A decimal's text without trailing zeros after the point: ``40.500`` -> ``40.5``, ``40.000`` -> ``40``."""
+    return number.rstrip("0").rstrip(".") if "." in number else number
+
+
+def _window_text(start: float | None, end: float | None) -> str:
+    """--start/--end [GPS s] in words: ``A to B``, ``from A`` or ``up to B``."""
+    if start is None:
+        return f"up to {_gpst_text(end)}"
+    return f"from {_gpst_text(start)}" if end is None else f"{_gpst_text(start)} to {_gpst_text(end)}"
+
+
+def _window_words(args: argparse.Namespace) -> str:
+    """`` in --start/--end`` when the run has a window, else ''."""
+    return " in --start/--end" if args.start is not None or args.end is not None else ""
+
+
+def _read_window(obs: Path, start: float | None, end: float | None) -> tuple[Observations, np.ndarray]:
+    """The whole observation file and (T,) bool of its epochs in [start, end] [GPS s], inclusive; none: InputError."""
+    from .rinex import load_obs
+    from .sequence import time_span_text
+
+    observations = load_obs(obs)
+    t = observations.time_gps_s
+    keep = np.ones(t.shape, bool)
+    if start is not None:
+        keep &= t >= start - WINDOW_TOLERANCE_S
+    if end is not None:
+        keep &= t <= end + WINDOW_TOLERANCE_S
+    if not keep.any() and (start is not None or end is not None):
+        raise InputError(obs, f"no epoch in --start/--end {_window_text(start, end)}; the file spans "
+                              f"{time_span_text(t)}")
+    return observations, keep
+
+
+def _mask_note(noise, mask_deg: float) -> str | None:
+    """Why a learned model may not fit --elevation-mask [deg]: learning.train builds its data with the default mask."""
+    if getattr(noise, "metadata", None) is None or mask_deg == DEFAULT_ELEVATION_MASK_DEG:
+        return None                                       # hand-set noise, or the mask models are trained with
+    return (f"{noise.path}: learned models are trained with a {DEFAULT_ELEVATION_MASK_DEG:g} degree elevation mask, "
+            f"this run uses --elevation-mask {mask_deg:g}; its noise estimates may not carry over")
+
+
+def _settings_text(args: argparse.Namespace) -> str:
+    """The window and mask of a run that sets them, as options for the .pos header: `` --start 1900:126700.5``."""
+    text = f" --start {_week_tow_text(args.start)}" if args.start is not None else ""
+    text += f" --end {_week_tow_text(args.end)}" if args.end is not None else ""
+    mask = args.elevation_mask
+    return text + (f" --elevation-mask {mask:g}" if mask != DEFAULT_ELEVATION_MASK_DEG else "")
+
+
 def _run_tag(args: argparse.Namespace, options: dict) -> str:
     """What tells this run's output files from another back end's or variant's in the same ``--out``: ``ekf-rts``."""
     tag = args.backend
@@ -238,7 +358,10 @@ def _run_tag(args: argparse.Namespace, options: dict) -> str:
     tag += "-rts" if args.smooth else ""
     tag += f"-lag{args.smooth_lag:g}s" if args.smooth_lag is not None else ""
     tag += f"-{_model_tag(Path(args.model))}" if args.model is not None else ""
-    return tag + ("-hand-set" if args.no_model else "")
+    tag += "-hand-set" if args.no_model else ""
+    for option, t in (("ts", args.start), ("te", args.end)):          # rnx2rtkp's names; the time of week [s]
+        tag += f"-{option}{_week_tow_text(t).split(':')[1]}" if t is not None else ""
+    return tag + (f"-mask{args.elevation_mask:g}" if args.elevation_mask != DEFAULT_ELEVATION_MASK_DEG else "")
 
 
 def _model_tag(path: Path) -> str:
