@@ -44,7 +44,9 @@ import hashlib
 import importlib
 import math
 import os
+import pickle
 import random
+import re
 import sys
 import time
 import warnings
@@ -708,18 +710,27 @@ def _plot(path: Path, history: list[dict]) -> None:
 
 
 def _numpy_globals() -> list:
-    """What a checkpoint's numpy arrays (the RNG state) unpickle with, for ``torch.load(weights_only=True)``."""
+    """What a checkpoint's numpy arrays (the RNG state) unpickle with, for ``torch.load(weights_only=True)``: under
+    both of numpy's module names, so a checkpoint written with numpy 1 reads with numpy 2 and back."""
     core = "numpy._core.multiarray" if int(np.__version__.split(".")[0]) >= 2 else "numpy.core.multiarray"
+    reconstruct = importlib.import_module(core)._reconstruct
     dtypes = getattr(np, "dtypes", None)
-    return [importlib.import_module(core)._reconstruct, np.ndarray, np.dtype,
-            *(getattr(dtypes, n) for n in dir(dtypes) if n.endswith("DType"))]
+    return [*((reconstruct, f"{name}._reconstruct") for name in ("numpy._core.multiarray", "numpy.core.multiarray")),
+            np.ndarray, np.dtype, *(getattr(dtypes, n) for n in dir(dtypes) if n.endswith("DType"))]
 
 
 def read_checkpoint(path: str | Path) -> Any:
     """``torch.load`` of a checkpoint file on the CPU, unpickling only tensors, plain containers and numpy arrays
-    (``weights_only``: a checkpoint from elsewhere, e.g. a ``--reuse`` folder, cannot run code when read)."""
+    (``weights_only``: a checkpoint from elsewhere, e.g. a ``--reuse`` folder, cannot run code when read); ValueError
+    for a file that holds anything else."""
     with torch.serialization.safe_globals(_numpy_globals()):
-        return torch.load(path, map_location="cpu", weights_only=True)
+        try:
+            return torch.load(path, map_location="cpu", weights_only=True)
+        except pickle.UnpicklingError as exc:
+            found = re.search(r"GLOBAL (\S+)|got <class '([^']+)'>", str(exc))
+            what = f" ({found[1] or found[2]})" if found else ""
+            raise ValueError(f"it holds an object other than tensors, plain containers and numpy arrays{what}, which "
+                             f"is not read (it could run code)") from None
 
 
 def load_checkpoint(path: str | Path) -> dict:

@@ -166,7 +166,9 @@ def load(obs: str | Path | Observations, nav: str | Path | Iterable[str | Path] 
     cn0 = observations.cn0_dbhz.copy()
     cn0[~((cn0 > 0.0) & (cn0 <= qc_config.cn0_max_dbhz))] = np.nan
     letters = np.array([s[0] for s in observations.sv])
-    for system in sorted(set(letters)):
+    # systems with a pseudorange in these epochs (a selection of a file's epochs can miss one the file has)
+    observed = {s for s in set(letters) if np.isfinite(observations.pr_m[:, letters == s]).any()}
+    for system in sorted(observed):
         cols = letters == system
         if not np.any(np.isfinite(cn0[:, cols])):
             note = f"{observations.path}: no C/N0 for {system}; assuming {ASSUMED_CN0_DBHZ} dB-Hz"
@@ -200,7 +202,7 @@ def load(obs: str | Path | Observations, nav: str | Path | Iterable[str | Path] 
         counts = qc.count_reasons(reason)
         raise RinexError(observations.path, "no usable observation: " + ", ".join(f"{k}: {v}" for k, v in counts.items())
                          + f" (navigation: {', '.join(navigation.sources)}{_coverage(navigation, observations)})")
-    for system in sorted(set(letters) - set(usable_systems)):
+    for system in sorted(observed - set(usable_systems)):
         notes.append(f"{observations.path}: no usable {system} observation "
                      f"({', '.join(f'{k}: {v}' for k, v in qc.count_reasons(reason[:, letters == system]).items())})")
     sys_index = np.array([usable_systems.index(c) if c in usable_systems else -1 for c in letters], dtype=int)

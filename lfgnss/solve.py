@@ -33,8 +33,8 @@ SMOOTHABLE_BACKENDS = ("ekf", "plain-ekf")
 PROGRESS_BACKENDS = ("ekf", "plain-ekf", "fgo")   # a tqdm bar over the epochs on a terminal
 #: The elevation mask of the coarse fix, quality control and features [deg], and of the bundled models' training data.
 DEFAULT_ELEVATION_MASK_DEG = SppConfig().elevation_mask_deg
-#: --start/--end take epochs this close outside the window [s] (RTKLIB's DTTOL of its 100 Hz builds).
-WINDOW_TOLERANCE_S = 0.005
+#: --start/--end take epochs this close outside the window [s] (RTKLIB's DTTOL: receivers tag epochs ms early).
+WINDOW_TOLERANCE_S = 0.025
 _WEEK_TOW = re.compile(r"\s*(\d{1,4}):(\d+(?:\.\d*)?)\s*")
 _CALENDAR = re.compile(r"\s*(\d{4})[/-](\d{1,2})[/-](\d{1,2})(?:\s+|T)(\d{1,2}):(\d{1,2}):(\d{1,2}(?:\.\d*)?)\s*")
 _GPS_EPOCH = dt.datetime(1980, 1, 6)
@@ -359,8 +359,8 @@ def _run_tag(args: argparse.Namespace, options: dict) -> str:
     tag += f"-lag{args.smooth_lag:g}s" if args.smooth_lag is not None else ""
     tag += f"-{_model_tag(Path(args.model))}" if args.model is not None else ""
     tag += "-hand-set" if args.no_model else ""
-    for option, t in (("ts", args.start), ("te", args.end)):          # rnx2rtkp's names; the time of week [s]
-        tag += f"-{option}{_week_tow_text(t).split(':')[1]}" if t is not None else ""
+    for option, t in (("ts", args.start), ("te", args.end)):          # rnx2rtkp's names; GPS week and time of week [s]
+        tag += f"-{option}{_week_tow_text(t).replace(':', '_')}" if t is not None else ""
     return tag + (f"-mask{args.elevation_mask:g}" if args.elevation_mask != DEFAULT_ELEVATION_MASK_DEG else "")
 
 

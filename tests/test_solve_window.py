@@ -4,13 +4,15 @@ features alike, and misuse is one line."""
 from __future__ import annotations
 
 import csv
+import warnings
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
 import lfgnss.features
 from lfgnss.rinex import load_obs
-from lfgnss.solve import DEFAULT_MODEL, SAMPLE_OBS, main
+from lfgnss.solve import DEFAULT_MODEL, SAMPLE_NAV, SAMPLE_OBS, WINDOW_TOLERANCE_S, main
 
 FAST = ["--backend", "wls", "--no-plots", "--quiet"]          # least squares: the window and mask, not the filter
 
@@ -50,7 +52,7 @@ def test_the_window_solves_exactly_its_epochs_with_ends_included(tmp_path, epoch
     start, end = (f"1900:{np.format_float_positional(round(t - 1900 * 604800, 1), trim='-')}"
                   for t in (epochs[first], epochs[last]))
     assert main([*FAST, "--out", str(tmp_path), "--start", start, "--end", end]) == 0
-    stem = f"Berlin_Potsdamer_Platz_wls-ts{start.split(':')[1]}-te{end.split(':')[1]}"     # the window names them
+    stem = f"Berlin_Potsdamer_Platz_wls-ts{start.replace(':', '_')}-te{end.replace(':', '_')}"   # the window names them
     np.testing.assert_allclose(_times(tmp_path / f"{stem}.csv"), epochs[first:last + 1], atol=1e-3)
     header = (tmp_path / f"{stem}.pos").read_text().splitlines()[0]
     assert header.endswith(f"backend wls --start {start} --end {end}"), header
@@ -62,7 +64,7 @@ def test_week_tow_and_calendar_times_give_the_same_run(tmp_path, capsys):
             "iso": ("2016-06-06T11:11:40.5", "2016-06-06T11:12:40.0")}
     for name, (start, end) in runs.items():
         assert main([*FAST, "--out", str(tmp_path / name), "--start", start, "--end", end]) == 0
-    stem = "Berlin_Potsdamer_Platz_wls-ts126700.5-te126760"
+    stem = "Berlin_Potsdamer_Platz_wls-ts1900_126700.5-te1900_126760"
     texts = {name: (tmp_path / name / f"{stem}.csv").read_text() for name in runs}
     assert texts["week-tow"] == texts["rnx2rtkp"] == texts["iso"]
     times = _times(tmp_path / "iso" / f"{stem}.csv")
@@ -73,7 +75,7 @@ def test_an_open_window_and_truth_matched_as_on_the_whole_file(tmp_path, epochs,
     assert main([*FAST, "--out", str(tmp_path / "all")]) == 0
     assert main([*FAST, "--out", str(tmp_path / "late"), "--start", "2016/06/06 11:14:00"]) == 0
     whole, late = sequences[0][2], sequences[1][2]
-    keep = epochs >= 1900 * 604800 + 126840.0 - 0.005
+    keep = epochs >= 1900 * 604800 + 126840.0 - WINDOW_TOLERANCE_S
     np.testing.assert_array_equal(late.time_gps_s, epochs[keep])
     # smartloc truth counts its t from the file's first epoch, not the window's: the same rows as the whole run's
     np.testing.assert_array_equal(late.truth_ecef_m, whole.truth_ecef_m[keep])
@@ -111,9 +113,9 @@ def test_a_15_degree_mask_drops_low_satellites_everywhere_and_warns_of_the_model
     assert np.all(seq15.el_rad[seq15.mask] >= np.radians(15)) and np.all(fix15.el_rad[fix15.used] >= np.radians(15))
     assert not (seq15.mask & ~seq10.mask).any()                  # only drops, and only below 15 degrees
     assert np.all(seq10.el_rad[seq10.mask & ~seq15.mask] < np.radians(15))
-    header = (tmp_path / "Berlin_Potsdamer_Platz_ekf-te126700-mask15.pos").read_text().splitlines()[0]
+    header = (tmp_path / "Berlin_Potsdamer_Platz_ekf-te1900_126700-mask15.pos").read_text().splitlines()[0]
     assert header.endswith("backend ekf --end 1900:126700 --elevation-mask 15"), header
-    assert (tmp_path / "Berlin_Potsdamer_Platz_ekf-te126700.pos").exists()  # the 10 degree run keeps its own files
+    assert (tmp_path / "Berlin_Potsdamer_Platz_ekf-te1900_126700.pos").exists()  # the 10-degree run keeps its files
 
 
 def test_no_warning_without_a_learned_model(tmp_path, capsys):
@@ -141,3 +143,27 @@ def test_bad_values_are_option_errors(tmp_path, capsys, option, value, message):
     assert exit_info.value.code == 2 and "Traceback" not in err
     assert err.splitlines()[-1] == f"python -m lfgnss.solve: error: argument {option}: {message}"
     assert not (tmp_path / "out").exists()
+
+
+def test_an_epoch_tagged_a_few_ms_early_is_in_the_window(tmp_path, epochs, sequences):
+    """Receivers tag epochs milliseconds off the second; the window takes them as rnx2rtkp does (DTTOL 25 ms)."""
+    k = 200
+    start = f"1900:{np.format_float_positional(round(epochs[k] - 1900 * 604800 + 0.02, 2), trim='-')}"
+    end = f"1900:{np.format_float_positional(round(epochs[k + 5] - 1900 * 604800 - 0.02, 2), trim='-')}"
+    assert main([*FAST, "--out", str(tmp_path), "--start", start, "--end", end]) == 0
+    np.testing.assert_array_equal(sequences[0][2].time_gps_s, epochs[k:k + 6])
+
+
+def test_a_window_without_one_constellation_gives_no_warning_about_it():
+    """Epochs where GLONASS is not tracked (here: blanked) do not say "no C/N0 for R" or "no usable R observation"."""
+    import lfgnss
+
+    obs = load_obs(SAMPLE_OBS).select_epochs(slice(0, 50))
+    glonass = np.array([s.startswith("R") for s in obs.sv])
+    blank = replace(obs, pr_m=np.where(glonass, np.nan, obs.pr_m), cn0_dbhz=np.where(glonass, np.nan, obs.cn0_dbhz))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        meas = lfgnss.load(blank, SAMPLE_NAV)
+    said = [str(w.message) for w in caught] + list(meas.warnings)
+    assert glonass.any() and not [m for m in said if "for R" in m or "usable R" in m], said
+    assert meas.systems == ("G",)
