@@ -78,12 +78,15 @@ def export_model(checkpoint_path: str | Path, out_path: str | Path, *, extra_met
 
     try:
         ckpt = read_checkpoint(checkpoint_path)
+        if not isinstance(ckpt, dict):
+            raise ValueError(f"it holds a {type(ckpt).__name__}, not a checkpoint's dict")
         state = ckpt["model"]
         hparams = ckpt["model_hparams"]
         normaliser = Normaliser.from_dict(ckpt["normaliser"])
-    except (OSError, RuntimeError, KeyError, ValueError, EOFError, pickle.UnpicklingError) as exc:
+        params = {name: t.detach().cpu().numpy().astype(np.float32) for name, t in state.items()}
+    except (OSError, RuntimeError, KeyError, ValueError, TypeError, AttributeError, EOFError,
+            pickle.UnpicklingError) as exc:
         raise ModelFileError(checkpoint_path, f"not a usable training checkpoint ({type(exc).__name__}: {exc})") from exc
-    params = {name: t.detach().cpu().numpy().astype(np.float32) for name, t in state.items()}
     history = ckpt.get("history") or []
     row = next((h for h in history if h.get("epoch") == ckpt.get("epoch")), {})
     meta = {

@@ -150,3 +150,14 @@ def test_a_checkpoint_that_would_run_code_is_refused_not_run(tmp_path):
     torch.save({"rng": {"numpy": np.random.get_state()}, "w": torch.ones(2)}, good)
     back = read_checkpoint(good)
     assert np.array_equal(back["rng"]["numpy"][1], np.random.get_state()[1]) and back["w"].sum() == 2
+
+
+def test_exporting_a_file_that_is_not_a_checkpoint_dict_is_one_error(tmp_path):
+    import torch
+
+    from learning.export import ModelFileError, export_model
+
+    for i, content in enumerate(([1, 2], {"model": [1], "model_hparams": {}, "normaliser": 3})):
+        torch.save(content, tmp_path / f"odd{i}.pt")
+        with pytest.raises(ModelFileError, match="not a usable training checkpoint"):
+            export_model(tmp_path / f"odd{i}.pt", tmp_path / "m.npz")
