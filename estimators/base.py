@@ -189,6 +189,13 @@ def usable_doppler(sequence: Sequence) -> np.ndarray:
             & np.isfinite(sequence.sat_vel_ecef_m_s).all(-1))
 
 
+def _slots_text(flags: np.ndarray, what: str, sequence: Sequence) -> str:
+    """``"12 <what> in 3 epochs of 'name' (first at epoch 10)"`` for the True slots of ``flags`` (T, N)."""
+    epochs = flags.any(axis=1)
+    return (f"{int(flags.sum())} {what} in {int(epochs.sum())} epochs of {sequence.name!r} "
+            f"(first at epoch {int(np.argmax(epochs))})")
+
+
 def warn_unusable(sequence: Sequence, usable: np.ndarray, owner: str, doppler: np.ndarray | None = None) -> None:
     """Warnings naming ``sequence`` and how many masked-in slots (and epochs) ``usable`` (T, N) leaves out.
 
@@ -199,20 +206,14 @@ def warn_unusable(sequence: Sequence, usable: np.ndarray, owner: str, doppler: n
     """
     dropped = np.asarray(sequence.mask, bool) & ~usable
     if dropped.any():
-        epochs = dropped.any(axis=1)
-        emptied = int(np.count_nonzero(epochs & ~usable.any(axis=1)))
-        warnings.warn(f"{owner}: {int(dropped.sum())} masked-in slots in {int(epochs.sum())} epochs of "
-                      f"{sequence.name!r} (first at epoch {int(np.argmax(epochs))}) have a non-finite pseudorange or "
+        emptied = int(np.count_nonzero(dropped.any(axis=1) & ~usable.any(axis=1)))
+        warnings.warn(f"{owner}: {_slots_text(dropped, 'masked-in slots', sequence)} have a non-finite pseudorange or "
                       f"satellite position (or no known system) and are skipped; {emptied} epochs are left without a "
                       f"usable satellite", UserWarning, stacklevel=caller_stacklevel())
-    if doppler is None:
-        return
-    lost = usable & np.asarray(sequence.prr_mask, bool) & ~doppler
-    if lost.any():
-        epochs = lost.any(axis=1)
-        warnings.warn(f"{owner}: {int(lost.sum())} marked Dopplers in {int(epochs.sum())} epochs of {sequence.name!r} "
-                      f"(first at epoch {int(np.argmax(epochs))}) have a non-finite pseudorange rate or satellite "
-                      f"velocity and are skipped (their pseudoranges are used)", UserWarning,
+    lost = None if doppler is None else usable & np.asarray(sequence.prr_mask, bool) & ~doppler
+    if lost is not None and lost.any():
+        warnings.warn(f"{owner}: {_slots_text(lost, 'marked Dopplers', sequence)} have a non-finite pseudorange rate "
+                      f"or satellite velocity and are skipped (their pseudoranges are used)", UserWarning,
                       stacklevel=caller_stacklevel())
 
 

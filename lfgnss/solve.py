@@ -21,7 +21,8 @@ from .errors import INPUT_ERRORS, InputError, LfgnssError, RinexError, cannot_wr
 from .observations import Observations
 from .paths import bundled_data_dir, default_model_path
 from .spp import SppConfig
-from .time import SECONDS_PER_WEEK, gps_s_to_datetime64, gps_s_to_week_tow
+from .time import (SECONDS_PER_WEEK, datetime64_to_gps_s, gps_s_to_datetime64, gps_s_to_week_tow,
+                   week_tow_to_gps_s)
 
 SAMPLE_DIR = bundled_data_dir() / "berlin-potsdamer-platz"
 SAMPLE_OBS = SAMPLE_DIR / "Berlin_Potsdamer_Platz.obs.gz"
@@ -37,7 +38,6 @@ DEFAULT_ELEVATION_MASK_DEG = SppConfig().elevation_mask_deg
 WINDOW_TOLERANCE_S = 0.025
 _WEEK_TOW = re.compile(r"\s*(\d{1,4}):(\d+(?:\.\d*)?)\s*")
 _CALENDAR = re.compile(r"\s*(\d{4})[/-](\d{1,2})[/-](\d{1,2})(?:\s+|T)(\d{1,2}):(\d{1,2}):(\d{1,2}(?:\.\d*)?)\s*")
-_GPS_EPOCH = dt.datetime(1980, 1, 6)
 
 
 class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
@@ -157,7 +157,7 @@ def run(args) -> int:
     feature_names = tuple(noise.feature_names) if hasattr(noise, "feature_names") else None
     observations, keep = _read_window(obs, args.start, args.end)     # the whole file, and the epochs to solve
     spp_config = SppConfig(elevation_mask_deg=args.elevation_mask)
-    meas = load(observations.select_epochs(keep), nav, systems=tuple(args.systems) if args.systems else None,
+    meas = load(observations if keep.all() else observations.select_epochs(keep), nav, systems=tuple(args.systems) if args.systems else None,
                 qc_config=QcConfig(elevation_mask_deg=args.elevation_mask))
     fix = spp(meas, spp_config)
     truth = None
@@ -266,7 +266,7 @@ def _gps_time(text: str) -> float:
     """argparse type of --start/--end: GPS seconds [s] from ``WEEK:TOW`` or GPST ``YYYY/MM/DD HH:MM:SS(.s)``."""
     week_tow, calendar = _WEEK_TOW.fullmatch(text), _CALENDAR.fullmatch(text)
     if week_tow and float(week_tow[2]) < SECONDS_PER_WEEK:
-        return int(week_tow[1]) * SECONDS_PER_WEEK + float(week_tow[2])
+        return float(week_tow_to_gps_s(int(week_tow[1]), float(week_tow[2])))
     if week_tow:
         raise argparse.ArgumentTypeError(f"the time of week must be below {SECONDS_PER_WEEK:g} s, got {text!r}")
     if calendar is None:
@@ -277,7 +277,7 @@ def _gps_time(text: str) -> float:
         stamp = dt.datetime(*(int(v) for v in calendar.groups()[:5]), int(seconds))
     except ValueError as err:
         raise argparse.ArgumentTypeError(f"not a calendar time ({err}), got {text!r}") from None
-    return (stamp.replace(second=0) - _GPS_EPOCH).total_seconds() + seconds
+    return float(datetime64_to_gps_s(np.datetime64(stamp.replace(second=0)))) + seconds
 
 
 def _elevation_mask(text: str) -> float:
