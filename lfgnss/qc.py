@@ -28,11 +28,13 @@ _EPHEMERIS_REASON = {"": OK, "no ephemeris": NO_EPHEMERIS, "ephemeris expired": 
 
 @dataclass(frozen=True)
 class QcConfig:
-    """Thresholds of the coarse quality control (LF-GNSS step 1)."""
+    """Thresholds of the coarse quality control (LF-GNSS step 1) that need no receiver position.
+
+    The elevation mask needs one, so it is ``lfgnss.spp.SppConfig.elevation_mask_deg``.
+    """
 
     cn0_min_dbhz: float = 20.0
     cn0_max_dbhz: float = 100.0    # above: not a C/N0 (damaged field), treated as missing
-    elevation_mask_deg: float = 10.0
     pr_min_m: float = 1.5e7
     pr_max_m: float = 4.5e7
     gross_residual_m: float = 1000.0

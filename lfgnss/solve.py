@@ -116,7 +116,6 @@ def run(args) -> int:
     from .measurements import load
     from .metrics import accuracy_table, format_text
     from .outputs import plot_solution, write_csv, write_geojson, write_kml, write_pos
-    from .qc import QcConfig
     from .spp import spp
 
     if args.smooth_lag is not None and not args.smooth:
@@ -157,8 +156,8 @@ def run(args) -> int:
     feature_names = tuple(noise.feature_names) if hasattr(noise, "feature_names") else None
     observations, keep = _read_window(obs, args.start, args.end)     # the whole file, and the epochs to solve
     spp_config = SppConfig(elevation_mask_deg=args.elevation_mask)
-    meas = load(observations if keep.all() else observations.select_epochs(keep), nav, systems=tuple(args.systems) if args.systems else None,
-                qc_config=QcConfig(elevation_mask_deg=args.elevation_mask))
+    meas = load(observations if keep.all() else observations.select_epochs(keep), nav,
+                systems=tuple(args.systems) if args.systems else None)
     fix = spp(meas, spp_config)
     truth = None
     if truth_path is not None:
