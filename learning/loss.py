@@ -10,6 +10,10 @@ Samples are the labelled epochs of every window in the batch. Per sample (paper 
 
 ``rmse_loss`` (the "w/o HEM" ablation) is ``sqrt(mean(L ** 2))``. Epochs whose truth is NaN (no
 label) or whose estimate is not finite are left out of both.
+
+``compensation_loss`` is an optional second term (``loss.vc_weight``) that supervises v^c per satellite
+with the pseudorange's error at the true position (``pseudorange_error_m``), where the position loss
+reaches it only through the filter.
 """
 from __future__ import annotations
 
@@ -96,6 +100,44 @@ def rmse_loss(pos_m: torch.Tensor, truth_m: torch.Tensor, *, up_weight: float = 
     if L.numel() == 0:
         raise ValueError("rmse_loss: no labelled sample with a finite estimate in the batch")
     return torch.sqrt(torch.mean(L ** 2))
+
+
+def pseudorange_error_m(pr_m: torch.Tensor, sat_ecef_m: torch.Tensor, truth_m: torch.Tensor,
+                        usable: torch.Tensor, system_index: torch.Tensor, n_systems: int) -> torch.Tensor:
+    """(..., N) each usable pseudorange's error at the true position [m], its constellation's epoch median removed.
+
+    The median stands for the receiver clock (and the ISB), which the truth does not give; 0 where not usable
+    (``usable`` should be False where the truth is NaN). The torch twin of ``estimators.TruthNoise``'s error.
+    """
+    from .torch_ekf import geometric_range_m
+
+    truth = torch.where(torch.isfinite(truth_m), truth_m, torch.zeros_like(truth_m))
+    raw = torch.where(usable, pr_m - geometric_range_m(sat_ecef_m, truth[..., None, :]), torch.nan)
+    out = torch.zeros_like(raw)
+    for k in range(n_systems):
+        in_sys = usable & (system_index == k)
+        med = torch.nanquantile(torch.where(in_sys, raw, torch.nan), 0.5, dim=-1, keepdim=True)  # numpy's median
+        out = torch.where(in_sys, raw - torch.nan_to_num(med), out)
+    return out
+
+
+def compensation_loss(vc_m: torch.Tensor, error_m: torch.Tensor, usable: torch.Tensor, system_index: torch.Tensor,
+                      n_systems: int, *, delta_m: float = 5.0) -> torch.Tensor:
+    """Mean Huber(delta) of v^c + e over the usable satellites [m^2], each constellation's epoch mean removed.
+
+    v^c = -e removes a pseudorange's error (the filter adds v^c to the innovation z - h(x)). A shift common to a
+    constellation's satellites moves only the clock or ISB, so it costs nothing. 0 when nothing is usable.
+    """
+    d = torch.where(usable, vc_m.to(error_m.dtype) + error_m, torch.zeros_like(error_m))
+    centred = torch.zeros_like(d)
+    for k in range(n_systems):
+        in_sys = usable & (system_index == k)
+        count = in_sys.sum(dim=-1, keepdim=True).clamp(min=1)
+        mean = torch.where(in_sys, d, torch.zeros_like(d)).sum(dim=-1, keepdim=True) / count
+        centred = torch.where(in_sys, d - mean, centred)
+    if not usable.any():
+        return d.sum() * 0.0
+    return torch.nn.functional.huber_loss(centred[usable], torch.zeros_like(centred[usable]), delta=delta_m)
 
 
 def make_loss(kind: str, *, alpha: float = 0.75, gamma: float = 1.5, lam: float = 1.0, up_weight: float = 1.0):

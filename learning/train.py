@@ -63,7 +63,7 @@ from lfgnss.sequence import DEFAULT_FEATURES, Sequence
 from . import provenance
 from .data import Window, make_windows, collate, resolve_feature_names, sequence_batch
 from .export import model_settings
-from .loss import error_norm_m, make_loss
+from .loss import compensation_loss, error_norm_m, make_loss, pseudorange_error_m
 from .network import LfgnssNet
 from .normalise import Normaliser
 from .types import WindowBatch
@@ -91,7 +91,8 @@ DEFAULT_CONFIG: dict[str, Any] = {
     "train": {"epochs": 200, "batch_size": 16, "lr": 1.0e-3, "t_max": 50, "eta_min": 1.0e-4, "grad_clip": 0.0,
               "feature_noise": 0.0, "weight_decay": 0.0, "select": "val", "ema_decay": 0.0, "init": "", "smooth": False,
               "freeze": []},
-    "loss": {"kind": "hem", "alpha": 0.75, "gamma": 1.5, "lambda": 1.0, "up_weight": 1.0, "balance": "none"},
+    "loss": {"kind": "hem", "alpha": 0.75, "gamma": 1.5, "lambda": 1.0, "up_weight": 1.0, "balance": "none",
+             "vc_weight": 0.0, "vc_delta_m": 5.0},
     "ekf": {},
 }
 
@@ -270,8 +271,12 @@ def check_config(config: dict) -> dict:
     for key, above in (("train.lr", False), ("train.eta_min", False), ("train.weight_decay", False),
                        ("train.grad_clip", False), ("train.feature_noise", False), ("model.r_floor_m2", False),
                        ("model.r_scale_m2", True), ("loss.alpha", True), ("loss.gamma", False),
-                       ("loss.lambda", False), ("loss.up_weight", False)):
+                       ("loss.lambda", False), ("loss.up_weight", False), ("loss.vc_weight", False),
+                       ("loss.vc_delta_m", True)):
         _check_number(config, key, 0, above=above)
+    if _setting(config, "loss.vc_weight") > 0 and _setting(config, "model.innovation"):
+        raise ValueError("loss.vc_weight needs a network that reads its features alone; with model.innovation = true "
+                         "its v^c is made inside the filter")
     _check_number(config, "data.synthetic.nlos_fraction", 0, 1)
     if _setting(config, "model.r_init_m2") is not None:
         _check_number(config, "model.r_init_m2", 0, above=True)
@@ -501,11 +506,12 @@ def build_model(config: dict, n_features: int, normaliser: Normaliser | None = N
                      compensation=bool(m.get("compensation", True)), innovation=bool(m.get("innovation", False)))
 
 
-def run_filter(model: LfgnssNet, batch: WindowBatch, *, n_systems: int, ekf_cfg, smooth: bool = False
-               ) -> torch.Tensor:
+def run_filter(model: LfgnssNet, batch: WindowBatch, *, n_systems: int, ekf_cfg, smooth: bool = False,
+               noise: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
     """Filtered (or, with ``smooth``, RTS-smoothed) positions (B, T, 3) [m] with the network's R and v^c.
 
-    A network with ``innovation`` runs inside the filter, one epoch at a time, on the prior's innovations.
+    ``noise``: the network's (r_m2, vc_m) on this batch when already computed. A network with ``innovation``
+    runs inside the filter, one epoch at a time, on the prior's innovations.
     """
     from .torch_ekf import batch_ekf, rts_smooth
 
@@ -515,7 +521,7 @@ def run_filter(model: LfgnssNet, batch: WindowBatch, *, n_systems: int, ekf_cfg,
 
         out = batch_ekf(batch, None, None, n_systems=n_systems, config=ekf_cfg, noise_step=step)
     else:
-        r, vc = model(batch.features, batch.mask)
+        r, vc = model(batch.features, batch.mask) if noise is None else noise
         out = batch_ekf(batch, r.to(torch.float64), vc.to(torch.float64), n_systems=n_systems, config=ekf_cfg)
     return rts_smooth(out) if smooth else out.pos_ecef_m
 
@@ -924,6 +930,7 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
     lc = config["loss"]
     loss_fn = make_loss(lc["kind"], alpha=float(lc["alpha"]), gamma=float(lc["gamma"]), lam=float(lc["lambda"]),
                         up_weight=float(lc.get("up_weight", 1.0)))   # runs from before it resume
+    vc_weight, vc_delta = float(lc.get("vc_weight", 0.0)), float(lc.get("vc_delta_m", 5.0))
     history: list[dict] = []
     best = float("inf")
     start_epoch = 1
@@ -982,12 +989,19 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
         jitter = torch.Generator().manual_seed(int(seed) * 100_003 + epoch)
         for idx in chunks:
             batch = jitter_features(_index_batch(train_batch, idx), feature_noise, jitter)
-            pos = run_filter(model, batch, n_systems=prep.n_systems, ekf_cfg=ekf_cfg, smooth=smooth)
+            noise = model(batch.features, batch.mask) if vc_weight > 0 else None
+            pos = run_filter(model, batch, n_systems=prep.n_systems, ekf_cfg=ekf_cfg, smooth=smooth, noise=noise)
             if prep.window_scale is not None:       # errors scaled per dataset (loss.balance)
                 k = torch.as_tensor(prep.window_scale[idx], dtype=pos.dtype, device=pos.device)[:, None, None]
                 truth = batch.truth_ecef_m
                 pos = truth + k * (pos - truth)
             loss = loss_fn(pos, batch.truth_ecef_m)
+            if noise is not None:                   # v^c supervised per satellite by the true error (loss.vc_weight)
+                usable = batch.mask & torch.isfinite(batch.truth_ecef_m).all(dim=-1)[..., None]
+                error = pseudorange_error_m(batch.pr_m, batch.sat_pos_ecef_m, batch.truth_ecef_m, usable,
+                                            batch.system_index, prep.n_systems)
+                loss = loss + vc_weight * compensation_loss(noise[1], error, usable, batch.system_index,
+                                                            prep.n_systems, delta_m=vc_delta)
             if not torch.isfinite(loss):
                 raise FloatingPointError(f"epoch {epoch}: non-finite training loss {float(loss.detach())}")
             optimiser.zero_grad(set_to_none=True)

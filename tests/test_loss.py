@@ -74,3 +74,43 @@ def test_up_weight_scales_the_vertical_error_in_the_local_frame():
     assert float(make_loss("hem", up_weight=0.0)(pos_t, truth_t)) < float(make_loss("hem")(pos_t, truth_t))
     with pytest.raises(ValueError, match="up_weight"):
         make_loss("rmse", up_weight=-1.0)
+
+
+def test_pseudorange_error_matches_the_truth_noise_error_of_a_simulated_sequence():
+    """The torch error at the truth is the simulator's injected error about its constellation's median (the
+    numpy twin in estimators.TruthNoise), and 0 where the slot is unusable or the epoch unlabelled."""
+    import numpy as np
+
+    from lfgnss.features import system_median_m
+    from lfgnss.simulate import simulate_sequence
+    from learning.loss import pseudorange_error_m
+
+    seq = simulate_sequence(25, seed=7)
+    seq.truth_ecef_m[4] = np.nan
+    injected = seq.features[..., seq.feature_names.index("residual")]
+    usable = seq.mask & np.isfinite(seq.truth_ecef_m).all(axis=-1)[:, None]
+    want = injected - system_median_m(injected, usable, seq.system_index, len(seq.systems))
+    got = pseudorange_error_m(torch.as_tensor(seq.pr_m), torch.as_tensor(seq.sat_pos_ecef_m),
+                              torch.as_tensor(seq.truth_ecef_m), torch.as_tensor(usable),
+                              torch.as_tensor(seq.system_index), len(seq.systems)).numpy()
+    assert np.allclose(got[usable], want[usable], atol=1e-6)
+    assert np.all(got[~usable] == 0.0) and np.all(np.isfinite(got))
+
+
+def test_compensation_loss_is_zero_for_the_perfect_correction_up_to_a_constellation_shift():
+    from learning.loss import compensation_loss
+
+    error = torch.tensor([[3.0, -1.0, 40.0, 2.0, -2.0, 0.0]], dtype=torch.float64)
+    system = torch.tensor([[0, 0, 0, 1, 1, 1]])
+    usable = torch.tensor([[True, True, True, True, True, False]])
+    shift = torch.tensor([[5.0, 5.0, 5.0, -7.0, -7.0, 99.0]], dtype=torch.float64)  # one per system; slot 5 unusable
+    assert float(compensation_loss(-error + shift, error, usable, system, 2)) == pytest.approx(0.0, abs=1e-12)
+    vc = torch.zeros_like(error, requires_grad=True)
+    loss = compensation_loss(vc, error, usable, system, 2, delta_m=5.0)
+    d = torch.tensor([3.0 - 14.0, -1.0 - 14.0, 40.0 - 14.0, 2.0, -2.0])   # centred: system 0's mean is 14
+    want = torch.where(d.abs() <= 5.0, 0.5 * d ** 2, 5.0 * (d.abs() - 2.5)).mean()
+    assert float(loss.detach()) == pytest.approx(float(want))
+    loss.backward()
+    assert torch.all(torch.isfinite(vc.grad)) and float(vc.grad[0, 5]) == 0.0
+    none = torch.zeros_like(usable)
+    assert float(compensation_loss(vc, error, none, system, 2).detach()) == 0.0

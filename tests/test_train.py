@@ -507,3 +507,32 @@ def test_a_run_from_before_loss_up_weight_resumes(tmp_path):
     torch.save(saved, tmp_path / "last.pt")
     assert main(args + ["--resume", "--set", "train.epochs=2"]) == 0
     assert torch.load(tmp_path / "last.pt", weights_only=False)["history"][-1]["epoch"] == 2
+
+
+def test_compensation_term_pulls_vc_towards_the_true_pseudorange_errors(config, prepared, full_run, tmp_path):
+    """loss.vc_weight > 0 adds the per-satellite v^c term: after the same schedule, v^c is nearer to minus the true
+    errors of the training epochs than without it; a network that makes v^c inside the filter is refused."""
+    import copy
+
+    from learning.loss import compensation_loss, pseudorange_error_m
+
+    cfg = copy.deepcopy(config)
+    cfg["loss"]["vc_weight"] = 1.0
+    history = train(cfg, tmp_path, progress=False, prepared=prepared)
+    assert np.isfinite(history[-1]["train_loss"])
+    batch = prepared.train_batch
+    usable = batch.mask & torch.isfinite(batch.truth_ecef_m).all(dim=-1)[..., None]
+    error = pseudorange_error_m(batch.pr_m, batch.sat_pos_ecef_m, batch.truth_ecef_m, usable, batch.system_index,
+                                prepared.n_systems)
+    term = {}
+    for name, out in (("with", tmp_path), ("without", full_run[0])):
+        model = build_model(cfg, len(prepared.feature_names))
+        model.load_state_dict(torch.load(out / "last.pt", weights_only=False)["model"])
+        with torch.no_grad():
+            _, vc = model(batch.features, batch.mask)
+        term[name] = float(compensation_loss(vc, error, usable, batch.system_index, prepared.n_systems))
+    assert term["with"] < 0.8 * term["without"], term
+    with pytest.raises(ValueError, match="loss.vc_weight needs a network that reads its features alone"):
+        load_config("learning/configs/default.toml", ["loss.vc_weight=0.5", "model.innovation=true"])
+    with pytest.raises(ValueError, match="loss.vc_delta_m"):
+        load_config("learning/configs/default.toml", ["loss.vc_delta_m=0"])
