@@ -123,18 +123,18 @@ def pseudorange_error_m(pr_m: torch.Tensor, sat_ecef_m: torch.Tensor, truth_m: t
 
 def compensation_loss(vc_m: torch.Tensor, error_m: torch.Tensor, usable: torch.Tensor, system_index: torch.Tensor,
                       n_systems: int, *, delta_m: float = 5.0) -> torch.Tensor:
-    """Mean Huber(delta) of v^c + e over the usable satellites [m^2], each constellation's epoch mean removed.
+    """Mean Huber(delta) of v^c + e over the usable satellites [m^2], each constellation's epoch median removed.
 
     v^c = -e removes a pseudorange's error (the filter adds v^c to the innovation z - h(x)). A shift common to a
-    constellation's satellites moves only the clock or ISB, so it costs nothing. 0 when nothing is usable.
+    constellation's satellites moves only the clock or ISB, so it costs nothing; the median, unlike a mean, does not
+    let one large error move what the others are scored against. 0 when nothing is usable.
     """
     d = torch.where(usable, vc_m.to(error_m.dtype) + error_m, torch.zeros_like(error_m))
     centred = torch.zeros_like(d)
     for k in range(n_systems):
         in_sys = usable & (system_index == k)
-        count = in_sys.sum(dim=-1, keepdim=True).clamp(min=1)
-        mean = torch.where(in_sys, d, torch.zeros_like(d)).sum(dim=-1, keepdim=True) / count
-        centred = torch.where(in_sys, d - mean, centred)
+        med = torch.nanquantile(torch.where(in_sys, d, torch.nan), 0.5, dim=-1, keepdim=True)
+        centred = torch.where(in_sys, d - torch.nan_to_num(med), centred)
     if not usable.any():
         return d.sum() * 0.0
     return torch.nn.functional.huber_loss(centred[usable], torch.zeros_like(centred[usable]), delta=delta_m)

@@ -277,6 +277,8 @@ def check_config(config: dict) -> dict:
     if _setting(config, "loss.vc_weight") > 0 and _setting(config, "model.innovation"):
         raise ValueError("loss.vc_weight needs a network that reads its features alone; with model.innovation = true "
                          "its v^c is made inside the filter")
+    if _setting(config, "loss.vc_weight") > 0 and not _setting(config, "model.compensation"):
+        raise ValueError("loss.vc_weight supervises v^c, and model.compensation = false has none (v^c = 0)")
     _check_number(config, "data.synthetic.nlos_fraction", 0, 1)
     if _setting(config, "model.r_init_m2") is not None:
         _check_number(config, "model.r_init_m2", 0, above=True)
@@ -991,7 +993,8 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
             batch = jitter_features(_index_batch(train_batch, idx), feature_noise, jitter)
             noise = model(batch.features, batch.mask) if vc_weight > 0 else None
             pos = run_filter(model, batch, n_systems=prep.n_systems, ekf_cfg=ekf_cfg, smooth=smooth, noise=noise)
-            if prep.window_scale is not None:       # errors scaled per dataset (loss.balance)
+            k = 1.0                                 # errors scaled per dataset (loss.balance)
+            if prep.window_scale is not None:
                 k = torch.as_tensor(prep.window_scale[idx], dtype=pos.dtype, device=pos.device)[:, None, None]
                 truth = batch.truth_ecef_m
                 pos = truth + k * (pos - truth)
@@ -1000,7 +1003,7 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
                 usable = batch.mask & torch.isfinite(batch.truth_ecef_m).all(dim=-1)[..., None]
                 error = pseudorange_error_m(batch.pr_m, batch.sat_pos_ecef_m, batch.truth_ecef_m, usable,
                                             batch.system_index, prep.n_systems)
-                loss = loss + vc_weight * compensation_loss(noise[1], error, usable, batch.system_index,
+                loss = loss + vc_weight * compensation_loss(k * noise[1], k * error, usable, batch.system_index,
                                                             prep.n_systems, delta_m=vc_delta)
             if not torch.isfinite(loss):
                 raise FloatingPointError(f"epoch {epoch}: non-finite training loss {float(loss.detach())}")

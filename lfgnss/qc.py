@@ -30,14 +30,13 @@ _EPHEMERIS_REASON = {"": OK, "no ephemeris": NO_EPHEMERIS, "ephemeris expired": 
 class QcConfig:
     """Thresholds of the coarse quality control (LF-GNSS step 1) that need no receiver position.
 
-    The elevation mask needs one, so it is ``lfgnss.spp.SppConfig.elevation_mask_deg``.
+    The elevation mask and the gross-residual limit need one, so they are ``lfgnss.spp.SppConfig``'s.
     """
 
     cn0_min_dbhz: float = 20.0
     cn0_max_dbhz: float = 100.0    # above: not a C/N0 (damaged field), treated as missing
     pr_min_m: float = 1.5e7
     pr_max_m: float = 4.5e7
-    gross_residual_m: float = 1000.0
 
 
 def ephemeris_reason(reason: np.ndarray) -> np.ndarray:

@@ -298,3 +298,39 @@ def test_pool_puts_parallel_fold_runs_in_one_table_with_the_pooled_rows(trained_
     with pytest.raises(SystemExit) as exit_info:        # the recipe is the runs' own: --set is refused, not ignored
         main(["--folds", "2", *parts, "--set", "seed=1", "--out", str(tmp_path / "z")])
     assert exit_info.value.code == 2 and "--pool takes only --folds and an --out" in capsys.readouterr().err
+
+
+def test_vc_term_script_scores_each_fold_model_on_its_held_out_block(trained_run, capsys):
+    """benchmarks/vc_term.py: the v^c = 0 figure is compensation_loss of zeros over the same held-out satellites."""
+    import sys
+    from pathlib import Path
+
+    import torch
+
+    from learning.data import sequence_batch
+    from learning.loss import compensation_loss, pseudorange_error_m
+    from learning.normalise import Normaliser
+    from learning.train import load_config, load_sequences
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    import vc_term
+
+    run, args = trained_run
+    term, zero = vc_term.held_out_terms(run, folds=2)
+    assert math.isfinite(term) and term > 0 and term != zero
+    config = load_config("learning/configs/default.toml", [a for a in RECIPE if "=" in a])
+    whole = load_sequences("synthetic", "train", config) + load_sequences("synthetic", "val", config)
+    sums, count = 0.0, 0
+    for fold in range(2):
+        normaliser = Normaliser.from_dict(torch.load(run / f"fold{fold}" / "last.pt", weights_only=False)["normaliser"])
+        for piece in fold_sequences(whole, 2, fold)[1]:
+            b = sequence_batch(piece, normaliser)
+            usable = b.mask & torch.isfinite(b.truth_ecef_m).all(dim=-1)[..., None]
+            n_sys = len(piece.systems)
+            error = pseudorange_error_m(b.pr_m, b.sat_pos_ecef_m, b.truth_ecef_m, usable, b.system_index, n_sys)
+            n = int(usable.sum())
+            sums += float(compensation_loss(torch.zeros_like(error), error, usable, b.system_index, n_sys)) * n
+            count += n
+    assert zero == pytest.approx(sums / count, rel=1e-9)
+    assert vc_term.main([str(run), "--folds", "2"]) == 0
+    assert f"{run}: held-out v^c term {term:.2f} m^2 (v^c = 0: {zero:.2f} m^2)" in capsys.readouterr().out

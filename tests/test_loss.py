@@ -98,6 +98,7 @@ def test_pseudorange_error_matches_the_truth_noise_error_of_a_simulated_sequence
 
 
 def test_compensation_loss_is_zero_for_the_perfect_correction_up_to_a_constellation_shift():
+    """Huber of v^c + e about each constellation's median: one 40 m error does not move the others' score."""
     from learning.loss import compensation_loss
 
     error = torch.tensor([[3.0, -1.0, 40.0, 2.0, -2.0, 0.0]], dtype=torch.float64)
@@ -107,7 +108,7 @@ def test_compensation_loss_is_zero_for_the_perfect_correction_up_to_a_constellat
     assert float(compensation_loss(-error + shift, error, usable, system, 2)) == pytest.approx(0.0, abs=1e-12)
     vc = torch.zeros_like(error, requires_grad=True)
     loss = compensation_loss(vc, error, usable, system, 2, delta_m=5.0)
-    d = torch.tensor([3.0 - 14.0, -1.0 - 14.0, 40.0 - 14.0, 2.0, -2.0])   # centred: system 0's mean is 14
+    d = torch.tensor([0.0, -4.0, 37.0, 2.0, -2.0])     # centred on the medians: 3 (system 0) and 0 (system 1)
     want = torch.where(d.abs() <= 5.0, 0.5 * d ** 2, 5.0 * (d.abs() - 2.5)).mean()
     assert float(loss.detach()) == pytest.approx(float(want))
     loss.backward()

@@ -534,5 +534,12 @@ def test_compensation_term_pulls_vc_towards_the_true_pseudorange_errors(config, 
     assert term["with"] < 0.8 * term["without"], term
     with pytest.raises(ValueError, match="loss.vc_weight needs a network that reads its features alone"):
         load_config("learning/configs/default.toml", ["loss.vc_weight=0.5", "model.innovation=true"])
+    with pytest.raises(ValueError, match="model.compensation = false has none"):
+        load_config("learning/configs/default.toml", ["loss.vc_weight=0.5", "model.compensation=false"])
     with pytest.raises(ValueError, match="loss.vc_delta_m"):
         load_config("learning/configs/default.toml", ["loss.vc_delta_m=0"])
+    cfg["train"]["epochs"] = 1                   # with loss.balance the term is scaled too: one dataset, factor 1
+    runs = [train(cfg, tmp_path / "none", progress=False, prepared=prepared)]
+    cfg["loss"]["balance"] = "plain_ekf"
+    runs.append(train(cfg, tmp_path / "balanced", progress=False, prepared=prepare(cfg)))
+    assert runs[0][1]["train_loss"] == runs[1][1]["train_loss"]
