@@ -21,9 +21,8 @@ def held_out_terms(run_dir: str | Path, folds: int = 3) -> tuple[float, float]:
     """(term of the fold models' v^c, term of v^c = 0) [m^2], pooled over the held-out satellites of every fold."""
     from learning.crossval import fold_sequences
     from learning.data import sequence_batch
-    from learning.loss import compensation_loss, pseudorange_error_m
-    from learning.normalise import Normaliser
-    from learning.train import build_model, load_sequences, read_checkpoint
+    from learning.loss import compensation_loss, labelled_errors_m
+    from learning.train import checkpoint_network, load_sequences, read_checkpoint
 
     whole: dict = {}
     sums, count = [0.0, 0.0], 0
@@ -32,9 +31,7 @@ def held_out_terms(run_dir: str | Path, folds: int = 3) -> tuple[float, float]:
         config, data = saved["config"], saved["config"]["data"]
         whole = whole or {ds: load_sequences(ds, data["train_split"], config)
                           + load_sequences(ds, data["val_split"], config) for ds in data["datasets"]}
-        normaliser = Normaliser.from_dict(saved["normaliser"])
-        model = build_model(saved["config"], len(normaliser.feature_names), normaliser)
-        model.load_state_dict(saved["model"])
+        model, normaliser = checkpoint_network(saved)
         model.eval()
         n_systems = int(saved["n_systems"])
         for sequences in whole.values():
@@ -42,12 +39,10 @@ def held_out_terms(run_dir: str | Path, folds: int = 3) -> tuple[float, float]:
                 batch = sequence_batch(piece, normaliser, n_systems=n_systems)
                 with torch.no_grad():
                     _, vc = model(batch.features, batch.mask)
-                usable = batch.mask & torch.isfinite(batch.truth_ecef_m).all(dim=-1)[..., None]
+                usable, error = labelled_errors_m(batch, n_systems)
                 n = int(usable.sum())
                 if not n:
                     continue
-                error = pseudorange_error_m(batch.pr_m, batch.sat_pos_ecef_m, batch.truth_ecef_m, usable,
-                                            batch.system_index, n_systems)
                 for k, v in enumerate((vc, torch.zeros_like(vc))):
                     sums[k] += float(compensation_loss(v, error, usable, batch.system_index, n_systems)) * n
                 count += n

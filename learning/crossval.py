@@ -102,16 +102,15 @@ def plain_ekf_rmse_m(sequences: list[Sequence], config: dict, smooth: bool = Fal
 def _saved_rmse_m(checkpoint: Path, config: dict, prep) -> tuple[dict, float, float]:
     """A fold's saved checkpoint, read once, and its (RTS-smoothed 3D, forward 2D) RMSE [m] over the held-out block."""
     saved = read_checkpoint(checkpoint)
-    return (saved, *_model_rmse_m(saved, config, prep.normaliser, prep.val_batches, prep.n_systems)[1:])
+    return (saved, *_model_rmse_m(saved, config, prep.val_batches, prep.n_systems)[1:])
 
 
-def _model_rmse_m(saved: dict, config: dict, normaliser, batches: list, n_systems: int) -> tuple[float, float, float]:
+def _model_rmse_m(saved: dict, config: dict, batches: list, n_systems: int) -> tuple[float, float, float]:
     """(3D as trained (forward, or smoothed with ``train.smooth``), RTS-smoothed 3D, forward 2D) RMSE [m] of a
     checkpoint's weights over ``batches``, under ``config``'s EKF."""
-    from .train import build_model, evaluate
+    from .train import checkpoint_network, evaluate
 
-    model = build_model(saved["config"], len(normaliser.feature_names), normaliser)
-    model.load_state_dict(saved["model"])
+    model, _ = checkpoint_network(saved)
     run = dict(n_systems=n_systems, ekf_cfg=ekf_config(config))
     smooth = bool(saved["config"]["train"].get("smooth", False))    # the run's own last_rmse_3d_m: as trained
     return (evaluate(model, batches, smooth=smooth, **run)[0], evaluate(model, batches, smooth=True, **run)[0],
@@ -162,14 +161,12 @@ def _check_weights(path: Path, saved: dict) -> None:
     its last training epoch (a fold interrupted or diverged mid-training leaves an earlier epoch's ``last.pt``)."""
     import torch
 
-    from .normalise import Normaliser
-    from .train import build_model
+    from .train import checkpoint_network
 
     try:
         epoch, epochs = int(saved["epoch"]), int(saved["config"]["train"]["epochs"])
-        normaliser = Normaliser.from_dict(saved["normaliser"])
         int(saved["n_systems"])
-        build_model(saved["config"], len(normaliser.feature_names), normaliser).load_state_dict(saved["model"])
+        checkpoint_network(saved)
         bad = [k for k, v in saved["model"].items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
     except Exception as exc:            # whatever a damaged checkpoint makes torch or the normaliser raise
         raise ValueError(f"{path}: not a usable learning.train checkpoint ({type(exc).__name__}: "
@@ -196,7 +193,7 @@ def _rescored_row(fold: int, saved: dict, config: dict, held: list[Sequence]) ->
 
     normaliser = Normaliser.from_dict(saved["normaliser"])
     batches = [sequence_batch(s, normaliser, n_systems=int(saved["n_systems"])) for s in held]
-    last_3d, last_smoothed_3d, last_2d = _model_rmse_m(saved, config, normaliser, batches, int(saved["n_systems"]))
+    last_3d, last_smoothed_3d, last_2d = _model_rmse_m(saved, config, batches, int(saved["n_systems"]))
     return _fold_row(fold, held, config, {"untrained_rmse_3d_m": math.nan, "last_rmse_3d_m": last_3d,
                                           "best_rmse_3d_m": math.nan, "best_epoch": "-",
                                           "last_smoothed_rmse_3d_m": last_smoothed_3d, "last_rmse_2d_m": last_2d})

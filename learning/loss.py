@@ -121,6 +121,14 @@ def pseudorange_error_m(pr_m: torch.Tensor, sat_ecef_m: torch.Tensor, truth_m: t
     return out
 
 
+def labelled_errors_m(batch, n_systems: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(usable, error) (B, T, N) of a WindowBatch: its masked-in slots of labelled epochs, and their
+    ``pseudorange_error_m`` [m] (0 elsewhere)."""
+    usable = batch.mask & torch.isfinite(batch.truth_ecef_m).all(dim=-1)[..., None]
+    return usable, pseudorange_error_m(batch.pr_m, batch.sat_pos_ecef_m, batch.truth_ecef_m, usable,
+                                       batch.system_index, n_systems)
+
+
 def compensation_loss(vc_m: torch.Tensor, error_m: torch.Tensor, usable: torch.Tensor, system_index: torch.Tensor,
                       n_systems: int, *, delta_m: float = 5.0) -> torch.Tensor:
     """Mean Huber(delta) of v^c + e over the usable satellites [m^2], each constellation's epoch median removed.

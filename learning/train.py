@@ -63,7 +63,7 @@ from lfgnss.sequence import DEFAULT_FEATURES, Sequence
 from . import provenance
 from .data import Window, make_windows, collate, resolve_feature_names, sequence_batch
 from .export import model_settings
-from .loss import compensation_loss, error_norm_m, make_loss, pseudorange_error_m
+from .loss import compensation_loss, error_norm_m, labelled_errors_m, make_loss
 from .network import LfgnssNet
 from .normalise import Normaliser
 from .types import WindowBatch
@@ -506,6 +506,14 @@ def build_model(config: dict, n_features: int, normaliser: Normaliser | None = N
                      r_floor_m2=float(m["r_floor_m2"]), r_scale_m2=float(m["r_scale_m2"]),
                      r_init_m2=None if m.get("r_init_m2") is None else float(m["r_init_m2"]), r_prior=prior,
                      compensation=bool(m.get("compensation", True)), innovation=bool(m.get("innovation", False)))
+
+
+def checkpoint_network(saved: dict) -> tuple[LfgnssNet, Normaliser]:
+    """A read checkpoint's network with its saved weights, and the normaliser of its features."""
+    normaliser = Normaliser.from_dict(saved["normaliser"])
+    model = build_model(saved["config"], len(normaliser.feature_names), normaliser)
+    model.load_state_dict(saved["model"])
+    return model, normaliser
 
 
 def run_filter(model: LfgnssNet, batch: WindowBatch, *, n_systems: int, ekf_cfg, smooth: bool = False,
@@ -1000,9 +1008,7 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
                 pos = truth + k * (pos - truth)
             loss = loss_fn(pos, batch.truth_ecef_m)
             if noise is not None:                   # v^c supervised per satellite by the true error (loss.vc_weight)
-                usable = batch.mask & torch.isfinite(batch.truth_ecef_m).all(dim=-1)[..., None]
-                error = pseudorange_error_m(batch.pr_m, batch.sat_pos_ecef_m, batch.truth_ecef_m, usable,
-                                            batch.system_index, prep.n_systems)
+                usable, error = labelled_errors_m(batch, prep.n_systems)
                 loss = loss + vc_weight * compensation_loss(k * noise[1], k * error, usable, batch.system_index,
                                                             prep.n_systems, delta_m=vc_delta)
             if not torch.isfinite(loss):

@@ -8,7 +8,7 @@ from typing import Iterable
 import numpy as np
 
 from .frames import check_near_surface
-from .time import gps_s_to_datetime64
+from .time import gpst_stamp
 
 #: Default LF-GNSS feature set, in packing order (see lfgnss.features).
 DEFAULT_FEATURES = ("cn0", "elevation", "azimuth", "residual", "dpc_gdop", "dpc_pdop", "dpc_hdop", "dpc_vdop")
@@ -20,8 +20,7 @@ def time_span_text(time_gps_s: np.ndarray) -> str:
     t = t[np.isfinite(t)]
     if not t.size:
         return "no epoch times"
-    first, last = (str(gps_s_to_datetime64(round(x, 1)).astype("datetime64[ms]")).replace("T", " ")[:-2]
-                   for x in (t.min(), t.max()))                                    # to 0.1 s
+    first, last = (gpst_stamp(x, 1) for x in (t.min(), t.max()))
     end = last[11:] if last[:10] == first[:10] else last
     return f"{first} to {end} GPST ({t.max() - t.min():.1f} s)"
 

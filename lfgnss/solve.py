@@ -21,8 +21,7 @@ from .errors import INPUT_ERRORS, InputError, LfgnssError, RinexError, cannot_wr
 from .observations import Observations
 from .paths import bundled_data_dir, default_model_path
 from .spp import SppConfig
-from .time import (SECONDS_PER_WEEK, datetime64_to_gps_s, gps_s_to_datetime64, gps_s_to_week_tow,
-                   week_tow_to_gps_s)
+from .time import SECONDS_PER_WEEK, datetime64_to_gps_s, gps_s_to_week_tow, gpst_stamp, week_tow_to_gps_s
 
 SAMPLE_DIR = bundled_data_dir() / "berlin-potsdamer-platz"
 SAMPLE_OBS = SAMPLE_DIR / "Berlin_Potsdamer_Platz.obs.gz"
@@ -295,8 +294,7 @@ def _week_tow_text(t: float) -> str:
 
 def _gpst_text(t: float) -> str:
     """GPS seconds [s] in words, to the millisecond: ``2016-06-06 11:11:40.5 GPST (1900:126700.5)``."""
-    stamp = str(gps_s_to_datetime64(round(t, 3)).astype("datetime64[ms]")).replace("T", " ")
-    return f"{_trimmed(stamp)} GPST ({_week_tow_text(t)})"
+    return f"{_trimmed(gpst_stamp(t))} GPST ({_week_tow_text(t)})"
 
 
 def _trimmed(number: str) -> str:
@@ -352,10 +350,10 @@ def _settings_text(args: argparse.Namespace) -> str:
 
 def _run_tag(args: argparse.Namespace, options: dict) -> str:
     """What tells this run's output files from another back end's or variant's in the same ``--out``: ``ekf-rts``."""
-    tag = args.backend
-    tag += "-fixed-lag" if options.get("mode") == "fixed-lag" else ""
-    tag += "-rts" if args.smooth else ""
-    tag += f"-lag{args.smooth_lag:g}s" if args.smooth_lag is not None else ""
+    from estimators.ekf import smoothed_name
+
+    tag = smoothed_name(args.backend + ("-fixed-lag" if options.get("mode") == "fixed-lag" else ""), args.smooth,
+                        math.inf if args.smooth_lag is None else args.smooth_lag)
     tag += f"-{_model_tag(Path(args.model))}" if args.model is not None else ""
     tag += "-hand-set" if args.no_model else ""
     for option, t in (("ts", args.start), ("te", args.end)):          # rnx2rtkp's names; GPS week and time of week [s]

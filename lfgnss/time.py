@@ -30,6 +30,12 @@ def gps_s_to_datetime64(gps_s: np.ndarray) -> np.ndarray:
     return GPS_EPOCH + (np.round(np.asarray(gps_s, dtype=float) * 1e9)).astype("timedelta64[ns]")
 
 
+def gpst_stamp(gps_s: float, decimals: int = 3) -> str:
+    """GPS seconds [s] as a GPST calendar stamp to ``decimals`` (1 to 3) places: ``2016-06-06 11:11:40.500``."""
+    text = str(gps_s_to_datetime64(round(gps_s, decimals)).astype("datetime64[ms]")).replace("T", " ")
+    return text[:len(text) - 3 + decimals]
+
+
 def week_tow_to_gps_s(week: np.ndarray, tow_s: np.ndarray) -> np.ndarray:
     """GPS seconds from GPS week and time of week [s]."""
     return np.asarray(week, dtype=float) * SECONDS_PER_WEEK + np.asarray(tow_s, dtype=float)
