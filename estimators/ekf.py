@@ -7,6 +7,8 @@ Per epoch ``k`` (models in ``estimators.models``)::
               v_i = z_i - h_i(x^-),  S = H P^- H^T + R,  R = diag(r_i)
     gate:     keep satellite i if t_i = |v_i| / sqrt(S_ii) <= gate_sigma
     soften:   r_i *= max(1, t_i / huber_k)          (only with EkfConfig.huber_k; Huber's weight, pseudoranges)
+    stand:    add 0 = v + n, n ~ N(0, zupt_sigma^2)  (only with EkfConfig.zupt_sigma_m_s, at epochs the Dopplers
+              find standing still, ``models.stationary_epochs``; ``info["stationary"]`` marks them)
     update:   K = P^- H^T S^-1,  x = x^- + K v,  P = (I - K H) P^- (I - K H)^T + K R K^T   (Joseph)
 
 so ``x = x^- + K (pr - h + vc)`` as in the paper. Initialisation and resets take the coarse fix
@@ -226,6 +228,9 @@ class LfgnssEkf:
         clock_realigned = np.zeros(t_len, dtype=bool)
         gate_sigma = cfg.gate_sigma
         started = False
+        still = models.stationary_epochs(prr_all, doppler_ok, sat_all, satvel_all, sequence.coarse_ecef_m,
+                                         r_doppler_all, cfg)
+        zupt_r = np.full(3, (cfg.zupt_sigma_m_s or 0.0) ** 2)
 
         def normalised(v: np.ndarray, H: np.ndarray, r: np.ndarray) -> np.ndarray:
             return np.abs(v) / np.sqrt(np.einsum("ij,jk,ik->i", H, ekf.P, H) + r)    # |v| / sqrt(diag(H P^- H^T + R))
@@ -244,7 +249,8 @@ class LfgnssEkf:
                     (g, G, y, rd, keep_mask(normalised(y - g, G, rd))))
 
         def update(k: int, gated: tuple) -> None:
-            """Joseph-form update with the kept measurements; records n_used, n_doppler and n_gated of epoch k."""
+            """Joseph-form update with the kept measurements (and a standstill's zero velocity); records n_used,
+            n_doppler and n_gated of epoch k."""
             blocks = []
             for j, (h, H, z, r, keep) in enumerate(gated):
                 used = int(keep.sum())
@@ -255,6 +261,8 @@ class LfgnssEkf:
                 (n_used if j == 0 else n_doppler)[k] = used
                 if used:
                     blocks.append((h[keep], H[keep], z[keep], r[keep]))
+            if still[k]:
+                blocks.append(models.zero_velocity_measurement(ekf.x) + (np.zeros(3), zupt_r))
             if blocks:
                 h, H, z, r = (np.concatenate(part) for part in zip(*blocks))
                 ekf.update(z, _given, _given, R=np.diag(r), args=(H,), hx_args=(h,))
@@ -335,7 +343,7 @@ class LfgnssEkf:
             state[k] = ekf.x
             cov[k] = ekf.P
 
-        info = {"n_gated": n_gated, "n_usable": usable.sum(1), "n_doppler": n_doppler,
+        info = {"n_gated": n_gated, "n_usable": usable.sum(1), "n_doppler": n_doppler, "stationary": still,
                 "clock_realigned": clock_realigned, "config": cfg, "filtered_state": state, "r_m2": r_all,
                 "vc_m": vc_all, "smooth": self.smooth, "smooth_lag_s": self.smooth_lag_s if self.smooth else 0.0}
         if self.smooth:

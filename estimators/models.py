@@ -46,6 +46,14 @@ drift, ``Sequence.prr_m_s``), used where ``Sequence.prr_mask``::
 with variance ``doppler_variance_m2_s2`` (``doppler_sigma_m_s^2``, growing below ``doppler_cn0_ref_dbhz``):
 Doppler measures velocity and clock drift directly, so the constant-velocity model no longer has to infer
 them from differences of noisy pseudoranges.
+
+Zero-velocity update (``zupt_sigma_m_s``): at an epoch whose Dopplers say the receiver stands still
+(``stationary_epochs``), the pseudo-measurement ``0 = v + n``, ``n ~ N(0, zupt_sigma^2 I_3)``::
+
+    H_zupt = [0_3, I_3, 0 ...]
+
+A car waiting at a light stands exactly still, which the white-acceleration model cannot know: without it the
+velocity wanders at a few tenths of a m/s and the position with it, driven by the street's multipath.
 """
 from __future__ import annotations
 
@@ -61,7 +69,7 @@ if TYPE_CHECKING:
 ArrayOrTensor = Union[np.ndarray, "torch.Tensor"]
 
 from lfgnss.corrections import geometric_range_m, line_of_sight
-from lfgnss.velocity import cn0_doppler_variance_m2_s2, doppler_design
+from lfgnss.velocity import cn0_doppler_variance_m2_s2, doppler_design, doppler_velocity
 
 #: Indices into the state vector.
 POS = slice(0, 3)
@@ -153,6 +161,12 @@ class EkfConfig:
         With a value, a soft robust update on top of the gate: a kept pseudorange whose normalised innovation
         ``t = |v_i + vc_i| / sqrt(S_ii)`` exceeds ``huber_k`` has its variance scaled by ``t / huber_k`` (Huber's
         weight ``min(1, huber_k / t)``, one step, weights taken as constants). None: the hard gate alone.
+    zupt_sigma_m_s : float or None
+        With a value, a zero-velocity update of this sigma per axis [m/s] at every epoch ``stationary_epochs``
+        finds standing still (needs Dopplers, ``doppler_sigma_m_s > 0``). None: no zero-velocity update.
+    zupt_max_speed_m_s : float
+        The standstill test's speed bound [m/s]: the epoch's Doppler velocity must be slower than this, as well as
+        consistent with zero at 99 % (``stationary_epochs``).
     """
 
     p0_pos_m2: float = 100.0 ** 2
@@ -176,16 +190,19 @@ class EkfConfig:
     clock_jump_min_m: float = 1000.0
     doppler_cn0_ref_dbhz: float | None = None
     huber_k: float | None = None
+    zupt_sigma_m_s: float | None = None
+    zupt_max_speed_m_s: float = 0.5
 
     def __post_init__(self) -> None:
         for f in fields(self):
             value = getattr(self, f.name)
-            if f.name in ("q_vel_up_m2_s3", "doppler_cn0_ref_dbhz", "huber_k"):   # None allowed; checked below
+            if f.name in ("q_vel_up_m2_s3", "doppler_cn0_ref_dbhz", "huber_k", "zupt_sigma_m_s"):  # None allowed
                 continue
             if isinstance(value, bool) or not isinstance(value, numbers.Real):
                 raise ValueError(f"estimators/models.py: EkfConfig.{f.name} must be a number, got {value!r}")
         for name in ("p0_pos_m2", "p0_vel_m2_s2", "p0_clock_m2", "p0_drift_m2_s2", "p0_isb_m2", "q_pos_m2_s",
-                     "q_vel_m2_s3", "q_clock_m2_s", "q_drift_m2_s3", "q_isb_m2_s", "doppler_sigma_m_s"):
+                     "q_vel_m2_s3", "q_clock_m2_s", "q_drift_m2_s3", "q_isb_m2_s", "doppler_sigma_m_s",
+                     "zupt_max_speed_m_s"):
             if not np.isfinite(getattr(self, name)):
                 raise ValueError(f"estimators/models.py: EkfConfig.{name} must be finite, got {getattr(self, name)}")
         for name in ("reset_min_sats", "min_sats_for_update"):
@@ -199,7 +216,7 @@ class EkfConfig:
             if not getattr(self, name) > 0:
                 raise ValueError(f"estimators/models.py: EkfConfig.{name} must be > 0, got {getattr(self, name)}")
         for name in ("q_pos_m2_s", "q_vel_m2_s3", "q_clock_m2_s", "q_drift_m2_s3", "q_isb_m2_s", "gate_sigma",
-                     "reset_distance_m", "max_gap_s", "doppler_sigma_m_s", "clock_jump_min_m"):
+                     "reset_distance_m", "max_gap_s", "doppler_sigma_m_s", "clock_jump_min_m", "zupt_max_speed_m_s"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"estimators/models.py: EkfConfig.{name} must be >= 0, got {getattr(self, name)}")
         up = self.q_vel_up_m2_s3
@@ -212,6 +229,13 @@ class EkfConfig:
         k = self.huber_k
         if k is not None and (isinstance(k, bool) or not isinstance(k, (int, float)) or not k > 0 or k == np.inf):
             raise ValueError(f"estimators/models.py: EkfConfig.huber_k must be a positive number or None, got {k!r}")
+        z = self.zupt_sigma_m_s
+        if z is not None and (isinstance(z, bool) or not isinstance(z, (int, float)) or not z > 0 or z == np.inf):
+            raise ValueError(f"estimators/models.py: EkfConfig.zupt_sigma_m_s must be a positive number of m/s or "
+                             f"None, got {z!r}")
+        if z is not None and not self.doppler_sigma_m_s > 0:
+            raise ValueError("estimators/models.py: EkfConfig.zupt_sigma_m_s needs Dopplers to detect a standstill; "
+                             "doppler_sigma_m_s is 0")
         if self.min_sats_for_update < 1:
             raise ValueError("estimators/models.py: EkfConfig.min_sats_for_update must be >= 1")
 
@@ -226,6 +250,37 @@ def stored_ekf_config(stored: dict | None) -> EkfConfig:
         return EkfConfig()
     known = {f.name for f in fields(EkfConfig)}
     return EkfConfig(**{"doppler_sigma_m_s": 0.0, **{k: v for k, v in stored.items() if k in known}})
+
+
+#: 99 % point of the chi-square distribution with 3 degrees of freedom (scipy.stats.chi2.ppf(0.99, 3)).
+CHI2_3DOF_99 = 11.344866730144373
+
+
+def stationary_epochs(prr_m_s: np.ndarray, doppler_ok: np.ndarray, sat_pos_ecef_m: np.ndarray,
+                      sat_vel_ecef_m_s: np.ndarray, rcv_ecef_m: np.ndarray, variance_m2_s2: np.ndarray,
+                      config: EkfConfig) -> np.ndarray:
+    """(T,) bool: epochs where the receiver stands still, by its Dopplers; all False without ``zupt_sigma_m_s``.
+
+    The epoch's robust Doppler velocity ``v`` (``lfgnss.velocity.doppler_velocity`` with the filter's Doppler
+    variances, at ``rcv_ecef_m`` [m], e.g. the coarse fix) must be slower than ``zupt_max_speed_m_s`` and consistent
+    with zero: ``v^T C^-1 v < CHI2_3DOF_99``, ``C`` its covariance. Inputs are (T, N) [m/s], (T, N, 3) and (T, 3).
+    """
+    ok = np.asarray(doppler_ok, bool)
+    if config.zupt_sigma_m_s is None or not ok.any():
+        return np.zeros(ok.shape[0], bool)
+    fix = doppler_velocity(np.where(ok, prr_m_s, 0.0), ok, sat_pos_ecef_m, sat_vel_ecef_m_s, rcv_ecef_m,
+                           sigma_m_s=np.sqrt(np.where(ok, variance_m2_s2, 1.0)))
+    v = np.nan_to_num(fix.vel_ecef_m_s)
+    cov = np.where(fix.ok[:, None, None], fix.cov_m2_s2, np.eye(3))
+    distance2 = np.einsum("ti,ti->t", v, np.linalg.solve(cov, v[..., None])[..., 0])
+    return fix.ok & (np.linalg.norm(v, axis=1) < config.zupt_max_speed_m_s) & (distance2 < CHI2_3DOF_99)
+
+
+def zero_velocity_measurement(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Predicted velocity [m/s] (3,) and its Jacobian (3, n) at state ``x``: the zero-velocity update's model."""
+    H = np.zeros((3, x.shape[0]))
+    H[:, VEL] = np.eye(3)
+    return x[VEL].copy(), H
 
 
 def huber_scale(t: ArrayOrTensor, huber_k: float | None) -> ArrayOrTensor:
@@ -424,4 +479,5 @@ def doppler_measurement(x: np.ndarray, sat_pos_ecef_m: np.ndarray, sat_vel_ecef_
 __all__ = ["EkfConfig", "n_states", "clock_column", "initial_covariance", "initial_state", "transition_generator",
            "transition", "process_noise_coefficients", "process_noise", "vertical_noise_increment", "measurement",
            "doppler_measurement", "doppler_variance_m2_s2", "used_doppler_variance_m2_s2", "prior_innovation_m",
-           "lower_median", "realign_clock", "POS", "VEL", "CLOCK", "DRIFT", "ISB0"]
+           "lower_median", "realign_clock", "stationary_epochs", "zero_velocity_measurement", "CHI2_3DOF_99", "POS",
+           "VEL", "CLOCK", "DRIFT", "ISB0"]

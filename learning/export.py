@@ -11,7 +11,9 @@ Format (``FORMAT_NAME`` version ``FORMAT_VERSION``), arrays in one uncompressed 
                         fingerprints and its own init_model; null when trained from scratch),
                         config_file (the --config file's path and settings), provenance (the command
                         line, working folder, git commit, dataset TOML texts; ``learning.provenance``),
-                        epoch, val_rmse_3d_m, versions (lfgnss, torch, numpy), created_utc
+                        epoch, val_rmse_3d_m, versions (lfgnss, torch, numpy), created_utc, and
+                        refilter (only if the file's filter was changed after training, ``refilter_model``:
+                        per change, the settings before and after, command line, git state, time)
     normaliser_mean     (d,) float64   per-feature mean of the training split (valid slots)
     normaliser_std      (d,) float64   per-feature std
     param/<name>        float32        every tensor of ``LfgnssNet.state_dict()``
@@ -466,6 +468,55 @@ def load_model(path: str | Path, expected_features: Iterable[str] | None = None)
     return model
 
 
+def refilter_model(model_path: str | Path, out_path: str | Path, changes: dict, command: str | None = None) -> Path:
+    """Copy a model file with some of its EKF settings (``ekf_config``) changed: the same network in another filter.
+
+    ``changes`` maps ``estimators.EkfConfig`` field names to new values (a ValueError names an unknown or bad one).
+    The file keeps its training ``config``; the change, with the settings before and after, ``command`` and the git
+    state, is appended to its ``refilter`` record, which ``--show`` prints. Use it for a filter setting chosen by
+    rescoring a recipe's cross-validation folds (``learning.crossval --reuse``) rather than by retraining.
+    """
+    from estimators.models import EkfConfig, stored_ekf_config
+
+    from .provenance import git_state
+
+    source = load_model(model_path)
+    known = {f.name for f in dataclasses.fields(EkfConfig)}
+    unknown = sorted(set(changes) - known)
+    if unknown or not changes:
+        raise ValueError(f"no EKF setting {', '.join(unknown)} (EkfConfig has {', '.join(sorted(known))})" if unknown
+                         else "no EKF setting to change")
+    before = stored_ekf_config(source.metadata.get("ekf_config"))
+    floats = {f.name for f in dataclasses.fields(EkfConfig) if "float" in str(f.type)}
+    changes = {k: float(v) if k in floats and type(v) is int else v for k, v in changes.items()}   # TOML's 4 is 4.0
+    after = dataclasses.replace(before, **changes)             # EkfConfig checks the values
+    meta = json.loads(json.dumps(source.metadata, default=_json_default))
+    meta["ekf_config"] = dataclasses.asdict(after)
+    meta["refilter"] = list(meta.get("refilter") or []) + [{
+        "changes": {k: [getattr(before, k), getattr(after, k)] for k in sorted(changes)},
+        "source": str(model_path), "command": command, "git": git_state(),
+        "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")}]
+    with np.load(str(model_path), allow_pickle=False) as z:
+        arrays = {k: np.asarray(z[k]) for k in z.files}
+    arrays["metadata"] = np.array(json.dumps(meta, default=_json_default))
+    out = Path(out_path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with open(out, "wb") as fh:
+        np.savez(fh, **arrays)
+    load_model(out)                                            # the written file must read back
+    return out
+
+
+def refilter_lines(metadata: dict) -> list[str]:
+    """``--show`` lines on a model file's filter changes after training (none for most files)."""
+    lines = []
+    for rec in metadata.get("refilter") or []:
+        changed = ", ".join(f"{k} {a!r} -> {b!r}" for k, (a, b) in (rec.get("changes") or {}).items())
+        lines.append(f"filter changed after training: {changed} ({rec.get('created_utc', '?')}, "
+                     f"command: {rec.get('command') or '(called from Python, no command line)'})")
+    return lines
+
+
 # --------------------------------------------------------------------------- command line
 
 def trained_on(metadata: dict) -> str:
@@ -491,10 +542,21 @@ def describe_model(model: LfgnssModel) -> list[str]:
             f"{'-' if val is None else f'{val:.3f} m'}",
             f"features: {', '.join(model.feature_names)}",
             f"filter (settings other than the defaults): {config_changes(config_of(model))}",
+            *refilter_lines(meta),
             f"configuration file: {config_file or 'not recorded'} (the full configuration is in the file)",
             *describe(meta.get("provenance")),
             f"written {meta.get('created_utc', '?')} by lfgnss {versions.get('lfgnss', '?')}, torch "
             f"{versions.get('torch', '?')}"]
+
+
+def _ekf_assignment(text: str) -> tuple[str, object]:
+    """``"zupt_sigma_m_s=0.02"`` -> ``("zupt_sigma_m_s", 0.02)`` (a TOML value; ``none`` for None)."""
+    from .train import _parse_value
+
+    if "=" not in text:
+        raise ValueError(f"--ekf expects KEY=VALUE, got {text!r}")
+    key, value = (part.strip() for part in text.split("=", 1))
+    return key, None if value.lower() in ("none", "null") else _parse_value(value)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -506,6 +568,8 @@ def main(argv: list[str] | None = None) -> int:
 
     from lfgnss.errors import INPUT_ERRORS, input_line, path_option
 
+    from .provenance import command_line
+
     p = argparse.ArgumentParser(prog="python -m learning.export",
                                 description="Write a training checkpoint (best.pt / last.pt of learning.train) as a "
                                             "model file, or describe a model file.")
@@ -513,9 +577,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("out", nargs="?", type=path_option, help="model file to write (.npz)")
     p.add_argument("--show", metavar="MODEL", type=path_option,
                    help="describe a model file: its data, filter and how it was made (command, git commit)")
+    p.add_argument("--ekf", action="append", default=[], metavar="KEY=VALUE",
+                   help="write the model to run in a filter with this EKF setting changed (estimators.EkfConfig; "
+                        "repeatable); the source may then be a model file (.npz), and the change is recorded")
     args = p.parse_args(argv)
     if (args.show is None) == (args.checkpoint is None) or (args.checkpoint is not None and args.out is None):
         p.error("give CHECKPOINT OUT.npz to export, or --show MODEL.npz to describe a model file")
+    if args.show is not None and args.ekf:
+        p.error("--ekf changes a filter while writing a model file; --show only describes one")
     try:
         if args.show is not None:
             if str(args.show).endswith(".pt"):
@@ -525,8 +594,30 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         if not str(args.out).endswith(".npz"):
             raise InputError(args.out, "give the model file a .npz name (numpy would add it)")
-        written = export_model(args.checkpoint, args.out)
-        print(f"{written}: model of {args.checkpoint} (epoch {load_model(written).metadata.get('epoch')})")
+        from_model = str(args.checkpoint).endswith(".npz")
+        if from_model and not args.ekf:
+            raise InputError(args.checkpoint, "a model file, not a training checkpoint: give --ekf KEY=VALUE to "
+                                              "write it with another filter setting, or --show to describe it")
+        try:
+            changes = {k: v for k, v in (_ekf_assignment(a) for a in args.ekf)}
+        except ValueError as exc:
+            p.error(str(exc))
+        out = Path(args.out)
+        staged = out.with_name(out.stem + ".unfiltered.npz") if changes and not from_model else out
+        written = args.checkpoint if from_model else export_model(args.checkpoint, staged)
+        if changes:
+            try:
+                written = refilter_model(written, out, changes, command_line("python -m learning.export",
+                                                                             list(argv or sys.argv[1:])))
+            except (TypeError, ValueError) as exc:
+                if isinstance(exc, ModelFileError):
+                    raise
+                p.error(f"--ekf: {exc}")
+            finally:
+                if staged != out:
+                    staged.unlink(missing_ok=True)
+        print(f"{written}: model of {args.checkpoint} (epoch {load_model(written).metadata.get('epoch')})"
+              + (f", filter changed: {', '.join(args.ekf)}" if changes else ""))
     except INPUT_ERRORS as exc:
         p.exit(2, f"{p.prog}: error: {input_line(exc)}\n")
     return 0

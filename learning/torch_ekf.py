@@ -18,8 +18,10 @@ reset) and their median innovation is clock-jump sized (``clock_jump_min_m``), t
 realigned and gated again. The reset result is taken at the first epoch with a coarse fix, after gaps
 > ``max_gap_s``, when the realigned prior is still mostly gated, and when the normal update ends
 farther than ``reset_distance_m`` from the coarse fix; in the rows that reset, satellites failing the
-post-fit check are dropped and the reset prior updated again. The gate decision (a hard mask), the
-Huber variance factor (``EkfConfig.huber_k``) and the reset choice carry no gradient; everything else does.
+post-fit check are dropped and the reset prior updated again. With ``EkfConfig.zupt_sigma_m_s``, epochs the
+Dopplers find standing still (``estimators.models.stationary_epochs``) add a zero-velocity update. The gate
+decision (a hard mask), the Huber variance factor (``EkfConfig.huber_k``), the standstill decision and the reset
+choice carry no gradient; everything else does.
 
 With ``noise_step`` the network runs inside the filter: at each epoch it is given every satellite's
 innovation against the normal prior (``prior_innovation``; 0 where the epoch has no prior) and returns
@@ -129,12 +131,14 @@ def _doppler_measurement(x: torch.Tensor, sat: torch.Tensor, sat_vel: torch.Tens
 
 def _gate_and_update(x: torch.Tensor, P: torch.Tensor, sat: torch.Tensor, clock_rows: torch.Tensor,
                      z: torch.Tensor, r: torch.Tensor, usable: torch.Tensor, allowed: torch.Tensor,
-                     config: EkfConfig, doppler: tuple | None = None) -> tuple:
+                     config: EkfConfig, doppler: tuple | None = None, still: torch.Tensor | None = None
+                     ) -> tuple:
     """Gate then Joseph-update priors (x (M, n), P (M, n, n)) with the usable slots (M, N).
 
     ``doppler`` = (sat_vel (M, N, 3), prr (M, N), usable (M, N), variance (M, N)) adds the Doppler rows
     (``estimators.models.doppler_variance_m2_s2``); pseudoranges and Dopplers are gated alike, each block needs
-    ``min_sats_for_update`` kept rows to be used. Returns (x, P, n_used (M,), n_rejected (M,),
+    ``min_sats_for_update`` kept rows to be used. ``still`` (M,) adds the zero-velocity rows where True
+    (``EkfConfig.zupt_sigma_m_s``, never gated). Returns (x, P, n_used (M,), n_rejected (M,),
     n_usable (M,), n_doppler (M,)), counts of pseudoranges except ``n_doppler``; rows with
     ``allowed == False`` are returned unchanged (their numbers are never selected by the caller).
     """
@@ -162,6 +166,15 @@ def _gate_and_update(x: torch.Tensor, P: torch.Tensor, sat: torch.Tensor, clock_
                             (n_keep_dop >= config.min_sats_for_update)[:, None].expand(-1, keep.shape[-1] - n_pr)], -1)
         used = keep & enough
         n_usable = usable[:, :n_pr].sum(-1)
+    n_rows = used.shape[-1]
+    if still is not None:
+        H_still = torch.zeros(x.shape[0], 3, x.shape[-1], dtype=H.dtype, device=H.device)
+        H_still[:, :, models.VEL] = torch.eye(3, dtype=H.dtype, device=H.device)
+        H = torch.cat([H, H_still], -2)
+        v = torch.cat([v, -x[:, models.VEL]], -1)
+        r = torch.cat([r, torch.full_like(v[:, :3], config.zupt_sigma_m_s ** 2)], -1)
+        scale = torch.cat([scale, torch.ones_like(v[:, :3])], -1)
+        used = torch.cat([used, (still & allowed)[:, None].expand(-1, 3)], -1)
     usedf = used.to(torch.float64)
     Hm = H * usedf[..., None]
     vm = torch.where(used, v, torch.zeros_like(v))
@@ -174,7 +187,7 @@ def _gate_and_update(x: torch.Tensor, P: torch.Tensor, sat: torch.Tensor, clock_
     eye = torch.eye(x.shape[-1], dtype=x.dtype, device=x.device)
     IKH = eye - K @ Hm
     P_new = IKH @ P @ IKH.transpose(-1, -2) + (K * Rm[:, None, :]) @ K.transpose(-1, -2)   # Joseph
-    return x_new, P_new, used[:, :n_pr].sum(-1), n_usable - n_keep_pr, n_usable, used[:, n_pr:].sum(-1)
+    return x_new, P_new, used[:, :n_pr].sum(-1), n_usable - n_keep_pr, n_usable, used[:, n_pr:n_rows].sum(-1)
 
 
 def _lower_median(v: torch.Tensor, usable: torch.Tensor) -> torch.Tensor:
@@ -294,6 +307,12 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor | None, vc_m: torch.Tensor 
         raise ValueError("learning/torch_ekf.py: a C/N0-dependent Doppler variance (EkfConfig.doppler_cn0_ref_dbhz) "
                          "needs the batch's cn0_dbhz, finite, on every Doppler used")
     dopvar_all = models.doppler_variance_m2_s2(torch.where(dop_all, cn0_all, torch.full_like(cn0_all, 45.0)), config)
+    still_all = None
+    if config.zupt_sigma_m_s is not None:                 # a decision, not differentiated: numpy, as the plug-in
+        flat = lambda a: a.detach().cpu().numpy().reshape((b_len * t_len,) + tuple(a.shape[2:]))  # noqa: E731
+        still_all = torch.as_tensor(models.stationary_epochs(
+            flat(prr_all), flat(dop_all), flat(batch.sat_pos_ecef_m.to(f64)), flat(satvel_all),
+            flat(batch.coarse_ecef_m.to(f64)), flat(dopvar_all), config).reshape(b_len, t_len), device=dev)
 
     coarse_ok_all = torch.isfinite(batch.coarse_ecef_m).all(-1) & torch.isfinite(batch.coarse_clock_m[..., 0])
     coarse_pos_all = torch.where(coarse_ok_all[..., None], batch.coarse_ecef_m.to(f64), zero)
@@ -333,11 +352,12 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor | None, vc_m: torch.Tensor 
         # Both branches in one batched call: rows [0, B) normal prior, [B, 2B) reset prior.
         two = lambda a: torch.cat([a, a], 0)  # noqa: E731
         dop_k = (satvel_all[:, k], prr_all[:, k], dop_all[:, k], dopvar_all[:, k]) if use_doppler else None
+        still_k = None if still_all is None else still_all[:, k]
         xu, Pu, n_used2, n_rej2, n_usable2, n_dop2 = _gate_and_update(
             torch.cat([x_pred, x0_all[:, k]], 0), torch.cat([P_pred, P0.expand(b_len, n, n)], 0),
             two(sat_all[:, k]), two(clock_rows_all[:, k]), two(z_k), two(r_k),
             two(usable_all[:, k]), torch.cat([normal, coarse_ok], 0), config,
-            tuple(two(a) for a in dop_k) if use_doppler else None)
+            tuple(two(a) for a in dop_k) if use_doppler else None, None if still_k is None else two(still_k))
         x_n, x_r = xu[:b_len], xu[b_len:]
         P_n, P_r = Pu[:b_len], Pu[b_len:]
         with torch.no_grad():
@@ -357,7 +377,7 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor | None, vc_m: torch.Tensor 
                 try_jump = reset_g & (shift.abs() >= config.clock_jump_min_m)
             xc, Pc, n_used_c, n_rej_c, _, n_dop_c = _gate_and_update(
                 x_c, P_pred, sat_all[:, k], clock_rows_all[:, k], z_k, r_k, usable_all[:, k], try_jump,
-                config, dop_k)
+                config, dop_k, still_k)
             with torch.no_grad():
                 realigned = try_jump & ~(n_rej_c.to(f64) > config.reset_gated_fraction * n_usable.to(f64))
             x_n = torch.where(realigned[:, None], xc, x_n)
@@ -386,7 +406,7 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor | None, vc_m: torch.Tensor 
             if bool(redo.any()):
                 x2, P2, n_used_2, n_rej_2, _, n_dop_2 = _gate_and_update(
                     x0_all[:, k], P0.expand(b_len, n, n), sat_all[:, k], clock_rows_all[:, k], z_k,
-                    r_k, ok, redo, config, dop_k)
+                    r_k, ok, redo, config, dop_k, still_k)
                 x_r = torch.where(redo[:, None], x2, x_r)
                 P_r = torch.where(redo[:, None, None], P2, P_r)
                 n_used_r = torch.where(redo, n_used_2, n_used_r)

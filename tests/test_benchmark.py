@@ -21,7 +21,7 @@ def test_rows_follow_the_model_files(tmp_path):
 
     shutil.copy(MODEL_DIR / "lfgnss-default.npz", tmp_path / "lfgnss-default.npz")
     shutil.copy(MODEL_DIR / "lfgnss-default.npz", tmp_path / "lfgnss-no_hem.npz")
-    shutil.copy(MODEL_DIR / "lfgnss-hk-tst-static-2020.npz", tmp_path / "lfgnss-berlin-pp.npz")   # default filter
+    shutil.copy(MODEL_DIR / "lfgnss-transfer-base.npz", tmp_path / "lfgnss-berlin-pp.npz")   # default filter
     rows = {m.name: m for m in methods(tmp_path, "berlin-pp")}
     assert {"LF-GNSS EKF", "LF-GNSS FGO", "LF-GNSS EKF w/o HEM", "LF-GNSS EKF, per-dataset model",
             "LF-GNSS FGO, per-dataset model", "LF-GNSS EKF + RTS smoother",

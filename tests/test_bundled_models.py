@@ -5,8 +5,11 @@ from pathlib import Path
 
 import pytest
 
+from dataclasses import replace
+
+from estimators.ekf import config_of
 from learning.export import load_model
-from learning.train import adopt_init, load_config
+from learning.train import adopt_init, ekf_config, load_config
 
 ROOT = Path(__file__).resolve().parents[1]
 MODELS = ROOT / "lfgnss" / "data" / "model"
@@ -44,8 +47,14 @@ def test_every_bundled_model_file_has_a_readme_row_with_its_command():
 @pytest.mark.parametrize("name, config_path", sorted(readme_rows().items()))
 def test_bundled_model_was_trained_with_its_configuration(name, config_path, monkeypatch):
     monkeypatch.chdir(ROOT)     # train.init paths in the configs are relative to the repository root
-    stored = load_model(MODELS / name).metadata["config"]
+    model = load_model(MODELS / name)
+    stored = model.metadata["config"]
     expected = adopt_init(load_config(config_path))
     assert disagreements(stored, expected) == [], f"{name} against {config_path}"
-    # the filter the file runs in (estimators.ekf.config_of) is the configuration's
     assert stored.get("ekf", {}) == expected["ekf"]
+    # the filter the file runs in (estimators.ekf.config_of) is the configuration's, but for the changes its refilter
+    # record lists (learning.export --ekf), which its README row names
+    changes = {k: new for rec in model.metadata.get("refilter") or [] for k, (_, new) in rec["changes"].items()}
+    assert config_of(model) == replace(ekf_config(expected), **changes)
+    row = next(line for line in (MODELS / "README.md").read_text().splitlines() if line.startswith(f"| `{name}` |"))
+    assert all(f"--ekf {k}=" in row for k in changes), row

@@ -148,6 +148,63 @@ def test_cn0_dependent_doppler_noise_tracks_velocity_better():
         assert weighted < 0.85 * velocity_rms(EkfConfig()) and weighted < 0.6 * velocity_rms(EkfConfig(doppler_sigma_m_s=0.1))
 
 
+def _stationary(seq, cfg: EkfConfig) -> np.ndarray:
+    ok = estimators.base.usable_doppler(seq)
+    return models.stationary_epochs(seq.prr_m_s, ok, seq.sat_pos_ecef_m, seq.sat_vel_ecef_m_s, seq.coarse_ecef_m,
+                                    models.doppler_variance_m2_s2(seq.cn0_dbhz, cfg), cfg)
+
+
+def test_standstill_is_found_from_the_dopplers_alone():
+    """A 30 s stop in a drive at 6-10 m/s: most stopped epochs are found, no moving one; nothing without the option."""
+    cfg = EkfConfig(zupt_sigma_m_s=0.02)
+    for seed in (0, 1, 2):
+        s = simulate_sequence(120, seed=seed, stops_s=((30.0, 60.0),))
+        still, stopped = _stationary(s, cfg), (np.arange(120) >= 30) & (np.arange(120) <= 60)
+        assert still[stopped].mean() > 0.8 and not still[~stopped].any()
+        assert not _stationary(s, EkfConfig()).any()
+    moving = simulate_sequence(120, seed=0)
+    assert not _stationary(moving, cfg).any()
+    assert not _stationary(moving, EkfConfig(zupt_sigma_m_s=0.02, zupt_max_speed_m_s=100.0)).any()  # chi-square
+
+
+def test_zero_velocity_update_holds_the_car_still():
+    """During a stop the ZUPT keeps the velocity near zero and the position from wandering with the multipath."""
+    stop = slice(45, 101)
+    for seed in (0, 5):
+        s = simulate_sequence(150, seed=seed, stops_s=((40.0, 100.0),))
+        free = create("plain-ekf").solve(s)
+        held = create("plain-ekf", config=EkfConfig(zupt_sigma_m_s=0.02)).solve(s)
+        assert held.info["stationary"][stop].mean() > 0.8 and not free.info["stationary"].any()
+        speed = lambda sol: np.linalg.norm(sol.vel_ecef_m_s[stop], axis=1)     # noqa: E731
+        assert np.median(speed(held)) < 0.01 < 0.2 < np.median(speed(free))
+        wander = lambda sol: np.ptp(sol.pos_ecef_m[stop], axis=0).max()        # noqa: E731
+        assert wander(held) < 0.85 * wander(free)
+        assert _rms(_err(held, s)[stop]) < 0.85 * _rms(_err(free, s)[stop])
+
+
+@pytest.mark.parametrize("bad", [0.0, -0.1, float("nan"), float("inf"), True, "0.02"])
+def test_config_rejects_a_bad_zupt_sigma(bad):
+    with pytest.raises(ValueError, match="zupt_sigma_m_s must be a positive number of m/s or None"):
+        EkfConfig(zupt_sigma_m_s=bad)
+
+
+def test_zupt_needs_dopplers():
+    with pytest.raises(ValueError, match="zupt_sigma_m_s needs Dopplers to detect a standstill; doppler_sigma_m_s"):
+        EkfConfig(zupt_sigma_m_s=0.02, doppler_sigma_m_s=0.0)
+    with pytest.raises(ValueError, match="zupt_max_speed_m_s must be"):
+        EkfConfig(zupt_max_speed_m_s=-1.0)
+
+
+def test_a_static_receiver_is_found_standing_still(shared_data):
+    """hk-tst-static-2020 (a u-blox F9P on a tripod in a street): its Dopplers show it still at >= 90 % of epochs."""
+    shared_data("hk-tst-static-20200603")
+    from lfgnss import datasets
+
+    s = datasets.load_split("hk-tst-static-2020", "train")[0]
+    cfg = EkfConfig(zupt_sigma_m_s=0.02)
+    assert _stationary(s, cfg).mean() > 0.9
+
+
 # --------------------------------------------------------------------------- registry / contract
 
 def test_registry_creates_both_filters():

@@ -93,11 +93,53 @@ def test_show_of_a_bundled_model_says_what_is_not_recorded(capsys):
     assert "provenance: not recorded" in shown
 
 
+def test_export_ekf_writes_the_same_network_in_another_filter(run, tmp_path, capsys):
+    """--ekf from a checkpoint or from a model file: same weights and training config, the filter changed and
+    recorded; --show says so; no staging file is left behind."""
+    from estimators.ekf import config_of
+
+    out, _ = run
+    from_ckpt, from_file = tmp_path / "a.npz", tmp_path / "b.npz"
+    assert export_main([str(out / "best.pt"), str(from_ckpt), "--ekf", "zupt_sigma_m_s=0.05",
+                        "--ekf", "gate_sigma=4"]) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.npz"]
+    assert export_main([str(from_ckpt), str(from_file), "--ekf", "zupt_sigma_m_s=none"]) == 0
+    trained, a, b = load_model(out / "model.npz"), load_model(from_ckpt), load_model(from_file)
+    assert all(np.array_equal(a.params[k], trained.params[k]) and np.array_equal(b.params[k], trained.params[k])
+               for k in trained.params)
+    assert a.metadata["config"] == trained.metadata["config"] == b.metadata["config"]
+    assert config_of(a).zupt_sigma_m_s == 0.05 and config_of(a).gate_sigma == 4.0
+    assert config_of(b).zupt_sigma_m_s is None and config_of(b).gate_sigma == 4.0
+    assert config_of(trained).zupt_sigma_m_s is None and config_of(trained).gate_sigma == 3.0
+    assert [r["changes"] for r in b.metadata["refilter"]] == [{"gate_sigma": [3.0, 4.0], "zupt_sigma_m_s": [None, 0.05]},
+                                                              {"zupt_sigma_m_s": [0.05, None]}]
+    capsys.readouterr()
+    assert export_main(["--show", str(from_file)]) == 0
+    shown = capsys.readouterr().out
+    assert "filter changed after training: gate_sigma 3.0 -> 4.0, zupt_sigma_m_s None -> 0.05" in shown
+    assert "filter changed after training: zupt_sigma_m_s 0.05 -> None" in shown and "--ekf zupt_sigma_m_s=none" in shown
+
+
+@pytest.mark.parametrize("ekf, message", [
+    (["--ekf", "bogus=1"], "--ekf: no EKF setting bogus (EkfConfig has"),
+    (["--ekf", "zupt_sigma_m_s=-1"], "--ekf: estimators/models.py: EkfConfig.zupt_sigma_m_s must be a positive"),
+    (["--ekf", "zupt_sigma_m_s"], "--ekf expects KEY=VALUE, got 'zupt_sigma_m_s'"),
+    ([], "lfgnss-berlin-pp.npz: a model file, not a training checkpoint: give --ekf KEY=VALUE"),
+])
+def test_export_ekf_bad_input_is_one_line(ekf, message, tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        export_main(["lfgnss/data/model/lfgnss-berlin-pp.npz", str(tmp_path / "m.npz"), *ekf])
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and message in err, err
+    assert not list(tmp_path.iterdir())
+
+
 @pytest.mark.parametrize("argv", [[], ["a.pt"], ["a.pt", "b.npz", "--show", "c.npz"]])
 def test_export_command_usage(argv, capsys):
     with pytest.raises(SystemExit) as exit_info:
         export_main(argv)
-    usage, error = capsys.readouterr().err.strip().splitlines()              # argparse's usage line, then the error
+    lines = capsys.readouterr().err.strip().splitlines()                     # argparse's usage (it wraps), the error
+    usage, error = lines[0], lines[-1]
     assert exit_info.value.code == 2 and usage.startswith("usage: python -m learning.export")
     assert error.endswith("give CHECKPOINT OUT.npz to export, or --show MODEL.npz to describe a model file")
 

@@ -153,6 +153,29 @@ def test_huber_update_matches_the_plugin(cases):
     assert not np.allclose(out.pos_ecef_m.numpy(), hard.pos_ecef_m.numpy(), rtol=0, atol=1e-3, equal_nan=True)
 
 
+def test_zero_velocity_update_matches_the_plugin(cases):
+    """zupt_sigma_m_s in both filters, on drives with stops (and the cases' outliers and resets): the same states,
+    counts and covariances, and not those without it."""
+    seqs, r, vc = cases
+    # Dopplers of a car that stops, pseudoranges of the cases (outliers, clock jump, resets): the twins must agree
+    # on any data. Stop 2 spans the first fix, stop 3 the divergence reset at epoch 100.
+    stops = ((20.0, 50.0), (0.0, 15.0), (85.0, 119.0))
+    stopped = [replace(s, prr_m_s=simulate_sequence(120, seed=10 + i, n_slots=20, stops_s=(stops[i],)).prr_m_s,
+                       truth_ecef_m=simulate_sequence(120, seed=10 + i, n_slots=20, stops_s=(stops[i],)).truth_ecef_m)
+               for i, s in enumerate(seqs)]
+    cfg = EkfConfig(zupt_sigma_m_s=0.02)
+    out = batch_ekf(to_batch(stopped), torch.as_tensor(r), torch.as_tensor(vc), n_systems=2, config=cfg)
+    free = batch_ekf(to_batch(stopped), torch.as_tensor(r), torch.as_tensor(vc), n_systems=2, config=CONFIG)
+    _assert_matches_plugin(out, stopped, r, vc, cfg)
+    assert LfgnssEkf(noise=FixedNoise(r[0], vc[0]), config=cfg).solve(stopped[0]).info["stationary"][20:51].mean() > 0.5
+    assert not np.allclose(out.pos_ecef_m.numpy(), free.pos_ecef_m.numpy(), rtol=0, atol=1e-3, equal_nan=True)
+    live = out.status != STATUS_NONE
+    rv = torch.as_tensor(r, dtype=torch.float64).requires_grad_()
+    moved = batch_ekf(to_batch(stopped), rv, torch.as_tensor(vc), n_systems=2, config=cfg)
+    moved.pos_ecef_m[live].sum().backward()
+    assert torch.isfinite(rv.grad).all() and rv.grad.abs().sum() > 0
+
+
 def test_huber_k_must_be_positive():
     for bad in (0.0, -1.0, float("nan"), float("inf"), True, "2"):
         with pytest.raises(ValueError, match="huber_k must be a positive number or None"):
