@@ -113,14 +113,26 @@ def export_model(checkpoint_path: str | Path, out_path: str | Path, *, extra_met
         "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
     }
     meta.update(extra_metadata or {})
-    arrays = {f"param/{k}": v for k, v in params.items()}
+    return _write_model_file(out_path, params, normaliser, meta)
+
+
+def _write_model_file(out_path: str | Path, params: dict[str, np.ndarray], normaliser: Normaliser, meta: dict) -> Path:
+    """The model file's arrays (weights as float32) written to ``out_path`` atomically (a kill mid-write keeps the
+    file that was there)."""
+    from .train import _replace_atomically     # train imports this module
+
+    arrays = {f"param/{k}": np.asarray(v, np.float32) for k, v in params.items()}    # the format's float32
     arrays["normaliser_mean"] = normaliser.mean.astype(np.float64)
     arrays["normaliser_std"] = normaliser.std.astype(np.float64)
     arrays["metadata"] = np.array(json.dumps(meta, default=_json_default))
+
+    def write(tmp: Path) -> None:
+        with open(tmp, "wb") as fh:
+            np.savez(fh, **arrays)
+
     out = Path(out_path)
     out.parent.mkdir(parents=True, exist_ok=True)
-    with open(out, "wb") as fh:
-        np.savez(fh, **arrays)
+    _replace_atomically(out, write)
     return out
 
 
@@ -496,13 +508,7 @@ def refilter_model(model_path: str | Path, out_path: str | Path, changes: dict, 
         "changes": {k: [getattr(before, k), getattr(after, k)] for k in sorted(changes)},
         "source": str(model_path), "command": command, "git": git_state(),
         "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")}]
-    with np.load(str(model_path), allow_pickle=False) as z:
-        arrays = {k: np.asarray(z[k]) for k in z.files}
-    arrays["metadata"] = np.array(json.dumps(meta, default=_json_default))
-    out = Path(out_path)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with open(out, "wb") as fh:
-        np.savez(fh, **arrays)
+    out = _write_model_file(out_path, source.params, source.normaliser, meta)   # out may be model_path itself
     load_model(out)                                            # the written file must read back
     return out
 
@@ -609,9 +615,9 @@ def main(argv: list[str] | None = None) -> int:
             try:
                 written = refilter_model(written, out, changes, command_line("python -m learning.export",
                                                                              list(argv or sys.argv[1:])))
+            except ModelFileError:
+                raise
             except (TypeError, ValueError) as exc:
-                if isinstance(exc, ModelFileError):
-                    raise
                 p.error(f"--ekf: {exc}")
             finally:
                 if staged != out:

@@ -1042,7 +1042,7 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
         from .export import export_model
 
         chosen = last_path if tr.get("select", "val") == "last" else best_path
-        _replace_atomically(out / "model.npz", lambda tmp: export_model(chosen, tmp))
+        export_model(chosen, out / "model.npz")               # written atomically
     return history
 
 

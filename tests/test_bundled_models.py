@@ -1,11 +1,10 @@
 """Each bundled model file was trained with the configuration its README row names (a config edited without
 retraining, or a model copied from another run, shows up here)."""
 import re
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
-
-from dataclasses import replace
 
 from estimators.ekf import config_of
 from learning.export import load_model

@@ -108,6 +108,8 @@ def test_export_ekf_writes_the_same_network_in_another_filter(run, tmp_path, cap
     assert all(np.array_equal(a.params[k], trained.params[k]) and np.array_equal(b.params[k], trained.params[k])
                for k in trained.params)
     assert a.metadata["config"] == trained.metadata["config"] == b.metadata["config"]
+    with np.load(from_file) as raw:                                          # the format's float32 weights
+        assert all(raw[f"param/{k}"].dtype == np.float32 for k in trained.params)
     assert config_of(a).zupt_sigma_m_s == 0.05 and config_of(a).gate_sigma == 4.0
     assert config_of(b).zupt_sigma_m_s is None and config_of(b).gate_sigma == 4.0
     assert config_of(trained).zupt_sigma_m_s is None and config_of(trained).gate_sigma == 3.0

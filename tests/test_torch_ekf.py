@@ -160,9 +160,8 @@ def test_zero_velocity_update_matches_the_plugin(cases):
     # Dopplers of a car that stops, pseudoranges of the cases (outliers, clock jump, resets): the twins must agree
     # on any data. Stop 2 spans the first fix, stop 3 the divergence reset at epoch 100.
     stops = ((20.0, 50.0), (0.0, 15.0), (85.0, 119.0))
-    stopped = [replace(s, prr_m_s=simulate_sequence(120, seed=10 + i, n_slots=20, stops_s=(stops[i],)).prr_m_s,
-                       truth_ecef_m=simulate_sequence(120, seed=10 + i, n_slots=20, stops_s=(stops[i],)).truth_ecef_m)
-               for i, s in enumerate(seqs)]
+    drives = [simulate_sequence(120, seed=10 + i, n_slots=20, stops_s=(stops[i],)) for i in range(len(seqs))]
+    stopped = [replace(s, prr_m_s=d.prr_m_s, truth_ecef_m=d.truth_ecef_m) for s, d in zip(seqs, drives)]
     cfg = EkfConfig(zupt_sigma_m_s=0.02)
     out = batch_ekf(to_batch(stopped), torch.as_tensor(r), torch.as_tensor(vc), n_systems=2, config=cfg)
     free = batch_ekf(to_batch(stopped), torch.as_tensor(r), torch.as_tensor(vc), n_systems=2, config=CONFIG)
