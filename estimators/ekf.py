@@ -7,8 +7,9 @@ Per epoch ``k`` (models in ``estimators.models``)::
               v_i = z_i - h_i(x^-),  S = H P^- H^T + R,  R = diag(r_i)
     gate:     keep satellite i if t_i = |v_i| / sqrt(S_ii) <= gate_sigma
     soften:   r_i *= max(1, t_i / huber_k)          (only with EkfConfig.huber_k; Huber's weight, pseudoranges)
-    stand:    add 0 = v + n, n ~ N(0, zupt_sigma^2)  (only with EkfConfig.zupt_sigma_m_s, at epochs the Dopplers
-              find standing still, ``models.stationary_epochs``; ``info["stationary"]`` marks them)
+    stand:    add 0 = v + n, n ~ N(0, zupt_sigma^2 I_3), zupt_sigma [m/s]  (only with EkfConfig.zupt_sigma_m_s,
+              at epochs the Dopplers find standing still, ``models.stationary_epochs``; ``info["stationary"]``
+              marks them; an epoch updated by it alone counts as updated, not coasted)
     update:   K = P^- H^T S^-1,  x = x^- + K v,  P = (I - K H) P^- (I - K H)^T + K R K^T   (Joseph)
 
 so ``x = x^- + K (pr - h + vc)`` as in the paper. Initialisation and resets take the coarse fix
@@ -337,7 +338,7 @@ class LfgnssEkf:
                     reset(k, idx, jdx)      # not (just) the clock: the state is inconsistent with the data
                 else:
                     update(k, gated)
-                    status[k] = STATUS_UPDATED if n_used[k] + n_doppler[k] else STATUS_COASTED
+                    status[k] = STATUS_UPDATED if n_used[k] + n_doppler[k] or still[k] else STATUS_COASTED
                     if coarse_ok[k] and np.linalg.norm(ekf.x[:3] - sequence.coarse_ecef_m[k]) > cfg.reset_distance_m:
                         reset(k, idx, jdx)  # diverged from the coarse fix
             state[k] = ekf.x

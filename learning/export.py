@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as _dt
+import errno
 import json
 import sys
 import zipfile
@@ -70,6 +71,13 @@ def export_model(checkpoint_path: str | Path, out_path: str | Path, *, extra_met
     -------
     Path of the written file.
     """
+    params, normaliser, meta = _checkpoint_contents(checkpoint_path)
+    meta.update(extra_metadata or {})
+    return _write_model_file(out_path, params, normaliser, meta)
+
+
+def _checkpoint_contents(checkpoint_path: str | Path) -> tuple[dict[str, np.ndarray], Normaliser, dict]:
+    """A training checkpoint's weights (float32), normaliser and model-file metadata."""
     import pickle
 
     import torch
@@ -112,8 +120,7 @@ def export_model(checkpoint_path: str | Path, out_path: str | Path, *, extra_met
         "versions": {"lfgnss": lfgnss.__version__, "torch": torch.__version__, "numpy": np.__version__},
         "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
     }
-    meta.update(extra_metadata or {})
-    return _write_model_file(out_path, params, normaliser, meta)
+    return params, normaliser, meta
 
 
 def _write_model_file(out_path: str | Path, params: dict[str, np.ndarray], normaliser: Normaliser, meta: dict) -> Path:
@@ -131,6 +138,8 @@ def _write_model_file(out_path: str | Path, params: dict[str, np.ndarray], norma
             np.savez(fh, **arrays)
 
     out = Path(out_path)
+    if out.is_dir():                                # else the error would name the temporary file
+        raise IsADirectoryError(errno.EISDIR, "a folder, not a model file to write", str(out))
     out.parent.mkdir(parents=True, exist_ok=True)
     _replace_atomically(out, write)
     return out
@@ -480,35 +489,47 @@ def load_model(path: str | Path, expected_features: Iterable[str] | None = None)
     return model
 
 
-def refilter_model(model_path: str | Path, out_path: str | Path, changes: dict, command: str | None = None) -> Path:
-    """Copy a model file with some of its EKF settings (``ekf_config``) changed: the same network in another filter.
+def refilter_model(source_path: str | Path, out_path: str | Path, changes: dict, command: str | None = None) -> Path:
+    """Write a model file whose network runs in a filter with some EKF settings (``ekf_config``) changed.
 
-    ``changes`` maps ``estimators.EkfConfig`` field names to new values (a ValueError names an unknown or bad one).
-    The file keeps its training ``config``; the change, with the settings before and after, ``command`` and the git
-    state, is appended to its ``refilter`` record, which ``--show`` prints. Use it for a filter setting chosen by
+    ``source_path`` is a model file (``.npz``) or a training checkpoint (``best.pt`` / ``last.pt``). ``changes`` maps
+    ``estimators.EkfConfig`` field names to new values (a ValueError names an unknown or bad one, or a setting that
+    already has that value). The file keeps its training ``config`` and any ``ekf_config`` keys this version does not
+    know; the change, with the settings before and after, ``source_path``, ``command``, the git state and the package
+    versions, is appended to its ``refilter`` record, which ``--show`` prints. Use it for a filter setting chosen by
     rescoring a recipe's cross-validation folds (``learning.crossval --reuse``) rather than by retraining.
     """
+    import lfgnss
     from estimators.models import EkfConfig, stored_ekf_config
 
     from .provenance import git_state
 
-    source = load_model(model_path)
+    if str(source_path).endswith(".npz"):
+        source = load_model(source_path)
+        params, normaliser = source.params, source.normaliser
+        meta = json.loads(json.dumps(source.metadata, default=_json_default))
+    else:
+        params, normaliser, meta = _checkpoint_contents(source_path)
     known = {f.name for f in dataclasses.fields(EkfConfig)}
     unknown = sorted(set(changes) - known)
     if unknown or not changes:
         raise ValueError(f"no EKF setting {', '.join(unknown)} (EkfConfig has {', '.join(sorted(known))})" if unknown
                          else "no EKF setting to change")
-    before = stored_ekf_config(source.metadata.get("ekf_config"))
+    stored = meta.get("ekf_config") or {}
+    before = stored_ekf_config(meta.get("ekf_config"))
     floats = {f.name for f in dataclasses.fields(EkfConfig) if "float" in str(f.type)}
     changes = {k: float(v) if k in floats and type(v) is int else v for k, v in changes.items()}   # TOML's 4 is 4.0
+    same = sorted(k for k, v in changes.items() if getattr(before, k) == v)
+    if same:
+        raise ValueError(", ".join(f"{k} is already {getattr(before, k)!r}" for k in same) + " in this model's filter")
     after = dataclasses.replace(before, **changes)             # EkfConfig checks the values
-    meta = json.loads(json.dumps(source.metadata, default=_json_default))
-    meta["ekf_config"] = dataclasses.asdict(after)
+    meta["ekf_config"] = {**stored, **dataclasses.asdict(after)}
     meta["refilter"] = list(meta.get("refilter") or []) + [{
         "changes": {k: [getattr(before, k), getattr(after, k)] for k in sorted(changes)},
-        "source": str(model_path), "command": command, "git": git_state(),
+        "source": str(source_path), "command": command, "git": git_state(),
+        "versions": {"lfgnss": lfgnss.__version__, "numpy": np.__version__},
         "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")}]
-    out = _write_model_file(out_path, source.params, source.normaliser, meta)   # out may be model_path itself
+    out = _write_model_file(out_path, params, normaliser, meta)   # out may be source_path itself
     load_model(out)                                            # the written file must read back
     return out
 
@@ -543,9 +564,10 @@ def describe_model(model: LfgnssModel) -> list[str]:
     config_file = (meta.get("config_file") or {}).get("path")
     val = meta.get("val_rmse_3d_m")
     versions = meta.get("versions") or {}
+    where = " (in the training filter)" if meta.get("refilter") and val is not None else ""
     return [f"{model.path}",
             f"trained on: {trained_on(meta)}; epoch {meta.get('epoch')}, validation 3D RMSE "
-            f"{'-' if val is None else f'{val:.3f} m'}",
+            f"{'-' if val is None else f'{val:.3f} m'}{where}",
             f"features: {', '.join(model.feature_names)}",
             f"filter (settings other than the defaults): {config_changes(config_of(model))}",
             *refilter_lines(meta),
@@ -560,9 +582,17 @@ def _ekf_assignment(text: str) -> tuple[str, object]:
     from .train import _parse_value
 
     if "=" not in text:
-        raise ValueError(f"--ekf expects KEY=VALUE, got {text!r}")
+        raise ValueError(f"expects KEY=VALUE, got {text!r}")
     key, value = (part.strip() for part in text.split("=", 1))
-    return key, None if value.lower() in ("none", "null") else _parse_value(value)
+    if value.lower() in ("none", "null"):
+        return key, None
+    parsed = _parse_value(value)
+    if isinstance(parsed, str):
+        try:
+            parsed = float(value)                   # ".5" and "5." are numbers to a user, not TOML
+        except ValueError:
+            pass
+    return key, parsed
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -604,27 +634,27 @@ def main(argv: list[str] | None = None) -> int:
         if from_model and not args.ekf:
             raise InputError(args.checkpoint, "a model file, not a training checkpoint: give --ekf KEY=VALUE to "
                                               "write it with another filter setting, or --show to describe it")
+        changes = {}
         try:
-            changes = {k: v for k, v in (_ekf_assignment(a) for a in args.ekf)}
+            for key, value in (_ekf_assignment(a) for a in args.ekf):
+                if key in changes:
+                    raise ValueError(f"{key} given twice")
+                changes[key] = value
         except ValueError as exc:
-            p.error(str(exc))
-        out = Path(args.out)
-        staged = out.with_name(out.stem + ".unfiltered.npz") if changes and not from_model else out
-        written = args.checkpoint if from_model else export_model(args.checkpoint, staged)
+            p.error(f"--ekf: {exc}")
         if changes:
             try:
-                written = refilter_model(written, out, changes, command_line("python -m learning.export",
-                                                                             list(argv or sys.argv[1:])))
+                written = refilter_model(args.checkpoint, args.out, changes,
+                                         command_line("python -m learning.export", list(argv or sys.argv[1:])))
             except ModelFileError:
                 raise
             except (TypeError, ValueError) as exc:
                 p.error(f"--ekf: {exc}")
-            finally:
-                if staged != out:
-                    staged.unlink(missing_ok=True)
+        else:
+            written = export_model(args.checkpoint, args.out)
         print(f"{written}: model of {args.checkpoint} (epoch {load_model(written).metadata.get('epoch')})"
               + (f", filter changed: {', '.join(args.ekf)}" if changes else ""))
-    except INPUT_ERRORS as exc:
+    except (*INPUT_ERRORS, OSError) as exc:
         p.exit(2, f"{p.prog}: error: {input_line(exc)}\n")
     return 0
 

@@ -392,9 +392,9 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor | None, vc_m: torch.Tensor 
             reset_d = normal & ~reset_g & coarse_ok & far_off
             reset = reset_a | reset_g | reset_d
             keep_n = normal & ~reset
-            status = torch.where(reset, STATUS_RESET,
-                                 torch.where(keep_n, torch.where(n_used_n + n_dop_n > 0, STATUS_UPDATED,
-                                                                 STATUS_COASTED), STATUS_NONE))
+            measured = n_used_n + n_dop_n > 0 if still_k is None else (n_used_n + n_dop_n > 0) | still_k
+            updated = torch.where(measured, STATUS_UPDATED, STATUS_COASTED)
+            status = torch.where(reset, STATUS_RESET, torch.where(keep_n, updated, STATUS_NONE))
         n_used_r, n_rej_r, n_dop_r = n_used2[b_len:], n_rej2[b_len:], n_dop2[b_len:]
         if config.gate_sigma > 0 and bool(reset.any()):
             # Post-fit check of the reset update (as the plug-in's reset): drop satellites beyond the gate.

@@ -409,7 +409,7 @@ def adopt_init(config: dict) -> dict:
     adopted = {k: v for k, v in _own_filter(model).items() if k not in config["ekf"]}
     out["ekf"] = {**adopted, **config["ekf"]}
     if adopted:
-        print(f"train.init: fine-tuned in the filter {model.path} was trained in: "
+        print(f"train.init: fine-tuned in the filter {model.path} runs in: "
               f"{', '.join(f'ekf.{k} = {v}' for k, v in adopted.items())} (an [ekf] key of the configuration "
               "overrides it)", file=sys.stderr)
     return out

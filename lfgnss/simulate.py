@@ -14,10 +14,11 @@ _ORBIT_RADIUS_M = 2.0e7
 def simulate_sequence(n_epochs: int = 120, *, dt_s: float = 1.0, systems: tuple[str, ...] = ("G", "C"),
                       sats_per_system: int = 7, nlos_fraction: float = 0.2, seed: int = 0,
                       lat_deg: float = 22.30, lon_deg: float = 114.18, n_slots: int | None = None,
-                      name: str = "synthetic", stops_s: tuple[tuple[float, float], ...] = ()) -> Sequence:
+                      name: str = "synthetic", stops_s: tuple[tuple[float, ...], ...] = ()) -> Sequence:
     """A drive at ~8 m/s through an urban canyon: C/N0-dependent noise plus positive NLOS biases [m].
 
-    ``stops_s``: (start, end) times [s after the first epoch] during which the car stands still.
+    ``stops_s``: (start, end) times [s after the first epoch] during which the car stands still, or (start, end,
+    speed) during which it creeps at ``speed`` [m/s].
     """
     rng = np.random.default_rng(seed)
     ref = lla_to_ecef(np.radians(lat_deg), np.radians(lon_deg), 10.0)
@@ -25,8 +26,8 @@ def simulate_sequence(n_epochs: int = 120, *, dt_s: float = 1.0, systems: tuple[
     t = np.arange(n_epochs) * dt_s
     heading = 0.3 + 0.004 * t + 0.3 * np.sin(t / 40.0)
     speed = 8.0 + 2.0 * np.sin(t / 25.0)
-    for start, end in stops_s:
-        speed = np.where((t >= start) & (t <= end), 0.0, speed)
+    for start, end, *creep in stops_s:
+        speed = np.where((t >= start) & (t <= end), creep[0] if creep else 0.0, speed)
     vel_enu = np.stack([speed * np.sin(heading), speed * np.cos(heading), np.zeros_like(t)], axis=-1)
     pos_enu = np.cumsum(vel_enu * dt_s, axis=0) - vel_enu[0] * dt_s
     truth = enu_to_ecef(pos_enu, ref)

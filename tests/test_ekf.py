@@ -164,7 +164,10 @@ def test_standstill_is_found_from_the_dopplers_alone():
         assert not _stationary(s, EkfConfig()).any()
     moving = simulate_sequence(120, seed=0)
     assert not _stationary(moving, cfg).any()
-    assert not _stationary(moving, EkfConfig(zupt_sigma_m_s=0.02, zupt_max_speed_m_s=100.0)).any()  # chi-square
+    for seed in (0, 1, 2):                              # a 1.5 m/s creep: the chi-square test alone rejects it
+        creep = simulate_sequence(120, seed=seed, stops_s=((30.0, 90.0, 1.5),))
+        assert not _stationary(creep, EkfConfig(zupt_sigma_m_s=0.02, zupt_max_speed_m_s=100.0)).any()
+        assert not _stationary(simulate_sequence(120, seed=seed, stops_s=((30.0, 90.0, 1.0),)), cfg).any()
 
 
 def test_zero_velocity_update_holds_the_car_still():
@@ -180,6 +183,17 @@ def test_zero_velocity_update_holds_the_car_still():
         wander = lambda sol: np.ptp(sol.pos_ecef_m[stop], axis=0).max()        # noqa: E731
         assert wander(held) < 0.85 * wander(free)
         assert _rms(_err(held, s)[stop]) < 0.85 * _rms(_err(free, s)[stop])
+
+
+def test_an_epoch_held_by_the_zupt_alone_counts_as_updated():
+    """With no satellite update allowed (min_sats_for_update=30), stopped epochs are measured by the ZUPT alone:
+    STATUS_UPDATED, not coasted (dead reckoning to the output writers); moving epochs coast (or reset)."""
+    s = simulate_sequence(100, seed=0, stops_s=((30.0, 80.0),))
+    sol = create("plain-ekf", config=EkfConfig(zupt_sigma_m_s=0.02, min_sats_for_update=30)).solve(s)
+    still = sol.info["stationary"]
+    assert still.sum() >= 10 and not sol.n_used[1:].any() and not sol.info["n_doppler"].any()
+    moving = sol.status[1:][~still[1:]]                  # coasting, reset where it drifts 300 m off the coarse fix
+    assert (sol.status[1:][still[1:]] == STATUS_UPDATED).all() and np.isin(moving, (STATUS_COASTED, STATUS_RESET)).all()
 
 
 @pytest.mark.parametrize("bad", [0.0, -0.1, float("nan"), float("inf"), True, "0.02"])

@@ -295,3 +295,50 @@ def test_two_satellites_per_constellation_solve_with_covariances(mode):
     err = _err(sol, seq)
     sd = np.sqrt(np.trace(sol.cov_ecef_m2, axis1=1, axis2=2))
     assert np.median(err / sd) < 5.0
+
+
+# ---------------------------------------------------------------- zero velocity
+@pytest.mark.parametrize("mode", ["batch", "fixed-lag"])
+def test_zero_velocity_prior_holds_the_car_still(mode):
+    """At a 60 s stop the zero-velocity prior keeps the graph's velocity near zero and its position from wandering
+    with the multipath; the same stopped epochs as the EKF's test are found, and none while moving."""
+    stop = slice(45, 101)
+    for seed in (0, 5):
+        s = simulate_sequence(150, seed=seed, stops_s=((40.0, 100.0),))
+        noise = FixedNoise(*HeuristicNoise()(s))
+        free = LfgnssFgo(noise=noise, mode=mode).solve(s)
+        held = LfgnssFgo(noise=noise, mode=mode, zupt_sigma_m_s=0.02).solve(s)
+        still = held.info["stationary"]
+        assert still[stop].mean() > 0.8 and not still[:38].any() and not free.info["stationary"].any()
+        speed = lambda sol: np.linalg.norm(sol.vel_ecef_m_s[stop], axis=1)     # noqa: E731
+        assert np.median(speed(held)) < 0.01 < np.median(speed(free))
+        wander = lambda sol: np.ptp(sol.pos_ecef_m[stop], axis=0).max()        # noqa: E731
+        assert wander(held) < 0.85 * wander(free)
+        assert _rmse_3d(held, s, stop) < _rmse_3d(free, s, stop)
+
+
+def test_zero_velocity_setting_can_follow_the_model(tmp_path):
+    """Off by default (docs/training/fgo-zupt.md); ``zupt_sigma_m_s="model"`` takes the learned model's filter setting,
+    none for hand-set noise or without Dopplers; bad values and a prior without Dopplers are refused in one line."""
+    from estimators.models import EkfConfig
+    from learning.export import load_model
+    from lfgnss.benchmark import MODEL_DIR
+
+    hk = load_model(MODEL_DIR / "lfgnss-hk-tst-2019.npz")
+    assert hk.metadata["ekf_config"]["zupt_sigma_m_s"] == 0.02                  # refiltered with it (session 29)
+    assert LfgnssFgo(noise=hk).zupt_sigma_m_s is None and "zupt" not in repr(LfgnssFgo(noise=hk))
+    model = LfgnssFgo(noise=hk, zupt_sigma_m_s="model")
+    assert model.zupt_sigma_m_s == 0.02 and "zupt_sigma_m_s=0.02" in repr(model)
+    assert create("fgo", noise=hk, zupt_sigma_m_s="model").zupt_sigma_m_s == 0.02
+    assert LfgnssFgo(zupt_sigma_m_s="model").zupt_sigma_m_s is None                    # hand-set noise: no setting
+    assert LfgnssFgo(zupt_sigma_m_s=0.1, zupt_max_speed_m_s=0.3).zupt_max_speed_m_s == 0.3
+    assert "zupt_max_speed_m_s=0.3" in repr(LfgnssFgo(zupt_sigma_m_s=0.1, zupt_max_speed_m_s=0.3))
+    assert LfgnssFgo().zupt_max_speed_m_s == EkfConfig().zupt_max_speed_m_s
+    for bad in (0.0, -1.0, float("nan"), True, "auto"):
+        with pytest.raises(ValueError, match=r"zupt_sigma_m_s must be a positive number of m/s, None or \"model\""):
+            LfgnssFgo(zupt_sigma_m_s=bad)
+    with pytest.raises(ValueError, match="zupt_max_speed_m_s must be a positive number of m/s, got 0"):
+        LfgnssFgo(zupt_sigma_m_s=0.02, zupt_max_speed_m_s=0)
+    with pytest.raises(ValueError, match="zupt_sigma_m_s needs Dopplers to detect a standstill"):
+        LfgnssFgo(zupt_sigma_m_s=0.02, doppler_sigma_m_s=0.0)
+    assert LfgnssFgo(noise=hk, doppler_sigma_m_s=0.0, zupt_sigma_m_s="model").zupt_sigma_m_s is None  # no Dopplers

@@ -120,12 +120,44 @@ def test_export_ekf_writes_the_same_network_in_another_filter(run, tmp_path, cap
     shown = capsys.readouterr().out
     assert "filter changed after training: gate_sigma 3.0 -> 4.0, zupt_sigma_m_s None -> 0.05" in shown
     assert "filter changed after training: zupt_sigma_m_s 0.05 -> None" in shown and "--ekf zupt_sigma_m_s=none" in shown
+    assert "validation 3D RMSE" in shown and " m (in the training filter)" in shown
+    assert a.metadata["refilter"][0]["source"] == str(out / "best.pt")      # the checkpoint, not a staging file
+    assert b.metadata["refilter"][-1]["source"] == str(from_ckpt) and "lfgnss" in b.metadata["refilter"][-1]["versions"]
+
+
+def test_export_ekf_keeps_what_it_does_not_change(run, tmp_path):
+    """A user's file next to the output is left alone; ekf_config keys this version does not know are kept; ".5"
+    is a number."""
+    out, _ = run
+    precious = tmp_path / "m.unfiltered.npz"
+    precious.write_bytes(b"mine")
+    assert export_main([str(out / "best.pt"), str(tmp_path / "m.npz"), "--ekf", "gate_sigma=.5"]) == 0
+    assert precious.read_bytes() == b"mine" and sorted(p.name for p in tmp_path.iterdir()) == ["m.npz",
+                                                                                               "m.unfiltered.npz"]
+    assert load_model(tmp_path / "m.npz").metadata["ekf_config"]["gate_sigma"] == 0.5
+    from learning.export import _write_model_file
+    src = load_model(tmp_path / "m.npz")
+    meta = {**src.metadata, "ekf_config": {**src.metadata["ekf_config"], "future_knob": 7}}
+    _write_model_file(tmp_path / "future.npz", src.params, src.normaliser, meta)
+    assert export_main([str(tmp_path / "future.npz"), str(tmp_path / "f2.npz"), "--ekf", "gate_sigma=4"]) == 0
+    assert load_model(tmp_path / "f2.npz").metadata["ekf_config"]["future_knob"] == 7
+
+
+def test_export_to_a_directory_is_one_line(tmp_path, capsys):
+    (tmp_path / "d.npz").mkdir()
+    with pytest.raises(SystemExit) as exit_info:
+        export_main(["lfgnss/data/model/lfgnss-berlin-pp.npz", str(tmp_path / "d.npz"), "--ekf", "gate_sigma=4"])
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and "d.npz" in err and "Traceback" not in err and len(err.splitlines()) == 1, err
 
 
 @pytest.mark.parametrize("ekf, message", [
     (["--ekf", "bogus=1"], "--ekf: no EKF setting bogus (EkfConfig has"),
     (["--ekf", "zupt_sigma_m_s=-1"], "--ekf: estimators/models.py: EkfConfig.zupt_sigma_m_s must be a positive"),
-    (["--ekf", "zupt_sigma_m_s"], "--ekf expects KEY=VALUE, got 'zupt_sigma_m_s'"),
+    (["--ekf", "zupt_sigma_m_s"], "--ekf: expects KEY=VALUE, got 'zupt_sigma_m_s'"),
+    (["--ekf", "gate_sigma=4", "--ekf", "gate_sigma=5"], "--ekf: gate_sigma given twice"),
+    (["--ekf", "huber_k=2"], "--ekf: huber_k is already 2.0 in this model's filter"),
+    (["--ekf", "gate_sigma=.5x"], "--ekf: estimators/models.py: EkfConfig.gate_sigma must be"),
     ([], "lfgnss-berlin-pp.npz: a model file, not a training checkpoint: give --ekf KEY=VALUE"),
 ])
 def test_export_ekf_bad_input_is_one_line(ekf, message, tmp_path, capsys):
