@@ -21,7 +21,7 @@ if TYPE_CHECKING:
 
 #: Per-epoch status codes of a Solution.
 STATUS_NONE = 0        # no position (before the first fix)
-STATUS_UPDATED = 1     # measurement update with at least one satellite
+STATUS_UPDATED = 1     # measurement update: satellites, Dopplers or (EKF) the zero-velocity update alone
 STATUS_COASTED = 2     # prediction only (no usable satellite, or all gated)
 STATUS_RESET = 3       # state re-initialised from the coarse fix (start or divergence)
 STATUS_NAMES = {STATUS_NONE: "none", STATUS_UPDATED: "updated", STATUS_COASTED: "coasted", STATUS_RESET: "reset"}

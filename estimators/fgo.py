@@ -86,6 +86,8 @@ DEFAULT_KERNEL = {"batch": ("cauchy", 1.0), "fixed-lag": ("huber", 1.5)}
 CAUCHY_WARM_START_HUBER_K = 1.5
 #: Huber threshold [sigmas] of the Doppler velocity priors.
 DOPPLER_HUBER_K = 1.5
+#: The standstill test's default speed bound [m/s], the EKF's.
+DEFAULT_ZUPT_MAX_SPEED_M_S = EkfConfig().zupt_max_speed_m_s
 
 
 def clock_key(k: int, j: int, n_systems: int) -> int:
@@ -241,6 +243,11 @@ class LfgnssFgo:
     name : str, optional
         Backend label written into the Solution; default ``fgo``, or ``fgo-fixed-lag`` in fixed-lag mode (as the
         command line names the run's files).
+
+    The Solution's ``info`` holds ``n_velocity_priors`` (epochs with a Doppler velocity prior), ``stationary`` ((T,)
+    bool: epochs given the zero-velocity prior) and, in fixed-lag mode, ``coasted_outside_graph``. Unlike the EKFs,
+    a position-blind epoch held only by the zero-velocity prior (batch) stays STATUS_COASTED: its satellites
+    place no position.
     """
 
     #: The backend's name, the start of ``name``.
@@ -315,10 +322,13 @@ class LfgnssFgo:
         self.progress = progress
 
     def _zupt_settings(self, sigma: float | str | None, max_speed: float | None) -> tuple[float | None, float]:
-        """The zero-velocity prior's sigma [m/s] (None: off) and speed bound [m/s], "model"/None resolved."""
-        own = config_of(self.noise)
-        sigma = own.zupt_sigma_m_s if isinstance(sigma, str) and sigma == "model" else sigma
-        max_speed = own.zupt_max_speed_m_s if max_speed is None else max_speed
+        """The zero-velocity prior's sigma [m/s] (None: off) and speed bound [m/s], "model"/None resolved.
+
+        The model's filter is read only where it gives a value: a graph without the prior ignores its settings."""
+        if isinstance(sigma, str) and sigma == "model":
+            sigma = config_of(self.noise).zupt_sigma_m_s
+        if max_speed is None:
+            max_speed = DEFAULT_ZUPT_MAX_SPEED_M_S if sigma is None else config_of(self.noise).zupt_max_speed_m_s
         for key, value in (("zupt_sigma_m_s", sigma), ("zupt_max_speed_m_s", max_speed)):
             if value is None and key == "zupt_sigma_m_s":
                 continue
@@ -334,8 +344,9 @@ class LfgnssFgo:
         parts += [f"lag_s={self.lag_s:g}"] if self.mode == "fixed-lag" else []
         parts += [f"robust={self.robust!r}"] + ([f"robust_k={self.robust_k:g}"] if self.robust is not None else [])
         if self.zupt_sigma_m_s is not None:            # as resolved: "model" says nothing without the model
-            parts.append(f"zupt_sigma_m_s={self.zupt_sigma_m_s:g}")
-            parts += [f"zupt_max_speed_m_s={self.zupt_max_speed_m_s:g}"] if self.zupt_max_speed_m_s != 0.5 else []
+            parts.append(f"zupt_sigma_m_s={self.zupt_sigma_m_s!r}")
+            parts += ([f"zupt_max_speed_m_s={self.zupt_max_speed_m_s!r}"]
+                      if self.zupt_max_speed_m_s != DEFAULT_ZUPT_MAX_SPEED_M_S else [])
         shown = {"self", "name", "noise", "mode", "lag_s", "robust", "robust_k", "zupt_sigma_m_s", "zupt_max_speed_m_s"}
         for key, param in inspect.signature(LfgnssFgo.__init__).parameters.items():
             value = getattr(self, key, None)
@@ -461,7 +472,9 @@ class LfgnssFgo:
         dv = self._doppler_velocity(seq)
         info["n_velocity_priors"] = 0 if dv is None else int(np.count_nonzero(dv.ok[k0:]))
         still = self._still(dv)
-        info["stationary"] = np.zeros(n_t, bool) if still is None else still
+        info["stationary"] = np.zeros(n_t, bool) if still is None else still & (np.arange(n_t) >= k0)
+        if still is not None and self.mode == "fixed-lag":
+            info["stationary"][k0 + 1:] &= ranges[k0 + 1:] > 0  # coasted outside the graph: no prior there
         if self.mode == "batch":
             est = self._solve_batch(seq, k0, z_m, sigma_m, psd_ecef, dv, still, info, ranges)
         else:

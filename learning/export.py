@@ -138,10 +138,13 @@ def _write_model_file(out_path: str | Path, params: dict[str, np.ndarray], norma
             np.savez(fh, **arrays)
 
     out = Path(out_path)
-    if out.is_dir():                                # else the error would name the temporary file
+    if out.is_dir():
         raise IsADirectoryError(errno.EISDIR, "a folder, not a model file to write", str(out))
-    out.parent.mkdir(parents=True, exist_ok=True)
-    _replace_atomically(out, write)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        _replace_atomically(out, write)
+    except OSError as exc:                          # name the file asked for, not the temporary one beside it
+        raise OSError(exc.errno, f"cannot write the model file ({exc.strerror or exc})", str(out)) from exc
     return out
 
 
@@ -584,10 +587,12 @@ def _ekf_assignment(text: str) -> tuple[str, object]:
     if "=" not in text:
         raise ValueError(f"expects KEY=VALUE, got {text!r}")
     key, value = (part.strip() for part in text.split("=", 1))
+    if not key:
+        raise ValueError(f"expects KEY=VALUE, got {text!r}")
     if value.lower() in ("none", "null"):
         return key, None
     parsed = _parse_value(value)
-    if isinstance(parsed, str):
+    if isinstance(parsed, str) and "_" not in value:
         try:
             parsed = float(value)                   # ".5" and "5." are numbers to a user, not TOML
         except ValueError:

@@ -26,6 +26,8 @@ def simulate_sequence(n_epochs: int = 120, *, dt_s: float = 1.0, systems: tuple[
     t = np.arange(n_epochs) * dt_s
     heading = 0.3 + 0.004 * t + 0.3 * np.sin(t / 40.0)
     speed = 8.0 + 2.0 * np.sin(t / 25.0)
+    if any(len(stop) not in (2, 3) for stop in stops_s):
+        raise ValueError(f"lfgnss/simulate.py: stops_s takes (start, end) or (start, end, speed), got {stops_s!r}")
     for start, end, *creep in stops_s:
         speed = np.where((t >= start) & (t <= end), creep[0] if creep else 0.0, speed)
     vel_enu = np.stack([speed * np.sin(heading), speed * np.cos(heading), np.zeros_like(t)], axis=-1)

@@ -334,6 +334,12 @@ def test_zero_velocity_setting_can_follow_the_model(tmp_path):
     assert LfgnssFgo(zupt_sigma_m_s=0.1, zupt_max_speed_m_s=0.3).zupt_max_speed_m_s == 0.3
     assert "zupt_max_speed_m_s=0.3" in repr(LfgnssFgo(zupt_sigma_m_s=0.1, zupt_max_speed_m_s=0.3))
     assert LfgnssFgo().zupt_max_speed_m_s == EkfConfig().zupt_max_speed_m_s
+    from dataclasses import replace as replace_config
+    from learning.export import LfgnssModel
+    odd = LfgnssModel(hk.path, hk.params, hk.normaliser, {**hk.metadata, "ekf_config": {
+        **hk.metadata["ekf_config"], "zupt_max_speed_m_s": 0.0}})      # the model's filter, never read with it off
+    assert LfgnssFgo(noise=odd).zupt_sigma_m_s is None
+    assert replace_config(EkfConfig(), zupt_max_speed_m_s=0.0).zupt_max_speed_m_s == 0.0
     for bad in (0.0, -1.0, float("nan"), True, "auto"):
         with pytest.raises(ValueError, match=r"zupt_sigma_m_s must be a positive number of m/s, None or \"model\""):
             LfgnssFgo(zupt_sigma_m_s=bad)
@@ -342,3 +348,18 @@ def test_zero_velocity_setting_can_follow_the_model(tmp_path):
     with pytest.raises(ValueError, match="zupt_sigma_m_s needs Dopplers to detect a standstill"):
         LfgnssFgo(zupt_sigma_m_s=0.02, doppler_sigma_m_s=0.0)
     assert LfgnssFgo(noise=hk, doppler_sigma_m_s=0.0, zupt_sigma_m_s="model").zupt_sigma_m_s is None  # no Dopplers
+
+
+def test_stationary_marks_no_epoch_before_the_first_fix():
+    """``info["stationary"]`` marks the epochs given the zero-velocity prior: none before the first coarse fix."""
+    s = simulate_sequence(60, seed=2, stops_s=((0.0, 59.0),))
+    coarse = s.coarse_ecef_m.copy()
+    coarse[:5] = np.nan                                  # first fix at epoch 5
+    for mode in ("batch", "fixed-lag"):
+        still = LfgnssFgo(mode=mode, zupt_sigma_m_s=0.02).solve(replace(s, coarse_ecef_m=coarse)).info["stationary"]
+        assert still.shape == (60,) and not still[:5].any() and still[5:].mean() > 0.5
+
+
+def test_simulated_stops_take_two_or_three_numbers():
+    with pytest.raises(ValueError, match=r"stops_s takes \(start, end\) or \(start, end, speed\)"):
+        simulate_sequence(10, stops_s=((1.0, 2.0, 0.1, 5.0),))
