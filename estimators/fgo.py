@@ -300,9 +300,8 @@ class LfgnssFgo:
             raise ValueError(f"estimators/fgo.py: accel_psd_enu_m2_s3 must be 3 positive numbers, got {psd}")
         noise = resolve_noise(noise, type(self).__name__)
         self.noise = noise if noise is not None else HeuristicNoise()
-        if isinstance(zupt_sigma_m_s, str) and zupt_sigma_m_s == "model" and not doppler_sigma_m_s > 0:
-            zupt_sigma_m_s = None                   # the model's setting, but no Dopplers to find a standstill
-        self.zupt_sigma_m_s, self.zupt_max_speed_m_s = self._zupt_settings(zupt_sigma_m_s, zupt_max_speed_m_s)
+        self.zupt_sigma_m_s, self.zupt_max_speed_m_s = self._zupt_settings(zupt_sigma_m_s, zupt_max_speed_m_s,
+                                                                           doppler_sigma_m_s > 0)
         if self.zupt_sigma_m_s is not None and not doppler_sigma_m_s > 0:
             raise ValueError("estimators/fgo.py: zupt_sigma_m_s needs Dopplers to detect a standstill; "
                              "doppler_sigma_m_s is 0")
@@ -321,12 +320,14 @@ class LfgnssFgo:
         self.doppler_cn0_ref_dbhz = None if doppler_cn0_ref_dbhz is None else float(doppler_cn0_ref_dbhz)
         self.progress = progress
 
-    def _zupt_settings(self, sigma: float | str | None, max_speed: float | None) -> tuple[float | None, float]:
+    def _zupt_settings(self, sigma: float | str | None, max_speed: float | None,
+                       dopplers: bool) -> tuple[float | None, float]:
         """The zero-velocity prior's sigma [m/s] (None: off) and speed bound [m/s], "model"/None resolved.
 
-        The model's filter is read only where it gives a value: a graph without the prior ignores its settings."""
+        The model's filter is read only where it gives a value: a graph without the prior ignores its settings, and
+        "model" without ``dopplers`` to find a standstill is off."""
         if isinstance(sigma, str) and sigma == "model":
-            sigma = config_of(self.noise).zupt_sigma_m_s
+            sigma = config_of(self.noise).zupt_sigma_m_s if dopplers else None
         if max_speed is None:
             max_speed = DEFAULT_ZUPT_MAX_SPEED_M_S if sigma is None else config_of(self.noise).zupt_max_speed_m_s
         for key, value in (("zupt_sigma_m_s", sigma), ("zupt_max_speed_m_s", max_speed)):
@@ -472,9 +473,6 @@ class LfgnssFgo:
         dv = self._doppler_velocity(seq)
         info["n_velocity_priors"] = 0 if dv is None else int(np.count_nonzero(dv.ok[k0:]))
         still = self._still(dv)
-        info["stationary"] = np.zeros(n_t, bool) if still is None else still & (np.arange(n_t) >= k0)
-        if still is not None and self.mode == "fixed-lag":
-            info["stationary"][k0 + 1:] &= ranges[k0 + 1:] > 0  # coasted outside the graph: no prior there
         if self.mode == "batch":
             est = self._solve_batch(seq, k0, z_m, sigma_m, psd_ecef, dv, still, info, ranges)
         else:
@@ -485,6 +483,9 @@ class LfgnssFgo:
         blind = ranges <= 0
         blind[k0] = False                           # the first epoch is placed by the coarse fix's prior
         n_used[blind] = 0
+        # epochs given the zero-velocity prior: from the first fix on; fixed-lag coasts blind ones outside the graph
+        given = (np.arange(n_t) >= k0) & (~blind if self.mode == "fixed-lag" else True)
+        info["stationary"] = np.zeros(n_t, bool) if still is None else still & given
         status[k0:] = np.where(n_used[k0:] > 0, STATUS_UPDATED, STATUS_COASTED)
         if cov_m is None:
             cov_m = self._stand_in_covariance(seq, k0, pos, sigma_m, psd_ecef)

@@ -519,7 +519,7 @@ def refilter_model(source_path: str | Path, out_path: str | Path, changes: dict,
         raise ValueError(f"no EKF setting {', '.join(unknown)} (EkfConfig has {', '.join(sorted(known))})" if unknown
                          else "no EKF setting to change")
     stored = meta.get("ekf_config") or {}
-    before = stored_ekf_config(meta.get("ekf_config"))
+    before = stored_ekf_config(stored)
     floats = {f.name for f in dataclasses.fields(EkfConfig) if "float" in str(f.type)}
     changes = {k: float(v) if k in floats and type(v) is int else v for k, v in changes.items()}   # TOML's 4 is 4.0
     same = sorted(k for k, v in changes.items() if getattr(before, k) == v)
