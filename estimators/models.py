@@ -209,6 +209,7 @@ class EkfConfig:
             if not float(getattr(self, name)).is_integer():
                 raise ValueError(f"estimators/models.py: EkfConfig.{name} must be a whole number, "
                                  f"got {getattr(self, name)!r}")
+            object.__setattr__(self, name, int(getattr(self, name)))    # 4.0 (a TOML float) is stored as 4
         if not self.reset_gated_fraction >= 0:
             raise ValueError(f"estimators/models.py: EkfConfig.reset_gated_fraction must be >= 0 (>= 1 disables), "
                              f"got {self.reset_gated_fraction}")

@@ -206,11 +206,14 @@ def pooled_rmse(rmse: list[float], counts: list[int]) -> float:
 
 
 def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = True,
-             only: list[int] | None = None, reuse: str | Path | None = None, command: str | None = None) -> list[dict]:
+             only: list[int] | None = None, reuse: str | Path | None = None, command: str | None = None,
+             config_file: str | Path | None = None) -> list[dict]:
     """Train ``config`` on each fold (or the folds ``only``); one row per fold, plus a ``pooled`` row when all ran.
 
     ``reuse``: train nothing, score the folds' saved models in that folder under ``config``'s EKF (``saved_fold``).
     ``command``: the command line, recorded at the top of crossval.md and in the folds' checkpoints.
+    ``config_file``: the ``--config`` file ``config`` was read from, recorded in the folds' checkpoints as
+    ``learning.train`` records it.
     """
     out = Path(out_dir)
     if isinstance(folds, bool) or not isinstance(folds, int) or folds < 2:
@@ -240,7 +243,7 @@ def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = 
              for ds in data["datasets"]}
     rows = []
     try:
-        _run_folds(rows, chosen, folds, whole, config, out, progress, reuse, command)
+        _run_folds(rows, chosen, folds, whole, config, out, progress, reuse, command, config_file)
     except BaseException as exc:        # Ctrl-C, a diverged fold, a bad checkpoint: the finished folds' rows are kept
         exc.crossval_stopped = (out, None, [])
         if rows:
@@ -384,7 +387,7 @@ def _write_results(out: Path, rows: list[dict], command: str | None = None) -> N
 
 
 def _run_folds(rows: list[dict], chosen, folds: int, whole: dict, config: dict, out: Path, progress: bool,
-               reuse, command: str | None = None) -> None:
+               reuse, command: str | None = None, config_file: str | Path | None = None) -> None:
     """Train (or with ``reuse`` rescore) each chosen fold, appending its row to ``rows`` as soon as it is done."""
     data = config["data"]
     for j in chosen:
@@ -413,7 +416,7 @@ def _run_folds(rows: list[dict], chosen, folds: int, whole: dict, config: dict, 
             continue
         prep = prepare(config, source)
         history = train(copy.deepcopy(config), out / f"fold{j}", progress=progress, prepared=prep, export=False,
-                        command=command)
+                        command=command, config_file=config_file)
         best = min(history, key=lambda h: h["val_rmse_3d_m"])
         saved, last_smoothed_3d, last_2d = _saved_rmse_m(out / f"fold{j}" / "last.pt", config, prep)
         rows.append(_fold_row(j, held, config, {
@@ -482,7 +485,7 @@ def main(argv: list[str] | None = None) -> int:
         else:
             config = load_config(args.config, args.overrides)
             crossval(config, args.folds, out, progress=not args.no_progress, only=args.only, reuse=args.reuse,
-                     command=command)
+                     command=command, config_file=args.config)
     except UnwrittenResults as exc:           # computed, not written: the table goes to stdout all the same
         print(markdown_table(exc.rows, COLUMNS), end="")
         exit_on_input_error(p, exc)

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shlex
 import sys
 import tempfile
 import time
@@ -536,7 +537,7 @@ def _main(args: argparse.Namespace, argv: list[str] | None) -> int:
     if failed and not all_rows:    # an empty table never replaces a results file
         raise _nothing_run(failed, report)
     argv = sys.argv[1:] if argv is None else argv
-    command = "python -m lfgnss.benchmark" + (" " + " ".join(argv) if argv else "")
+    command = shlex.join(["python", "-m", "lfgnss.benchmark", *argv])
     try:                            # before the tables go to stdout, which may be a pipe closed early (| head)
         written = write_report(report, all_rows, rtk_rows, command, args.warm_up, not args.no_plots, failed)
     except OSError as err:

@@ -230,8 +230,9 @@ def run(args) -> int:
                   f"({noise_text})")
             print(f"coarse fix: {summary['epoch_status']}; observations: {summary['observations']}")
             if meas.warnings:
-                print(f"input notes: {len(meas.warnings)} (damaged records or epochs skipped, constellations dropped, "
-                      f"stand-ins used){'; the first 5:' if len(meas.warnings) > 5 else ':'}")
+                whole = " of the whole file, not only --start/--end" if not keep.all() else ""    # it is read whole
+                print(f"input notes{whole}: {len(meas.warnings)} (damaged records or epochs skipped, constellations "
+                      f"dropped, stand-ins used){'; the first 5:' if len(meas.warnings) > 5 else ':'}")
             for note in meas.warnings[:5]:
                 print(f"warning: {note}")
             files = [p for p in written if not str(p).endswith(".png")]

@@ -214,13 +214,14 @@ def test_warm_up_starts_the_filters_earlier_and_scores_the_test_split_only(tmp_p
 def test_the_warm_up_and_own_runs_write_their_own_results_files(tmp_path, monkeypatch, capsys, sample_toml):
     monkeypatch.setattr(datasets, "_REGISTRY", {}, raising=False)
     monkeypatch.chdir(tmp_path)
-    shutil.copy(MODEL_DIR / "lfgnss-default.npz", tmp_path / "model.npz")
-    assert main(["my-drive", "--register", str(sample_toml("my-drive")), "--models", str(tmp_path / "model.npz"),
+    model = tmp_path / "my model.npz"            # a space: the recorded command line must still run as written
+    shutil.copy(MODEL_DIR / "lfgnss-default.npz", model)
+    assert main(["my-drive", "--register", str(sample_toml("my-drive")), "--models", str(model),
                  "--warm-up", "val", "--no-plots"]) == 0
     text = (tmp_path / "lfgnss-benchmark" / "warm-up-val" / "results.md").read_text()
     assert not (tmp_path / "docs").exists()      # a run of one's own never writes over the committed results
     assert text.startswith("# lfgnss benchmark results, filters warmed up on the val split")
-    assert "--warm-up val --no-plots" in text and "No figures (`--no-plots`)." in text
+    assert f"--models '{model}' --warm-up val --no-plots" in text and "No figures (`--no-plots`)." in text
 
 
 def test_a_dataset_with_bad_files_costs_its_own_rows_only(tmp_path, monkeypatch, capsys, sample_toml):

@@ -1,6 +1,7 @@
 """learning.crossval: blocked folds over train + validation epochs, and the command on simulated data."""
 import csv
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -73,6 +74,11 @@ def test_command_writes_per_fold_and_pooled_rows(trained_run, capsys):
         assert float(r["last_smoothed_rmse_3d_m"]) != float(r["last_rmse_3d_m"])          # the RTS pass ran
     n = [int(r["held_out_epochs"]) for r in rows]
     assert n[2] == n[0] + n[1] == 3 * 60                                # two train seeds + one val seed, 60 epochs each
+    from learning.train import load_checkpoint
+
+    for j in (0, 1):                                                    # each fold records its --config as train does
+        record = load_checkpoint(tmp_path / f"fold{j}" / "last.pt")["config_file"]
+        assert record["path"] == str(Path(RECIPE[1]).resolve()) and record["settings"]["data"]["window"] == 40
     pooled = math.sqrt(sum(float(r["plain_ekf_rmse_3d_m"]) ** 2 * k for r, k in zip(rows[:2], n)) / n[2])
     assert float(rows[2]["plain_ekf_rmse_3d_m"]) == pytest.approx(pooled)
     for j in (0, 1):

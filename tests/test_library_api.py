@@ -163,6 +163,12 @@ def test_ekf_config_names_a_bad_setting(kwargs, message):
         EkfConfig(**kwargs)
 
 
+def test_ekf_config_stores_whole_number_counts_as_int():
+    config = EkfConfig(reset_min_sats=5.0, min_sats_for_update=2.0)     # as a TOML file may give them
+    assert (config.reset_min_sats, config.min_sats_for_update) == (5, 2)
+    assert all(type(v) is int for v in (config.reset_min_sats, config.min_sats_for_update))
+
+
 @pytest.mark.parametrize("kwargs, message", [
     ({"lag_s": "10"}, "lag_s must be a finite number"),
     ({"prior_pos_sigma_m": -1.0}, "prior_pos_sigma_m must be > 0"),

@@ -4,6 +4,7 @@ features alike, and misuse is one line."""
 from __future__ import annotations
 
 import csv
+import gzip
 import warnings
 from dataclasses import replace
 
@@ -167,3 +168,23 @@ def test_a_window_without_one_constellation_gives_no_warning_about_it():
     said = [str(w.message) for w in caught] + list(meas.warnings)
     assert glonass.any() and not [m for m in said if "for R" in m or "usable R" in m], said
     assert meas.systems == ("G",)
+
+
+def test_input_notes_under_a_window_say_they_are_of_the_whole_file(tmp_path, epochs, capsys):
+    """The whole file is read, so a damaged epoch after --end is noted, and the notes say whose they are."""
+    lines = gzip.open(SAMPLE_OBS, "rt").read().splitlines(keepends=True)
+    last = max(k for k, line in enumerate(lines) if line.startswith(" 16  6  6 "))     # RINEX 2 epoch lines
+    lines[last] = " 16  6  6 xx" + lines[last][12:]
+    obs = tmp_path / "damaged.obs"
+    obs.write_text("".join(lines))
+    end = f"1900:{np.format_float_positional(round(epochs[100] - 1900 * 604800, 1), trim='-')}"
+    base = ["--backend", "wls", "--no-plots", "--obs", str(obs), "--nav", *map(str, SAMPLE_NAV)]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")        # the reader's RinexWarning; the notes are what is tested
+        assert main([*base, "--out", str(tmp_path / "window"), "--end", end]) == 0
+        windowed = capsys.readouterr().out
+        assert main([*base, "--out", str(tmp_path / "whole")]) == 0
+        whole = capsys.readouterr().out
+    note = f"warning: {obs}:{last + 1}: unreadable epoch line"
+    assert "input notes of the whole file, not only --start/--end: 1 (" in windowed and note in windowed, windowed
+    assert "input notes: 1 (" in whole and note in whole, whole
