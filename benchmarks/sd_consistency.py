@@ -11,6 +11,7 @@ columns of the outputs (.pos sdn/sde/sdu, CSV sd_*_m) can be trusted.
 from __future__ import annotations
 
 import argparse
+import shlex
 import sys
 import warnings
 from pathlib import Path
@@ -59,7 +60,7 @@ def main(argv: list[str] | None = None) -> int:
         truth = read_truth(SAMPLE_TRUTH, meas.time_gps_s, "smartloc")
         seq = lfgnss.build_sequence(meas, lfgnss.spp(meas), truth_ecef_m=truth, name="bundled Berlin drive")
         table = markdown_table(rows_for(seq))
-    command = " ".join(["python benchmarks/sd_consistency.py", *(sys.argv[1:] if argv is None else argv)])
+    command = shlex.join(["python", "benchmarks/sd_consistency.py", *(sys.argv[1:] if argv is None else argv)])
     text = (f"# Are the reported standard deviations calibrated?\n\nProduced by `{command}` on the bundled Berlin "
             f"drive (lfgnss/data/berlin-potsdamer-platz, all {len(seq)} epochs; the drive of shared/BENCHMARK.md's "
             "berlin-pp, every split). Calibrated 1-sigma sds would put 68 % of the errors within 1 sd, 99.7 % within "

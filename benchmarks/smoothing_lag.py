@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import shlex
 import sys
 import warnings
 from pathlib import Path
@@ -108,7 +109,7 @@ def publish(text: str, doc: Path, write: bool, figure=None) -> int:
 
 def command_line(script: str, argv: list[str] | None) -> str:
     """The command as typed, for the page's header."""
-    return " ".join([f"python benchmarks/{script}", *(sys.argv[1:] if argv is None else argv)])
+    return shlex.join(["python", f"benchmarks/{script}", *(sys.argv[1:] if argv is None else argv)])
 
 
 def plot(rows: list[dict], path: Path, split: str) -> Path:

@@ -24,6 +24,7 @@ import json
 import os
 import platform
 import resource
+import shlex
 import statistics
 import subprocess
 import sys
@@ -375,7 +376,7 @@ def main(argv: list[str] | None = None) -> int:
     text = report(results, args.backends, base, info, load_start, args.repeat)
     print(text)
     if args.write:
-        command = "python benchmarks/solve_speed.py " + " ".join(argv if argv is not None else sys.argv[1:])
+        command = shlex.join(["python", "benchmarks/solve_speed.py", *(argv if argv is not None else sys.argv[1:])])
         write_doc(text, command.strip(), args.repeat)
     return 0
 

@@ -48,7 +48,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lfgnss.datasets import contiguous_runs
+from lfgnss.datasets import contiguous_runs, split_parts
 from lfgnss.errors import (INPUT_ERRORS, InputError, cannot_write, input_line, one_line, path_option, shortened,
                            stdout_gone)
 from lfgnss.metrics import accuracy_table, markdown_table
@@ -221,10 +221,11 @@ def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = 
     chosen = range(folds) if only is None else sorted(set(only))     # a range: --folds 10**9 allocates nothing
     if only is not None and (not chosen or not all(0 <= j < folds for j in chosen)):
         raise ValueError(f"folds to run must be among 0..{folds - 1}, got {only}")
-    if config["data"]["val_split"] == config["data"]["train_split"]:
-        raise ValueError(f"data.val_split is data.train_split ({config['data']['val_split']!r}): cross-validation "
-                         "cuts the train and validation epochs into blocks, so each epoch would be there twice, held "
-                         "out and trained on; give two different splits")
+    if set(split_parts(config["data"]["val_split"])) & set(split_parts(config["data"]["train_split"])):
+        raise ValueError(f"data.val_split {config['data']['val_split']!r} is trained on (data.train_split "
+                         f"{config['data']['train_split']!r}): cross-validation cuts the train and validation epochs "
+                         "into blocks, so each epoch would be there twice, held out and trained on; give two splits "
+                         "that share no epochs")
     _refuse_used_out(out)
     missing = [] if reuse is None else [p for j in chosen if not (p := Path(reuse) / f"fold{j}" / "last.pt").is_file()]
     if missing:

@@ -11,7 +11,7 @@ Format (``FORMAT_NAME`` version ``FORMAT_VERSION``), arrays in one uncompressed 
                         fingerprints and its own init_model; null when trained from scratch),
                         config_file (the --config file's path and settings), provenance (the command
                         line, working folder, git commit, dataset TOML texts; ``learning.provenance``),
-                        epoch, val_rmse_3d_m, versions (lfgnss, torch, numpy), created_utc, and
+                        epoch, val_rmse_3d_m, versions (lfgnss, torch, numpy) and created_utc of the export, and
                         refilter (only if the file's filter was changed after training, ``refilter_model``:
                         per change, the settings before and after, command line, git state, time)
     normaliser_mean     (d,) float64   per-feature mean of the training split (valid slots)
@@ -554,12 +554,14 @@ def trained_on(metadata: dict) -> str:
     data = (metadata.get("config") or {}).get("data", {})
     trained = "+".join(data.get("datasets", [])) + f" ({data.get('train_split', 'train')})"
     init = metadata.get("init_model")
-    return trained if not init else f"{trained}, fine-tuned from {'+'.join(init.get('datasets', []))} (train)"
+    return trained if not init else (f"{trained}, fine-tuned from {'+'.join(init.get('datasets', []))} "
+                                     f"({init.get('train_split', 'train')})")
 
 
 def describe_model(model: LfgnssModel) -> list[str]:
     """Readable lines on a model file: data, epoch, validation RMSE, filter settings, and how it was made."""
     from estimators.ekf import config_changes, config_of
+    from lfgnss.datasets import split_parts
 
     from .provenance import describe
 
@@ -567,7 +569,10 @@ def describe_model(model: LfgnssModel) -> list[str]:
     config_file = (meta.get("config_file") or {}).get("path")
     val = meta.get("val_rmse_3d_m")
     versions = meta.get("versions") or {}
-    where = " (in the training filter)" if meta.get("refilter") and val is not None else ""
+    data = (meta.get("config") or {}).get("data", {})
+    seen = set(split_parts(data.get("val_split", "val"))) & set(split_parts(data.get("train_split", "train")))
+    where = (" (on trained epochs)" if seen and val is not None else "") + \
+        (" (in the training filter)" if meta.get("refilter") and val is not None else "")
     return [f"{model.path}",
             f"trained on: {trained_on(meta)}; epoch {meta.get('epoch')}, validation 3D RMSE "
             f"{'-' if val is None else f'{val:.3f} m'}{where}",
@@ -576,8 +581,8 @@ def describe_model(model: LfgnssModel) -> list[str]:
             *refilter_lines(meta),
             f"configuration file: {config_file or 'not recorded'} (the full configuration is in the file)",
             *describe(meta.get("provenance")),
-            f"written {meta.get('created_utc', '?')} by lfgnss {versions.get('lfgnss', '?')}, torch "
-            f"{versions.get('torch', '?')}"]
+            f"{'network exported' if meta.get('refilter') else 'written'} {meta.get('created_utc', '?')} by lfgnss "
+            f"{versions.get('lfgnss', '?')}, torch {versions.get('torch', '?')}"]
 
 
 def _ekf_assignment(text: str) -> tuple[str, object]:

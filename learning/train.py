@@ -57,6 +57,7 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
+from lfgnss.datasets import load_split, register_toml, split_parts
 from lfgnss.errors import INPUT_ERRORS, one_line, shortened
 from lfgnss.sequence import DEFAULT_FEATURES, Sequence
 
@@ -253,10 +254,16 @@ def check_config(config: dict) -> dict:
     if twice:                                             # each would be loaded, trained on and validated on twice
         raise ValueError(f"data.datasets names {', '.join(map(repr, twice))} more than once (its data would count "
                          f"twice); name each dataset once, got {datasets!r}")
-    for key, what in (("data.train_split", "a split name"), ("data.val_split", "a split name"),
+    for key, what in (("data.train_split", "a split name or names joined by '+'"),
+                      ("data.val_split", "a split name or names joined by '+'"),
                       ("train.init", "the path of a model file")):
         if not isinstance(_setting(config, key), str):
             raise ValueError(f"{key} must be {what} (a string), got {_setting(config, key)!r}")
+    for key in ("data.train_split", "data.val_split"):
+        parts = split_parts(_setting(config, key))
+        if any(not part or part != part.strip() for part in parts) or len(set(parts)) < len(parts):
+            raise ValueError(f"{key} must be a split name or names joined by '+' (e.g. \"train+val\"), each once and "
+                             f"without spaces, got {_setting(config, key)!r}")
     for key, choices in (("train.select", ("val", "last")), ("model.r_prior", ("none", "heuristic")),
                          ("loss.kind", ("hem", "rmse")), ("loss.balance", ("none", "plain_ekf"))):
         if _setting(config, key) not in choices:
@@ -434,6 +441,7 @@ def init_record(model) -> dict:
     h = hashlib.sha256(Path(model.path).read_bytes()).hexdigest()[:16]
     meta = model.metadata
     return {"path": str(model.path), "sha256_16": h, "epoch": meta.get("epoch"), "datasets": trained_datasets(model),
+            "train_split": (meta.get("config") or {}).get("data", {}).get("train_split", "train"),
             "data_fingerprints": meta.get("data_fingerprints", []), "init_model": meta.get("init_model")}
 
 
@@ -442,22 +450,24 @@ def init_record(model) -> dict:
 def load_sequences(dataset_id: str, split: str, config: dict) -> list[Sequence]:
     """The one place Sequences come from: synthetic, or ``lfgnss.datasets.load_split``.
 
-    Raises ValueError for the test split (training must never see it).
+    ``split`` may join names with "+" (``"train+val"``: both splits' epochs). Raises ValueError for the test split
+    (training must never see it).
     """
-    if split in _FORBIDDEN_SPLITS:
+    if set(split_parts(split)) & set(_FORBIDDEN_SPLITS):
         raise ValueError(f"training asked for split {split!r} of {dataset_id!r}; the test split is never used here")
     if dataset_id == "synthetic":
         from lfgnss.simulate import simulate_sequence
 
         syn = config["data"]["synthetic"]
-        seeds = syn.get(f"{split}_seeds")
-        if seeds is None:
-            raise ValueError(f"synthetic data has no seeds for split {split!r} (data.synthetic.{split}_seeds)")
+        missing = [part for part in split_parts(split) if syn.get(f"{part}_seeds") is None]
+        if missing:
+            raise ValueError(f"synthetic data has no seeds for split {missing[0]!r} "
+                             f"(data.synthetic.{missing[0]}_seeds)")
         return [simulate_sequence(int(syn["n_epochs"]), systems=tuple(syn["systems"]),
                                   sats_per_system=int(syn["sats_per_system"]),
                                   nlos_fraction=float(syn["nlos_fraction"]), seed=int(s),
-                                  name=f"synthetic/{split}/{s}") for s in seeds]
-    from lfgnss.datasets import load_split, register_toml
+                                  name=f"synthetic/{part}/{s}")
+                for part in split_parts(split) for s in syn[f"{part}_seeds"]]
 
     for path in config["data"].get("register", []):        # the user's own datasets, by TOML file
         register_toml(path)
@@ -610,7 +620,7 @@ def prepare(config: dict, source=None) -> Prepared:
     """
     data = config["data"]
     for key in ("train_split", "val_split"):
-        if data[key] in _FORBIDDEN_SPLITS:
+        if set(split_parts(data[key])) & set(_FORBIDDEN_SPLITS):
             raise ValueError(f"data.{key} = {data[key]!r}: the test split may not be used for training or selection")
     source = source or load_sequences
     train_seqs, val_seqs, prints, train_ds = [], [], [], []
@@ -869,10 +879,13 @@ def train(config: dict, out_dir: str | Path, *, resume: bool = False, overrides:
         started = checkpoint.get("provenance") or {}
         made = {**started, "resumes": [*started.get("resumes", []), made]}
     data = config["data"]
-    if data["val_split"] == data["train_split"]:
-        print(f"warning: data.val_split is data.train_split ({data['val_split']!r}): the run is validated (and with "
-              "train.select = \"val\" its epoch chosen) on its own training data, so its validation RMSE is "
-              "optimistic; use a held-out split", file=sys.stderr)
+    if set(split_parts(data["val_split"])) & set(split_parts(data["train_split"])):
+        seen = f"data.val_split {data['val_split']!r} is trained on (data.train_split {data['train_split']!r})"
+        print(f"warning: {seen}: the run's epoch is chosen on its own training data, so best.pt and its validation "
+              "RMSE are optimistic; use a held-out split, or train.select = \"last\" with a schedule chosen by "
+              "learning.crossval" if config["train"]["select"] == "val" else
+              f"note: {seen}: its validation RMSE is optimistic; train.select = \"last\" chooses nothing on it",
+              file=sys.stderr)
 
     threads, deterministic = torch.get_num_threads(), torch.are_deterministic_algorithms_enabled()
     torch.set_num_threads(int(config["threads"]))

@@ -547,8 +547,15 @@ def build(dataset_id: str, *, feature_names: tuple[str, ...] = DEFAULT_FEATURES,
     return seq
 
 
+def split_parts(split: str) -> tuple[str, ...]:
+    """The split names in ``split``: ``"train+val"`` is both (their union), ``"train"`` itself."""
+    return tuple(split.split("+"))
+
+
 def split_index(seq: Sequence, spec: DatasetSpec, split: str) -> np.ndarray:
-    """(T,) bool: epochs of ``seq`` in the split (only labelled epochs count for 'epoch' axes)."""
+    """(T,) bool: epochs of ``seq`` in the split (only labelled epochs count for 'epoch' axes); "a+b": in a or b."""
+    if "+" in split and split not in spec.splits:
+        return np.logical_or.reduce([split_index(seq, spec, part) for part in split_parts(split)])
     if split not in spec.splits:
         where = f"; give {split} = [start, stop] under [splits] in {spec.source}" if spec.source else ""
         raise KeyError(f"dataset {spec.id} has no split {split!r}; it has {', '.join(spec.splits) or 'none'}{where}")
@@ -587,7 +594,7 @@ def contiguous_runs(index: np.ndarray) -> list[np.ndarray]:
 
 def load_split(dataset_id: str, split: str, *, feature_names: tuple[str, ...] = DEFAULT_FEATURES,
                cache: bool = True) -> list[Sequence]:
-    """The split's contiguous epochs as Sequences (one per unbroken run of epochs)."""
+    """The split's contiguous epochs as Sequences (one per unbroken run of epochs); "train+val": the two splits'."""
     spec = get(dataset_id)
     seq = build(dataset_id, feature_names=feature_names, cache=cache)
     runs = contiguous_runs(np.flatnonzero(split_index(seq, spec, split)))
@@ -596,7 +603,7 @@ def load_split(dataset_id: str, split: str, *, feature_names: tuple[str, ...] = 
 
 
 __all__ = ["DatasetSpec", "SPLITS", "align_truth", "build", "contiguous_runs", "get", "load_split", "present",
-           "register", "register_toml", "registered", "split_index", "truth_note_summary"]
+           "register", "register_toml", "registered", "split_index", "split_parts", "truth_note_summary"]
 
 
 def alignment_report(dataset_ids: list[str] | None = None) -> str:

@@ -230,7 +230,7 @@ def run(args) -> int:
                   f"({noise_text})")
             print(f"coarse fix: {summary['epoch_status']}; observations: {summary['observations']}")
             if meas.warnings:
-                whole = " of the whole file, not only --start/--end" if not keep.all() else ""    # it is read whole
+                whole = " (the file is read whole: some may be outside --start/--end)" if not keep.all() else ""
                 print(f"input notes{whole}: {len(meas.warnings)} (damaged records or epochs skipped, constellations "
                       f"dropped, stand-ins used){'; the first 5:' if len(meas.warnings) > 5 else ':'}")
             for note in meas.warnings[:5]:

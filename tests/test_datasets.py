@@ -49,6 +49,16 @@ def test_user_dataset_from_toml(tmp_path, monkeypatch, sample_toml):
     assert train[0].time_gps_s[-1] < test[0].time_gps_s[0]
     # second build comes from the cache
     assert list((tmp_path / "cache" / "sequences").glob("my-berlin-*.npz"))
+    val = datasets.load_split("my-berlin", "val")
+    both = datasets.load_split("my-berlin", "train+val")          # adjacent splits: one unbroken sequence
+    assert len(both) == 1 and both[0].name == "my-berlin/train+val"
+    np.testing.assert_array_equal(both[0].time_gps_s, np.concatenate([train[0].time_gps_s, val[0].time_gps_s]))
+    apart = datasets.load_split("my-berlin", "train+test")        # val between them: two pieces
+    assert [s.name for s in apart] == ["my-berlin/train+test#0", "my-berlin/train+test#1"]
+    np.testing.assert_array_equal(apart[0].time_gps_s, train[0].time_gps_s)
+    np.testing.assert_array_equal(apart[1].time_gps_s, test[0].time_gps_s)
+    with pytest.raises(KeyError, match="has no split 'valid'"):
+        datasets.load_split("my-berlin", "train+valid")
 
 
 def test_training_registers_user_datasets_named_in_its_config(tmp_path, monkeypatch, sample_toml):
@@ -316,3 +326,16 @@ def test_truth_notes_are_summarised_alike_for_the_cli_and_dataset_builds():
     notes = [f"gt.txt:{i}: unreadable truth line, skipped" for i in range(1, 8)]
     assert datasets.truth_note_summary("gt.txt", notes[:5]) == notes[:5]
     assert datasets.truth_note_summary("gt.txt", notes) == notes[:5] + ["gt.txt: 7 unreadable truth lines skipped in all"]
+
+
+def test_a_split_union_joins_its_parts_and_a_split_named_with_a_plus_stays_itself():
+    """split_index("a+b") is the epochs in a or in b, unless the dataset has a split of that very name."""
+    import types
+
+    seq = types.SimpleNamespace(labelled=np.array([1, 1, 1, 0, 1, 1, 1, 1], bool), time_gps_s=np.arange(8.0))
+    spec = datasets.DatasetSpec(id="x", obs="o", nav="n", truth="t", truth_format="ecef-csv",
+                                splits={"a": (0, 2), "b": (5, 6)}, split_axis="epoch")
+    assert np.flatnonzero(datasets.split_index(seq, spec, "a+b")).tolist() == [0, 1, 6]   # epoch 3 has no truth: b is epoch 6
+    assert np.flatnonzero(datasets.split_index(seq, spec, "b+a")).tolist() == [0, 1, 6]
+    named = dataclasses.replace(spec, splits={**spec.splits, "a+b": (2, 4)})
+    assert np.flatnonzero(datasets.split_index(seq, named, "a+b")).tolist() == [2, 4]

@@ -83,6 +83,7 @@ def test_export_command_writes_the_runs_model_and_show_describes_it(run, tmp_pat
     assert "trained on: synthetic (train); epoch " in shown
     assert f"  command: python -m learning.train {shlex.join(argv)}" in shown
     assert "configuration file: " in shown and "default.toml" in shown
+    assert f"written {mine.metadata['created_utc']} by lfgnss" in shown and "(on trained epochs)" not in shown
 
 
 def test_show_of_a_bundled_model_says_what_is_not_recorded(capsys):
@@ -121,6 +122,7 @@ def test_export_ekf_writes_the_same_network_in_another_filter(run, tmp_path, cap
     assert "filter changed after training: gate_sigma 3.0 -> 4.0, zupt_sigma_m_s None -> 0.05" in shown
     assert "filter changed after training: zupt_sigma_m_s 0.05 -> None" in shown and "--ekf zupt_sigma_m_s=none" in shown
     assert "validation 3D RMSE" in shown and " m (in the training filter)" in shown
+    assert f"network exported {b.metadata['created_utc']} by lfgnss" in shown   # kept through refilters
     assert a.metadata["refilter"][0]["source"] == str(out / "best.pt")      # the checkpoint, not a staging file
     assert b.metadata["refilter"][-1]["source"] == str(from_ckpt) and "lfgnss" in b.metadata["refilter"][-1]["versions"]
 

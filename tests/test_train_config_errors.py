@@ -48,6 +48,11 @@ BAD_SETTINGS = [
     ("data.synthetic.n_epoch=5", "unknown configuration key 'data.synthetic.n_epoch' (did you mean "
                                  "'data.synthetic.n_epochs'?)"),
     ("ekf.gate_sigm=5", "unknown [ekf] keys ['gate_sigm'] (did you mean 'ekf.gate_sigma'?); EkfConfig has"),
+    ("data.train_split='train+'", "data.train_split must be a split name or names joined by '+' (e.g. "
+                                  "\"train+val\"), each once and without spaces, got 'train+'"),
+    ("data.train_split='train + val'", "data.train_split must be a split name or names joined by '+'"),
+    ("data.val_split='val+val'", "data.val_split must be a split name or names joined by '+'"),
+    ("data.train_split='train+test'", "data.train_split = 'train+test': the test split may not be used for training"),
     ("data.datasets=['synthetic', 'synthetic']",
      "data.datasets names 'synthetic' more than once (its data would count twice); name each dataset once, "
      "got ['synthetic', 'synthetic']"),
@@ -148,15 +153,44 @@ def test_validating_on_the_training_split_is_warned_and_cross_validation_refuses
     argv = [x for s in TINY + ["data.val_split='train'"] for x in ("--set", s)] + ["--no-progress"]
     assert main(argv + ["--out", str(tmp_path / "run")]) == 0
     err = capsys.readouterr().err
-    assert "warning: data.val_split is data.train_split ('train'): the run is validated (and with train.select = " \
-           "\"val\" its epoch chosen) on its own training data, so its validation RMSE is optimistic; use a held-out " \
-           "split" in err, err
+    assert "warning: data.val_split 'train' is trained on (data.train_split 'train'): the run's epoch is chosen on " \
+           "its own training data, so best.pt and its validation RMSE are optimistic; use a held-out split, or " \
+           "train.select = \"last\" with a schedule chosen by learning.crossval" in err, err
     assert err.count("warning") == 1
     with pytest.raises(SystemExit) as exit_info:
         crossval_main(argv + ["--out", str(tmp_path / "cv")])
     assert exit_info.value.code == 2
     err = capsys.readouterr().err
-    assert "error: data.val_split is data.train_split ('train'): cross-validation cuts the train and validation " \
-           "epochs into blocks, so each epoch would be there twice, held out and trained on; give two different " \
-           "splits" in err and len(err.strip().splitlines()) == 1, err
+    assert "error: data.val_split 'train' is trained on (data.train_split 'train'): cross-validation cuts the train " \
+           "and validation epochs into blocks, so each epoch would be there twice, held out and trained on; give two " \
+           "splits that share no epochs" in err and len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / "cv").exists()
+
+
+def test_training_on_train_plus_val_notes_that_its_validation_is_seen(tmp_path, capsys):
+    """data.train_split = "train+val" (a refit on every non-test epoch, its schedule chosen by cross-validation):
+    both splits' sequences are trained on, the run and its model file say its validation figure is on trained
+    epochs, and cross-validation, which would hold out epochs it also trains on, refuses it in one line."""
+    from learning.crossval import main as crossval_main
+    from learning.export import describe_model, load_model
+    from learning.train import load_sequences
+
+    config = load_config(None, TINY)
+    both = load_sequences("synthetic", "train+val", config)
+    assert [s.name for s in both] == ([s.name for s in load_sequences("synthetic", "train", config)]
+                                      + [s.name for s in load_sequences("synthetic", "val", config)])
+    argv = [x for s in TINY + ["data.train_split='train+val'", "train.select='last'"] for x in ("--set", s)]
+    assert main(argv + ["--no-progress", "--out", str(tmp_path / "run")]) == 0
+    err = capsys.readouterr().err
+    assert "note: data.val_split 'val' is trained on (data.train_split 'train+val'): its validation RMSE is " \
+           "optimistic; train.select = \"last\" chooses nothing on it" in err and "warning" not in err, err
+    model = load_model(tmp_path / "run" / "model.npz")
+    assert {p["sequence"] for p in model.metadata["data_fingerprints"] if p["split"] == "train+val"} == \
+        {s.name for s in both}
+    shown = "\n".join(describe_model(model))
+    assert "trained on: synthetic (train+val); epoch" in shown and " m (on trained epochs)" in shown, shown
+    with pytest.raises(SystemExit) as exit_info:
+        crossval_main(argv + ["--no-progress", "--out", str(tmp_path / "cv")])
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and "error: data.val_split 'val' is trained on" in err
+    assert len(err.strip().splitlines()) == 1 and not (tmp_path / "cv").exists(), err
