@@ -3,6 +3,7 @@
 Importing this package registers the back ends: ``create("ekf")``, ``create("plain-ekf")``,
 ``create("fgo")``, ``create("wls")``, ``create("wls-weighted")``; ``fgo`` (gtsam) is imported on first use.
 ``create("ekf", smooth=True)`` (or ``plain-ekf``) adds the Rauch-Tung-Striebel smoother (``estimators.smoother``).
+Their covariance is inflated by the pseudorange residuals unless ``inflate_cov=False`` (``estimators.consistency``).
 An option a backend does not take is a TypeError naming both (``backend_options(name)`` lists its options);
 ``noise`` may be a model file path (``create("ekf", noise="my.npz")``), read as ``--model`` is.
 """

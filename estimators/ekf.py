@@ -45,6 +45,7 @@ from . import models
 from .base import (STATUS_COASTED, STATUS_NONE, STATUS_RESET, STATUS_UPDATED, Solution, caller_stacklevel,
                    check_flag, check_sequence, epoch_range, options_of, register, usable_doppler, usable_measurements,
                    warn_unusable)
+from .consistency import covariance_inflation, residual_variance_factor
 from .models import EkfConfig
 from .noise import (HeuristicNoise, NoiseModel, checked_noise, default_noise, describe_noise, noise_output,
                     resolve_noise)
@@ -122,6 +123,11 @@ class LfgnssEkf:
         without ``--smooth``.
     progress : bool
         Show a tqdm bar over the epochs on a terminal (``python -m lfgnss.solve`` does, unless ``--quiet``).
+    inflate_cov : bool
+        Multiply the reported position covariance by ``estimators.consistency.covariance_inflation`` (>= 1: how far
+        the pseudoranges' residuals at the filtered position exceed the noise model's R, over the last seconds),
+        so the sds are closer to the errors in a street canyon; ``info["cov_inflation"]`` holds the factor and
+        ``info["cov"]`` the filter's own covariance. False: the formal covariance (docs/sd_consistency.md).
     """
 
     #: The backend's name, the start of ``name`` (``smoothed_name``).
@@ -129,11 +135,12 @@ class LfgnssEkf:
 
     def __init__(self, noise: NoiseModel | str | os.PathLike | None = None, config: EkfConfig | None = None,
                  name: str | None = None, use_compensation: bool = True, smooth: bool = False,
-                 smooth_lag_s: float = math.inf, progress: bool = False) -> None:
+                 smooth_lag_s: float = math.inf, progress: bool = False, inflate_cov: bool = True) -> None:
         owner = type(self).__name__
         smooth = check_flag(smooth, "smooth", owner)
         use_compensation = check_flag(use_compensation, "use_compensation", owner)
         progress = check_flag(progress, "progress", owner)
+        self.inflate_cov = check_flag(inflate_cov, "inflate_cov", owner)
         if name is not None and not isinstance(name, str):
             raise TypeError(f"{owner}: name must be a string, got {type(name).__name__}")
         if isinstance(smooth_lag_s, bool) or not isinstance(smooth_lag_s, numbers.Real):
@@ -163,6 +170,7 @@ class LfgnssEkf:
             parts += ["smooth=True"] + ([f"smooth_lag_s={self.smooth_lag_s:g}"] if math.isfinite(self.smooth_lag_s)
                                         else [])
         parts += ["progress=True"] if self.progress else []
+        parts += ["inflate_cov=False"] if not self.inflate_cov else []
         return f"{type(self).__name__}({', '.join(parts)})"
 
     def noise_arrays(self, sequence: Sequence, usable: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -347,11 +355,16 @@ class LfgnssEkf:
         info = {"n_gated": n_gated, "n_usable": usable.sum(1), "n_doppler": n_doppler, "stationary": still,
                 "clock_realigned": clock_realigned, "config": cfg, "filtered_state": state, "r_m2": r_all,
                 "vc_m": vc_all, "smooth": self.smooth, "smooth_lag_s": self.smooth_lag_s if self.smooth else 0.0}
+        # From the forward run for the smoother too: the factor stays causal, as the filter's sds are.
+        info["residual_factor"] = residual_variance_factor(sequence, state[:, models.POS], r_all, usable)
+        inflation = (covariance_inflation(time, info["residual_factor"]) if self.inflate_cov else np.ones(t_len))
+        info["cov_inflation"] = inflation
         if self.smooth:
             horizon = lag_horizon(time, self.smooth_lag_s) if math.isfinite(self.smooth_lag_s) else None
             state, cov = rts_smooth(state, cov, prior, prior_cov, steps, status == STATUS_RESET, horizon)
         return Solution(backend=self.name, time_gps_s=time, pos_ecef_m=state[:, models.POS].copy(),
-                        cov_ecef_m2=cov[:, models.POS, models.POS].copy(), clock_m=state[:, models.CLOCK].copy(),
+                        cov_ecef_m2=cov[:, models.POS, models.POS] * inflation[:, None, None],
+                        clock_m=state[:, models.CLOCK].copy(),
                         n_used=n_used, status=status, vel_ecef_m_s=state[:, models.VEL].copy(),
                         info=info | {"state": state, "cov": cov})
 
@@ -371,9 +384,10 @@ class PlainEkf(LfgnssEkf):
 
     def __init__(self, noise: HeuristicNoise | None = None, config: EkfConfig | None = None,
                  name: str | None = None, smooth: bool = False, smooth_lag_s: float = math.inf,
-                 progress: bool = False) -> None:
+                 progress: bool = False, inflate_cov: bool = True) -> None:
         super().__init__(noise=HeuristicNoise() if noise is None else noise, config=config, name=name,
-                         use_compensation=False, smooth=smooth, smooth_lag_s=smooth_lag_s, progress=progress)
+                         use_compensation=False, smooth=smooth, smooth_lag_s=smooth_lag_s, progress=progress,
+                         inflate_cov=inflate_cov)
 
 
 __all__ = ["config_of", "config_changes", "smoothed_name", "LfgnssEkf", "create_lfgnss_ekf", "PlainEkf",

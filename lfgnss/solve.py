@@ -78,6 +78,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="ekf, plain-ekf: smooth the filter's run backwards (Rauch-Tung-Striebel; post-processing)")
     p.add_argument("--smooth-lag", type=_finite_float, default=None, metavar="SECONDS",
                    help="with --smooth: a fixed-lag smoother, each epoch using the epochs up to SECONDS later")
+    p.add_argument("--formal-sd", action="store_true",
+                   help="ekf, plain-ekf: write the filter's formal sds, not those inflated by its pseudorange "
+                        "residuals (docs/sd_consistency.md)")
     p.add_argument("--out", type=Path, default=Path("lfgnss-out"), help="output folder")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     p.add_argument("--quiet", action="store_true", help="print only the accuracy table")
@@ -124,6 +127,9 @@ def run(args) -> int:
     if args.smooth and args.backend not in SMOOTHABLE_BACKENDS:
         raise ValueError(f"--smooth applies to --backend {' and '.join(SMOOTHABLE_BACKENDS)}, not {args.backend}"
                          + (" (the factor graph's batch mode already uses every epoch)" if args.backend == "fgo" else ""))
+    if args.formal_sd and args.backend not in SMOOTHABLE_BACKENDS:
+        raise ValueError(f"--formal-sd applies to --backend {' and '.join(SMOOTHABLE_BACKENDS)}, not {args.backend} "
+                         f"(whose sds are not inflated)")
     if (args.model is not None or args.no_model) and args.backend not in LEARNED_BACKENDS:
         raise ValueError(f"--{'model' if args.model is not None else 'no-model'} applies to --backend "
                          f"{' and '.join(LEARNED_BACKENDS)}, not {args.backend} (which has no learned noise)")
@@ -195,6 +201,8 @@ def run(args) -> int:
         if args.smooth_lag is not None:
             options["smooth_lag_s"] = args.smooth_lag
             label += f" (lag {args.smooth_lag:g} s)"
+    if args.formal_sd:
+        options["inflate_cov"] = False
     label += " (hand-set noise)" if args.no_model else ""
     if args.backend in PROGRESS_BACKENDS:
         options["progress"] = not args.quiet

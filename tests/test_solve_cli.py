@@ -21,6 +21,7 @@ from lfgnss.solve import DEFAULT_MODEL, SAMPLE_NAV, SAMPLE_OBS, SAMPLE_TRUTH, ma
     (["--backend", "ekf", "--mode", "fixed-lag"], "--mode applies to --backend fgo, not ekf"),
     (["--smooth-lag", "5"], "--smooth-lag needs --smooth (--smooth --smooth-lag 5)"),
     (["--smooth", "--smooth-lag", "-1"], "--smooth-lag must be a lag >= 0 seconds, got -1"),
+    (["--backend", "wls", "--formal-sd"], "--formal-sd applies to --backend ekf and plain-ekf, not wls"),
     (["--obs", "nope.obs"], "nope.obs: cannot read file (No such file or directory)"),   # not "no --nav"
 ])
 def test_misused_option_is_one_line_before_any_work(tmp_path, capsys, extra, message):
@@ -160,3 +161,16 @@ def test_stdout_closed_early_keeps_the_outputs_and_exits_0(tmp_path):
     assert proc.wait(timeout=120) == 0
     assert proc.stderr.read() == ""
     assert sorted(p.suffix for p in tmp_path.iterdir()) == [".csv", ".geojson", ".kml", ".pos"]
+
+
+def test_formal_sd_writes_the_filters_own_sds_and_the_same_positions(tmp_path):
+    """Default: sds inflated by the pseudorange residuals (estimators.consistency), never below the formal ones."""
+    import pandas as pd
+
+    assert main(["--out", str(tmp_path / "a"), "--quiet", "--no-plots"]) == 0
+    assert main(["--out", str(tmp_path / "f"), "--quiet", "--no-plots", "--formal-sd"]) == 0
+    inflated, formal = (pd.read_csv(tmp_path / d / "Berlin_Potsdamer_Platz_ekf.csv") for d in ("a", "f"))
+    pd.testing.assert_frame_equal(inflated[["x_m", "y_m", "z_m"]], formal[["x_m", "y_m", "z_m"]])
+    sd = ["sd_e_m", "sd_n_m", "sd_u_m"]
+    assert (inflated[sd].to_numpy() >= formal[sd].to_numpy() - 1e-4).all()
+    assert (inflated[sd].to_numpy() > 2 * formal[sd].to_numpy()).any()
