@@ -12,7 +12,9 @@ Per epoch ``k`` (models in ``estimators.models``)::
               marks them; an epoch updated by it alone counts as updated, not coasted)
     update:   K = P^- H^T S^-1,  x = x^- + K v,  P = (I - K H) P^- (I - K H)^T + K R K^T   (Joseph)
 
-so ``x = x^- + K (pr - h + vc)`` as in the paper. Initialisation and resets take the coarse fix
+so ``x = x^- + K (pr - h + vc)`` as in the paper. The Solution reports ``P_pos max(1, f)``, f a running mean of
+the pseudorange residuals' variance factor (``estimators.consistency``; ``inflate_cov=False``: ``P_pos``).
+Initialisation and resets take the coarse fix
 (``Sequence.coarse_ecef_m`` / ``coarse_clock_m``) with covariance P0 and then update with the
 epoch's satellites, twice if a satellite's post-fit residual exceeds ``gate_sigma sqrt(r)`` (the
 second time without those satellites). Resets happen when the filter has no state yet, after a gap

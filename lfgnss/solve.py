@@ -365,6 +365,7 @@ def _run_tag(args: argparse.Namespace, options: dict) -> str:
                         math.inf if args.smooth_lag is None else args.smooth_lag)
     tag += f"-{_model_tag(Path(args.model))}" if args.model is not None else ""
     tag += "-hand-set" if args.no_model else ""
+    tag += "-formal-sd" if args.formal_sd else ""
     for option, t in (("ts", args.start), ("te", args.end)):          # rnx2rtkp's names; GPS week and time of week [s]
         tag += f"-{option}{_week_tow_text(t).replace(':', '_')}" if t is not None else ""
     return tag + (f"-mask{args.elevation_mask:g}" if args.elevation_mask != DEFAULT_ELEVATION_MASK_DEG else "")

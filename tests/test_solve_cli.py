@@ -167,9 +167,9 @@ def test_formal_sd_writes_the_filters_own_sds_and_the_same_positions(tmp_path):
     """Default: sds inflated by the pseudorange residuals (estimators.consistency), never below the formal ones."""
     import pandas as pd
 
-    assert main(["--out", str(tmp_path / "a"), "--quiet", "--no-plots"]) == 0
-    assert main(["--out", str(tmp_path / "f"), "--quiet", "--no-plots", "--formal-sd"]) == 0
-    inflated, formal = (pd.read_csv(tmp_path / d / "Berlin_Potsdamer_Platz_ekf.csv") for d in ("a", "f"))
+    for extra in ([], ["--formal-sd"]):       # one folder: the formal run's files are named apart
+        assert main(["--out", str(tmp_path), "--quiet", "--no-plots", *extra]) == 0
+    inflated, formal = (pd.read_csv(tmp_path / f"Berlin_Potsdamer_Platz_{tag}.csv") for tag in ("ekf", "ekf-formal-sd"))
     pd.testing.assert_frame_equal(inflated[["x_m", "y_m", "z_m"]], formal[["x_m", "y_m", "z_m"]])
     sd = ["sd_e_m", "sd_n_m", "sd_u_m"]
     assert (inflated[sd].to_numpy() >= formal[sd].to_numpy() - 1e-4).all()
