@@ -61,6 +61,7 @@ def split_rows(split: str) -> list[dict]:
     """The EKF with and without inflation on ``split`` of each shared dataset present, with the shipped (joint) and
     the per-dataset model."""
     import estimators
+    from learning.export import load_model
     from lfgnss.benchmark import DEFAULT_MODEL, MODEL_DIR
     from lfgnss.datasets import load_split, present
 
@@ -68,8 +69,9 @@ def split_rows(split: str) -> list[dict]:
     for dataset_id in present(list(DATASETS), report=lambda text: print(text, file=sys.stderr)):
         parts = load_split(dataset_id, split)
         for model in (DEFAULT_MODEL, f"lfgnss-{dataset_id}.npz"):
+            noise = load_model(MODEL_DIR / model)        # once, not per part and option
             for label, options in SPLIT_ESTIMATORS.items():
-                solutions = [estimators.create("ekf", noise=MODEL_DIR / model, **options).solve(p) for p in parts]
+                solutions = [estimators.create("ekf", noise=noise, **options).solve(p) for p in parts]
                 rows.append({"dataset": dataset_id, "split": split, "model": model.removesuffix(".npz")}
                             | consistency_row(label, parts, solutions))
     return rows

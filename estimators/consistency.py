@@ -6,8 +6,9 @@ show it. Their mean squared normalised value, the a-posteriori variance factor
 
     g_k = mean_i e_i^2 / r_i,   e_i = pr_i - |s_i - x_k| - median over i's constellation    (usable pseudoranges)
 
-(each constellation's median standing in for its clock, as ``estimators.TruthNoise`` does; the noise model's R
-before any Huber scaling; no v^c) is about 1 when R is right and far above it when R is too small.
+(each constellation's median standing in for its clock: ``noise.constellation_residual_m``, as ``TruthNoise``
+uses it; the noise model's R before any Huber scaling; no v^c) is about 1 when R is right and far above it when R
+is too small.
 ``covariance_inflation`` averages it over the last ``tau_s`` seconds (the errors it flags last for seconds) and
 never shrinks the covariance: residuals smaller than R do not prove the position right. The choice of this factor
 and of ``INFLATION_TAU_S`` was made on the validation splits: docs/sd_consistency.md.
@@ -16,9 +17,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from lfgnss.corrections import geometric_range_m
-from lfgnss.features import system_median_m
 from lfgnss.sequence import Sequence
+
+from .noise import constellation_residual_m
 
 #: Time constant [s] of the running mean of the variance factor (chosen on validation: docs/sd_consistency.md).
 INFLATION_TAU_S = 5.0
@@ -32,9 +33,7 @@ def residual_variance_factor(sequence: Sequence, pos_ecef_m: np.ndarray, r_m2: n
     """
     pos = np.asarray(pos_ecef_m, float)
     ok = np.asarray(usable, bool) & np.isfinite(pos).all(-1)[:, None]
-    raw = np.where(ok, sequence.pr_m - geometric_range_m(sequence.sat_pos_ecef_m, np.nan_to_num(pos)[:, None, :]),
-                   np.nan)
-    e = raw - system_median_m(raw, ok, sequence.system_index, len(sequence.systems))
+    e = constellation_residual_m(sequence, pos, ok)
     z2 = np.where(ok, np.nan_to_num(e) ** 2 / np.where(ok, r_m2, 1.0), 0.0)
     n = ok.sum(1)
     return np.where(n > 0, z2.sum(1) / np.maximum(n, 1), np.nan)

@@ -165,6 +165,14 @@ class FixedNoise:
         return np.asarray(self.r_m2, float), np.asarray(self.vc_m, float)
 
 
+def constellation_residual_m(sequence: Sequence, pos_ecef_m: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """(T, N) ``pr - range`` at ``pos_ecef_m`` (T, 3) [m] minus each epoch's median per constellation (its receiver
+    clock and ISB) over the ``ok`` slots [m]; NaN outside ``ok``."""
+    pos = np.nan_to_num(np.asarray(pos_ecef_m, float))
+    raw = np.where(ok, sequence.pr_m - geometric_range_m(sequence.sat_pos_ecef_m, pos[:, None, :]), np.nan)
+    return raw - system_median_m(raw, ok, sequence.system_index, len(sequence.systems))
+
+
 @dataclass(frozen=True)
 class TruthNoise:
     """R from the ground truth: a reference to judge noise models by, not a method (it reads the truth).
@@ -189,9 +197,7 @@ class TruthNoise:
                           f"truth_ecef_m=...)); every epoch takes the fallback's R, a plain EKF",
                           stacklevel=caller_stacklevel())
         ok = sequence.mask & labelled[:, None]
-        truth = np.where(labelled[:, None], sequence.truth_ecef_m, 0.0)
-        raw = np.where(ok, sequence.pr_m - geometric_range_m(sequence.sat_pos_ecef_m, truth[:, None, :]), np.nan)
-        error = raw - system_median_m(raw, ok, sequence.system_index, len(sequence.systems))
+        error = constellation_residual_m(sequence, sequence.truth_ecef_m, ok)
         r_fallback, _ = self.fallback(sequence)
         r = np.where(ok, np.nan_to_num(error) ** 2 + self.floor_m ** 2, r_fallback)
         return r, np.zeros_like(r)
