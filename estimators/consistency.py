@@ -29,10 +29,15 @@ def residual_variance_factor(sequence: Sequence, pos_ecef_m: np.ndarray, r_m2: n
                              ) -> np.ndarray:
     """(T,) ``g_k``, the mean of e^2 / r [-] over each epoch's usable pseudoranges at ``pos_ecef_m`` (T, 3) [m].
 
-    ``r_m2`` (T, N) [m^2] is the noise model's R; NaN where an epoch has no position or no usable pseudorange.
+    ``r_m2`` (T, N) [m^2] is the noise model's R; NaN where an epoch has no position, or no constellation with two
+    usable pseudoranges (a position-blind epoch: nothing to compare).
     """
     pos = np.asarray(pos_ecef_m, float)
     ok = np.asarray(usable, bool) & np.isfinite(pos).all(-1)[:, None]
+    # a constellation's lone satellite is its own median: a residual of 0 by construction, no evidence of a good R
+    system = np.asarray(sequence.system_index)
+    n_system = np.stack([(ok & (system == j)).sum(1) for j in range(len(sequence.systems))], axis=1)
+    ok &= np.take_along_axis(n_system, np.where(ok, system, 0), axis=1) > 1
     e = constellation_residual_m(sequence, pos, ok)
     z2 = np.where(ok, np.nan_to_num(e) ** 2 / np.where(ok, r_m2, 1.0), 0.0)
     n = ok.sum(1)

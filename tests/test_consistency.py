@@ -1,8 +1,10 @@
 """estimators.consistency: the pseudorange residuals' variance factor and the covariance inflation it drives."""
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
-from estimators import LfgnssEkf, PlainEkf, create
+from estimators import LfgnssEkf, LfgnssFgo, PlainEkf, create
 from estimators.consistency import INFLATION_TAU_S, covariance_inflation, residual_variance_factor
 from lfgnss.metrics import enu_errors
 from lfgnss.simulate import simulate_sequence
@@ -37,6 +39,26 @@ def test_factor_flags_biased_pseudoranges_and_epochs_without_a_position():
     assert np.isnan(g[[5, 7]]).all() and np.isfinite(np.delete(g, [5, 7])).all()
 
 
+def test_a_constellations_lone_satellite_is_no_evidence():
+    """A lone satellite is its constellation's median (its clock): residual 0 by construction. It is left out, and an
+    epoch with one per constellation (position-blind) has no factor, so it keeps the running mean."""
+    seq = simulate_sequence(20, nlos_fraction=0.4, seed=3)
+    r = _true_sigma_m(seq) ** 2
+    mask = seq.mask.copy()
+    first = [np.flatnonzero(mask[4] & (seq.system_index[4] == j))[0] for j in range(len(seq.systems))]
+    mask[4] = False
+    mask[4, first] = True                                          # epoch 4: one per constellation
+    mask[6] &= seq.system_index[6] != 1
+    mask[6, np.flatnonzero(seq.mask[6] & (seq.system_index[6] == 1))[0]] = True   # epoch 6: one of constellation 1
+    g = residual_variance_factor(seq, seq.truth_ecef_m, r, mask)
+    assert np.isnan(g[4]) and np.isfinite(np.delete(g, 4)).all()
+    without = mask[6] & (seq.system_index[6] != 1)
+    np.testing.assert_allclose(g[6], residual_variance_factor(seq, seq.truth_ecef_m, r,
+                                                              np.where(np.arange(20)[:, None] == 6, without, mask))[6])
+    f = covariance_inflation(seq.time_gps_s, g)
+    assert f[4] == f[3]
+
+
 def test_inflation_is_a_running_mean_never_below_one():
     time = np.array([0.0, 1.0, 2.0, 10.0, 11.0])
     g = np.array([np.nan, 4.0, np.nan, 0.25, 9.0])
@@ -64,9 +86,31 @@ def test_ekf_reports_the_formal_covariance_times_the_factor(cls):
         cls(inflate_cov="yes")
 
 
+@pytest.mark.parametrize("mode", ["batch", "fixed-lag"])
+def test_factor_graph_inflates_its_marginals_not_its_stand_in(mode):
+    seq = simulate_sequence(60, nlos_fraction=0.3, seed=1)
+    formal = LfgnssFgo(mode=mode, covariances=True, inflate_cov=False).solve(seq)
+    inflated = LfgnssFgo(mode=mode, covariances=True).solve(seq)
+    np.testing.assert_array_equal(formal.pos_ecef_m, inflated.pos_ecef_m)
+    np.testing.assert_array_equal(formal.info["cov_inflation"], np.ones(len(seq)))
+    factor = inflated.info["cov_inflation"]
+    assert (factor >= 1).all() and (factor > 1).any()
+    np.testing.assert_allclose(inflated.cov_ecef_m2, formal.cov_ecef_m2 * factor[:, None, None])
+    np.testing.assert_allclose(factor, covariance_inflation(seq.time_gps_s, inflated.info["residual_factor"]))
+    np.testing.assert_allclose(inflated.info["residual_factor"],
+                               residual_variance_factor(seq, inflated.pos_ecef_m, LfgnssFgo().noise(seq)[0], seq.mask))
+    stand_in = LfgnssFgo(mode=mode).solve(seq)           # the snapshot stand-in is wide already: not inflated
+    np.testing.assert_array_equal(stand_in.info["cov_inflation"], np.ones(len(seq)))
+    np.testing.assert_allclose(stand_in.info["residual_factor"], inflated.info["residual_factor"])
+    assert "inflate_cov=False" in repr(LfgnssFgo(inflate_cov=False)) and "inflate_cov" not in repr(LfgnssFgo())
+    with pytest.raises(TypeError, match="inflate_cov"):
+        LfgnssFgo(inflate_cov="yes")
+
+
 def test_inflation_brings_the_sds_closer_to_the_errors_on_the_bundled_berlin_drive():
-    """Real street-canyon data with truth: the bundled model's formal sds are far too small (mean NEES in the
-    hundreds against 3); inflated by the residuals they are much closer (docs/sd_consistency.md has the splits)."""
+    """Real street-canyon data with truth: the bundled model's formal sds (the EKF's, the factor graph's marginals)
+    are far too small (mean NEES in the hundreds against 3); inflated by the residuals they are much closer
+    (docs/sd_consistency.md has the splits)."""
     import lfgnss
     from lfgnss.datasets import read_truth
     from lfgnss.solve import SAMPLE_NAV, SAMPLE_OBS, SAMPLE_TRUTH
@@ -85,6 +129,11 @@ def test_inflation_brings_the_sds_closer_to_the_errors_on_the_bundled_berlin_dri
     (nees_formal, share_formal), (nees, share) = nees_and_share(formal), nees_and_share(inflated)
     assert nees_formal > 100 and nees < nees_formal / 10
     assert share_formal < 0.5 < 0.8 < share          # errors within 3 sd: calibrated would be 99.7 %
+    graph = create("fgo", covariances=True).solve(seq)
+    marginals = replace(graph, cov_ecef_m2=graph.cov_ecef_m2 / graph.info["cov_inflation"][:, None, None])
+    (nees_formal, share_formal), (nees, share) = nees_and_share(marginals), nees_and_share(graph)
+    assert nees_formal > 100 and nees < nees_formal / 10
+    assert share_formal < 0.5 < 0.75 < share
 
 
 def test_benchmark_rows_count_errors_within_their_sds():

@@ -103,6 +103,7 @@ def test_equality_is_identity_and_never_raises(seq):
 @pytest.mark.parametrize("make, key", [
     (lambda v: estimators.LfgnssFgo(covariances=v), "covariances"),
     (lambda v: estimators.create("fgo", covariances=v), "covariances"),
+    (lambda v: estimators.create("fgo", inflate_cov=v), "inflate_cov"),
     (lambda v: estimators.LfgnssFgo(progress=v), "progress"),
     (lambda v: LfgnssEkf(use_compensation=v), "use_compensation"),
     (lambda v: LfgnssEkf(progress=v), "progress"),
