@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from lfgnss.dop import satellites_per_system
 from lfgnss.sequence import Sequence
 
 from .noise import constellation_residual_m
@@ -36,7 +37,7 @@ def residual_variance_factor(sequence: Sequence, pos_ecef_m: np.ndarray, r_m2: n
     ok = np.asarray(usable, bool) & np.isfinite(pos).all(-1)[:, None]
     # a constellation's lone satellite is its own median: a residual of 0 by construction, no evidence of a good R
     system = np.asarray(sequence.system_index)
-    n_system = np.stack([(ok & (system == j)).sum(1) for j in range(len(sequence.systems))], axis=1)
+    n_system = satellites_per_system(system, ok, len(sequence.systems))
     ok &= np.take_along_axis(n_system, np.where(ok, system, 0), axis=1) > 1
     e = constellation_residual_m(sequence, pos, ok)
     z2 = np.where(ok, np.nan_to_num(e) ** 2 / np.where(ok, r_m2, 1.0), 0.0)
