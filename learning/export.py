@@ -39,6 +39,7 @@ import numpy as np
 
 from lfgnss.errors import InputError
 from lfgnss.features import AVAILABLE_FEATURES
+from lfgnss.paths import bundled_models, model_path
 from lfgnss.sequence import Sequence
 from lfgnss.weighted_fix import cn0_elevation_variance_m2
 
@@ -400,7 +401,7 @@ def _parameter_shapes(m: dict, n_inputs: int) -> dict[str, list[int]]:
 
 
 def load_model(path: str | Path, expected_features: Iterable[str] | None = None) -> LfgnssModel:
-    """Read and check a model file written by ``export_model``.
+    """Read and check a model file written by ``export_model``, or a bundled one by name (``"hk-tst-2019"``).
 
     Raises
     ------
@@ -410,7 +411,7 @@ def load_model(path: str | Path, expected_features: Iterable[str] | None = None)
         mis-shaped arrays, features that this version of ``lfgnss.features`` cannot compute, features
         other than ``expected_features`` (names and order), or a network that does not run on a test input.
     """
-    path = str(path)
+    path = str(model_path(path))
     try:
         with open(path, "rb") as fh:
             magic = fh.read(4)
@@ -419,7 +420,8 @@ def load_model(path: str | Path, expected_features: Iterable[str] | None = None)
             with np.load(path, allow_pickle=False) as z:
                 arrays = {k: np.asarray(z[k]) for k in z.files}
     except FileNotFoundError as exc:
-        raise ModelFileError(path, "no such model file") from exc
+        hint = "" if Path(path).suffix or len(Path(path).parts) != 1 else f" or bundled model ({', '.join(bundled_models())})"
+        raise ModelFileError(path, f"no such model file{hint}") from exc
     except IsADirectoryError as exc:
         raise ModelFileError(path, "a folder, not a model file") from exc
     except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as exc:

@@ -6,6 +6,7 @@ from pathlib import Path
 
 PACKAGE_DIR = Path(__file__).resolve().parent
 REPO_DIR = PACKAGE_DIR.parent
+MODEL_PREFIX = "lfgnss-"          # a bundled model file is lfgnss-NAME.npz, and NAME is how users pick it
 
 
 def shared_data_dir() -> Path:
@@ -21,7 +22,21 @@ def bundled_data_dir() -> Path:
 
 def default_model_path() -> Path:
     """The bundled LF-GNSS model file, which ``python -m lfgnss.solve`` and ``estimators.create("ekf")`` use."""
-    return bundled_data_dir() / "model" / "lfgnss-default.npz"
+    return bundled_data_dir() / "model" / f"{MODEL_PREFIX}default.npz"
+
+
+def bundled_models() -> dict[str, Path]:
+    """The model files shipped with lfgnss by name: ``default``, ``hk-tst-2019``, ... (file ``lfgnss-NAME.npz``)."""
+    folder = bundled_data_dir() / "model"
+    return {p.stem.removeprefix(MODEL_PREFIX): p for p in sorted(folder.glob(f"{MODEL_PREFIX}*.npz"))}
+
+
+def model_path(model: str | os.PathLike) -> Path:
+    """A model file: ``model`` itself where that path exists or has a folder or suffix, else the bundled model so named."""
+    path = Path(model)
+    if path.exists() or path.suffix or len(path.parts) != 1:
+        return path
+    return bundled_models().get(path.name, path)
 
 
 def cache_dir() -> Path:

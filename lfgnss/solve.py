@@ -19,7 +19,7 @@ import numpy as np
 
 from .errors import INPUT_ERRORS, InputError, LfgnssError, RinexError, cannot_write, one_line, stdout_gone
 from .observations import Observations
-from .paths import bundled_data_dir, default_model_path
+from .paths import bundled_data_dir, bundled_models, default_model_path, model_path
 from .spp import SppConfig
 from .time import SECONDS_PER_WEEK, datetime64_to_gps_s, gps_s_to_week_tow, gpst_stamp, week_tow_to_gps_s
 
@@ -58,7 +58,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--obs", type=Path, help="RINEX observation file (default: bundled Berlin sample)")
     p.add_argument("--nav", type=Path, nargs="+",
                    help="RINEX navigation file(s) (default: the bundled sample's, with no --obs)")
-    p.add_argument("--model", type=Path, help="LF-GNSS model file (default: the bundled model)")
+    p.add_argument("--model", type=Path, help="LF-GNSS model file, or a bundled model's name: "
+                   f"{', '.join(bundled_models())} (default: default, trained on all three benchmark datasets)")
     p.add_argument("--no-model", action="store_true", help="use the hand-set C/N0 noise model instead")
     p.add_argument("--systems", default=None, help="constellations to use, e.g. GC (default: all present)")
     p.add_argument("--truth", type=Path, help="ground-truth file, for an accuracy table and error plots")
@@ -107,7 +108,7 @@ def _noise(args):
     if unknown:
         raise InputError(path, f"the model needs feature(s) {', '.join(unknown)} that this lfgnss cannot compute "
                                f"(it computes {', '.join(AVAILABLE_FEATURES)})")
-    return model, f"model {path}"
+    return model, f"model {model_path(path)}"
 
 
 def run(args) -> int:

@@ -57,3 +57,31 @@ def test_bundled_model_was_trained_with_its_configuration(name, config_path, mon
     assert config_of(model) == replace(ekf_config(expected), **changes)
     row = next(line for line in (MODELS / "README.md").read_text().splitlines() if line.startswith(f"| `{name}` |"))
     assert all(f"--ekf {k}=" in row for k in changes), row
+
+
+def test_bundled_models_are_picked_by_name_everywhere_a_model_file_is(tmp_path, monkeypatch, capsys):
+    import estimators
+    from learning.export import ModelFileError
+    from learning.export import main as export_main
+    from lfgnss.paths import bundled_models, model_path
+
+    assert bundled_models() == {p.name.removeprefix("lfgnss-").removesuffix(".npz"): p
+                                for p in MODELS.glob("lfgnss-*.npz")}
+    assert set(bundled_models()) >= {"default", "hk-tst-2019", "berlin-pp", "hk-tst-static-2020"}
+    by_name = load_model("hk-tst-2019")
+    assert by_name.metadata == load_model(MODELS / "lfgnss-hk-tst-2019.npz").metadata
+    assert estimators.create("ekf", noise="berlin-pp").noise.metadata == load_model(MODELS / "lfgnss-berlin-pp.npz").metadata
+    assert export_main(["--show", "hk-tst-static-2020"]) == 0
+    assert "hk-tst-static-2020" in capsys.readouterr().out
+    # a file of that name wins over the bundled model; a path with a folder or suffix is never a name
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "default").write_text("not a model")
+    assert model_path("default") == Path("default")
+    with pytest.raises(ModelFileError, match="^default: not an lfgnss model file"):
+        load_model("default")
+    assert model_path("models/hk-tst-2019") == Path("models/hk-tst-2019")
+    assert model_path("hk-tst-2019.npz") == Path("hk-tst-2019.npz")
+    with pytest.raises(ModelFileError, match=r"^hk-tst: no such model file or bundled model \(berlin-pp, default, "):
+        load_model("hk-tst")
+    with pytest.raises(ModelFileError, match=r"^mine\.npz: no such model file$"):
+        load_model("mine.npz")

@@ -23,6 +23,7 @@ from lfgnss.solve import DEFAULT_MODEL, SAMPLE_NAV, SAMPLE_OBS, SAMPLE_TRUTH, ma
     (["--smooth", "--smooth-lag", "-1"], "--smooth-lag must be a lag >= 0 seconds, got -1"),
     (["--backend", "wls", "--formal-sd"], "--formal-sd applies to --backend ekf and plain-ekf, not wls"),
     (["--obs", "nope.obs"], "nope.obs: cannot read file (No such file or directory)"),   # not "no --nav"
+    (["--model", "hk-tst"], "hk-tst: no such model file or bundled model (berlin-pp, default, hk-tst-2019,"),
 ])
 def test_misused_option_is_one_line_before_any_work(tmp_path, capsys, extra, message):
     out = tmp_path / "out"
@@ -118,6 +119,14 @@ def test_a_model_of_ones_own_is_in_the_output_names(tmp_path):
                      str(tmp_path / run / "model.npz")]) == 0
     assert {p.name for p in (tmp_path / "o").glob("*ekf-[ab].csv")} == {"Berlin_Potsdamer_Platz_ekf-a.csv",
                                                                        "Berlin_Potsdamer_Platz_ekf-b.csv"}
+
+
+def test_a_bundled_model_is_picked_by_name(tmp_path, capsys):
+    from lfgnss.paths import bundled_models
+
+    assert main(["--out", str(tmp_path), "--no-plots", "--model", "hk-tst-static-2020"]) == 0
+    assert f"(model {bundled_models()['hk-tst-static-2020']})" in capsys.readouterr().out    # the file, not the name
+    assert (tmp_path / "Berlin_Potsdamer_Platz_ekf-hk-tst-static-2020.csv").exists()
 
 
 def test_back_ends_compared_in_one_folder_keep_their_own_outputs(tmp_path, capsys):
