@@ -21,7 +21,8 @@ second time without those satellites). Resets happen when the filter has no stat
 longer than ``max_gap_s``, when most usable satellites fail the gate (``reset_gated_fraction``; not in the epoch
 right after a reset) with a median innovation of at least ``clock_jump_min_m`` and still do after the
 prior's clock was realigned to it (a receiver clock jump, ``models.realign_clock``), or when the
-updated position is farther than ``reset_distance_m`` from the coarse fix. ``learning.torch_ekf``
+updated position is farther than ``reset_distance_m`` from a coarse fix with a redundancy of at least
+``reset_min_redundancy`` satellites. ``learning.torch_ekf``
 implements exactly this logic, batched and differentiable.
 
 A noise model that is ``online`` (a model trained with ``model.innovation``) is asked epoch by epoch, after
@@ -219,6 +220,7 @@ class LfgnssEkf:
         sat_all = sequence.sat_pos_ecef_m
         sys_all = sequence.system_index
         coarse_ok = coarse_available(sequence)
+        coarse_judges = coarse_ok & (models.snapshot_redundancy(usable, sys_all, n_sys) >= cfg.reset_min_redundancy)
         p0 = models.initial_covariance(n_sys, cfg)
         q1, q2, q3 = models.process_noise_coefficients(n_sys, cfg)
         a = models.transition_generator(n_sys)
@@ -349,7 +351,8 @@ class LfgnssEkf:
                 else:
                     update(k, gated)
                     status[k] = STATUS_UPDATED if n_used[k] + n_doppler[k] or still[k] else STATUS_COASTED
-                    if coarse_ok[k] and np.linalg.norm(ekf.x[:3] - sequence.coarse_ecef_m[k]) > cfg.reset_distance_m:
+                    if (coarse_judges[k]
+                            and np.linalg.norm(ekf.x[:3] - sequence.coarse_ecef_m[k]) > cfg.reset_distance_m):
                         reset(k, idx, jdx)  # diverged from the coarse fix
             state[k] = ekf.x
             cov[k] = ekf.P

@@ -49,6 +49,7 @@ from pathlib import Path
 import numpy as np
 
 from lfgnss.datasets import contiguous_runs, split_parts
+from lfgnss.paths import model_path
 from lfgnss.errors import (INPUT_ERRORS, InputError, cannot_write, input_line, one_line, path_option, shortened,
                            stdout_gone)
 from lfgnss.metrics import accuracy_table, markdown_table
@@ -125,7 +126,8 @@ def _recipe(config: dict, free: tuple[str, ...] = RESCORE_FREE) -> dict:
     """What a rescore must not change: ``config`` but the ``free`` tables, defaults filled in, file paths resolved."""
     flat = _flat({k: v for k, v in _merge_free(DEFAULT_CONFIG, config).items() if k not in free})
     resolve = lambda p: str(Path(p).resolve()) if p else p          # noqa: E731 -- cfg/m.npz = /abs/cfg/m.npz
-    flat["train.init"] = resolve(flat.get("train.init", ""))
+    init = flat.get("train.init", "")
+    flat["train.init"] = str(model_path(init).resolve()) if init else init       # a bundled name: its file
     flat["data.register"] = [resolve(p) for p in flat.get("data.register", [])]
     return flat
 

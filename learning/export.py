@@ -30,6 +30,7 @@ import dataclasses
 import datetime as _dt
 import errno
 import json
+import shlex
 import sys
 import zipfile
 from pathlib import Path
@@ -39,7 +40,7 @@ import numpy as np
 
 from lfgnss.errors import InputError
 from lfgnss.features import AVAILABLE_FEATURES
-from lfgnss.paths import bundled_models, model_path
+from lfgnss.paths import MODEL_PREFIX, bundled_models, model_path
 from lfgnss.sequence import Sequence
 from lfgnss.weighted_fix import cn0_elevation_variance_m2
 
@@ -560,6 +561,78 @@ def trained_on(metadata: dict) -> str:
                                      f"({init.get('train_split', 'train')})")
 
 
+#: Where the bundled models' commands are written down (their files predate ``provenance``).
+BUNDLED_README = "lfgnss/data/model/README.md"
+
+
+def untrained_reason(model: LfgnssModel) -> str | None:
+    """Why a model file holds no training (its exported epoch 0 of a run from scratch: the random network), or None.
+
+    ``learning.train`` exports epoch 0 when no training epoch beat the untrained network on validation; started from
+    ``train.init``, that epoch is the init model itself, which is trained, so only a run from scratch counts here.
+    """
+    meta = model.metadata
+    if meta.get("epoch") != 0 or meta.get("init_model"):
+        return None
+    return ("holds no training: it is epoch 0 of its run, the randomly initialised network that no training epoch "
+            "beat on validation; its noise can give positions far worse than the plain EKF's")
+
+
+def bundled_name(path: str | Path) -> str | None:
+    """The name of the bundled model that the file ``path`` is (that file, or a byte-for-byte copy of it), else None."""
+    try:
+        here = Path(path).resolve()
+        size = here.stat().st_size
+        for name, bundled in bundled_models().items():
+            if bundled.resolve() == here or (bundled.stat().st_size == size
+                                             and bundled.read_bytes() == here.read_bytes()):
+                return name
+    except OSError:
+        pass
+    return None
+
+
+def _null_keys(table: dict, prefix: str = "") -> list[str]:
+    """Dotted keys of ``table``'s null (unset) entries, which TOML cannot hold."""
+    out = []
+    for key, value in table.items():
+        if value is None:
+            out.append(prefix + key)
+        elif isinstance(value, dict):
+            out += _null_keys(value, f"{prefix}{key}.")
+    return out
+
+
+def _without_nulls(value: object) -> object:
+    """``value`` with the null entries of its tables left out (as its TOML reads back)."""
+    if isinstance(value, dict):
+        return {k: _without_nulls(v) for k, v in value.items() if v is not None}
+    return value
+
+
+def config_text(model: LfgnssModel) -> str:
+    """The training configuration stored in a model file as TOML (``learning.train --config`` reads it), or as JSON
+    where TOML cannot hold it exactly; ModelFileError if the file records none."""
+    import tomllib
+
+    import tomli_w
+
+    config = model.metadata.get("config")
+    if not isinstance(config, dict):
+        raise ModelFileError(model.path, "no training configuration is recorded in this model file")
+    nulls = _null_keys(config)
+    head = [f"# The training configuration stored in {model.path}",
+            "# (as learning.train ran it: defaults, --set, and a train.init model's network and filter included)",
+            *([f"# not set (null: the default): {', '.join(nulls)}"] if nulls else [])]
+    try:
+        text = "\n".join(head) + "\n" + tomli_w.dumps(_without_nulls(config))
+        if tomllib.loads(text) == _without_nulls(config):
+            return text
+    except (TypeError, ValueError):               # ValueError: TOMLDecodeError
+        pass
+    return json.dumps(config, indent=2, default=_json_default) + "\n"
+
+
 def describe_model(model: LfgnssModel) -> list[str]:
     """Readable lines on a model file: data, epoch, validation RMSE, filter settings, and how it was made."""
     from estimators.ekf import config_changes, config_of
@@ -569,6 +642,25 @@ def describe_model(model: LfgnssModel) -> list[str]:
 
     meta = model.metadata
     config_file = (meta.get("config_file") or {}).get("path")
+    name = bundled_name(model.path)
+    show_config = f"python -m learning.export --show {shlex.quote(name or str(model.path))} --config prints it"
+    if not isinstance(meta.get("config"), dict):
+        configuration = f"configuration file: {config_file or 'not recorded'} (the configuration is not stored)"
+    elif config_file:
+        configuration = (f"configuration file: {config_file} (the configuration as trained, --set included, is "
+                         f"stored in the model: {show_config})")
+    else:
+        configuration = ("configuration file: its path was not recorded, but the configuration itself is stored in "
+                         f"the model: {show_config}")
+    if meta.get("provenance"):
+        made = describe(meta["provenance"])
+    elif name is not None:
+        made = [f"provenance: not recorded (trained before lfgnss recorded the command and git commit); the command "
+                f"that made it is in the {MODEL_PREFIX}{name}.npz row of {BUNDLED_README}"]
+    else:
+        made = ["provenance: not recorded (this file was written before lfgnss recorded how a model was made: the "
+                "command, working folder and git commit of its training run)"]
+    untrained = untrained_reason(model)
     val = meta.get("val_rmse_3d_m")
     versions = meta.get("versions") or {}
     data = (meta.get("config") or {}).get("data", {})
@@ -580,9 +672,10 @@ def describe_model(model: LfgnssModel) -> list[str]:
             f"{'-' if val is None else f'{val:.3f} m'}{where}",
             f"features: {', '.join(model.feature_names)}",
             f"filter (settings other than the defaults): {config_changes(config_of(model))}",
+            *([] if untrained is None else [f"warning: {untrained}"]),
             *refilter_lines(meta),
-            f"configuration file: {config_file or 'not recorded'} (the full configuration is in the file)",
-            *describe(meta.get("provenance")),
+            configuration,
+            *made,
             f"{'network exported' if meta.get('refilter') else 'written'} {meta.get('created_utc', '?')} by lfgnss "
             f"{versions.get('lfgnss', '?')}, torch {versions.get('torch', '?')}"]
 
@@ -608,7 +701,8 @@ def _ekf_assignment(text: str) -> tuple[str, object]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m learning.export CHECKPOINT OUT.npz`` writes a model file; ``--show MODEL.npz`` describes one.
+    """``python -m learning.export CHECKPOINT OUT.npz`` writes a model file; ``--show MODEL.npz`` describes one
+    (``--show MODEL.npz --config`` prints its stored training configuration).
 
     Exit status 0; 2 for bad input (one line naming the file).
     """
@@ -624,11 +718,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("checkpoint", nargs="?", type=path_option, help="best.pt or last.pt of a learning.train run")
     p.add_argument("out", nargs="?", type=path_option, help="model file to write (.npz)")
     p.add_argument("--show", metavar="MODEL", type=path_option,
-                   help="describe a model file: its data, filter and how it was made (command, git commit)")
+                   help="describe a model file (or a bundled model by name: default, hk-tst-2019, ...): its data, "
+                        "filter and how it was made (command, git commit, where recorded)")
+    p.add_argument("--config", action="store_true",
+                   help="with --show: print the training configuration stored in the model instead, as TOML "
+                        "(python -m learning.train --config takes it)")
     p.add_argument("--ekf", action="append", default=[], metavar="KEY=VALUE",
                    help="write the model to run in a filter with this EKF setting changed (estimators.EkfConfig; "
                         "repeatable); the source may then be a model file (.npz), and the change is recorded")
     args = p.parse_args(argv)
+    if args.config and args.show is None:
+        p.error("--config goes with --show MODEL: it prints the training configuration stored in that model file")
     if (args.show is None) == (args.checkpoint is None) or (args.checkpoint is not None and args.out is None):
         p.error("give CHECKPOINT OUT.npz to export, or --show MODEL.npz to describe a model file")
     if args.show is not None and args.ekf:
@@ -638,7 +738,11 @@ def main(argv: list[str] | None = None) -> int:
             if str(args.show).endswith(".pt"):
                 raise InputError(args.show, "a training checkpoint, not a model file: export it first "
                                             f"(python -m learning.export {args.show} model.npz)")
-            print("\n".join(describe_model(load_model(args.show))))
+            model = load_model(args.show)
+            if args.config:
+                print(config_text(model), end="")
+            else:
+                print("\n".join(describe_model(model)))
             return 0
         if not str(args.out).endswith(".npz"):
             raise InputError(args.out, "give the model file a .npz name (numpy would add it)")

@@ -17,7 +17,7 @@ When more than ``reset_gated_fraction`` of the usable satellites fail the gate (
 reset) and their median innovation is clock-jump sized (``clock_jump_min_m``), the prior's clock is
 realigned and gated again. The reset result is taken at the first epoch with a coarse fix, after gaps
 > ``max_gap_s``, when the realigned prior is still mostly gated, and when the normal update ends
-farther than ``reset_distance_m`` from the coarse fix; in the rows that reset, satellites failing the
+farther than ``reset_distance_m`` from a coarse fix of redundancy ``reset_min_redundancy`` or more; in the rows that reset, satellites failing the
 post-fit check are dropped and the reset prior updated again. With ``EkfConfig.zupt_sigma_m_s``, epochs the
 Dopplers find standing still (``estimators.models.stationary_epochs``) add a zero-velocity update. The gate
 decision (a hard mask), the Huber variance factor (``EkfConfig.huber_k``), the standstill decision and the reset
@@ -316,6 +316,9 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor | None, vc_m: torch.Tensor 
 
     coarse_ok_all = torch.isfinite(batch.coarse_ecef_m).all(-1) & torch.isfinite(batch.coarse_clock_m[..., 0])
     coarse_pos_all = torch.where(coarse_ok_all[..., None], batch.coarse_ecef_m.to(f64), zero)
+    judges_all = coarse_ok_all & torch.as_tensor(    # a decision, not differentiated: numpy, as the plug-in
+        models.snapshot_redundancy(usable_all.cpu().numpy(), batch.system_index.cpu().numpy(), n_systems)
+        >= config.reset_min_redundancy, device=dev)
     clk = torch.nan_to_num(batch.coarse_clock_m[..., :n_systems].to(f64), nan=0.0)
     x0_all = torch.zeros(b_len, t_len, n, dtype=f64, device=dev)
     x0_all[..., :3] = coarse_pos_all
@@ -389,7 +392,7 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor | None, vc_m: torch.Tensor 
             reset_g = try_jump & ~realigned       # a smaller median: multipath, no reset
         with torch.no_grad():
             far_off = torch.linalg.norm(x_n[:, :3] - coarse_pos_all[:, k], dim=-1) > config.reset_distance_m
-            reset_d = normal & ~reset_g & coarse_ok & far_off
+            reset_d = normal & ~reset_g & judges_all[:, k] & far_off
             reset = reset_a | reset_g | reset_d
             keep_n = normal & ~reset
             measured = n_used_n + n_dop_n > 0 if still_k is None else (n_used_n + n_dop_n > 0) | still_k

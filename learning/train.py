@@ -12,11 +12,11 @@ instead: a fixed schedule, e.g. one chosen by ``learning.crossval``); ``log.csv`
 With ``train.ema_decay`` = d > 0 the validated, saved and exported weights are an exponential moving
 average of the end-of-epoch weights, ``w_avg = d w_avg + (1 - d) w`` (``torch.optim.swa_utils``), which
 steadies a fixed schedule's last epoch; training itself goes on from the raw weights.
-With ``train.init`` = a model file (``.npz``, e.g. the shipped one), training starts from that model's weights
-instead of random ones (fine-tuning on your own data): the network, its features and their normalisation are
-the model's, so ``[model]`` and ``data.features``/``data.drop_features`` are taken from the file, and so is its
-filter (``[ekf]``) except for the keys the configuration sets; the new model file records the one it started
-from (``init_model``: path, hash, and the data it was trained on).
+With ``train.init`` = a model file (``.npz``, or a bundled model's name: ``"default"`` is the shipped one),
+training starts from that model's weights instead of random ones (fine-tuning on your own data): the network, its
+features and their normalisation are the model's, so ``[model]`` and ``data.features``/``data.drop_features`` are
+taken from the file, and so is its filter (``[ekf]``) except for the keys the configuration sets; the new model
+file records the one it started from (``init_model``: path, hash, and the data it was trained on).
 The test split is never loaded here: asking for it raises.
 ``device`` = "cuda" (or "auto") trains on a GPU; it pays off only with large batches (docs/training_speed.md).
 ``--resume`` goes on from ``last.pt`` with the run's own configuration (the one the model file will record): only
@@ -256,7 +256,7 @@ def check_config(config: dict) -> dict:
                          f"twice); name each dataset once, got {datasets!r}")
     for key, what in (("data.train_split", "a split name or names joined by '+'"),
                       ("data.val_split", "a split name or names joined by '+'"),
-                      ("train.init", "the path of a model file")):
+                      ("train.init", "the path of a model file or a bundled model's name")):
         if not isinstance(_setting(config, key), str):
             raise ValueError(f"{key} must be {what} (a string), got {_setting(config, key)!r}")
     for key in ("data.train_split", "data.val_split"):
@@ -329,7 +329,8 @@ def _read_toml(path: Path, depth: int = 0) -> dict:
     """A TOML file; a top-level ``base = "other.toml"`` (relative to it) is read first and updated.
 
     Like ``base``, the relative files it names (``data.register``, ``train.init``) are looked for next to it
-    first, then in the current folder (where the shipped configurations' paths, from the repository root, are).
+    first, then in the current folder; a ``train.init`` found in neither that has no folder or suffix is a bundled
+    model's name (``lfgnss.paths.model_path``: the shipped fine-tuning configurations name theirs so).
     """
     try:
         with open(path, "rb") as fh:

@@ -8,13 +8,15 @@ LF-GNSS EKFs also run with the RTS smoother (``estimators.smoother``, post-proce
 the dataset's own model was trained in a filter other than the default one (process noise, Doppler weights, Huber),
 the plain EKF runs in that filter too, so that the learned noise's share of the gain shows.
 Writes a Markdown results table (all test epochs, and the epochs RTKLIB solved, and each learned row against the
-targets and yardstick of BENCHMARK.md), CDF and track PNGs per dataset.
+targets and yardstick of BENCHMARK.md), CDF and track PNGs per dataset, into ``--out`` (default ``lfgnss-benchmark/``
+in the current folder; ``--out docs`` from the repository root regenerates its committed docs/results.md).
 
 An ``rnx2rtkp`` that fails, hangs or writes an unreadable solution costs the RTKLIB row only (a warning says why).
 
-``--models`` names another folder of such files, or one model file (a training run's ``model.npz``), which then
-takes the shipped model's rows on every dataset; ``--register my-drive.toml`` adds a user's dataset
-(``lfgnss.datasets.register_toml``) to the run.
+``--models`` names another folder of such files, matched to the rows by name as the bundled ones are
+(``lfgnss-default.npz``, the ablations' ``lfgnss-no_*.npz``, ``lfgnss-<dataset id>.npz``), or one model file (a
+training run's ``model.npz``), which then takes the shipped model's rows on every dataset; ``--register
+my-drive.toml`` adds a user's dataset (``lfgnss.datasets.register_toml``) to the run.
 """
 from __future__ import annotations
 
@@ -44,6 +46,8 @@ DEFAULT_MODEL = "lfgnss-default.npz"
 #: Files of the bundled model folder that are on purpose no benchmark row (the start of the hk fine-tuning).
 BUNDLED_NOT_ROWS = frozenset({"lfgnss-transfer-base.npz"})
 DEFAULT_DATASETS = ("hk-tst-2019", "berlin-pp", "hk-tst-static-2020")
+#: Where a run writes without ``--out`` (in the current folder); ``--out docs`` writes the committed results.
+DEFAULT_OUT = "lfgnss-benchmark"
 
 
 #: Targets for the learned EKF and the independent yardstick's figures (3D, 2D RMSE [m], test splits), quoted
@@ -468,23 +472,27 @@ def main(argv: list[str] | None = None) -> int:
     """
     p = argparse.ArgumentParser(prog="python -m lfgnss.benchmark", description=__doc__.split("\n\n")[0])
     p.add_argument("datasets", nargs="*", default=[],
-                   help="dataset ids (default: all three of shared/BENCHMARK.md, or only the --register'ed ones)")
+                   help=f"dataset ids: {', '.join(DEFAULT_DATASETS)} (the benchmark datasets of shared/BENCHMARK.md) "
+                        "or the id of a --register'ed file (default: all three, or only the --register'ed ones)")
     p.add_argument("--register", action="append", default=[], metavar="FILE.toml",
                    help="a dataset of your own (lfgnss.datasets TOML), run too; repeatable")
     p.add_argument("--models", type=path_option, default=MODEL_DIR,
-                   help="folder with lfgnss-*.npz model files, or one model file used for every dataset "
-                        "(default: the bundled models)")
+                   help=f"folder of model files matched to the rows by name: {DEFAULT_MODEL} gives the shipped "
+                        f"model's rows (LF-GNSS EKF, + RTS smoother, FGO) and {', '.join(ABLATIONS.values())} the "
+                        "ablation rows, on every dataset; lfgnss-<dataset id>.npz gives the per-dataset model's rows "
+                        "on that dataset only; other files are not used. Or one model file, which takes the shipped "
+                        "model's rows on every dataset (default: the bundled models, lfgnss/data/model)")
     p.add_argument("--out", type=path_option, default=None,
-                   help="folder for results.md and figures/ (default: docs for the run of the bundled models on the "
-                        "three benchmark datasets, else lfgnss-benchmark; a warm-up-SPLIT folder in it with --warm-up)")
+                   help="folder for results.md and figures/ (default: lfgnss-benchmark in the current folder, "
+                        "lfgnss-benchmark/warm-up-SPLIT with --warm-up; --out docs, and --out docs/warm-up-val "
+                        "with --warm-up val, regenerate the repository's committed results)")
     p.add_argument("--warm-up", choices=WARM_UP, default=None, metavar="SPLIT",
                    help="start every estimator at the first epoch of this split (train or val; its observations, "
                         "never its truth) and score the test split only, so the filters enter it warm")
     p.add_argument("--no-plots", action="store_true", help="skip the CDF, track and error PNGs")
     args = p.parse_args(argv)
-    if args.out is None:            # only the run that makes docs/results.md writes there by default
-        standard = not args.datasets and not args.register and Path(args.models).resolve() == MODEL_DIR.resolve()
-        root = Path("docs") if standard else Path("lfgnss-benchmark")
+    if args.out is None:            # never the repository's docs/ unless asked for (--out docs)
+        root = Path(DEFAULT_OUT)
         args.out = root if args.warm_up is None else root / f"warm-up-{args.warm_up}"
     warnings.simplefilter("ignore", FutureWarning)
     try:

@@ -43,7 +43,7 @@ from .errors import InputError
 from .frames import NEAR_SURFACE_RADIUS_M, lla_to_ecef
 from .paths import cache_dir, shared_data_dir
 from .sequence import DEFAULT_FEATURES, Sequence, load_sequence, save_sequence
-from .time import gps_s_to_week_tow, week_tow_to_gps_s
+from .time import SECONDS_PER_WEEK, gps_s_to_week_tow, week_tow_to_gps_s
 
 if TYPE_CHECKING:
     from .observations import Observations
@@ -384,6 +384,23 @@ def read_static(path: Path, spec: DatasetSpec) -> tuple[np.ndarray, np.ndarray, 
     return np.array([-np.inf]), xyz[:1], bad
 
 
+def static_time_note(path: str | Path, time_gps_s: np.ndarray, tolerance_s: float = 0.5) -> str | None:
+    """Why a static truth file may be of another session: its times of week [s] miss the epochs' [GPS s], or None.
+
+    Only a file whose first column holds times of week (in [0, 604800) s, not all 0) is checked; a week rollover
+    within the epochs counts as overlapping. Its point labels every epoch all the same (``read_static``).
+    """
+    tow = _numeric_rows(Path(path), *_ROW_LAYOUTS["static"])[0][:, 0]
+    epochs_tow = gps_s_to_week_tow(np.asarray(time_gps_s, dtype=float))[1]
+    if not epochs_tow.size or not (np.all((tow >= 0) & (tow < SECONDS_PER_WEEK)) and tow.max() > 0):
+        return None
+    if tow.min() <= epochs_tow.max() + tolerance_s and tow.max() >= epochs_tow.min() - tolerance_s:
+        return None
+    return (f"{path}: its times of week ({tow.min():.0f} to {tow.max():.0f} s) do not overlap the observations' "
+            f"({epochs_tow.min():.0f} to {epochs_tow.max():.0f} s): a static truth of another session or place? "
+            f"Its point labels every epoch all the same")
+
+
 def read_ecef_csv(path: Path, spec: DatasetSpec) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """CSV of GPS seconds since 1980-01-06, ECEF X, Y, Z [m]."""
     rows, bad = _numeric_rows(path, *_ROW_LAYOUTS["ecef-csv"])
@@ -603,7 +620,8 @@ def load_split(dataset_id: str, split: str, *, feature_names: tuple[str, ...] = 
 
 
 __all__ = ["DatasetSpec", "SPLITS", "align_truth", "build", "contiguous_runs", "get", "load_split", "present",
-           "register", "register_toml", "registered", "split_index", "split_parts", "truth_note_summary"]
+           "register", "register_toml", "registered", "split_index", "split_parts", "static_time_note",
+           "truth_note_summary"]
 
 
 def alignment_report(dataset_ids: list[str] | None = None) -> str:

@@ -118,13 +118,13 @@ def design_matrix(el_rad: np.ndarray, az_rad: np.ndarray, system_index: np.ndarr
 
 
 def satellites_per_system(system_index: np.ndarray, mask: np.ndarray, n_systems: int) -> np.ndarray:
-    """(T, C) int: the ``mask`` satellites of each system in each epoch (``system_index``, ``mask``: (T, N)).
+    """(..., C) int: the ``mask`` satellites of each system in each epoch (``system_index``, ``mask``: (..., N)).
 
     A system is present where its count is > 0; the epoch's reference (clock) system is the lowest-index
     system present, ``np.argmax(counts > 0, axis=1)`` (0 if none is), the convention of this module, of
     ``lfgnss.spp`` and of the factor graph's clocks.
     """
-    return ((system_index[..., None] == np.arange(n_systems)) & mask[..., None]).sum(axis=1)
+    return ((system_index[..., None] == np.arange(n_systems)) & mask[..., None]).sum(axis=-2)
 
 
 def _active_columns(sys_idx, mask, n_systems):

@@ -12,16 +12,24 @@ import math
 import re
 import sys
 import warnings
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
+from .constants import SYSTEMS
 from .errors import INPUT_ERRORS, InputError, LfgnssError, RinexError, cannot_write, one_line, stdout_gone
 from .observations import Observations
 from .paths import bundled_data_dir, bundled_models, default_model_path, model_path
 from .spp import SppConfig
 from .time import SECONDS_PER_WEEK, datetime64_to_gps_s, gps_s_to_week_tow, gpst_stamp, week_tow_to_gps_s
+
+if TYPE_CHECKING:
+    from estimators.base import Solution
+
+    from .measurements import Measurements
+    from .spp import CoarseFix
 
 SAMPLE_DIR = bundled_data_dir() / "berlin-potsdamer-platz"
 SAMPLE_OBS = SAMPLE_DIR / "Berlin_Potsdamer_Platz.obs.gz"
@@ -35,6 +43,12 @@ PROGRESS_BACKENDS = ("ekf", "plain-ekf", "fgo")   # a tqdm bar over the epochs o
 DEFAULT_ELEVATION_MASK_DEG = SppConfig().elevation_mask_deg
 #: --start/--end take epochs this close outside the window [s] (RTKLIB's DTTOL: receivers tag epochs ms early).
 WINDOW_TOLERANCE_S = 0.025
+#: A truth lying a median farther than this from the coarse least-squares fixes is likely of another drive or place
+#: [m]: the median least-squares error is 40 to 90 m on the three benchmark datasets (200 m at worst on an epoch).
+TRUTH_MISMATCH_M = 1000.0
+#: Input notes shown before the accuracy table (then a count of them all).
+NOTES_SHOWN = 5
+_SYSTEM_SEPARATORS = re.compile(r"[\s,]+")
 _WEEK_TOW = re.compile(r"\s*(\d{1,4}):(\d+(?:\.\d*)?)\s*")
 _CALENDAR = re.compile(r"\s*(\d{4})[/-](\d{1,2})[/-](\d{1,2})(?:\s+|T)(\d{1,2}):(\d{1,2}):(\d{1,2}(?:\.\d*)?)\s*")
 
@@ -61,10 +75,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--model", type=Path, help="LF-GNSS model file, or a bundled model's name: "
                    f"{', '.join(bundled_models())} (default: default, trained on all three benchmark datasets)")
     p.add_argument("--no-model", action="store_true", help="use the hand-set C/N0 noise model instead")
-    p.add_argument("--systems", default=None, help="constellations to use, e.g. GC (default: all present)")
+    p.add_argument("--systems", type=_systems, default=None,
+                   help=f"constellations to use, letters of {''.join(SYSTEMS)}: GC, \"G C\" or G,C "
+                        "(default: all present)")
     p.add_argument("--truth", type=Path, help="ground-truth file, for an accuracy table and error plots")
-    p.add_argument("--truth-format", default=None,
-                   help="urbannav | smartloc | static | ecef-csv (default: urbannav; with no --truth and no --obs, "
+    p.add_argument("--truth-format", type=str.lower, default=None, choices=_truth_formats(),
+                   help="format of the --truth file, in any case (default: urbannav; with no --truth and no --obs, "
                         "the bundled sample's smartloc truth)")
     p.add_argument("--truth-origin", type=_finite_float, default=None,
                    help="GPS seconds of t=0 for smartloc truth (default: first epoch)")
@@ -74,7 +90,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="last epoch to solve, inclusive, in the same forms (rnx2rtkp -te)")
     p.add_argument("--elevation-mask", type=_elevation_mask, default=DEFAULT_ELEVATION_MASK_DEG, metavar="DEG",
                    help="elevation mask of the coarse fix, quality control and features [deg]")
-    p.add_argument("--mode", default=None, choices=("batch", "fixed-lag"), help="fgo mode (default: batch)")
+    p.add_argument("--mode", default=None, choices=("batch", "fixed-lag"), help="fgo mode: batch, the whole run in one graph (default), or fixed-lag, a causal sliding "
+                        "10 s window, less accurate than either batch or ekf on the bundled drive (README)")
     p.add_argument("--smooth", action="store_true",
                    help="ekf, plain-ekf: smooth the filter's run backwards (Rauch-Tung-Striebel; post-processing)")
     p.add_argument("--smooth-lag", type=_finite_float, default=None, metavar="SECONDS",
@@ -99,11 +116,14 @@ def _noise(args):
     path = args.model or DEFAULT_MODEL
     if args.model is None and not path.exists():
         return HeuristicNoise(), "hand-set C/N0 noise (no bundled model found)"
-    from learning.export import load_model
+    from learning.export import load_model, untrained_reason
 
     from .features import AVAILABLE_FEATURES
 
     model = load_model(path)
+    untrained = untrained_reason(model)
+    if untrained is not None:
+        warnings.warn(f"{model_path(path)}: {untrained}; --no-model runs the hand-set noise instead")
     unknown = [n for n in model.feature_names if n not in AVAILABLE_FEATURES]
     if unknown:
         raise InputError(path, f"the model needs feature(s) {', '.join(unknown)} that this lfgnss cannot compute "
@@ -111,16 +131,40 @@ def _noise(args):
     return model, f"model {model_path(path)}"
 
 
+@dataclass
+class _Solved:
+    """What a run solved and wrote, for its summary."""
+
+    obs: Path
+    keep: np.ndarray                  # (T,) bool: the file's epochs that were solved
+    meas: Measurements                # of the solved epochs
+    fix: CoarseFix
+    solution: Solution
+    truth: np.ndarray | None          # (T', 3) ECEF [m] of the solved epochs, NaN where none; None: no table
+    label: str                        # the estimator's row in the table
+    noise_text: str
+    written: list[str | Path]
+    failed: list[str]                 # one-line messages of outputs that could not be written
+
+
 def run(args) -> int:
     """Solve, write outputs, print the summary; returns the exit code."""
-    import estimators
-    from . import datasets
-    from .features import build_sequence
-    from .measurements import load
-    from .metrics import accuracy_table, format_text
-    from .outputs import plot_solution, write_csv, write_geojson, write_kml, write_pos
-    from .spp import spp
+    _check_options(args)
+    with warnings.catch_warnings(record=True) as caught:   # shown in the summary, once each
+        warnings.simplefilter("always", UserWarning)
+        solved = _solve(args)
+    try:                      # stdout may be a pipe closed early (| head): the files are written by now
+        _print_summary(args, solved, [str(w.message) for w in caught])
+        sys.stdout.flush()
+    except BrokenPipeError:   # nothing more to say on stdout; the errors below still reach stderr
+        stdout_gone()
+    for message in solved.failed:
+        print(f"error: {message}", file=sys.stderr)
+    return 2 if solved.failed else 0
 
+
+def _check_options(args) -> None:
+    """ValueError for options that do not apply or contradict each other, before any file is read."""
     if args.smooth_lag is not None and not args.smooth:
         raise ValueError(f"--smooth-lag needs --smooth (--smooth --smooth-lag {args.smooth_lag:g})")
     if args.smooth_lag is not None and args.smooth_lag < 0:
@@ -140,14 +184,25 @@ def run(args) -> int:
         raise ValueError(f"--mode applies to --backend fgo, not {args.backend}")
     if args.start is not None and args.end is not None and args.end < args.start:
         raise ValueError(f"--end {_gpst_text(args.end)} is before --start {_gpst_text(args.start)}")
-    sample = args.obs is None
-    if sample and args.nav:
+    if args.obs is None and args.nav:
         raise ValueError("--nav needs --obs (without --obs the bundled sample is solved with its own navigation files)")
     for option, value in (("--truth-format", args.truth_format), ("--truth-origin", args.truth_origin)):
         if value is not None and args.truth is None:
             raise ValueError(f"{option} applies to a --truth file, and none was given")
     if args.truth_origin is not None and args.truth_format != "smartloc":
         raise ValueError("--truth-origin applies to --truth-format smartloc only")
+
+
+def _solve(args) -> _Solved:
+    """Read the inputs, solve and write the output files (a file that cannot be written is noted, not raised)."""
+    import estimators
+    from . import datasets
+    from .features import build_sequence
+    from .measurements import load
+    from .outputs import plot_solution, write_csv, write_geojson, write_kml, write_pos
+    from .spp import spp
+
+    sample = args.obs is None
     obs = SAMPLE_OBS if sample else args.obs
     nav = list(SAMPLE_NAV) if sample else (args.nav or [])
     if not nav:
@@ -179,6 +234,12 @@ def run(args) -> int:
             print(f"warning: {truth_path}: no truth epoch matches an epoch of {obs}{_window_words(args)}; no accuracy "
                   f"table or plots (check --truth-format {truth_format}{hint})", file=sys.stderr)
             truth = None
+        else:
+            time_note = (datasets.static_time_note(truth_path, observations.time_gps_s)
+                         if truth_format == "static" else None)
+            for note in (time_note, _truth_mismatch_note(truth_path, truth_format, truth, fix)):
+                if note:
+                    print(f"warning: {note}", file=sys.stderr)
     from .sequence import DEFAULT_FEATURES
 
     try:
@@ -187,7 +248,7 @@ def run(args) -> int:
     except LfgnssError as err:  # an error about the data that names no file: it is about the observations
         if isinstance(err, (InputError, RinexError)):
             raise
-        raise InputError(obs, str(err)) from None
+        raise InputError(obs, str(err) + _mask_cause(args.elevation_mask, fix)) from None
     mask_note = _mask_note(noise, args.elevation_mask)      # once the input is known good: an error stays one line
     if mask_note:
         print(f"warning: {mask_note}", file=sys.stderr)
@@ -229,34 +290,52 @@ def run(args) -> int:
             written += job(path)
         except OSError as err:
             failed.append(f"{err.filename or path}: {cannot_write(err)}")
+    return _Solved(obs, keep, meas, fix, solution, truth, label, noise_text, written, failed)
 
-    try:                      # stdout may be a pipe closed early (| head): the files are written by now
-        if not args.quiet:
-            summary = fix.summary()
-            shown = label.removesuffix(" (hand-set noise)")    # noise_text says it
-            of_file = f" of {keep.size} (--start/--end)" if not keep.all() else ""
-            print(f"{obs}: {summary['epochs']} epochs{of_file}, systems {''.join(meas.systems)}, backend {shown} "
-                  f"({noise_text})")
-            print(f"coarse fix: {summary['epoch_status']}; observations: {summary['observations']}")
-            if meas.warnings:
-                whole = " (the file is read whole: some may be outside --start/--end)" if not keep.all() else ""
-                print(f"input notes{whole}: {len(meas.warnings)} (damaged records or epochs skipped, constellations "
-                      f"dropped, stand-ins used){'; the first 5:' if len(meas.warnings) > 5 else ':'}")
-            for note in meas.warnings[:5]:
-                print(f"warning: {note}")
-            files = [p for p in written if not str(p).endswith(".png")]
-            plots = len(written) - len(files)
-            print(f"outputs: {', '.join(str(p) for p in files) or 'none'}" + (f" and {plots} plots" if plots else ""))
-        if truth is not None:
-            rows = [accuracy_table(fix.pos_ecef_m, truth, fix.ok, method="least squares (coarse)"),
-                    accuracy_table(solution.pos_ecef_m, truth, solution.available, method=label)]
-            print(format_text(rows))
-        sys.stdout.flush()
-    except BrokenPipeError:   # nothing more to say on stdout; the errors below still reach stderr
-        stdout_gone()
-    for message in failed:
-        print(f"error: {message}", file=sys.stderr)
-    return 2 if failed else 0
+
+def _print_summary(args: argparse.Namespace, solved: _Solved, caught: list[str]) -> None:
+    """Warnings on stderr, then the run, its input notes and outputs (unless --quiet) and the accuracy table on stdout.
+
+    The first ``NOTES_SHOWN`` input notes are printed once: on stdout among the run's lines, on stderr with
+    --quiet; a caught warning that repeats one (a reader's "first: ..." summary of its notes) is left out.
+    """
+    from .metrics import accuracy_table, format_text
+
+    notes = list(solved.meas.warnings)
+    shown = notes[:NOTES_SHOWN]
+    warned = [m for m in dict.fromkeys(caught) if not any(note in m for note in shown)]
+    if args.quiet:
+        warned = shown + ([f"{solved.obs}: {len(notes)} input notes in all, the first {NOTES_SHOWN} above"]
+                          if len(notes) > NOTES_SHOWN else []) + warned
+    for message in warned[:10]:
+        print(f"warning: {message}", file=sys.stderr)
+    if not args.quiet:
+        _print_run(solved, shown, len(notes))
+    if solved.truth is not None:
+        fix, solution, truth = solved.fix, solved.solution, solved.truth
+        rows = [accuracy_table(fix.pos_ecef_m, truth, fix.ok, method="least squares (coarse)"),
+                accuracy_table(solution.pos_ecef_m, truth, solution.available, method=solved.label)]
+        print(format_text(rows))
+
+
+def _print_run(solved: _Solved, shown: list[str], n_notes: int) -> None:
+    """The run's lines on stdout: file, systems and back end, coarse fix, input notes and outputs."""
+    summary = solved.fix.summary()
+    keep = solved.keep
+    shown_label = solved.label.removesuffix(" (hand-set noise)")    # noise_text says it
+    of_file = f" of {keep.size} (--start/--end)" if not keep.all() else ""
+    print(f"{solved.obs}: {summary['epochs']} epochs{of_file}, systems {''.join(solved.meas.systems)}, backend "
+          f"{shown_label} ({solved.noise_text})")
+    print(f"coarse fix: {summary['epoch_status']}; observations: {summary['observations']}")
+    if n_notes:
+        whole = " (the file is read whole: some may be outside --start/--end)" if not keep.all() else ""
+        print(f"input notes{whole}: {n_notes} (damaged records or epochs skipped, constellations dropped, stand-ins "
+              f"used){f'; the first {NOTES_SHOWN}:' if n_notes > NOTES_SHOWN else ':'}")
+    for note in shown:
+        print(f"warning: {note}")
+    files = [p for p in solved.written if not str(p).endswith(".png")]
+    plots = len(solved.written) - len(files)
+    print(f"outputs: {', '.join(str(p) for p in files) or 'none'}" + (f" and {plots} plots" if plots else ""))
 
 
 def _finite_float(text: str) -> float:
@@ -286,6 +365,25 @@ def _gps_time(text: str) -> float:
     except ValueError as err:
         raise argparse.ArgumentTypeError(f"not a calendar time ({err}), got {text!r}") from None
     return float(datetime64_to_gps_s(np.datetime64(stamp.replace(second=0)))) + seconds
+
+
+def _systems(text: str) -> str:
+    """argparse type of --systems: constellation letters, upper case, each once in the order given (``"g, r"``: GR)."""
+    letters = "".join(_SYSTEM_SEPARATORS.split(text)).upper()
+    unknown = "".join(dict.fromkeys(c for c in letters if c not in SYSTEMS))
+    if unknown:
+        raise argparse.ArgumentTypeError(f"unknown constellation letter(s) {unknown!r} in {text!r}; use letters of "
+                                         f"{''.join(SYSTEMS)}, e.g. GC, \"G C\" or G,C")
+    if not letters:
+        raise argparse.ArgumentTypeError(f"needs constellation letters of {''.join(SYSTEMS)}, got {text!r}")
+    return "".join(dict.fromkeys(letters))
+
+
+def _truth_formats() -> tuple[str, ...]:
+    """The names --truth-format takes: ``lfgnss.datasets``' truth readers."""
+    from .datasets import TRUTH_READERS
+
+    return tuple(TRUTH_READERS)
 
 
 def _elevation_mask(text: str) -> float:
@@ -350,12 +448,35 @@ def _mask_note(noise, mask_deg: float) -> str | None:
             f"this run uses --elevation-mask {mask_deg:g}; its noise estimates may not carry over")
 
 
+def _mask_cause(mask_deg: float, fix: CoarseFix) -> str:
+    """`` (with --elevation-mask 89: ...)`` when a mask [deg] other than the default left no coarse fix, else ''."""
+    if mask_deg == DEFAULT_ELEVATION_MASK_DEG or fix.ok.any():
+        return ""
+    return (f" (with --elevation-mask {mask_deg:g}: too few satellites above {mask_deg:g} degrees for a fix; the "
+            f"default is {DEFAULT_ELEVATION_MASK_DEG:g})")
+
+
+def _truth_mismatch_note(truth_path: Path, truth_format: str, truth: np.ndarray, fix: CoarseFix) -> str | None:
+    """Why ``truth`` (T, 3) [m] may be of another drive: its median distance from the coarse fixes, or None."""
+    both = np.isfinite(truth).all(axis=1) & fix.ok & np.isfinite(fix.pos_ecef_m).all(axis=1)
+    if not both.any():
+        return None
+    median_m = float(np.median(np.linalg.norm(truth[both] - fix.pos_ecef_m[both], axis=1)))
+    if median_m <= TRUTH_MISMATCH_M:
+        return None
+    distance = f"{median_m / 1000:.0f} km" if median_m >= 10_000 else f"{median_m / 1000:.1f} km"
+    origin = ", or a wrong --truth-origin" if truth_format == "smartloc" else ""
+    return (f"{truth_path}: the truth lies a median {distance} from the receiver's least-squares fixes (on "
+            f"{int(both.sum())} epochs): a truth file of another drive or place{origin}? It is scored all the same")
+
+
 def _settings_text(args: argparse.Namespace) -> str:
-    """The window and mask of a run that sets them, as options for the .pos header: `` --start 1900:126700.5``."""
+    """The window, mask and systems of a run that sets them, as .pos header options: `` --start 1900:126700.5``."""
     text = f" --start {_week_tow_text(args.start)}" if args.start is not None else ""
     text += f" --end {_week_tow_text(args.end)}" if args.end is not None else ""
     mask = args.elevation_mask
-    return text + (f" --elevation-mask {mask:g}" if mask != DEFAULT_ELEVATION_MASK_DEG else "")
+    text += f" --elevation-mask {mask:g}" if mask != DEFAULT_ELEVATION_MASK_DEG else ""
+    return text + (f" --systems {args.systems}" if args.systems else "")
 
 
 def _run_tag(args: argparse.Namespace, options: dict) -> str:
@@ -364,12 +485,14 @@ def _run_tag(args: argparse.Namespace, options: dict) -> str:
 
     tag = smoothed_name(args.backend + ("-fixed-lag" if options.get("mode") == "fixed-lag" else ""), args.smooth,
                         math.inf if args.smooth_lag is None else args.smooth_lag)
-    tag += f"-{_model_tag(Path(args.model))}" if args.model is not None else ""
+    own_model = args.model is not None and model_path(args.model).resolve() != DEFAULT_MODEL.resolve()
+    tag += f"-{_model_tag(Path(args.model))}" if own_model else ""     # --model default is the run without --model
     tag += "-hand-set" if args.no_model else ""
     tag += "-formal-sd" if args.formal_sd else ""
     for option, t in (("ts", args.start), ("te", args.end)):          # rnx2rtkp's names; GPS week and time of week [s]
         tag += f"-{option}{_week_tow_text(t).replace(':', '_')}" if t is not None else ""
-    return tag + (f"-mask{args.elevation_mask:g}" if args.elevation_mask != DEFAULT_ELEVATION_MASK_DEG else "")
+    tag += f"-mask{args.elevation_mask:g}" if args.elevation_mask != DEFAULT_ELEVATION_MASK_DEG else ""
+    return tag + (f"-sys{args.systems}" if args.systems else "")
 
 
 def _model_tag(path: Path) -> str:
@@ -405,8 +528,8 @@ def main(argv: list[str] | None = None) -> int:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", UserWarning)
             code = run(args)
-        for w in caught[:10]:
-            print(f"warning: {w.message}", file=sys.stderr)
+        for message in list(dict.fromkeys(str(w.message) for w in caught))[:10]:   # those run did not show
+            print(f"warning: {message}", file=sys.stderr)
         return code
     except INPUT_ERRORS as err:
         print(f"error: {one_line(err)}", file=sys.stderr)

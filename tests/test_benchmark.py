@@ -219,7 +219,7 @@ def test_the_warm_up_and_own_runs_write_their_own_results_files(tmp_path, monkey
     assert main(["my-drive", "--register", str(sample_toml("my-drive")), "--models", str(model),
                  "--warm-up", "val", "--no-plots"]) == 0
     text = (tmp_path / "lfgnss-benchmark" / "warm-up-val" / "results.md").read_text()
-    assert not (tmp_path / "docs").exists()      # a run of one's own never writes over the committed results
+    assert not (tmp_path / "docs").exists()      # without --out no run writes over the committed results
     assert text.startswith("# lfgnss benchmark results, filters warmed up on the val split")
     assert f"--models '{model}' --warm-up val --no-plots" in text and "No figures (`--no-plots`)." in text
 
@@ -295,3 +295,29 @@ def test_the_shipped_models_filter_brings_the_plain_ekf_in_that_filter_as_its_ba
     assert rows[PLAIN_MAIN_FILTER].options["config"] == own_filter(load_model(MODEL_DIR / "lfgnss-default.npz"))
     table = [_row("x", PLAIN, 30.0, 20.0), _row("x", PLAIN_MAIN_FILTER, 20.0, 10.0), _row("x", "LF-GNSS EKF", 15.0, 9.0)]
     assert target_rows(table, [])[0]["3D vs plain EKF"] == "15.00 vs 20.00 (yes)"
+
+
+@pytest.mark.parametrize("argv, where", [([], "lfgnss-benchmark/results.md"),
+                                         (["--warm-up", "val"], "lfgnss-benchmark/warm-up-val/results.md"),
+                                         (["--out", "docs"], "docs/results.md")])
+def test_the_default_output_folder_is_never_docs(argv, where, tmp_path, monkeypatch, capsys):
+    """Without --out even the run of the bundled models on the three datasets writes lfgnss-benchmark/, not the
+    repository's docs/; --out docs still regenerates that. (No data here: the run stops, naming its results file.)"""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("LFGNSS_SHARED_DATA", str(tmp_path / "no-data"))
+    assert main(argv + ["--no-plots"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {where}: not written: no dataset has all its files") and err.count("\n") == 1, err
+    assert list(tmp_path.iterdir()) == []                       # stopped before making any folder
+
+
+def test_the_help_names_the_dataset_ids_and_how_model_files_are_matched(monkeypatch, capsys):
+    monkeypatch.setenv("COLUMNS", "1000")                       # argparse wraps at hyphens otherwise
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--help"])
+    shown = capsys.readouterr().out
+    assert exit_info.value.code == 0
+    assert f"dataset ids: {', '.join(DEFAULT_DATASETS)} (the benchmark datasets of shared/BENCHMARK.md)" in shown
+    assert "lfgnss-default.npz gives the shipped model's rows" in shown
+    assert "lfgnss-<dataset id>.npz gives the per-dataset model's rows on that dataset only" in shown
+    assert "default: lfgnss-benchmark in the current folder" in shown and "--out docs" in shown

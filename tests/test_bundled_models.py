@@ -9,6 +9,7 @@ import pytest
 from estimators.ekf import config_of
 from learning.export import load_model
 from learning.train import adopt_init, ekf_config, load_config
+from lfgnss.paths import model_path
 
 ROOT = Path(__file__).resolve().parents[1]
 MODELS = ROOT / "lfgnss" / "data" / "model"
@@ -27,14 +28,23 @@ def readme_rows() -> dict[str, str]:
     return rows
 
 
+def same_model_file(a: object, b: object) -> bool:
+    """Two ``train.init`` values that name one model file: a path from the repository root, or a bundled name."""
+    def where(value: object) -> object:
+        return (ROOT / model_path(value)).resolve() if isinstance(value, str) and value else value
+
+    return where(a) == where(b)
+
+
 def disagreements(stored: dict, expected: dict, path: str = "") -> list[str]:
-    """Settings both configurations have whose values differ; a setting newer than the file is not compared."""
+    """Settings both configurations have whose values differ; a setting newer than the file is not compared, and
+    ``train.init`` given as a path in one and a bundled name in the other is the same setting if it is one file."""
     out = []
     for key in stored.keys() & expected.keys() - EXECUTION:
         a, b = stored[key], expected[key]
         if isinstance(a, dict) and isinstance(b, dict):
             out += disagreements(a, b, f"{path}{key}.")
-        elif a != b:
+        elif a != b and not (f"{path}{key}" == "train.init" and same_model_file(a, b)):
             out.append(f"{path}{key}: file {a!r}, configuration {b!r}")
     return out
 
@@ -45,7 +55,7 @@ def test_every_bundled_model_file_has_a_readme_row_with_its_command():
 
 @pytest.mark.parametrize("name, config_path", sorted(readme_rows().items()))
 def test_bundled_model_was_trained_with_its_configuration(name, config_path, monkeypatch):
-    monkeypatch.chdir(ROOT)     # train.init paths in the configs are relative to the repository root
+    monkeypatch.chdir(ROOT)     # the README's --config paths are relative to the repository root
     model = load_model(MODELS / name)
     stored = model.metadata["config"]
     expected = adopt_init(load_config(config_path))
@@ -57,6 +67,19 @@ def test_bundled_model_was_trained_with_its_configuration(name, config_path, mon
     assert config_of(model) == replace(ekf_config(expected), **changes)
     row = next(line for line in (MODELS / "README.md").read_text().splitlines() if line.startswith(f"| `{name}` |"))
     assert all(f"--ekf {k}=" in row for k in changes), row
+
+
+def test_a_train_init_path_and_a_bundled_name_compare_equal_only_for_the_same_file():
+    """hk-tst-2019 was trained with train.init = the transfer base's path; hk_finetune.toml now names it."""
+    stored = load_model(MODELS / "lfgnss-hk-tst-2019.npz").metadata["config"]
+    assert stored["train"]["init"] == "lfgnss/data/model/lfgnss-transfer-base.npz"
+    assert load_config(ROOT / "learning/configs/hk_finetune.toml")["train"]["init"] == "transfer-base"
+    assert disagreements(stored, {"train": {"init": "transfer-base"}}) == []
+    assert disagreements(stored, {"train": {"init": str(MODELS / "lfgnss-transfer-base.npz")}}) == []
+    assert disagreements(stored, {"train": {"init": "default"}}) == [
+        "train.init: file 'lfgnss/data/model/lfgnss-transfer-base.npz', configuration 'default'"]
+    assert disagreements({"train": {"init": ""}}, {"train": {"init": "default"}}) != []     # from scratch is not
+    assert disagreements({"train": {"epochs": 30}}, {"train": {"epochs": 31}}) != []        # nothing else loosened
 
 
 def test_bundled_models_are_picked_by_name_everywhere_a_model_file_is(tmp_path, monkeypatch, capsys):

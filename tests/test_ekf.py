@@ -431,3 +431,24 @@ def test_learned_model_runs_in_the_filter_it_was_trained_with():
         metadata = trained.metadata
 
     assert LfgnssEkf(noise=Trained()).config.gate_sigma == 2.5
+
+
+def test_no_reset_to_a_coarse_fix_without_redundancy_on_the_hk_drive(shared_data):
+    """hk-tst-2019, 12:51:23-28 GPST (no truth there): 6- and 5-satellite GPS + BeiDou coarse fixes lie 360 m below
+    and 250 m beside the street; the filter, right, kept to the street only once a fix with redundancy < 2 could
+    not reset it (EkfConfig.reset_min_redundancy); the check off, it jumps to them and back."""
+    from lfgnss import datasets
+
+    shared_data("urbannav-hk-tst-20190428")
+    seq = datasets.build("hk-tst-2019")
+    window = slice(400, 420)
+    redundancy = models.snapshot_redundancy(seq.mask, seq.system_index, len(seq.systems))
+    for min_redundancy, max_step_m in ((2, 30.0), (0, None)):
+        sol = create("plain-ekf", config=replace(EkfConfig(), reset_min_redundancy=min_redundancy)).solve(seq)
+        step = np.linalg.norm(np.diff(sol.pos_ecef_m[window], axis=0), axis=1)
+        resets = np.flatnonzero(sol.status == STATUS_RESET)
+        if max_step_m is None:
+            assert {409, 412} <= set(resets) and step.max() > 300.0
+            assert redundancy[409] == 1 and redundancy[412] == 0
+        else:
+            assert resets.tolist() == [0] and step.max() < max_step_m

@@ -8,7 +8,7 @@ import pytest
 
 from learning import provenance
 from learning.export import load_model, main as export_main
-from learning.train import main as train_main
+from learning.train import load_config, main as train_main
 
 CONFIG = "learning/configs/default.toml"
 TINY = ["data.datasets=['synthetic']", "data.synthetic.n_epochs=150", "data.window=20", "data.stride=10",
@@ -83,7 +83,11 @@ def test_export_command_writes_the_runs_model_and_show_describes_it(run, tmp_pat
     assert "trained on: synthetic (train); epoch " in shown
     assert f"  command: python -m learning.train {shlex.join(argv)}" in shown
     assert "configuration file: " in shown and "default.toml" in shown
+    assert f"python -m learning.export --show {written} --config prints it" in shown
     assert f"written {mine.metadata['created_utc']} by lfgnss" in shown and "(on trained epochs)" not in shown
+    assert export_main(["--show", str(written), "--config"]) == 0           # the run's configuration, as TOML
+    (tmp_path / "again.toml").write_text(capsys.readouterr().out)
+    assert load_config(tmp_path / "again.toml") == mine.metadata["config"]
 
 
 def test_show_of_a_bundled_model_says_what_is_not_recorded(capsys):
@@ -91,7 +95,9 @@ def test_show_of_a_bundled_model_says_what_is_not_recorded(capsys):
     shown = capsys.readouterr().out
     assert "trained on: berlin-pp (train); epoch 120" in shown
     assert "huber_k=2.0" in shown and "q_vel_up_m2_s3=0.1" in shown
-    assert "provenance: not recorded" in shown
+    assert "provenance: not recorded" in shown and "lfgnss-berlin-pp.npz row of lfgnss/data/model/README.md" in shown
+    assert "its path was not recorded, but the configuration itself is stored in the model: " \
+           "python -m learning.export --show berlin-pp --config prints it" in shown
 
 
 def test_export_ekf_writes_the_same_network_in_another_filter(run, tmp_path, capsys):

@@ -15,7 +15,7 @@ def test_readme_library_example_runs(capsys):
     namespace: dict = {}
     exec(compile(blocks[0], str(README), "exec"), namespace)
     out = capsys.readouterr().out
-    assert "rmse_3d_m" in out
+    assert "3D RMSE [m]" in out and "ekf" in out
     solution, seq = namespace["solution"], namespace["seq"]
     assert solution.available.all() and np.all(np.isfinite(solution.pos_ecef_m))
     assert len(solution.time_gps_s) == len(seq)

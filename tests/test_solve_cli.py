@@ -14,7 +14,6 @@ from lfgnss.solve import DEFAULT_MODEL, SAMPLE_NAV, SAMPLE_OBS, SAMPLE_TRUTH, ma
     (["--truth-origin", "5"], "--truth-origin applies to a --truth file"),
     (["--obs", str(SAMPLE_OBS), "--nav", *map(str, SAMPLE_NAV), "--truth", str(SAMPLE_TRUTH), "--truth-origin", "5"],
      "--truth-origin applies to --truth-format smartloc only"),
-    (["--systems", "GX"], "unknown constellation letter(s) X"),
     (["--backend", "plain-ekf", "--model", "m.npz"], "--model applies to --backend ekf and fgo, not plain-ekf"),
     (["--backend", "wls", "--no-model"], "--no-model applies to --backend ekf and fgo, not wls"),
     (["--model", "m.npz", "--no-model"], "--model and --no-model contradict each other"),
@@ -48,6 +47,7 @@ def test_unusable_output_folder_is_one_line_before_solving(tmp_path, capsys, mak
 
 
 @pytest.mark.parametrize("extra, message", [
+    (["--systems", "GX"], "argument --systems: unknown constellation letter(s) 'X' in 'GX'; use letters of GCERJ"),
     (["--smooth", "--smooth-lag", "inf"], "argument --smooth-lag: needs a finite number, got 'inf'"),
     (["--obs", str(SAMPLE_OBS), "--nav", *map(str, SAMPLE_NAV), "--truth", str(SAMPLE_TRUTH),
       "--truth-format", "smartloc", "--truth-origin", "nan"], "argument --truth-origin: needs a finite number, got 'nan'"),
@@ -127,6 +127,9 @@ def test_a_bundled_model_is_picked_by_name(tmp_path, capsys):
     assert main(["--out", str(tmp_path), "--no-plots", "--model", "hk-tst-static-2020"]) == 0
     assert f"(model {bundled_models()['hk-tst-static-2020']})" in capsys.readouterr().out    # the file, not the name
     assert (tmp_path / "Berlin_Potsdamer_Platz_ekf-hk-tst-static-2020.csv").exists()
+    assert main(["--out", str(tmp_path), "--no-plots", "--quiet", "--model", "default"]) == 0
+    assert (tmp_path / "Berlin_Potsdamer_Platz_ekf.csv").exists()          # the default model: no tag
+    assert not list(tmp_path.glob("*ekf-default*"))
 
 
 def test_back_ends_compared_in_one_folder_keep_their_own_outputs(tmp_path, capsys):

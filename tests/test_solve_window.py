@@ -87,7 +87,7 @@ def test_a_window_without_epochs_is_one_line_naming_file_window_and_span(tmp_pat
     assert main([*FAST, "--out", str(tmp_path), "--start", "1900:127000", "--end", "2016/06/06 11:20:00"]) == 2
     assert _one_line(capsys.readouterr().err) == (
         f"error: {SAMPLE_OBS}: no epoch in --start/--end 2016-06-06 11:16:40 GPST (1900:127000) to 2016-06-06 "
-        f"11:20:00 GPST (1900:127200); the file spans 2016-06-06 11:10:41.7 to 11:15:25.0 GPST (283.4 s)")
+        f"11:20:00 GPST (1900:127200); the file spans 2016-06-06 11:10:41.7 to 11:15:25.1 GPST (283.4 s)")
     assert main(["--no-plots", "--out", str(tmp_path), "--end", "1900:126000", "--elevation-mask", "15"]) == 2
     err = _one_line(capsys.readouterr().err)                  # the model's mask warning waits for good input
     assert err.startswith(f"error: {SAMPLE_OBS}: no epoch in --start/--end up to 2016-06-06 11:00:00 GPST"), err

@@ -10,6 +10,7 @@ torch = pytest.importorskip("torch")
 
 from estimators.base import STATUS_NONE, STATUS_RESET, STATUS_UPDATED  # noqa: E402
 from estimators.ekf import LfgnssEkf  # noqa: E402
+from estimators import models  # noqa: E402
 from estimators.models import EkfConfig  # noqa: E402
 from estimators.noise import FixedNoise  # noqa: E402
 from learning.torch_ekf import batch_ekf, geometric_range_m, rts_smooth  # noqa: E402
@@ -237,6 +238,26 @@ def test_clock_jump_realigns_only_the_clock(cases):
     assert np.flatnonzero(sol.info["clock_realigned"]).tolist() == [70] and sol.status[70] == STATUS_UPDATED
     sol = LfgnssEkf(noise=FixedNoise(r[0], vc[0]), config=CONFIG).solve(seqs[0])
     assert sol.info["clock_realigned"][40] and sol.status[40] == STATUS_RESET   # tried first, then reset
+
+
+@pytest.mark.parametrize("min_redundancy, resets", [(2, False), (0, True)])
+def test_a_coarse_fix_without_redundancy_resets_neither_filter(cases, min_redundancy, resets):
+    """A far-off coarse fix at an epoch of 4 GPS + 1 BeiDou satellites (redundancy 0) cannot say it is the one that
+    is right: neither twin resets to it (EkfConfig.reset_min_redundancy), unless the check is off."""
+    seqs, r, vc = cases
+    s = seqs[1]
+    mask = s.mask.copy()
+    for sys_id, keep in ((0, 4), (1, 1)):
+        slots = np.flatnonzero(mask[80] & (s.system_index[80] == sys_id))
+        mask[80, slots[keep:]] = False
+    coarse = s.coarse_ecef_m.copy()
+    coarse[80] += 400.0
+    weak = replace(s, mask=mask, coarse_ecef_m=coarse, pr_m=np.where(mask, s.pr_m, 0.0))
+    cfg = EkfConfig(reset_min_redundancy=min_redundancy)
+    out = batch_ekf(to_batch([weak]), torch.as_tensor(r[1:2]), torch.as_tensor(vc[1:2]), n_systems=2, config=cfg)
+    _assert_matches_plugin(out, [weak], r[1:2], vc[1:2], cfg)
+    assert (out.status[0, 80].item() == STATUS_RESET) == resets
+    assert models.snapshot_redundancy(mask[80], s.system_index[80], 2) == 0
 
 
 def test_padded_slots_have_no_effect(cases):

@@ -10,6 +10,7 @@ from learning.export import load_model
 from learning.train import (_index_batch, build_model, ekf_config, evaluate, jitter_features, load_config,
                             load_sequences, main, prepare, run_filter, train)
 from learning.loss import make_loss
+from lfgnss.paths import model_path
 
 EPOCHS = 4
 SETTINGS = ["data.datasets=['synthetic']", "data.synthetic.n_epochs=150", "data.synthetic.nlos_fraction=0.4",
@@ -378,8 +379,8 @@ def test_every_config_file_loads():
         cfg = load_config(str(path))
         assert cfg["data"]["datasets"] and cfg["train"]["epochs"] >= 1, path
         init = cfg["train"]["init"]
-        if init.startswith("lfgnss/"):
-            assert Path(init).is_file(), f"{path}: train.init {init} is not bundled"
+        if init and not init.startswith("runs/"):
+            assert model_path(init).is_file(), f"{path}: train.init {init} is not bundled"
 
 
 def test_training_through_the_smoother(config, prepared, full_run, tmp_path):
@@ -490,8 +491,7 @@ def test_config_file_paths_are_read_next_to_it_then_from_the_current_folder(tmp_
     config = load_config(folder / "mine.toml")
     assert config["data"]["register"] == [str(folder / "my-drive.toml"), "elsewhere.toml"]
     assert config["train"]["init"] == "lfgnss/data/model/lfgnss-transfer-base.npz"     # not beside it: as given
-    assert load_config("learning/configs/hk_finetune.toml")["train"]["init"] == \
-        "lfgnss/data/model/lfgnss-transfer-base.npz"
+    assert load_config("learning/configs/hk_finetune.toml")["train"]["init"] == "transfer-base"   # a bundled name
     assert load_config(None, ["data.register=my.toml"])["data"]["register"] == ["my.toml"]   # one file, not letters
     with pytest.raises(ValueError, match="data.register"):
         load_config(None, ["data.register=[1, 2]"])
