@@ -96,8 +96,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="ekf, plain-ekf: smooth the filter's run backwards (Rauch-Tung-Striebel; post-processing)")
     p.add_argument("--smooth-lag", type=_finite_float, default=None, metavar="SECONDS",
                    help="with --smooth: a fixed-lag smoother, each epoch using the epochs up to SECONDS later")
+    p.add_argument("--marginals", action="store_true",
+                   help="fgo: write the graph's marginal sds, inflated by its pseudorange residuals as the EKF's, "
+                        "not the default per-epoch least-squares stand-in, which can reach kilometres where few "
+                        "satellites are seen (docs/sd_consistency.md)")
     p.add_argument("--formal-sd", action="store_true",
-                   help="ekf, plain-ekf: write the filter's formal sds, not those inflated by its pseudorange "
+                   help="ekf, plain-ekf, fgo --marginals: write the formal sds, not those inflated by the pseudorange "
                         "residuals (docs/sd_consistency.md)")
     p.add_argument("--out", type=Path, default=Path("lfgnss-out"), help="output folder")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
@@ -172,9 +176,13 @@ def _check_options(args) -> None:
     if args.smooth and args.backend not in SMOOTHABLE_BACKENDS:
         raise ValueError(f"--smooth applies to --backend {' and '.join(SMOOTHABLE_BACKENDS)}, not {args.backend}"
                          + (" (the factor graph's batch mode already uses every epoch)" if args.backend == "fgo" else ""))
-    if args.formal_sd and args.backend not in SMOOTHABLE_BACKENDS:
-        raise ValueError(f"--formal-sd applies to --backend {' and '.join(SMOOTHABLE_BACKENDS)}, not {args.backend} "
-                         f"(whose sds are not inflated)")
+    if args.marginals and args.backend != "fgo":
+        raise ValueError(f"--marginals applies to --backend fgo, not {args.backend}")
+    if args.formal_sd and args.backend not in SMOOTHABLE_BACKENDS and not args.marginals:
+        which = ("fgo's default stand-in (add --marginals)" if args.backend == "fgo"
+                 else f"{args.backend} (whose sds are not inflated)")
+        raise ValueError(f"--formal-sd applies to --backend {' and '.join(SMOOTHABLE_BACKENDS)} and to fgo with "
+                         f"--marginals, not {which}")
     if (args.model is not None or args.no_model) and args.backend not in LEARNED_BACKENDS:
         raise ValueError(f"--{'model' if args.model is not None else 'no-model'} applies to --backend "
                          f"{' and '.join(LEARNED_BACKENDS)}, not {args.backend} (which has no learned noise)")
@@ -263,6 +271,8 @@ def _solve(args) -> _Solved:
         if args.smooth_lag is not None:
             options["smooth_lag_s"] = args.smooth_lag
             label += f" (lag {args.smooth_lag:g} s)"
+    if args.marginals:
+        options["covariances"] = True
     if args.formal_sd:
         options["inflate_cov"] = False
     label += " (hand-set noise)" if args.no_model else ""
@@ -488,6 +498,7 @@ def _run_tag(args: argparse.Namespace, options: dict) -> str:
     own_model = args.model is not None and model_path(args.model).resolve() != DEFAULT_MODEL.resolve()
     tag += f"-{_model_tag(Path(args.model))}" if own_model else ""     # --model default is the run without --model
     tag += "-hand-set" if args.no_model else ""
+    tag += "-marginals" if args.marginals else ""
     tag += "-formal-sd" if args.formal_sd else ""
     for option, t in (("ts", args.start), ("te", args.end)):          # rnx2rtkp's names; GPS week and time of week [s]
         tag += f"-{option}{_week_tow_text(t).replace(':', '_')}" if t is not None else ""

@@ -20,7 +20,10 @@ from lfgnss.solve import DEFAULT_MODEL, SAMPLE_NAV, SAMPLE_OBS, SAMPLE_TRUTH, ma
     (["--backend", "ekf", "--mode", "fixed-lag"], "--mode applies to --backend fgo, not ekf"),
     (["--smooth-lag", "5"], "--smooth-lag needs --smooth (--smooth --smooth-lag 5)"),
     (["--smooth", "--smooth-lag", "-1"], "--smooth-lag must be a lag >= 0 seconds, got -1"),
-    (["--backend", "wls", "--formal-sd"], "--formal-sd applies to --backend ekf and plain-ekf, not wls"),
+    (["--backend", "wls", "--formal-sd"],
+     "--formal-sd applies to --backend ekf and plain-ekf and to fgo with --marginals, not wls (whose sds are not"),
+    (["--backend", "fgo", "--formal-sd"], "not fgo's default stand-in (add --marginals)"),
+    (["--backend", "ekf", "--marginals"], "--marginals applies to --backend fgo, not ekf"),
     (["--obs", "nope.obs"], "nope.obs: cannot read file (No such file or directory)"),   # not "no --nav"
     (["--model", "hk-tst"], "hk-tst: no such model file or bundled model (berlin-pp, default, hk-tst-2019,"),
 ])
@@ -119,6 +122,23 @@ def test_a_model_of_ones_own_is_in_the_output_names(tmp_path):
                      str(tmp_path / run / "model.npz")]) == 0
     assert {p.name for p in (tmp_path / "o").glob("*ekf-[ab].csv")} == {"Berlin_Potsdamer_Platz_ekf-a.csv",
                                                                        "Berlin_Potsdamer_Platz_ekf-b.csv"}
+
+
+def test_fgo_marginals_replace_the_stand_in_sds_and_are_named_in_the_outputs(tmp_path, capsys):
+    """--marginals writes the graph's (inflated) marginal sds, not the least-squares stand-in; --formal-sd with it the
+    marginals as they are; each run keeps its own files and the positions do not change."""
+    import pandas as pd
+
+    for extra in ([], ["--marginals"], ["--marginals", "--formal-sd"]):
+        assert main(["--out", str(tmp_path), "--no-plots", "--quiet", "--backend", "fgo", *extra]) == 0
+    stand_in, marginals, formal = (pd.read_csv(tmp_path / f"Berlin_Potsdamer_Platz_fgo{tag}.csv")
+                                   for tag in ("", "-marginals", "-marginals-formal-sd"))
+    for a in (marginals, formal):
+        assert (a[["x_m", "y_m", "z_m"]].to_numpy() == stand_in[["x_m", "y_m", "z_m"]].to_numpy()).all()
+    sd = ["sd_e_m", "sd_n_m", "sd_u_m"]
+    assert not (marginals[sd].to_numpy() == stand_in[sd].to_numpy()).all()
+    assert (marginals[sd].to_numpy() >= formal[sd].to_numpy() - 1e-9).all()        # inflation never shrinks
+    assert (marginals[sd].to_numpy() > formal[sd].to_numpy() + 1e-6).any()
 
 
 def test_a_bundled_model_is_picked_by_name(tmp_path, capsys):
