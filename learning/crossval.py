@@ -49,10 +49,10 @@ from pathlib import Path
 import numpy as np
 
 from lfgnss.datasets import contiguous_runs, split_parts
-from lfgnss.paths import model_path
 from lfgnss.errors import (INPUT_ERRORS, InputError, cannot_write, input_line, one_line, path_option, shortened,
                            stdout_gone)
 from lfgnss.metrics import accuracy_table, markdown_table
+from lfgnss.paths import model_path
 from lfgnss.sequence import Sequence
 
 from .provenance import code_text, command_line, git_state

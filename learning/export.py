@@ -421,7 +421,8 @@ def load_model(path: str | Path, expected_features: Iterable[str] | None = None)
             with np.load(path, allow_pickle=False) as z:
                 arrays = {k: np.asarray(z[k]) for k in z.files}
     except FileNotFoundError as exc:
-        hint = "" if Path(path).suffix or len(Path(path).parts) != 1 else f" or bundled model ({', '.join(bundled_models())})"
+        named = not Path(path).suffix and len(Path(path).parts) == 1          # could have been a bundled name
+        hint = f" or bundled model ({', '.join(bundled_models())})" if named else ""
         raise ModelFileError(path, f"no such model file{hint}") from exc
     except IsADirectoryError as exc:
         raise ModelFileError(path, "a folder, not a model file") from exc

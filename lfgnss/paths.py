@@ -32,7 +32,8 @@ def bundled_models() -> dict[str, Path]:
 
 
 def model_path(model: str | os.PathLike) -> Path:
-    """A model file: ``model`` itself where that path exists or has a folder or suffix, else the bundled model so named."""
+    """A model file: ``model`` itself where that path exists or has a folder or suffix, else the bundled model of
+    that name (``"hk-tst-2019"``: lfgnss-hk-tst-2019.npz), else ``model`` as it is."""
     path = Path(model)
     if path.exists() or path.suffix or len(path.parts) != 1:
         return path

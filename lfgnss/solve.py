@@ -90,7 +90,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="last epoch to solve, inclusive, in the same forms (rnx2rtkp -te)")
     p.add_argument("--elevation-mask", type=_elevation_mask, default=DEFAULT_ELEVATION_MASK_DEG, metavar="DEG",
                    help="elevation mask of the coarse fix, quality control and features [deg]")
-    p.add_argument("--mode", default=None, choices=("batch", "fixed-lag"), help="fgo mode: batch, the whole run in one graph (default), or fixed-lag, a causal sliding "
+    p.add_argument("--mode", default=None, choices=("batch", "fixed-lag"),
+                   help="fgo mode: batch, the whole run in one graph (default), or fixed-lag, a causal sliding "
                         "10 s window, less accurate than either batch or ekf on the bundled drive (README)")
     p.add_argument("--smooth", action="store_true",
                    help="ekf, plain-ekf: smooth the filter's run backwards (Rauch-Tung-Striebel; post-processing)")

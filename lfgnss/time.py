@@ -32,7 +32,7 @@ def gps_s_to_datetime64(gps_s: np.ndarray) -> np.ndarray:
 
 def gpst_stamp(gps_s: float, decimals: int = 3) -> str:
     """GPS seconds [s] as a GPST calendar stamp to ``decimals`` (1 to 3) places: ``2016-06-06 11:11:40.500``."""
-    ms = int(round(round(gps_s, decimals) * 1000))    # whole ms: through float ns, 25.1 s became 25.0999999 (cut to 25.0)
+    ms = int(round(round(gps_s, decimals) * 1000))    # whole ms: through float ns 25.1 s was 25.0999999, cut to 25.0
     text = str(GPS_EPOCH.astype("datetime64[ms]") + np.timedelta64(ms, "ms")).replace("T", " ")
     return text[:len(text) - 3 + decimals]
 

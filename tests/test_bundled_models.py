@@ -93,7 +93,8 @@ def test_bundled_models_are_picked_by_name_everywhere_a_model_file_is(tmp_path, 
     assert set(bundled_models()) >= {"default", "hk-tst-2019", "berlin-pp", "hk-tst-static-2020"}
     by_name = load_model("hk-tst-2019")
     assert by_name.metadata == load_model(MODELS / "lfgnss-hk-tst-2019.npz").metadata
-    assert estimators.create("ekf", noise="berlin-pp").noise.metadata == load_model(MODELS / "lfgnss-berlin-pp.npz").metadata
+    berlin = load_model(MODELS / "lfgnss-berlin-pp.npz")
+    assert estimators.create("ekf", noise="berlin-pp").noise.metadata == berlin.metadata
     assert export_main(["--show", "hk-tst-static-2020"]) == 0
     assert "hk-tst-static-2020" in capsys.readouterr().out
     # a file of that name wins over the bundled model; a path with a folder or suffix is never a name
