@@ -5,13 +5,15 @@ Importing this package registers the back ends: ``create("ekf")``, ``create("pla
 ``create("ekf", smooth=True)`` (or ``plain-ekf``) adds the Rauch-Tung-Striebel smoother (``estimators.smoother``).
 Their covariance is inflated by the pseudorange residuals unless ``inflate_cov=False`` (``estimators.consistency``).
 An option a backend does not take is a TypeError naming both (``backend_options(name)`` lists its options);
-``noise`` may be a model file path (``create("ekf", noise="my.npz")``), read as ``--model`` is.
+``noise`` may be a model file path (``create("ekf", noise="my.npz")``), read as ``--model`` is. A learned model
+runs in the filter it was trained in (``config_of(model)``); a noise model of your own that wraps one does not, unless
+given ``config=config_of(model)`` (the EKF warns).
 """
 from .base import (STATUS_COASTED, STATUS_NAMES, STATUS_NONE, STATUS_RESET, STATUS_UPDATED, Estimator, Solution,
                    available, backend_options, create, register)
 from .models import EkfConfig
 from .noise import FixedNoise, HeuristicNoise, NoiseModel, TruthNoise
-from .ekf import LfgnssEkf, PlainEkf
+from .ekf import LfgnssEkf, PlainEkf, config_of
 from . import baselines  # noqa: F401  (registers "wls" and "wls-weighted")
 
 
@@ -30,4 +32,4 @@ def __dir__() -> list[str]:
 
 __all__ = ["Estimator", "Solution", "available", "backend_options", "create", "register", "STATUS_NONE",
            "STATUS_UPDATED", "STATUS_COASTED", "STATUS_RESET", "STATUS_NAMES", "EkfConfig", "NoiseModel",
-           "HeuristicNoise", "FixedNoise", "TruthNoise", "LfgnssEkf", "LfgnssFgo", "PlainEkf"]
+           "HeuristicNoise", "FixedNoise", "TruthNoise", "LfgnssEkf", "LfgnssFgo", "PlainEkf", "config_of"]

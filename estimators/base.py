@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Callable, Iterable, Protocol, runtime_checkabl
 
 import numpy as np
 
-from lfgnss.frames import ecef_to_enu, ecef_to_lla
+from lfgnss.frames import check_near_surface, ecef_to_enu, ecef_to_lla
 from lfgnss.metrics import enu_rotations
 from lfgnss.sequence import Sequence, share_text, time_span_text
 
@@ -45,6 +45,21 @@ class Solution:
     status: np.ndarray            # (T,) STATUS_* codes
     vel_ecef_m_s: np.ndarray | None = None  # (T, 3) [m/s] where the estimator has velocity
     info: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        """ValueError naming the back end and the field whose shape is not (T, ...) or whose status code is unknown."""
+        t = np.shape(self.time_gps_s)[:1]
+        shapes = {"time_gps_s": (), "pos_ecef_m": (3,), "cov_ecef_m2": (3, 3), "clock_m": (), "n_used": (),
+                  "status": ()} | ({} if self.vel_ecef_m_s is None else {"vel_ecef_m_s": (3,)})
+        for name, tail in shapes.items():
+            shape = np.shape(getattr(self, name))
+            if len(t) != 1 or shape != t + tail:
+                want = f"({t[0] if t else 'T'}{''.join(f', {d}' for d in tail)})"
+                raise ValueError(f"Solution of {self.backend!r}: {name} has shape {shape}, expected {want}")
+        unknown = sorted(set(np.unique(np.asarray(self.status)).tolist()) - set(STATUS_NAMES))
+        if unknown:
+            raise ValueError(f"Solution of {self.backend!r}: unknown status code(s) {unknown} (estimators.STATUS_NAMES: "
+                             f"{STATUS_NAMES})")
 
     @property
     def available(self) -> np.ndarray:
@@ -104,6 +119,7 @@ class Solution:
         ref = np.asarray(ref_ecef_m, float)
         if ref.shape != (3,) or not np.isfinite(ref).all():
             raise ValueError(f"Solution.enu_m: ref_ecef_m must be 3 finite ECEF coordinates [m], got {ref_ecef_m!r}")
+        check_near_surface("Solution.enu_m", "ref_ecef_m", ref)
         return ecef_to_enu(pos, ref).reshape(-1, 3)
 
     def sd_enu_m(self) -> np.ndarray:
@@ -236,8 +252,17 @@ def usable_sequence(sequence: Sequence, owner: str = "estimators", dopplers: boo
 
 
 def register(name: str) -> Callable:
-    """Class decorator: make an estimator available as ``--backend name``."""
+    """Class decorator ``@register("name")``: make an estimator available as ``create("name")`` (and as
+    ``--backend name`` to ``lfgnss.solve.main([...])`` called from the same program); replacing a back end warns."""
+    if not isinstance(name, str) or not name:
+        what = f"the {name.__name__} itself" if callable(name) else repr(name)
+        raise TypeError(f"estimators.register: give the back end's name, @register(\"name\"), not {what}")
+
     def wrap(factory: Callable[..., Estimator]) -> Callable[..., Estimator]:
+        lazy_own = _LAZY.get(name) == getattr(factory, "__module__", None)    # fgo registering itself on first use
+        if (name in _REGISTRY and _REGISTRY[name] is not factory) or (name in _LAZY and not lazy_own):
+            warnings.warn(f"estimators.register: {name!r} now creates {getattr(factory, '__qualname__', factory)}, "
+                          f"replacing the back end of that name", stacklevel=2)
         _REGISTRY[name] = factory
         return factory
     return wrap

@@ -50,8 +50,8 @@ from .base import (STATUS_COASTED, STATUS_NONE, STATUS_RESET, STATUS_UPDATED, So
                    warn_unusable)
 from .consistency import covariance_inflation, residual_variance_factor
 from .models import EkfConfig
-from .noise import (HeuristicNoise, NoiseModel, checked_noise, default_noise, describe_noise, noise_output,
-                    resolve_noise)
+from .noise import (FixedNoise, HeuristicNoise, NoiseModel, TruthNoise, checked_noise, default_noise, describe_noise,
+                    noise_output, resolve_noise)
 from .smoother import lag_horizon, rts_smooth
 
 
@@ -63,6 +63,12 @@ def compensated_pseudorange(pr_m: np.ndarray, vc_m: np.ndarray) -> np.ndarray:
 def coarse_available(sequence: Sequence) -> np.ndarray:
     """(T,) bool: epochs whose coarse fix can (re-)initialise the filter (position and clock finite)."""
     return np.isfinite(sequence.coarse_ecef_m).all(-1) & np.isfinite(sequence.coarse_clock_m[:, 0])
+
+
+def _carries_filter(noise: object) -> bool:
+    """Whether ``noise`` says which filter it belongs to: a learned model (its file's metadata), or a hand-set one."""
+    return isinstance(noise, (HeuristicNoise, FixedNoise, TruthNoise)) or isinstance(getattr(noise, "metadata", None),
+                                                                                       dict)
 
 
 def config_of(noise: NoiseModel) -> EkfConfig:
@@ -158,6 +164,11 @@ class LfgnssEkf:
                             f"for a dict), got {type(config).__name__}")
         noise = resolve_noise(noise, type(self).__name__)
         self.noise = HeuristicNoise() if noise is None else noise
+        if config is None and not _carries_filter(self.noise):
+            warnings.warn(f"{owner}: the noise model {describe_noise(self.noise)} carries no filter settings of its own "
+                          f"(it is not a learned model file), so it runs in the default EkfConfig; a wrapped learned model "
+                          f"runs in its own filter with config=estimators.config_of(model) (or say config=EkfConfig())",
+                          stacklevel=caller_stacklevel())
         self.config = config_of(self.noise) if config is None else config
         self.smooth = smooth
         self.smooth_lag_s = float(smooth_lag_s)

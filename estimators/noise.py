@@ -25,7 +25,12 @@ from .base import caller_stacklevel
 
 @runtime_checkable
 class NoiseModel(Protocol):
-    """Maps a Sequence to pseudorange variances R (T, N) [m^2] and compensations v^c (T, N) [m]."""
+    """Maps a Sequence to pseudorange variances R (T, N) [m^2] and compensations v^c (T, N) [m].
+
+    A learned model also carries the filter it was trained in (``metadata["ekf_config"]``, ``estimators.config_of``),
+    which the EKF runs when given no ``config``; a function wrapping one (scaling its R, say) carries none: pass
+    ``config=estimators.config_of(model)`` to keep the model's filter.
+    """
 
     def __call__(self, sequence: Sequence) -> tuple[np.ndarray, np.ndarray]:
         ...

@@ -16,7 +16,9 @@ is picked on the held-out block itself); and the plain EKF and the last epoch wi
 (``estimators.smoother``; training itself reads smoothed positions only with ``train.smooth``); and the 2D
 (horizontal) RMSE of the plain EKF and of the last epoch.
 "untrained" has a random output head, so it is near, not equal to, the plain EKF even for a recipe with
-the hand-set R prior. Writes ``crossval.csv`` and ``crossval.md``
+the hand-set R prior; with ``train.init`` it is that starting model, the one fine-tuning has to beat (crossval.md
+says so under its table). Each fold prints a header line (what it trains on and holds out) before its epoch
+lines, whose "val 3D RMSE" is on the held-out block. Writes ``crossval.csv`` and ``crossval.md``
 in ``--out`` and each fold's run (``log.csv``, ``curves.png``, ``best.pt``, ``last.pt``) in ``--out/fold<j>/``.
 ``--fold J`` (repeatable) runs only those folds, e.g. one process per fold on a machine with spare cores, each
 with its own ``--out``; the pooled row is written only when every fold ran. ``--pool DIR`` (repeatable) then puts
@@ -209,14 +211,17 @@ def pooled_rmse(rmse: list[float], counts: list[int]) -> float:
 
 def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = True,
              only: list[int] | None = None, reuse: str | Path | None = None, command: str | None = None,
-             config_file: str | Path | None = None) -> list[dict]:
+             config_file: str | Path | None = None, epoch_lines: bool | None = None) -> list[dict]:
     """Train ``config`` on each fold (or the folds ``only``); one row per fold, plus a ``pooled`` row when all ran.
 
     ``reuse``: train nothing, score the folds' saved models in that folder under ``config``'s EKF (``saved_fold``).
     ``command``: the command line, recorded at the top of crossval.md and in the folds' checkpoints.
     ``config_file``: the ``--config`` file ``config`` was read from, recorded in the folds' checkpoints as
     ``learning.train`` records it.
+    ``epoch_lines``: print a header line per fold and ``learning.train``'s epoch lines on stdout (default: as
+    ``progress``; the command line prints them, ``--no-progress`` or not).
     """
+    epoch_lines = progress if epoch_lines is None else epoch_lines
     out = Path(out_dir)
     if isinstance(folds, bool) or not isinstance(folds, int) or folds < 2:
         raise ValueError(f"folds must be a whole number >= 2 (--folds), got {folds!r}")
@@ -244,14 +249,14 @@ def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = 
               "unseen data, so this cross-validation is optimistic", file=sys.stderr)
     whole = {ds: load_sequences(ds, data["train_split"], config) + load_sequences(ds, data["val_split"], config)
              for ds in data["datasets"]}
-    rows = []
+    rows, started = [], None if init is None else str(init.path)
     try:
-        _run_folds(rows, chosen, folds, whole, config, out, progress, reuse, command, config_file)
+        _run_folds(rows, chosen, folds, whole, config, out, progress, reuse, command, config_file, epoch_lines)
     except BaseException as exc:        # Ctrl-C, a diverged fold, a bad checkpoint: the finished folds' rows are kept
         exc.crossval_stopped = (out, None, [])
         if rows:
             try:
-                _write_results(out, rows, command)
+                _write_results(out, rows, command, started)
                 exc.crossval_stopped = (out, out / "crossval.csv", [r["fold"] for r in rows
                                                                      if isinstance(r["fold"], int)])
             except UnwrittenResults:
@@ -259,7 +264,7 @@ def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = 
         raise
     if len(chosen) == folds:
         rows.extend(pooled_rows(rows, list(whole) if len(whole) > 1 else []))
-    _write_results(out, rows, command)
+    _write_results(out, rows, command, started)
     return rows
 
 
@@ -302,7 +307,7 @@ def pool(run_dirs: list[str | Path], folds: int, out_dir: str | Path, command: s
     if isinstance(folds, bool) or not isinstance(folds, int) or folds < 2:
         raise ValueError(f"folds must be a whole number >= 2 (--folds), got {folds!r}")
     _refuse_used_out(out)
-    rows, source, recipe = [], {}, None
+    rows, source, recipe, started = [], {}, None, None
     for d in map(Path, run_dirs):
         table = d / "crossval.csv"
         try:
@@ -335,6 +340,7 @@ def pool(run_dirs: list[str | Path], folds: int, out_dir: str | Path, command: s
                 raise InputError(table, f"fold {j} was trained with {k} = {flat.get(k, '(unset)')!r}, fold "
                                  f"{recipe[0]} with {recipe[1].get(k, '(unset)')!r}; pool runs of one recipe")
             recipe = recipe or (j, flat)
+            started = started or (saved.get("train") or {}).get("init") or None
             rows.append(r)
     missing = [j for j in range(folds) if j not in source]
     if missing:
@@ -344,7 +350,7 @@ def pool(run_dirs: list[str | Path], folds: int, out_dir: str | Path, command: s
     datasets = list(dict.fromkeys(str(r["fold"]).split(":", 1)[1] for r in rows if ":" in str(r["fold"])))
     rows.extend(pooled_rows(rows, datasets))
     _make_out(out)
-    _write_results(out, rows, command)
+    _write_results(out, rows, command, started)
     return rows
 
 
@@ -374,9 +380,19 @@ class UnwrittenResults(InputError):
         self.rows = rows
 
 
-def _write_results(out: Path, rows: list[dict], command: str | None = None) -> None:
+def _start_note(init: str | None, rows: list[dict]) -> str:
+    """crossval.md's line under the table when the folds started from ``init`` (train.init): its "untrained" column
+    is that model, the one fine-tuning has to beat; "" otherwise (or when the column is empty, ``--reuse``)."""
+    if not init or all(math.isnan(float(r["untrained_rmse_3d_m"])) for r in rows):
+        return ""
+    return (f"\nuntrained_rmse_3d_m is the starting model (train.init = {init}) before any training epoch: the "
+            "one last_rmse_3d_m has to beat.\n")
+
+
+def _write_results(out: Path, rows: list[dict], command: str | None = None, init: str | None = None) -> None:
     """``crossval.csv`` and ``crossval.md`` of ``rows`` in ``out`` (the .md headed by ``command`` and the code's git
-    commit); UnwrittenResults (with the rows) if one fails."""
+    commit, and with ``init``, train.init, a note that "untrained" is that model); UnwrittenResults (with the rows)
+    if one fails."""
     path = out / "crossval.csv"
     try:
         with open(path, "w", newline="") as fh:
@@ -384,13 +400,14 @@ def _write_results(out: Path, rows: list[dict], command: str | None = None) -> N
             w.writeheader()
             w.writerows(rows)
         path = out / "crossval.md"
-        path.write_text(_made_by(command) + markdown_table(rows, COLUMNS))
+        path.write_text(_made_by(command) + markdown_table(rows, COLUMNS) + _start_note(init, rows))
     except OSError as err:
         raise UnwrittenResults(path, err, rows) from None
 
 
 def _run_folds(rows: list[dict], chosen, folds: int, whole: dict, config: dict, out: Path, progress: bool,
-               reuse, command: str | None = None, config_file: str | Path | None = None) -> None:
+               reuse, command: str | None = None, config_file: str | Path | None = None,
+               epoch_lines: bool = False) -> None:
     """Train (or with ``reuse`` rescore) each chosen fold, appending its row to ``rows`` as soon as it is done."""
     data = config["data"]
     for j in chosen:
@@ -417,8 +434,13 @@ def _run_folds(rows: list[dict], chosen, folds: int, whole: dict, config: dict, 
             finally:
                 torch.set_num_threads(threads)
             continue
+        pieces = [s for t, _ in parts.values() for s in t]
+        if epoch_lines:                 # its epoch lines follow; their "val 3D RMSE" is on the held-out block
+            print(f"fold {j} ({j + 1}/{folds}): training on {sum(map(len, pieces))} epochs in {len(pieces)} "
+                  f"piece(s), holding out {sum(map(len, held))} epochs", flush=True)
         prep = prepare(config, source)
-        history = train(copy.deepcopy(config), out / f"fold{j}", progress=progress, prepared=prep, export=False,
+        history = train(copy.deepcopy(config), out / f"fold{j}", progress=progress, epoch_lines=epoch_lines,
+                        prepared=prep, export=False,
                         command=command, config_file=config_file)
         best = min(history, key=lambda h: h["val_rmse_3d_m"])
         saved, last_smoothed_3d, last_2d = _saved_rmse_m(out / f"fold{j}" / "last.pt", config, prep)
@@ -476,7 +498,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="train and score nothing: put the folds of parallel --fold runs (their --out folders, "
                         "repeat --pool) in one table with the pooled rows, written to --out")
     p.add_argument("--out", type=path_option, help="output folder (default: runs/cv-<config name>)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("--no-progress", action="store_true",
+                   help="no progress bars (the fold and epoch lines are printed all the same)")
     args = p.parse_args(argv)
     if args.pool and (args.reuse or args.only or args.config or args.overrides or not args.out):
         p.error("--pool takes only --folds and an --out of its own (the recipe is the runs' own)")
@@ -488,7 +511,7 @@ def main(argv: list[str] | None = None) -> int:
         else:
             config = load_config(args.config, args.overrides)
             crossval(config, args.folds, out, progress=not args.no_progress, only=args.only, reuse=args.reuse,
-                     command=command, config_file=args.config)
+                     command=command, config_file=args.config, epoch_lines=True)
     except UnwrittenResults as exc:           # computed, not written: the table goes to stdout all the same
         print(markdown_table(exc.rows, COLUMNS), end="")
         exit_on_input_error(p, exc)

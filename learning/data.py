@@ -6,12 +6,14 @@ ablation such as "w/o DPC" is the default list minus the four ``dpc_*`` names - 
 """
 from __future__ import annotations
 
+import difflib
 from dataclasses import dataclass
 from typing import Iterable, Sequence as Seq
 
 import numpy as np
 import torch
 
+from lfgnss.features import AVAILABLE_FEATURES
 from lfgnss.sequence import DEFAULT_FEATURES, Sequence
 
 from .normalise import Normaliser, select_features
@@ -21,12 +23,25 @@ from .types import WindowBatch
 DPC_FEATURES = ("dpc_gdop", "dpc_pdop", "dpc_hdop", "dpc_vdop")
 
 
+def did_you_mean(key: str, known: list[str]) -> str:
+    """`` (did you mean 'train.epochs'?)`` for the one of ``known`` closest to ``key``, or "" when none is close."""
+    close = difflib.get_close_matches(key, known, n=1) or [k for k in known if k.split(".")[-1] == key.split(".")[-1]]
+    return f" (did you mean {close[0]!r}?)" if close else ""
+
+
 def resolve_feature_names(names: Iterable[str] | None = None, drop: Iterable[str] = ()) -> tuple[str, ...]:
     """Feature list from configuration: ``names`` (default ``DEFAULT_FEATURES``) minus ``drop``.
 
-    ``drop`` may contain the word ``"dpc"`` as shorthand for the four ``dpc_*`` features.
+    ``drop`` may contain the word ``"dpc"`` as shorthand for the four ``dpc_*`` features; any other name in it must
+    be a feature (of ``names`` or ``lfgnss.features.AVAILABLE_FEATURES``): ValueError otherwise, so that a typo does
+    not silently train on every feature.
     """
     base = tuple(names) if names is not None else DEFAULT_FEATURES
+    known = list(dict.fromkeys(("dpc", *base, *AVAILABLE_FEATURES)))
+    for d in drop:
+        if d not in known:
+            raise ValueError(f"data.drop_features: unknown feature {d!r}{did_you_mean(d, known)}; it takes names "
+                             f"of data.features ({', '.join(base)}) or 'dpc' (the four dpc_* features)")
     drop_set: set[str] = set()
     for d in drop:
         drop_set.update(DPC_FEATURES if d == "dpc" else (d,))

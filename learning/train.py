@@ -26,6 +26,9 @@ was started from. Every file is written to a temporary file and renamed (atomic)
 Exit status: 0 done; 2 bad input (a one-line error naming the file or setting; nothing is written for a bad
 setting); 3 the training loss became non-finite (one line; ``last.pt``/``best.pt`` of the epochs before are kept);
 130 Ctrl-C (one line naming the epoch ``last.pt`` holds and the ``--resume`` command that goes on).
+Output: one line per epoch on stdout (epoch 0 is the starting model, untrained or ``train.init``'s: the one training
+has to beat), ``--no-progress`` or not; a progress bar on stderr only where it is a terminal; last, the best epoch,
+the model file and how to use it. ``--resume`` of a run already at ``train.epochs`` says so (and trains nothing).
 
 Sequences come from one pluggable function, ``load_sequences(dataset_id, split, config)``:
 dataset ``"synthetic"`` uses ``lfgnss.simulate.simulate_sequence``, any other id goes to
@@ -39,7 +42,6 @@ import contextlib
 import copy
 import csv
 import dataclasses
-import difflib
 import hashlib
 import importlib
 import math
@@ -47,6 +49,7 @@ import os
 import pickle
 import random
 import re
+import shlex
 import sys
 import time
 import warnings
@@ -62,7 +65,7 @@ from lfgnss.errors import INPUT_ERRORS, one_line, shortened
 from lfgnss.sequence import DEFAULT_FEATURES, Sequence
 
 from . import provenance
-from .data import Window, make_windows, collate, resolve_feature_names, sequence_batch
+from .data import Window, collate, did_you_mean, make_windows, resolve_feature_names, sequence_batch
 from .export import model_settings
 from .loss import compensation_loss, error_norm_m, labelled_errors_m, make_loss
 from .network import LfgnssNet
@@ -124,18 +127,12 @@ def _flat(table: dict, prefix: str = "") -> dict:
     return out
 
 
-def _did_you_mean(key: str, known: list[str]) -> str:
-    """`` (did you mean 'train.epochs'?)`` for the one of ``known`` closest to ``key``, or "" when none is close."""
-    close = difflib.get_close_matches(key, known, n=1) or [k for k in known if k.split(".")[-1] == key.split(".")[-1]]
-    return f" (did you mean {close[0]!r}?)" if close else ""
-
-
 def _merge(base: dict, update: dict, where: str = "") -> dict:
     out = copy.deepcopy(base)
     for key, value in update.items():
         if key not in out and where != "ekf." and not where.startswith("ekf."):
             known = list(_flat(DEFAULT_CONFIG)) + ["data", "data.synthetic", "model", "train", "loss", "ekf"]
-            raise ValueError(f"unknown configuration key {where + key!r}{_did_you_mean(where + key, known)}")
+            raise ValueError(f"unknown configuration key {where + key!r}{did_you_mean(where + key, known)}")
         if isinstance(out.get(key), dict) and not isinstance(value, dict):    # ekf = 3, --set data=1
             raise ValueError(f"{where + key} must be a table of settings, got {value!r}")
         if isinstance(value, dict) and isinstance(out.get(key), dict):
@@ -249,6 +246,7 @@ def check_config(config: dict) -> dict:
         needed = key in ("datasets", "features")
         if not isinstance(items, list) or not all(isinstance(i, str) for i in items) or (needed and not items):
             raise ValueError(f"data.{key} must be a {'non-empty ' * needed}list of {what}, got {items!r}")
+    resolve_feature_names(_setting(config, "data.features"), _setting(config, "data.drop_features"))  # typos
     datasets = _setting(config, "data.datasets")
     twice = sorted({d for d in datasets if datasets.count(d) > 1})
     if twice:                                             # each would be loaded, trained on and validated on twice
@@ -374,7 +372,7 @@ def ekf_config(config: dict):
     known = {f.name for f in dataclasses.fields(EkfConfig)}
     unknown = sorted(set(config["ekf"]) - known)
     if unknown:
-        hint = _did_you_mean(f"ekf.{unknown[0]}", [f"ekf.{k}" for k in sorted(known)])
+        hint = did_you_mean(f"ekf.{unknown[0]}", [f"ekf.{k}" for k in sorted(known)])
         raise ValueError(f"unknown [ekf] keys {unknown}{hint}; EkfConfig has {sorted(known)}")
     try:
         return EkfConfig(**config["ekf"])
@@ -834,7 +832,8 @@ def _check_config_file(config_file: str | Path, record: dict | None, where: Path
 
 def train(config: dict, out_dir: str | Path, *, resume: bool = False, overrides: list[str] = (),
           progress: bool = True, prepared: Prepared | None = None, export: bool = True,
-          config_file: str | Path | None = None, command: str | None = None) -> list[dict]:
+          config_file: str | Path | None = None, command: str | None = None,
+          epoch_lines: bool | None = None) -> list[dict]:
     """Run (or resume) training; returns the history rows (epoch 0 = untrained model).
 
     Parameters
@@ -856,7 +855,13 @@ def train(config: dict, out_dir: str | Path, *, resume: bool = False, overrides:
     command : str, optional
         The command line that started (or resumed) the run: recorded with the git commit and the dataset TOMLs
         (``learning.provenance``) in the checkpoints and the model file.
+    progress : bool
+        A progress bar per epoch on stderr, drawn only where stderr is a terminal.
+    epoch_lines : bool, optional
+        Print a result line per epoch on stdout (epoch 0 included), and say so when a resumed run is already at
+        ``train.epochs``; default: as ``progress`` (the command lines print them, ``--no-progress`` or not).
     """
+    epoch_lines = progress if epoch_lines is None else epoch_lines
     out = Path(out_dir)                       # made only once the settings and the data are found good (_train)
     last_path = out / "last.pt"
     checkpoint = None
@@ -868,6 +873,10 @@ def train(config: dict, out_dir: str | Path, *, resume: bool = False, overrides:
         if config_file is not None:
             _check_config_file(config_file, record, last_path)
         config = resumed_config(checkpoint, list(overrides), last_path)
+        done, epochs = int(checkpoint["epoch"]), int(config["train"]["epochs"])
+        if done >= epochs and epoch_lines:      # nothing to train (model.npz is written again, as it was)
+            print(f"{out}: already at epoch {done} of {epochs}; extend with --set train.epochs=M (M > {done})",
+                  flush=True)
     elif last_path.exists():
         raise ValueError(f"{last_path}: a run already exists here; pass --resume or choose another --out")
     else:
@@ -903,7 +912,8 @@ def train(config: dict, out_dir: str | Path, *, resume: bool = False, overrides:
             if on_gpu:                                  # said once above instead of at every kernel
                 warnings.filterwarnings("ignore", ".*does not have a deterministic implementation", UserWarning)
                 warnings.filterwarnings("ignore", ".*defaults to a non-deterministic algorithm", UserWarning)
-            return _train(config, out, checkpoint, progress=progress, prepared=prepared, export=export,
+            return _train(config, out, checkpoint, progress=progress, epoch_lines=epoch_lines, prepared=prepared,
+                          export=export,
                           config_record=record, last_saved=last_saved, made=made)
     except KeyboardInterrupt as exc:                    # main says what is kept and how to go on
         exc.last_saved_epoch = last_saved["epoch"]
@@ -913,7 +923,8 @@ def train(config: dict, out_dir: str | Path, *, resume: bool = False, overrides:
         torch.use_deterministic_algorithms(deterministic)
 
 
-def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, prepared: Prepared | None,
+def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, epoch_lines: bool,
+           prepared: Prepared | None,
            export: bool, config_record: dict | None = None, last_saved: dict | None = None,
            made: dict | None = None) -> list[dict]:
     last_path, best_path = out / "last.pt", out / "best.pt"
@@ -995,6 +1006,9 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
         best = val
         save(best_path, 0)
         save(last_path, 0)
+        start = "start: train.init model" if prep.init is not None else "untrained"   # what training has to beat
+        if epoch_lines:
+            print(f"epoch 0 ({start}): val 3D RMSE {val:.3f} m ({history[-1]['seconds']:.1f} s)", flush=True)
 
     n_windows = len(prep.windows)
     batch_size = int(tr["batch_size"])
@@ -1006,10 +1020,11 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
         chunks = [order[k:k + batch_size] for k in range(0, n_windows, batch_size)]
         lr = optimiser.param_groups[0]["lr"]
         total, count = 0.0, 0
-        if progress:
-            from tqdm import tqdm
+        if progress:        # disable=None: a bar only where stderr is a terminal, as estimators.base.epoch_range
+            from tqdm.auto import tqdm
 
-            chunks = tqdm(chunks, desc=f"epoch {epoch}/{tr['epochs']}", leave=False, file=sys.stderr)
+            chunks = tqdm(chunks, desc=f"epoch {epoch}/{tr['epochs']}", unit="batch", disable=None, leave=False,
+                          file=sys.stderr)
         jitter = torch.Generator().manual_seed(int(seed) * 100_003 + epoch)
         for idx in chunks:
             batch = jitter_features(_index_batch(train_batch, idx), feature_noise, jitter)
@@ -1035,7 +1050,7 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
             total += float(loss.detach()) * len(idx)
             count += len(idx)
             if progress:
-                chunks.set_postfix(loss=f"{float(loss.detach()):.3f}")
+                chunks.set_postfix(loss=f"{float(loss.detach()):.3f}", refresh=False)
         scheduler.step()
         if averaged is not None:
             averaged.update_parameters(model)
@@ -1047,9 +1062,9 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
             save(best_path, epoch)
         save(last_path, epoch)
         _write_log(out / "log.csv", history)
-        if progress:
+        if epoch_lines:
             print(f"epoch {epoch}: train loss {total / count:.3f} m, val 3D RMSE {val:.3f} m "
-                  f"({history[-1]['seconds']:.1f} s)", file=sys.stderr)
+                  f"({history[-1]['seconds']:.1f} s)", flush=True)
     _write_log(out / "log.csv", history)
     _plot(out / "curves.png", history)
     if export:
@@ -1067,8 +1082,6 @@ def exit_on_input_error(parser: argparse.ArgumentParser, exc: BaseException) -> 
 
 def _resume_hint(exc: BaseException, out: Path) -> str:
     """What an interrupted run keeps, for its one line: the epoch ``last.pt`` holds and the command that goes on."""
-    import shlex
-
     last, epoch = out / "last.pt", getattr(exc, "last_saved_epoch", None)
     go_on = f"continue with --resume --out {shlex.quote(str(out))}"
     if epoch is not None:
@@ -1092,13 +1105,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--resume", action="store_true",
                    help="continue from OUT/last.pt with the run's own configuration (only --set train.epochs=N, "
                         "threads and device may change)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("--no-progress", action="store_true",
+                   help="no progress bars (the per-epoch result lines are printed all the same; the bars are drawn "
+                        "only where stderr is a terminal)")
     args = p.parse_args(argv)
     out = args.out or str(Path("runs") / (Path(args.config).stem if args.config else "default"))
     try:
         config = load_config(args.config, args.overrides)
         history = train(config, out, resume=args.resume, overrides=args.overrides, progress=not args.no_progress,
-                        config_file=args.config,
+                        epoch_lines=True, config_file=args.config,
                         command=provenance.command_line(p.prog, sys.argv[1:] if argv is None else list(argv)))
     except INPUT_ERRORS as exc:
         exit_on_input_error(p, exc)
@@ -1112,8 +1127,10 @@ def main(argv: list[str] | None = None) -> int:
 
     best = min(history, key=lambda h: h["val_rmse_3d_m"])
     exported = load_model(Path(out) / "model.npz").metadata     # the run's own config decides (--resume)
+    model = shlex.quote(str(Path(out) / "model.npz"))
     print(f"{out}: best validation 3D RMSE {best['val_rmse_3d_m']:.3f} m at epoch {best['epoch']}; model "
           f"{Path(out) / 'model.npz'} is epoch {exported['epoch']} (validation {exported['val_rmse_3d_m']:.3f} m)")
+    print(f"use it: python -m lfgnss.solve --model {model} (python -m learning.export --show {model} describes it)")
     if exported["epoch"] == 0:
         print(f"warning: no training epoch beat the untrained network on validation, so {Path(out) / 'model.npz'} "
               "holds no training (a network that starts from train.init is that model); train longer, change the "

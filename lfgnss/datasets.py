@@ -528,8 +528,8 @@ def _warn_truth(spec: DatasetSpec, seq: Sequence, notes: list[str]) -> None:
 def build(dataset_id: str, *, feature_names: tuple[str, ...] = DEFAULT_FEATURES, cache: bool = True) -> Sequence:
     """The whole dataset as one Sequence with aligned truth, built once and cached by content.
 
-    Several obs files are joined in time order (``join_observations``). Skipped truth lines and a truth that
-    labels no epoch are reported as warnings.
+    Several obs files are joined in time order (``join_observations``). Skipped truth lines, a truth that
+    labels no epoch and a constellation of ``systems`` with no usable observation are reported as warnings.
     """
     from .features import build_sequence, check_feature_names
     from .measurements import load
@@ -561,6 +561,11 @@ def build(dataset_id: str, *, feature_names: tuple[str, ...] = DEFAULT_FEATURES,
             target.parent.mkdir(parents=True, exist_ok=True)
             save_sequence(target, seq)
     _warn_truth(spec, seq, notes)
+    dropped = [c for c in spec.systems or () if c not in seq.systems]
+    if dropped:
+        warnings.warn(f"dataset {dataset_id}: constellation(s) {''.join(dropped)} of its systems have no usable "
+                      f"observation and are left out (its navigation files may lack their ephemerides): the sequence "
+                      f"has {''.join(seq.systems)}", stacklevel=2)
     return seq
 
 

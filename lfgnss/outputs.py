@@ -32,7 +32,7 @@ from estimators.base import (STATUS_COASTED, STATUS_NAMES, STATUS_NONE, STATUS_U
                              Solution)
 
 from . import __version__
-from .frames import ecef_to_lla, lla_to_ecef
+from .frames import check_near_surface, ecef_to_lla, lla_to_ecef
 from .metrics import enu_errors, enu_rotations
 from .time import GPS_EPOCH, SECONDS_PER_WEEK, gps_s_to_week_tow, utc_to_gps_s
 
@@ -330,6 +330,7 @@ def solution_frame(solution: Solution, truth_ecef_m: np.ndarray | None = None) -
         truth = np.asarray(truth_ecef_m, dtype=float)
         if truth.shape != (t, 3):
             raise ValueError(f"solution_frame: truth_ecef_m has shape {truth.shape}, expected ({t}, 3)")
+        check_near_surface("solution_frame", "truth_ecef_m", truth)
         e = enu_errors(pos, truth).reshape(-1, 3)
         for key, value in zip(CSV_TRUTH_COLUMNS, (e[:, 0], e[:, 1], e[:, 2], np.hypot(e[:, 0], e[:, 1]),
                                                   np.linalg.norm(e, axis=1))):

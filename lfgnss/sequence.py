@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass, fields, replace
+from pathlib import Path
 from typing import Iterable
 
 import numpy as np
@@ -196,16 +197,33 @@ def concat_sequences(parts: Iterable[Sequence], name: str | None = None) -> Sequ
     return replace(first, name=name or first.name, **arrays)
 
 
-def save_sequence(path: str | os.PathLike, seq: Sequence) -> None:
-    """Write a Sequence to an ``.npz`` file."""
+def save_sequence(path: str | os.PathLike, seq: Sequence) -> Path:
+    """Write a Sequence to an ``.npz`` file; returns the file written (``.npz`` added to a name without it)."""
     arrays = {f.name: getattr(seq, f.name) for f in fields(seq) if isinstance(getattr(seq, f.name), np.ndarray)}
-    np.savez_compressed(path, _name=np.array(seq.name), _systems=np.array(seq.systems),
+    out = Path(path) if str(path).endswith(".npz") else Path(f"{os.fspath(path)}.npz")   # as numpy names it
+    np.savez_compressed(out, _name=np.array(seq.name), _systems=np.array(seq.systems),
                         _feature_names=np.array(seq.feature_names), **arrays)
+    return out
 
 
 def load_sequence(path: str | os.PathLike) -> Sequence:
-    """Read a Sequence written by ``save_sequence``."""
-    with np.load(path, allow_pickle=False) as z:
+    """Read a Sequence written by ``save_sequence`` (``path`` with or without its ``.npz``); InputError otherwise."""
+    from .errors import InputError
+
+    path = Path(path)
+    if not path.exists() and Path(f"{path}.npz").exists():
+        path = Path(f"{path}.npz")
+    try:
+        z = np.load(path, allow_pickle=False)
+    except FileNotFoundError:
+        raise InputError(path, "no such Sequence file") from None
+    except (OSError, ValueError) as exc:
+        raise InputError(path, f"not a Sequence file written by lfgnss.save_sequence ({type(exc).__name__})") from None
+    if not isinstance(z, np.lib.npyio.NpzFile):
+        raise InputError(path, "not a Sequence file written by lfgnss.save_sequence (an .npy array)")
+    with z:
+        if not {"_name", "_systems", "_feature_names"} <= set(z.files):
+            raise InputError(path, "not a Sequence file written by lfgnss.save_sequence")
         arrays = {k: z[k] for k in z.files if not k.startswith("_")}
         return Sequence(name=str(z["_name"]), systems=tuple(str(s) for s in z["_systems"]),
                         feature_names=tuple(str(s) for s in z["_feature_names"]), **arrays)

@@ -195,3 +195,17 @@ def test_overlapping_splits_and_a_benchmark_id_are_refused(sample_toml, clean_re
     with pytest.raises(InputError, match=re.escape(f"{path}: {message}")):
         datasets.register_toml(path)
     assert datasets.get("berlin-pp").source is None
+
+
+def test_a_listed_constellation_without_ephemerides_is_warned_of_when_built(sample_toml, monkeypatch, tmp_path):
+    """The bundled Berlin drive has GPS and GLONASS navigation files only: a TOML that also lists Galileo gets a
+    sequence without it and a warning naming it, each build (the cached one too), instead of a silent G+R model."""
+    monkeypatch.setenv("LFGNSS_CACHE", str(tmp_path / "cache"))
+    path = sample_toml("my-gre")
+    path.write_text(path.read_text().replace('systems = ["G", "R"]', 'systems = ["G", "R", "E"]'))
+    datasets.register_toml(path)
+    for _ in range(2):
+        with pytest.warns(UserWarning, match=r"dataset my-gre: constellation\(s\) E of its systems have no usable "
+                                             r"observation .* the sequence has GR"):
+            seq = datasets.build("my-gre")
+        assert seq.systems == ("G", "R")

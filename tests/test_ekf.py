@@ -452,3 +452,20 @@ def test_no_reset_to_a_coarse_fix_without_redundancy_on_the_hk_drive(shared_data
             assert redundancy[409] == 1 and redundancy[412] == 0
         else:
             assert resets.tolist() == [0] and step.max() < max_step_m
+
+
+def test_a_wrapped_learned_model_is_warned_of_and_keeps_its_filter_with_config_of(seq):
+    """A function around a learned model has none of its filter settings: the EKF says so, and config_of brings them."""
+    import warnings
+
+    model = default_noise()
+    with pytest.warns(UserWarning, match="carries no filter settings of its own .* config=estimators.config_of"):
+        wrapped = LfgnssEkf(noise=lambda s: model(s))
+    assert wrapped.config == EkfConfig() != estimators.config_of(model)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        kept = LfgnssEkf(noise=lambda s: model(s), config=estimators.config_of(model))
+        own = LfgnssEkf(noise=model)
+        LfgnssEkf(noise=HeuristicNoise()), LfgnssEkf(noise=FixedNoise(np.ones((3, 2)), np.zeros((3, 2))))
+    assert kept.config == own.config
+    np.testing.assert_array_equal(kept.solve(seq).pos_ecef_m, own.solve(seq).pos_ecef_m)

@@ -247,3 +247,53 @@ def test_read_truth_is_align_truth_in_one_call(tmp_path):
         read_truth(bad, t, "smartloc")
     with pytest.raises(InputError, match="unknown truth format 'gpx'; use one of urbannav, smartloc"):
         read_truth(SAMPLE_TRUTH, t, "gpx")
+
+
+def test_a_saved_sequence_reads_back_by_the_name_it_was_given_and_other_files_are_one_line(tmp_path):
+    from lfgnss.errors import InputError
+    from lfgnss.paths import default_model_path
+    from lfgnss.simulate import simulate_sequence
+
+    seq = simulate_sequence(20, seed=1)
+    written = lfgnss.save_sequence(tmp_path / "mine", seq)          # numpy adds .npz: the caller is told
+    assert written == tmp_path / "mine.npz" and written.exists()
+    for path in (tmp_path / "mine", written):
+        back = lfgnss.load_sequence(path)
+        np.testing.assert_array_equal(back.pr_m, seq.pr_m)
+        assert back.systems == seq.systems and back.name == seq.name
+    (tmp_path / "a.toml").write_text('id = "x"\n')
+    np.save(tmp_path / "arr.npy", np.zeros(3))
+    for path, reason in ((tmp_path / "none", "no such Sequence file"),
+                         (default_model_path(), "not a Sequence file written by lfgnss.save_sequence"),
+                         (tmp_path / "a.toml", "not a Sequence file written by lfgnss.save_sequence"),
+                         (tmp_path / "arr.npy", "not a Sequence file written by lfgnss.save_sequence (an .npy array)")):
+        with pytest.raises(InputError, match=f"^{re.escape(str(path))}: {re.escape(reason)}"):
+            lfgnss.load_sequence(path)
+
+
+def test_latitude_longitude_for_an_ecef_truth_or_reference_is_refused_by_the_solution_too():
+    from lfgnss.simulate import simulate_sequence
+
+    seq = simulate_sequence(5, seed=2)
+    sol = estimators.create("wls").solve(seq)
+    lla = np.tile([52.5, 13.37, 70.0], (5, 1))
+    with pytest.raises(ValueError, match="solution_frame: truth_ecef_m has 5 row.* it must be ECEF metres"):
+        sol.to_frame(lla)
+    with pytest.raises(ValueError, match="Solution.enu_m: ref_ecef_m has 1 row.* it must be ECEF metres"):
+        sol.enu_m(lla[0])
+    assert np.isfinite(sol.to_frame(seq.truth_ecef_m)["err_3d_m"]).all()
+
+
+@pytest.mark.parametrize("field, value, message", [
+    ("pos_ecef_m", np.zeros((10, 3)), r"pos_ecef_m has shape \(10, 3\), expected \(5, 3\)"),
+    ("cov_ecef_m2", np.zeros((3, 3)), r"cov_ecef_m2 has shape \(3, 3\), expected \(5, 3, 3\)"),
+    ("clock_m", np.zeros(4), r"clock_m has shape \(4,\), expected \(5\)"),
+    ("vel_ecef_m_s", np.zeros((5, 2)), r"vel_ecef_m_s has shape \(5, 2\), expected \(5, 3\)"),
+    ("status", np.full(5, 7), r"unknown status code\(s\) \[7\]"),
+])
+def test_a_solution_of_the_wrong_shape_is_refused_when_made(field, value, message):
+    parts = dict(backend="mine", time_gps_s=np.arange(5.0), pos_ecef_m=np.zeros((5, 3)), cov_ecef_m2=np.zeros((5, 3, 3)),
+                 clock_m=np.zeros(5), n_used=np.zeros(5, int), status=np.ones(5, int))
+    estimators.Solution(**parts)
+    with pytest.raises(ValueError, match=r"^Solution of 'mine': " + message):
+        estimators.Solution(**(parts | {field: value}))

@@ -14,15 +14,12 @@ from learning.export import main as export_main
 from learning.train import adopt_init, init_model, load_config
 from learning.train import main as train_main
 from lfgnss.paths import bundled_models
+from tiny_training import TINY as BASE, sets
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "learning" / "configs"
-TINY = ["data.datasets=['synthetic']", "data.synthetic.n_epochs=150", "data.window=20", "data.stride=10",
-        "data.burn_in=0", "train.batch_size=4", "threads=1", "train.epochs=1"]
+TINY = BASE + ["data.burn_in=0"]
 
-
-def _sets(settings: list[str]) -> list[str]:
-    return [x for s in settings for x in ("--set", s)]
 
 
 def _rewritten(source: str, out: Path, **metadata) -> Path:
@@ -66,7 +63,7 @@ def test_the_readme_fine_tuning_command_runs_from_another_folder(tmp_path, monke
     """README, "Your own data": learning.train --config .../finetune.toml from a folder of one's own (1 tiny epoch);
     the model records the bundled file it started from, and --show says so."""
     monkeypatch.chdir(tmp_path)
-    assert train_main(["--config", str(CONFIGS / "finetune.toml"), "--out", "run", "--no-progress", *_sets(TINY)]) == 0
+    assert train_main(["--config", str(CONFIGS / "finetune.toml"), "--out", "run", "--no-progress", *sets(TINY)]) == 0
     tuned = load_model(tmp_path / "run" / "model.npz")
     assert tuned.metadata["config"]["train"]["init"] == "default"
     record, default = tuned.metadata["init_model"], bundled_models()["default"]
@@ -148,7 +145,7 @@ def test_a_model_file_that_holds_no_training_is_told_apart(tmp_path, capsys):
     warns; untrained_reason says the same of the file, and --show repeats it. Epoch 0 of a fine-tuning run is its
     train.init model, which is trained: no reason then, nor for the bundled models."""
     argv = ["--config", str(CONFIGS / "default.toml"), "--out", str(tmp_path / "run"), "--no-progress",
-            *_sets(TINY + ["train.lr=0", "train.eta_min=0"])]
+            *sets(TINY + ["train.lr=0", "train.eta_min=0"])]
     assert train_main(argv) == 0
     assert "holds no training" in capsys.readouterr().err
     untrained = load_model(tmp_path / "run" / "model.npz")

@@ -9,21 +9,17 @@ import pytest
 from learning import provenance
 from learning.export import load_model, main as export_main
 from learning.train import load_config, main as train_main
+from tiny_training import TINY, sets
 
 CONFIG = "learning/configs/default.toml"
-TINY = ["data.datasets=['synthetic']", "data.synthetic.n_epochs=150", "data.window=20", "data.stride=10",
-        "train.batch_size=4", "threads=1", "train.epochs=1"]
 
-
-def _sets(settings):
-    return [x for s in settings for x in ("--set", s)]
 
 
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
     """A 1-epoch training run from the command line: (its --out folder, its arguments)."""
     out = tmp_path_factory.mktemp("prov") / "run"
-    argv = ["--config", CONFIG, "--out", str(out), "--no-progress"] + _sets(TINY)
+    argv = ["--config", CONFIG, "--out", str(out), "--no-progress"] + sets(TINY)
     assert train_main(argv) == 0
     return out, argv
 

@@ -113,3 +113,27 @@ def test_a_factory_that_takes_any_keyword_checks_them_itself(monkeypatch):
     assert backend_options("third-party") is None
     create("third-party", anything=1)
     assert seen == {"anything": 1}
+
+
+def test_register_wants_a_name_and_warns_when_it_replaces_a_back_end():
+    from estimators.base import _REGISTRY
+
+    class Mine:
+        def solve(self, sequence):
+            raise NotImplementedError
+
+    with pytest.raises(TypeError, match=r'give the back end\'s name, @register\("name"\), not the Mine itself'):
+        estimators.register(Mine)                         # the bare decorator
+    with pytest.raises(TypeError, match="not 5"):
+        estimators.register(5)
+    before = dict(_REGISTRY)
+    try:
+        estimators.register("mine-36")(Mine)
+        with pytest.warns(UserWarning, match="'ekf' now creates .*Mine, replacing the back end of that name"):
+            estimators.register("ekf")(Mine)
+        with pytest.warns(UserWarning, match="'fgo' now creates"):
+            estimators.register("fgo")(Mine)
+    finally:
+        _REGISTRY.clear()
+        _REGISTRY.update(before)
+    assert isinstance(estimators.create("ekf"), estimators.LfgnssEkf)
