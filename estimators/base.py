@@ -14,7 +14,7 @@ import numpy as np
 
 from lfgnss.frames import check_near_surface, ecef_to_enu, ecef_to_lla
 from lfgnss.metrics import enu_rotations
-from lfgnss.sequence import Sequence, share_text, time_span_text
+from lfgnss.sequence import Sequence, epochs_text, share_text, time_span_text
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -78,7 +78,7 @@ class Solution:
         if self.info.get("smooth"):
             lag = float(self.info.get("smooth_lag_s", np.inf))
             smoothed = ", smoothed (RTS" + (f", lag {lag:g} s)" if np.isfinite(lag) else ")")
-        return (f"<Solution {self.backend!r}: {len(self)} epochs, {time_span_text(self.time_gps_s)}, "
+        return (f"<Solution {self.backend!r}: {epochs_text(len(self))}, {time_span_text(self.time_gps_s)}, "
                 f"{share_text(self.has_position(), 'with a position')}" + (f" ({counts})" if counts else "")
                 + smoothed + ">")
 

@@ -88,7 +88,9 @@ def make_windows(sequences: Seq[Sequence], length: int, stride: int, burn_in: in
             if labelled[start + skip:start + length].any():
                 out.append(Window(i, start, length, skip))
     if not out:
-        raise ValueError(f"no labelled window of {length} epochs in {[s.name for s in sequences]}")
+        longest = max((len(s) for s in sequences), default=0)
+        raise ValueError(f"no labelled window of {length} epochs in {[s.name for s in sequences]} (the longest piece "
+                         f"has {longest} epochs): lower data.window, or give longer (labelled) splits")
     return out
 
 

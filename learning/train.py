@@ -611,6 +611,20 @@ class Prepared:
     window_scale: np.ndarray | None = None   # (windows,) factor on each window's errors in the loss (loss.balance)
 
 
+def _split_hint(dataset_id: str, split: str) -> str:
+    """``: [splits] axis = "tow", val = [a, b) in FILE.toml ...`` for a registered dataset's empty split, else ''."""
+    from lfgnss import datasets
+
+    spec = datasets.registered().get(dataset_id)
+    if spec is None:
+        return ""
+    bounds = ", ".join(f"{part} = [{spec.splits[part][0]:g}, {spec.splits[part][1]:g})"
+                       for part in datasets.split_parts(split) if part in spec.splits)
+    where = f" in {spec.source}" if spec.source else ""
+    return (f": [splits] axis = {spec.split_axis!r}, {bounds or 'no such split'}{where}; check them against the drive "
+            f"(python -m lfgnss.datasets{' --register ' + str(spec.source) if spec.source else ''})")
+
+
 def prepare(config: dict, source=None) -> Prepared:
     """Load train/val Sequences, fit the normaliser on train, cut and collate windows.
 
@@ -627,7 +641,7 @@ def prepare(config: dict, source=None) -> Prepared:
         for split, bucket in ((data["train_split"], train_seqs), (data["val_split"], val_seqs)):
             seqs = source(ds, split, config)
             if not seqs:
-                raise ValueError(f"dataset {ds!r} split {split!r} gave no sequence")
+                raise ValueError(f"dataset {ds!r} split {split!r} gave no sequence{_split_hint(ds, split)}")
             bucket.extend(seqs)
             if bucket is train_seqs:
                 train_ds.extend([ds] * len(seqs))

@@ -26,6 +26,11 @@ def time_span_text(time_gps_s: np.ndarray) -> str:
     return f"{first} to {end} GPST ({t.max() - t.min():.1f} s)"
 
 
+def epochs_text(n: int) -> str:
+    """``"1 epoch"``, ``"5 epochs"``."""
+    return f"{n} epoch{'' if n == 1 else 's'}"
+
+
 def share_text(flags: np.ndarray, what: str) -> str:
     """``"85.2% labelled"``: the share of True in ``flags`` [%], or ``"none labelled"`` when there are none."""
     flags = np.asarray(flags, bool)
@@ -130,7 +135,7 @@ class Sequence:
 
     def __repr__(self) -> str:
         """One line: name, epochs, slots, systems, time span and labelled share (no arrays)."""
-        return (f"<Sequence {self.name!r}: {len(self)} epochs, {self.n_slots} slots, systems {''.join(self.systems)}, "
+        return (f"<Sequence {self.name!r}: {epochs_text(len(self))}, {self.n_slots} slots, systems {''.join(self.systems)}, "
                 f"{time_span_text(self.time_gps_s)}, {share_text(self.labelled, 'labelled')}>")
 
     @property
@@ -181,15 +186,17 @@ def concat_sequences(parts: Iterable[Sequence], name: str | None = None) -> Sequ
         if not isinstance(part, Sequence):
             raise TypeError(f"concat_sequences: part {k} is a {type(part).__name__}, not an lfgnss.Sequence")
     first = parts[0]
-    for part in parts[1:]:
+    for k, part in enumerate(parts[1:], 1):
         for key in ("systems", "feature_names"):
             if getattr(part, key) != getattr(first, key):
-                raise ValueError(f"concat_sequences: {part.name!r} has {key} {getattr(part, key)}, {first.name!r} "
-                                 f"{getattr(first, key)}; build every part with the same systems and feature_names")
-    for before, part in zip(parts, parts[1:]):
+                raise ValueError(f"concat_sequences: part {k} ({part.name!r}) has {key} {getattr(part, key)}, part 0 "
+                                 f"({first.name!r}) {getattr(first, key)}; build every part with the same systems and "
+                                 f"feature_names")
+    for k, (before, part) in enumerate(zip(parts, parts[1:]), 1):
         if len(before) and len(part) and not part.time_gps_s[0] > before.time_gps_s[-1]:
-            raise ValueError(f"concat_sequences: {part.name!r} starts at {part.time_gps_s[0]:.3f} s, not after "
-                             f"{before.name!r} ends ({before.time_gps_s[-1]:.3f} s GPS); give the parts in time order")
+            raise ValueError(f"concat_sequences: part {k} ({part.name!r}) starts at {part.time_gps_s[0]:.3f} s, not "
+                             f"after part {k - 1} ({before.name!r}) ends ({before.time_gps_s[-1]:.3f} s GPS); give "
+                             f"the parts in time order")
     width = max(part.n_slots for part in parts)
     parts = [part.pad_to(width) for part in parts]
     arrays = {f.name: np.concatenate([getattr(part, f.name) for part in parts]) for f in fields(first)

@@ -297,3 +297,21 @@ def test_a_solution_of_the_wrong_shape_is_refused_when_made(field, value, messag
     estimators.Solution(**parts)
     with pytest.raises(ValueError, match=r"^Solution of 'mine': " + message):
         estimators.Solution(**(parts | {field: value}))
+
+
+def test_parts_of_one_drive_are_told_apart_by_number_and_one_epoch_is_singular(tmp_path):
+    from learning.data import make_windows
+    from lfgnss.datasets import read_truth
+    from lfgnss.simulate import simulate_sequence
+    from lfgnss.solve import SAMPLE_TRUTH
+
+    seq = simulate_sequence(20, seed=4)
+    with pytest.raises(ValueError, match=r"part 2 \('synthetic'\) starts at .* not after part 1 \('synthetic'\) ends"):
+        lfgnss.concat_sequences([seq.subset(slice(0, 5)), seq.subset(slice(10, 20)), seq.subset(slice(5, 10))])
+    assert "1 epoch," in repr(seq.subset(3)) and "1 epoch," in repr(estimators.create("wls").solve(seq.subset(3)))
+    assert "20 epochs," in repr(seq)
+    time = np.array([1900 * 604800 + 126641.7])
+    np.testing.assert_array_equal(read_truth(SAMPLE_TRUTH, time, "SmartLoc"), read_truth(SAMPLE_TRUTH, time, "smartloc"))
+    with pytest.raises(ValueError, match=r"no labelled window of 40 epochs .* \(the longest piece has 20 epochs\): "
+                                         r"lower data.window"):
+        make_windows([seq], 40, 10)

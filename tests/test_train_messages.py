@@ -123,3 +123,16 @@ def test_the_library_call_prints_no_epoch_lines_unless_asked(tmp_path, capsys):
     train(load_config(CONFIG, TINY), tmp_path / "lines", progress=False, export=False, epoch_lines=True)
     shown = capsys.readouterr().out.splitlines()
     assert shown[0].startswith("epoch 0 (untrained): ") and shown[1].startswith("epoch 1: train loss ")
+
+
+def test_an_empty_split_of_a_registered_dataset_names_its_axis_bounds_and_file(sample_toml, tmp_path, capsys):
+    path = sample_toml("my-off", splits=((0, 150), (1000, 1010), (180, 200)))      # the drive lasts 283 s
+    argv = ["--config", CONFIG, "--out", str(tmp_path / "run"), "--no-progress",
+            *sets(TINY[1:] + [f"data.register=['{path}']", "data.datasets=['my-off']"])]
+    with pytest.raises(SystemExit) as stop:
+        train_main(argv)
+    assert stop.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1, err
+    assert (f"dataset 'my-off' split 'val' gave no sequence: [splits] axis = 'relative_s', val = [1000, 1010) in "
+            f"{path}; check them against the drive (python -m lfgnss.datasets --register {path})") in err
