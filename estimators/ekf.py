@@ -289,7 +289,12 @@ class LfgnssEkf:
                 blocks.append(models.zero_velocity_measurement(ekf.x) + (np.zeros(3), zupt_r))
             if blocks:
                 h, H, z, r = (np.concatenate(part) for part in zip(*blocks))
-                ekf.update(z, _given, _given, R=np.diag(r), args=(H,), hx_args=(h,))
+                try:
+                    ekf.update(z, _given, _given, R=np.diag(r), args=(H,), hx_args=(h,))
+                except np.linalg.LinAlgError:
+                    raise ValueError(f"{type(self).__name__}: the update at epoch {k} of {sequence.name!r} is "
+                                     f"numerically singular (its smallest R is {r.min():.3g} m^2): R must be a "
+                                     f"pseudorange variance in m^2, not near 0") from None
 
         def ask_noise(k: int, idx: np.ndarray, prior_x: np.ndarray | None) -> None:
             """Epoch k's R and v^c from an online noise model, given the prior state (None: no prior)."""

@@ -469,3 +469,16 @@ def test_a_wrapped_learned_model_is_warned_of_and_keeps_its_filter_with_config_o
         LfgnssEkf(noise=HeuristicNoise()), LfgnssEkf(noise=FixedNoise(np.ones((3, 2)), np.zeros((3, 2))))
     assert kept.config == own.config
     np.testing.assert_array_equal(kept.solve(seq).pos_ecef_m, own.solve(seq).pos_ecef_m)
+
+
+def test_a_noise_model_of_near_zero_variance_is_one_line_naming_the_epoch(seq):
+    """R of 1e-12 m^2 makes the innovation covariance singular: a ValueError naming the epoch and R, not filterpy's
+    bare LinAlgError."""
+    import warnings
+
+    r = np.where(seq.mask, 1e-12, 1.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")                 # scipy's LinAlgWarnings on the way there
+        with pytest.raises(ValueError, match=r"LfgnssEkf: the update at epoch \d+ of .* is numerically singular "
+                                             r"\(its smallest R is 1e-12 m\^2\)"):
+            LfgnssEkf(noise=FixedNoise(r, np.zeros_like(r)), config=EkfConfig()).solve(seq)
