@@ -40,7 +40,7 @@ import numpy as np
 
 from lfgnss.errors import InputError
 from lfgnss.features import AVAILABLE_FEATURES
-from lfgnss.paths import MODEL_PREFIX, bundled_models, model_path
+from lfgnss.paths import MODEL_PREFIX, bundled_models, may_name_a_bundled_model, model_path
 from lfgnss.sequence import Sequence
 from lfgnss.weighted_fix import cn0_elevation_variance_m2
 
@@ -421,8 +421,7 @@ def load_model(path: str | Path, expected_features: Iterable[str] | None = None)
             with np.load(path, allow_pickle=False) as z:
                 arrays = {k: np.asarray(z[k]) for k in z.files}
     except FileNotFoundError as exc:
-        named = not Path(path).suffix and len(Path(path).parts) == 1          # could have been a bundled name
-        hint = f" or bundled model ({', '.join(bundled_models())})" if named else ""
+        hint = f" or bundled model ({', '.join(bundled_models())})" if may_name_a_bundled_model(path) else ""
         raise ModelFileError(path, f"no such model file{hint}") from exc
     except IsADirectoryError as exc:
         raise ModelFileError(path, "a folder, not a model file") from exc

@@ -414,8 +414,8 @@ def read_truth(path: str | Path, time_gps_s: np.ndarray, truth_format: str = "ur
                time_origin_gps_s: float | None = None, match_tolerance_s: float | None = None) -> np.ndarray:
     """(T, 3) ECEF ground truth [m] at epoch times [GPS s] from a truth file; NaN where none lies within the tolerance.
 
-    ``truth_format``: one of ``TRUTH_READERS``, in any case; a smartloc file counts its t from ``time_origin_gps_s`` (default:
-    the first epoch). Skipped lines are warned about (the first five, then a count).
+    ``truth_format``: one of ``TRUTH_READERS``, in any case; a smartloc file counts its t from
+    ``time_origin_gps_s`` (default: the first epoch). Skipped lines are warned about (the first five, then a count).
     """
     truth_format = truth_format.lower() if isinstance(truth_format, str) else truth_format    # as --truth-format
     if truth_format not in TRUTH_READERS:

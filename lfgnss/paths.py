@@ -31,11 +31,17 @@ def bundled_models() -> dict[str, Path]:
     return {p.stem.removeprefix(MODEL_PREFIX): p for p in sorted(folder.glob(f"{MODEL_PREFIX}*.npz"))}
 
 
+def may_name_a_bundled_model(model: str | os.PathLike) -> bool:
+    """Whether ``model`` has the form of a bundled model's name: no folder and no suffix (``"hk-tst-2019"``)."""
+    path = Path(model)
+    return not path.suffix and len(path.parts) == 1
+
+
 def model_path(model: str | os.PathLike) -> Path:
     """A model file: ``model`` itself where that path exists or has a folder or suffix, else the bundled model of
     that name (``"hk-tst-2019"``: lfgnss-hk-tst-2019.npz), else ``model`` as it is."""
     path = Path(model)
-    if path.exists() or path.suffix or len(path.parts) != 1:
+    if path.exists() or not may_name_a_bundled_model(path):
         return path
     return bundled_models().get(path.name, path)
 

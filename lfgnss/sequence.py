@@ -8,6 +8,7 @@ from typing import Iterable
 
 import numpy as np
 
+from .errors import InputError
 from .frames import check_near_surface
 from .time import gpst_stamp
 
@@ -215,8 +216,6 @@ def save_sequence(path: str | os.PathLike, seq: Sequence) -> Path:
 
 def load_sequence(path: str | os.PathLike) -> Sequence:
     """Read a Sequence written by ``save_sequence`` (``path`` with or without its ``.npz``); InputError otherwise."""
-    from .errors import InputError
-
     path = Path(path)
     if not path.exists() and Path(f"{path}.npz").exists():
         path = Path(f"{path}.npz")
