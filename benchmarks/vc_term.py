@@ -19,18 +19,16 @@ import torch
 
 def held_out_terms(run_dir: str | Path, folds: int = 3) -> tuple[float, float]:
     """(term of the fold models' v^c, term of v^c = 0) [m^2], pooled over the held-out satellites of every fold."""
-    from learning.crossval import fold_sequences
+    from learning.crossval import cv_sequences, fold_sequences
     from learning.data import sequence_batch
     from learning.loss import compensation_loss, labelled_errors_m
-    from learning.train import checkpoint_network, load_sequences, read_checkpoint
+    from learning.train import checkpoint_network, read_checkpoint
 
     whole: dict = {}
     sums, count = [0.0, 0.0], 0
     for fold in range(folds):
         saved = read_checkpoint(Path(run_dir) / f"fold{fold}" / "last.pt")
-        config, data = saved["config"], saved["config"]["data"]
-        whole = whole or {ds: load_sequences(ds, data["train_split"], config)
-                          + load_sequences(ds, data["val_split"], config) for ds in data["datasets"]}
+        whole = whole or cv_sequences(saved["config"])
         model, normaliser = checkpoint_network(saved)
         model.eval()
         n_systems = int(saved["n_systems"])

@@ -4,11 +4,11 @@
                                 [--fold J ...] [--out runs/cv-NAME] [--no-progress]
 
 A validation split of a minute or two is one street: whether a recipe generalises cannot be read from
-it. Here each dataset's train and validation epochs, in time order, are cut into ``K`` contiguous
-blocks; fold ``j`` trains on the other blocks (as separate sequences where the held-out block cuts
-them) and evaluates on block ``j``, once per training epoch, exactly as ``learning.train`` evaluates
-its validation split. Each fold also runs the plain EKF (hand-set C/N0-elevation R, no v^c, the same
-EKF settings) on its held-out block, the bar the learned model has to clear.
+it. Here each dataset's train and validation epochs, in time order and joined where they are contiguous
+(``cv_sequences``), are cut into ``K`` contiguous blocks; fold ``j`` trains on the other blocks (as separate
+sequences where the held-out block cuts them) and evaluates on block ``j``, once per training epoch, exactly as
+``learning.train`` evaluates its validation split. Each fold also runs the plain EKF (hand-set C/N0-elevation R, no
+v^c, the same EKF settings) on its held-out block, the bar the learned model has to clear.
 
 Reported per fold and pooled over folds (RMSE pooled by epochs): the plain EKF, the untrained network
 (epoch 0), the last epoch (the honest figure of a fixed schedule) and the best epoch (optimistic: it
@@ -24,7 +24,8 @@ in ``--out`` and each fold's run (``log.csv``, ``curves.png``, ``best.pt``, ``la
 with its own ``--out``; the pooled row is written only when every fold ran. ``--pool DIR`` (repeatable) then puts
 those runs' folds in one table with the pooled rows, training and scoring nothing (each fold once, one recipe):
 ``python -m learning.crossval --folds 3 --pool cv/f0 --pool cv/f1 --pool cv/f2 --out cv/all``.
-crossval.md starts with the command that made it and the code's git commit. With several datasets each fold also
+crossval.md starts with the command that made it and the code's git commit; a run that trained every fold ends
+with the ``learning.train`` command of its recipe (``next:``). With several datasets each fold also
 gets a row per dataset (``J:ID``, its last epoch on that dataset's held-out pieces) and each dataset a pooled row
 (``pooled:ID``): the overall pooled row is dominated by the datasets with the most epochs.
 
@@ -45,6 +46,7 @@ import argparse
 import copy
 import csv
 import math
+import shlex
 import sys
 from pathlib import Path
 
@@ -88,6 +90,13 @@ def fold_sequences(sequences: list[Sequence], folds: int, fold: int,
                     bucket.append(seq.subset(slice(run[0], run[-1] + 1), name=f"{seq.name}/{tag}{fold}.{k}"))
         start += len(seq)
     return train, held
+
+
+def cv_sequences(config: dict) -> dict[str, list[Sequence]]:
+    """Per dataset of ``config``, the epochs cross-validation cuts into blocks: its train and validation splits as one
+    split, so epochs contiguous across their boundary stay one piece (a block or a training piece is not cut there)."""
+    data = config["data"]
+    return {ds: load_sequences(ds, f"{data['train_split']}+{data['val_split']}", config) for ds in data["datasets"]}
 
 
 def plain_ekf_rmse_m(sequences: list[Sequence], config: dict, smooth: bool = False) -> tuple[float, float]:
@@ -154,8 +163,9 @@ def saved_fold(reuse_dir: str | Path, fold: int, config: dict, held: list[Sequen
     val = config["data"]["val_split"]
     trained_on = [(p["sequence"], p["sha256_16"]) for p in prints if p["split"] == val]
     if trained_on != [(s.name, fingerprint(s)) for s in held]:
-        raise ValueError(f"{path}: its held-out block is not this run's (another --folds, or the data changed since "
-                         "it was trained)")
+        raise ValueError(f"{path}: its held-out block is not this run's (another --folds, the data changed since "
+                         "it was trained, or an older learning.crossval cut it, which broke folds at the "
+                         "train/validation boundary)")
     _check_weights(path, saved)
     return saved
 
@@ -247,8 +257,7 @@ def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = 
     if seen:
         print(f"warning: train.init {init.path} was trained on {', '.join(seen)}: the held-out blocks are not "
               "unseen data, so this cross-validation is optimistic", file=sys.stderr)
-    whole = {ds: load_sequences(ds, data["train_split"], config) + load_sequences(ds, data["val_split"], config)
-             for ds in data["datasets"]}
+    whole = cv_sequences(config)
     rows, started = [], None if init is None else str(init.path)
     try:
         _run_folds(rows, chosen, folds, whole, config, out, progress, reuse, command, config_file, epoch_lines)
@@ -476,6 +485,14 @@ def _kept(exc: BaseException) -> str:
     return note
 
 
+def next_step(config_file: str | None, overrides: list[str]) -> str:
+    """The line after a finished cross-validation: the command that trains the recipe it scored (its ``--set``s
+    included) on the train split, selected on the validation split, as ``learning.train`` does."""
+    recipe = ([] if config_file is None else ["--config", config_file]) + [a for o in overrides for a in ("--set", o)]
+    return ("next: train this recipe on data.train_split (python -m learning.train "
+            + " ".join(map(shlex.quote, [*recipe, "--out", "runs/NAME"])) + ")")
+
+
 def main(argv: list[str] | None = None) -> int:
     """Command-line entry point.
 
@@ -527,6 +544,8 @@ def main(argv: list[str] | None = None) -> int:
                   "please report it\n")
     try:
         print((out / "crossval.md").read_text(), end="")
+        if not (args.pool or args.reuse or args.only):
+            print(next_step(args.config, args.overrides))
         sys.stdout.flush()
     except BrokenPipeError:                   # the reader went away (| head): the results are written
         stdout_gone()

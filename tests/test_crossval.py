@@ -102,7 +102,8 @@ def test_reuse_scores_the_saved_fold_models_again_under_new_filter_settings(trai
                     "last_smoothed_rmse_3d_m", "plain_ekf_rmse_2d_m", "last_rmse_2d_m"):
             assert float(a[key]) == pytest.approx(float(b[key]), rel=1e-9), key
         assert math.isnan(float(a["untrained_rmse_3d_m"])) and math.isnan(float(a["best_rmse_3d_m"]))
-    assert "| pooled | 180 | " in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "| pooled | 180 | " in printed and "next:" not in printed              # a rescore trains nothing
     assert main(RECIPE + ["--out", str(tmp_path / "gate"), "--reuse", str(run), "--set", "ekf.gate_sigma=2.0"]) == 0
     gated = _rows(tmp_path / "gate")
     assert all(float(a["plain_ekf_rmse_3d_m"]) != float(b["plain_ekf_rmse_3d_m"]) for a, b in zip(gated, first))
@@ -161,6 +162,24 @@ def test_one_fold_alone_matches_that_fold_of_the_whole_run(monkeypatch, tmp_path
     assert not (tmp_path / "x").exists()
 
 
+def _spy_on_folds(monkeypatch, dataset_id: str) -> list:
+    """Make crossval train nothing; the list it returns fills with each fold's (training pieces, held-out pieces) of
+    ``dataset_id``, as ``prepare`` receives them."""
+    import learning.crossval as cv
+
+    seen = []
+    real_prepare = cv.prepare
+
+    def spy_prepare(cfg, source):
+        seen.append((source(dataset_id, "train", cfg), source(dataset_id, "val", cfg)))
+        return real_prepare(cfg, source)
+
+    monkeypatch.setattr(cv, "prepare", spy_prepare)
+    monkeypatch.setattr(cv, "train", lambda *a, **k: [{"epoch": 0, "val_rmse_3d_m": 1.0}])
+    monkeypatch.setattr(cv, "_saved_rmse_m", lambda *a, **k: ({}, 1.0, 0.5))
+    return seen
+
+
 def test_each_fold_trains_on_the_other_blocks_and_scores_the_held_out_one(monkeypatch, tmp_path):
     """What ``prepare`` receives per fold: training pieces as the train split, the held-out block as validation."""
     import learning.crossval as cv
@@ -168,16 +187,7 @@ def test_each_fold_trains_on_the_other_blocks_and_scores_the_held_out_one(monkey
 
     config = load_config("learning/configs/default.toml", ["data.datasets=['synthetic']", "data.synthetic.n_epochs=60",
                                                            "data.window=20", "data.stride=10"])
-    seen = []
-    real_prepare = cv.prepare
-
-    def spy_prepare(cfg, source):
-        seen.append((source("synthetic", "train", cfg), source("synthetic", "val", cfg)))
-        return real_prepare(cfg, source)
-
-    monkeypatch.setattr(cv, "prepare", spy_prepare)
-    monkeypatch.setattr(cv, "train", lambda *a, **k: [{"epoch": 0, "val_rmse_3d_m": 1.0}])
-    monkeypatch.setattr(cv, "_saved_rmse_m", lambda *a, **k: ({}, 1.0, 0.5))
+    seen = _spy_on_folds(monkeypatch, "synthetic")
     rows = cv.crossval(config, 3, tmp_path, progress=False)
     for j, (train, held) in enumerate(seen):
         assert all("/cv-train" in s.name for s in train) and all("/cv-held-out" in s.name for s in held)
@@ -313,10 +323,11 @@ def test_vc_term_script_scores_each_fold_model_on_its_held_out_block(trained_run
 
     import torch
 
+    from learning.crossval import cv_sequences
     from learning.data import sequence_batch
     from learning.loss import compensation_loss, pseudorange_error_m
     from learning.normalise import Normaliser
-    from learning.train import load_config, load_sequences
+    from learning.train import load_config
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
     import vc_term
@@ -325,7 +336,7 @@ def test_vc_term_script_scores_each_fold_model_on_its_held_out_block(trained_run
     term, zero = vc_term.held_out_terms(run, folds=2)
     assert math.isfinite(term) and term > 0 and term != zero
     config = load_config("learning/configs/default.toml", [a for a in RECIPE if "=" in a])
-    whole = load_sequences("synthetic", "train", config) + load_sequences("synthetic", "val", config)
+    whole = cv_sequences(config)["synthetic"]
     sums, count = 0.0, 0
     for fold in range(2):
         normaliser = Normaliser.from_dict(torch.load(run / f"fold{fold}" / "last.pt", weights_only=False)["normaliser"])
@@ -340,3 +351,44 @@ def test_vc_term_script_scores_each_fold_model_on_its_held_out_block(trained_run
     assert zero == pytest.approx(sums / count, rel=1e-9)
     assert vc_term.main([str(run), "--folds", "2"]) == 0
     assert f"{run}: held-out v^c term {term:.2f} m^2 (v^c = 0: {zero:.2f} m^2)" in capsys.readouterr().out
+
+
+def test_folds_are_not_cut_at_the_train_validation_boundary(monkeypatch, tmp_path, sample_toml):
+    """Contiguous train and validation epochs are one piece to cut: a block across their boundary is held out whole,
+    and the training pieces around it are whole too (before, each split was a separate sequence, so both broke)."""
+    import learning.crossval as cv
+    from learning.train import load_config
+    from lfgnss import datasets
+
+    monkeypatch.setenv("LFGNSS_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setattr(datasets, "_REGISTRY", {})
+    toml = sample_toml("cv-berlin", splits=((0, 100), (100, 120), (120, 300)))
+    config = load_config("learning/configs/default.toml", [f'data.register=["{toml}"]', "data.datasets=['cv-berlin']",
+                                                           "data.window=20", "data.stride=10"])
+    whole = cv.cv_sequences(config)["cv-berlin"]
+    train, val = (datasets.load_split("cv-berlin", s) for s in ("train", "val"))
+    assert len(whole) == 1 and len(whole[0]) == len(train[0]) + len(val[0])
+    seen = _spy_on_folds(monkeypatch, "cv-berlin")
+    cv.crossval(config, 3, tmp_path / "cv", progress=False)
+    boundary = val[0].time_gps_s[0]
+    assert [(len(t), len(h)) for t, h in seen] == [(1, 1), (2, 1), (1, 1)]
+    last_held = seen[2][1][0].time_gps_s                # the last block runs from train into validation, unbroken
+    assert last_held[0] < boundary <= last_held[-1] and np.all(np.diff(last_held) < 0.5)
+
+
+def test_a_finished_run_says_how_to_train_its_recipe(monkeypatch, tmp_path, capsys):
+    """After the table: the learning.train command of the same --config and --set's, pasteable."""
+    import learning.crossval as cv
+
+    def fake_crossval(config, folds, out, **_):
+        Path(out).mkdir()
+        (Path(out) / "crossval.md").write_text("| fold |\n")
+
+    monkeypatch.setattr(cv, "crossval", fake_crossval)
+    assert main(["--config", "learning/configs/default.toml", "--set", "data.datasets=['a b']", "--set", "seed=2",
+                 "--out", str(tmp_path / "cv")]) == 0
+    assert capsys.readouterr().out.splitlines()[-1] == (
+        "next: train this recipe on data.train_split (python -m learning.train --config learning/configs/default.toml "
+        "--set 'data.datasets=['\"'\"'a b'\"'\"']' --set seed=2 --out runs/NAME)")
+    assert cv.next_step(None, []) == ("next: train this recipe on data.train_split (python -m learning.train "
+                                      "--out runs/NAME)")
