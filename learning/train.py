@@ -323,6 +323,14 @@ def _beside(path: Path, name: object) -> object:
     return name
 
 
+def _dataset_toml(path: Path, name: object) -> object:
+    """A ``data.register`` entry of the configuration file ``path``: found beside it, else in the current folder
+    (InputError listing both places when in neither); a non-path is left for the type check."""
+    from lfgnss.datasets import find_dataset_toml
+
+    return str(find_dataset_toml(name, (path.parent,))) if isinstance(name, str) and name else name
+
+
 def _read_toml(path: Path, depth: int = 0) -> dict:
     """A TOML file; a top-level ``base = "other.toml"`` (relative to it) is read first and updated.
 
@@ -340,9 +348,9 @@ def _read_toml(path: Path, depth: int = 0) -> dict:
             raise ValueError(f"{path}: {key} must be a table of settings ([{key}]), got {value!r}")
     section = data.get("data", {})
     if isinstance(section.get("register"), list):
-        section["register"] = [_beside(path, r) for r in section["register"]]
+        section["register"] = [_dataset_toml(path, r) for r in section["register"]]
     elif "register" in section:
-        section["register"] = _beside(path, section["register"])
+        section["register"] = _dataset_toml(path, section["register"])
     if "init" in data.get("train", {}):
         data["train"]["init"] = _beside(path, data["train"]["init"])
     base = data.pop("base", None)

@@ -1,4 +1,7 @@
 """Physical and system constants (IS-GPS-200, BDS-SIS-ICD, Galileo OS-SIS-ICD, GLONASS ICD)."""
+from __future__ import annotations
+
+from collections.abc import Iterable
 
 SPEED_OF_LIGHT_M_S = 299_792_458.0
 OMEGA_EARTH_RAD_S = 7.2921151467e-5          # WGS84 / GPS earth rotation rate
@@ -19,3 +22,8 @@ GLO_L1_STEP_HZ = 0.5625e6
 #: Constellation letters of RINEX 3 in the order used for clock/ISB state layout by default.
 SYSTEMS = ("G", "C", "E", "R", "J")
 SYSTEM_NAMES = {"G": "GPS", "C": "BeiDou", "E": "Galileo", "R": "GLONASS", "J": "QZSS", "S": "SBAS", "I": "IRNSS"}
+
+
+def unknown_systems(letters: Iterable[str]) -> str:
+    """Items of ``letters`` (either case) not in ``SYSTEMS``: upper case, each once, in the order given ("" if none)."""
+    return "".join(dict.fromkeys(s.upper() for s in letters if s.upper() not in SYSTEMS))

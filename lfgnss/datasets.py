@@ -38,7 +38,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .constants import SYSTEMS
+from .constants import SYSTEMS, unknown_systems
 from .errors import InputError
 from .frames import NEAR_SURFACE_RADIUS_M, lla_to_ecef
 from .paths import cache_dir, shared_data_dir
@@ -182,14 +182,38 @@ def _split_bounds(path: Path, name: str, value, axis: str) -> tuple[float, float
     return value[0], value[1]
 
 
+def _exists(path: Path) -> bool:
+    """Whether ``path`` names something; a name too long or with a NUL names nothing."""
+    try:
+        return path.exists()
+    except (OSError, ValueError):
+        return False
+
+
+def find_dataset_toml(path: str | Path, look_in: tuple[str | Path, ...] = ()) -> Path:
+    """A dataset TOML file: a relative ``path`` in the first folder of ``look_in`` that has it, else as given.
+
+    InputError when it is in none of these places; for a relative ``path`` the message lists each place looked
+    (the ``look_in`` folders, then the current one), absolute.
+    """
+    path = Path(path)
+    places = list(dict.fromkeys([*(Path(folder) / path for folder in look_in), path]))
+    for place in places:
+        if _exists(place):
+            return place
+    looked = "" if path.is_absolute() else f"; looked for {', '.join(str(p.absolute()) for p in places)}"
+    raise InputError(path, f"unreadable dataset config (No such file or directory{looked})")
+
+
 def register_toml(path: str | Path, *, need_splits: tuple[str, ...] = ()) -> DatasetSpec:
     """Register a user dataset described by a TOML file (see the module docstring).
 
     Unknown keys, unknown constellation letters and malformed split bounds are refused (InputError naming the file
     and the key), as is the lack of a split named in ``need_splits`` (the splits a caller uses); a TOML without
-    splits is valid where none is needed (``python -m lfgnss.summary``).
+    splits is valid where none is needed (``python -m lfgnss.summary``). A missing file's error lists where it was
+    looked for (``find_dataset_toml``).
     """
-    path = Path(path)
+    path = find_dataset_toml(path)
     try:
         cfg = tomllib.loads(path.read_text())
     except (OSError, tomllib.TOMLDecodeError) as err:
@@ -231,10 +255,9 @@ def register_toml(path: str | Path, *, need_splits: tuple[str, ...] = ()) -> Dat
         if not isinstance(systems, list) or not systems or not all(isinstance(s, str) for s in systems):
             raise InputError(path, f"systems must be a list of constellation letters of {''.join(SYSTEMS)} "
                                    f"(e.g. [\"G\", \"C\"]), got {cfg['systems']!r}")
-        unknown = sorted({s.upper() for s in systems} - set(SYSTEMS))
+        unknown = unknown_systems(systems)
         if unknown:
-            raise InputError(path, f"unknown constellation letter(s) {''.join(unknown)} in systems; "
-                                   f"use {''.join(SYSTEMS)}")
+            raise InputError(path, f"unknown constellation letter(s) {unknown} in systems; use {''.join(SYSTEMS)}")
     for key in ("obs", "nav"):
         if isinstance(cfg.get(key), str):
             cfg[key] = [cfg[key]]                      # one file may be given without a list
@@ -625,9 +648,9 @@ def load_split(dataset_id: str, split: str, *, feature_names: tuple[str, ...] = 
             for k, r in enumerate(runs)]
 
 
-__all__ = ["DatasetSpec", "SPLITS", "align_truth", "build", "contiguous_runs", "get", "load_split", "present",
-           "register", "register_toml", "registered", "split_index", "split_parts", "static_time_note",
-           "truth_note_summary"]
+__all__ = ["DatasetSpec", "SPLITS", "align_truth", "build", "contiguous_runs", "find_dataset_toml", "get",
+           "load_split", "present", "register", "register_toml", "registered", "split_index", "split_parts",
+           "static_time_note", "truth_note_summary"]
 
 
 def alignment_report(dataset_ids: list[str] | None = None) -> str:

@@ -11,7 +11,7 @@ import numpy as np
 
 from . import qc
 from .constants import (BDS_B1I_HZ, GAL_E1_HZ, GLO_L1_BASE_HZ, GLO_L1_STEP_HZ, GPS_L1_HZ, SPEED_OF_LIGHT_M_S,
-                        SYSTEMS)
+                        SYSTEMS, unknown_systems)
 from .errors import RinexError
 from .navigation import Navigation, load_nav
 from .observations import Observations
@@ -135,6 +135,10 @@ def load(obs: str | Path | Observations, nav: str | Path | Iterable[str | Path] 
         if not isinstance(nav, list) or not all(is_path(p) for p in nav):
             raise TypeError(f"lfgnss.load: nav must be a RINEX navigation file (str or Path), a list of them or a "
                             f"Navigation, got {type(nav).__name__}")
+    systems = None if systems is None else tuple(systems)      # read once: it may be a generator
+    unknown = unknown_systems(systems or ())
+    if unknown:                                                 # before any file is read
+        raise ValueError(f"unknown constellation letter(s) {unknown} in the requested systems; use {''.join(SYSTEMS)}")
     observations = obs if isinstance(obs, Observations) else load_obs(obs, cache=cache)
     navigation = nav if isinstance(nav, Navigation) else load_nav(nav)
     notes = list(observations.warnings) + list(navigation.warnings)
@@ -145,9 +149,6 @@ def load(obs: str | Path | Observations, nav: str | Path | Iterable[str | Path] 
         notes.append(note)
         warnings.warn(note, RinexWarning, stacklevel=2)
     asked = None if systems is None else {s.upper() for s in systems}
-    if asked is not None and asked - set(SYSTEMS):
-        raise ValueError(f"unknown constellation letter(s) {''.join(sorted(asked - set(SYSTEMS)))} in the requested "
-                         f"systems; use {''.join(SYSTEMS)}")
     present = {s[0] for s in observations.sv}
     wanted = tuple(s for s in SYSTEMS if asked is None or s in asked)
     for system in sorted((asked or set()) - present):

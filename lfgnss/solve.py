@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .constants import SYSTEMS
+from .constants import SYSTEMS, unknown_systems
 from .errors import INPUT_ERRORS, InputError, LfgnssError, RinexError, cannot_write, one_line, stdout_gone
 from .observations import Observations
 from .paths import bundled_data_dir, bundled_models, default_model_path, model_path
@@ -381,7 +381,7 @@ def _gps_time(text: str) -> float:
 def _systems(text: str) -> str:
     """argparse type of --systems: constellation letters, upper case, each once in the order given (``"g, r"``: GR)."""
     letters = "".join(_SYSTEM_SEPARATORS.split(text)).upper()
-    unknown = "".join(dict.fromkeys(c for c in letters if c not in SYSTEMS))
+    unknown = unknown_systems(letters)
     if unknown:
         raise argparse.ArgumentTypeError(f"unknown constellation letter(s) {unknown!r} in {text!r}; use letters of "
                                          f"{''.join(SYSTEMS)}, e.g. GC, \"G C\" or G,C")

@@ -488,9 +488,13 @@ def test_config_file_paths_are_read_next_to_it_then_from_the_current_folder(tmp_
     (folder / "mine.toml").write_text(f'base = "{Path("learning/configs/default.toml").resolve()}"\n'
                                       '[data]\nregister = ["my-drive.toml", "elsewhere.toml"]\n'
                                       '[train]\ninit = "lfgnss/data/model/lfgnss-transfer-base.npz"\n')
+    repo = Path.cwd()
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "elsewhere.toml").write_text('id = "y"\n')                 # in the current folder only
     config = load_config(folder / "mine.toml")
     assert config["data"]["register"] == [str(folder / "my-drive.toml"), "elsewhere.toml"]
     assert config["train"]["init"] == "lfgnss/data/model/lfgnss-transfer-base.npz"     # not beside it: as given
+    monkeypatch.chdir(repo)
     assert load_config("learning/configs/hk_finetune.toml")["train"]["init"] == "transfer-base"   # a bundled name
     assert load_config(None, ["data.register=my.toml"])["data"]["register"] == ["my.toml"]   # one file, not letters
     with pytest.raises(ValueError, match="data.register"):
