@@ -7,7 +7,7 @@ Their covariance is inflated by the pseudorange residuals unless ``inflate_cov=F
 An option a backend does not take is a TypeError naming both (``backend_options(name)`` lists its options);
 ``noise`` may be a model file path (``create("ekf", noise="my.npz")``), read as ``--model`` is. A learned model
 runs in the filter it was trained in (``config_of(model)``); a noise model of your own that wraps one does not, unless
-given ``config=config_of(model)`` (the EKF warns).
+given ``config=config_of(model)`` (the EKF warns, as does the FGO where it takes a setting from the model).
 """
 from .base import (STATUS_COASTED, STATUS_NAMES, STATUS_NONE, STATUS_RESET, STATUS_UPDATED, Estimator, Solution,
                    available, backend_options, create, register)

@@ -251,6 +251,15 @@ def usable_sequence(sequence: Sequence, owner: str = "estimators", dopplers: boo
                    sat_vel_ecef_m_s=np.where(doppler[..., None], sequence.sat_vel_ecef_m_s, 0.0))
 
 
+def keep_slots(sequence: Sequence, keep: np.ndarray) -> Sequence:
+    """``sequence`` with only the slots ``keep`` (T, N) masked in, pseudoranges and Dopplers alike (the same object
+    when it keeps every masked-in slot)."""
+    mask = sequence.mask & keep
+    if np.array_equal(mask, sequence.mask):
+        return sequence
+    return replace(sequence, mask=mask, prr_mask=sequence.prr_mask & keep)
+
+
 def register(name: str) -> Callable:
     """Class decorator ``@register("name")``: make an estimator available as ``create("name")`` (and as
     ``--backend name`` to ``lfgnss.solve.main([...])`` called from the same program); replacing a back end warns."""

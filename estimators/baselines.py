@@ -10,8 +10,8 @@ from lfgnss.features import fill_from_nearest_epoch
 from lfgnss.sequence import Sequence
 from lfgnss.weighted_fix import weighted_least_squares
 
-from .base import STATUS_NONE, STATUS_UPDATED, Solution, check_sequence, register, usable_sequence
-from .noise import HeuristicNoise, NoiseModel, checked_noise, noise_output, resolve_noise
+from .base import STATUS_NONE, STATUS_UPDATED, Solution, check_sequence, keep_slots, register, usable_sequence
+from .noise import HeuristicNoise, NoiseModel, checked_noise, noise_output, resolve_noise, switched_on
 
 
 @dataclass
@@ -28,6 +28,7 @@ class _LeastSquares:
         else:
             r, _ = checked_noise(self.name, sequence.name, sequence.mask,
                                  *noise_output(self.name, self.noise(sequence)))
+            sequence = keep_slots(sequence, switched_on(sequence.mask, r))      # R > R_OFF_M2: satellite off
         fix = weighted_least_squares(sequence.pr_m, sequence.sat_pos_ecef_m, sequence.system_index, sequence.mask,
                                      len(sequence.systems), fill_from_nearest_epoch(sequence.coarse_ecef_m), r,
                                      scale_by_residuals=self.noise is None)

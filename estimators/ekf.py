@@ -50,8 +50,8 @@ from .base import (STATUS_COASTED, STATUS_NONE, STATUS_RESET, STATUS_UPDATED, So
                    warn_unusable)
 from .consistency import covariance_inflation, residual_variance_factor
 from .models import EkfConfig
-from .noise import (FixedNoise, HeuristicNoise, NoiseModel, TruthNoise, checked_noise, default_noise, describe_noise,
-                    noise_output, resolve_noise)
+from .noise import (HeuristicNoise, NoiseModel, checked_noise, default_noise, describe_noise, noise_output,
+                    resolve_noise, switched_on, warn_no_filter_settings)
 from .smoother import lag_horizon, rts_smooth
 
 
@@ -63,12 +63,6 @@ def compensated_pseudorange(pr_m: np.ndarray, vc_m: np.ndarray) -> np.ndarray:
 def coarse_available(sequence: Sequence) -> np.ndarray:
     """(T,) bool: epochs whose coarse fix can (re-)initialise the filter (position and clock finite)."""
     return np.isfinite(sequence.coarse_ecef_m).all(-1) & np.isfinite(sequence.coarse_clock_m[:, 0])
-
-
-def _carries_filter(noise: object) -> bool:
-    """Whether ``noise`` says which filter it belongs to: a learned model (its file's metadata), or a hand-set one."""
-    return isinstance(noise, (HeuristicNoise, FixedNoise, TruthNoise)) or isinstance(getattr(noise, "metadata", None),
-                                                                                       dict)
 
 
 def config_of(noise: NoiseModel) -> EkfConfig:
@@ -111,7 +105,8 @@ class LfgnssEkf:
     noise : NoiseModel, str or Path
         ``noise(sequence) -> (r_m2, vc_m)``, each (T, N); a learned model (``learning.export.load_model``, or the
         path of its file, read with it) or ``HeuristicNoise``, which None means here (the plain EKF).
-        ``create("ekf")`` gives the bundled model.
+        ``create("ekf")`` gives the bundled model. An R above ``estimators.noise.R_OFF_M2`` (1e12 m^2; 1e30, say)
+        switches the satellite off: its pseudorange and Doppler are left out as if masked (``switched_on``).
     config : EkfConfig
         Process noise, initial covariance, gate and reset settings; default: those the noise model
         was trained with (``config_of``), else ``EkfConfig()``.
@@ -164,11 +159,9 @@ class LfgnssEkf:
                             f"for a dict), got {type(config).__name__}")
         noise = resolve_noise(noise, type(self).__name__)
         self.noise = HeuristicNoise() if noise is None else noise
-        if config is None and not _carries_filter(self.noise):
-            warnings.warn(f"{owner}: the noise model {describe_noise(self.noise)} carries no filter settings of its own "
-                          f"(it is not a learned model file), so it runs in the default EkfConfig; a wrapped learned model "
-                          f"runs in its own filter with config=estimators.config_of(model) (or say config=EkfConfig())",
-                          stacklevel=caller_stacklevel())
+        if config is None:
+            warn_no_filter_settings(self.noise, owner, "it runs in the default EkfConfig",
+                                    "config=estimators.config_of(model) (or say config=EkfConfig())")
         self.config = config_of(self.noise) if config is None else config
         self.smooth = smooth
         self.smooth_lag_s = float(smooth_lag_s)
@@ -220,10 +213,11 @@ class LfgnssEkf:
             r_all, vc_all = np.ones(usable.shape), np.zeros(usable.shape)
         else:
             r_all, vc_all = self.noise_arrays(sequence, usable)
+            usable = switched_on(usable, r_all)
             vc_all = np.where(usable, vc_all, 0.0)
         z_all = compensated_pseudorange(pr_all, vc_all)
         r_all = np.where(usable, r_all, 1.0)
-        doppler_ok = doppler_ok if cfg.doppler_sigma_m_s > 0 else np.zeros_like(usable)
+        doppler_ok = usable & doppler_ok if cfg.doppler_sigma_m_s > 0 else np.zeros_like(usable)
         prr_all = np.where(doppler_ok, sequence.prr_m_s, 0.0)
         satvel_all = sequence.sat_vel_ecef_m_s
         r_doppler_all = models.used_doppler_variance_m2_s2(sequence.cn0_dbhz, doppler_ok, cfg, type(self).__name__,
@@ -296,16 +290,26 @@ class LfgnssEkf:
                                      f"numerically singular (its smallest R is {r.min():.3g} m^2): R must be a "
                                      f"pseudorange variance in m^2, not near 0") from None
 
-        def ask_noise(k: int, idx: np.ndarray, prior_x: np.ndarray | None) -> None:
-            """Epoch k's R and v^c from an online noise model, given the prior state (None: no prior)."""
+        def ask_noise(k: int, idx: np.ndarray, prior_x: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+            """Epoch k's R and v^c from an online noise model, given the prior state (None: no prior); returns the
+            epoch's pseudorange and Doppler slots left switched on (``switched_on``)."""
             innovation = np.zeros(usable.shape[1])
             if prior_x is not None:
                 innovation[idx] = models.prior_innovation_m(prior_x, sat_all[k, idx], sys_all[k, idx], pr_all[k, idx])
             r, vc = self._checked(sequence, usable[k], *noise_output(type(self).__name__, self.noise.predict(
                 features[k], sequence.mask[k], innovation_feature(innovation))))
+            on = switched_on(usable[k], r)
+            if not np.array_equal(on, usable[k]):       # as if masked out: redo what the epoch's slots decided
+                usable[k], doppler_ok[k] = on, doppler_ok[k] & on
+                coarse_judges[k] = coarse_ok[k] & (models.snapshot_redundancy(on, sys_all[k], n_sys)
+                                                   >= cfg.reset_min_redundancy)
+                row = slice(k, k + 1)
+                still[k] = models.stationary_epochs(prr_all[row], doppler_ok[row], sat_all[row], satvel_all[row],
+                                                    sequence.coarse_ecef_m[row], r_doppler_all[row], cfg)[0]
             r_all[k] = np.where(usable[k], r, 1.0)
             vc_all[k] = np.where(usable[k], vc, 0.0)
             z_all[k] = compensated_pseudorange(pr_all[k], vc_all[k])
+            return np.flatnonzero(usable[k]), np.flatnonzero(doppler_ok[k])
 
         def mostly_gated(gated: tuple, idx: np.ndarray) -> bool:
             return idx.size - int(gated[0][-1].sum()) > cfg.reset_gated_fraction * idx.size
@@ -331,7 +335,7 @@ class LfgnssEkf:
             jdx = np.flatnonzero(doppler_ok[k])
             if not started or (dt > cfg.max_gap_s and coarse_ok[k]):
                 if online:
-                    ask_noise(k, idx, None)
+                    idx, jdx = ask_noise(k, idx, None)
                 if not coarse_ok[k]:
                     continue
                 reset(k, idx, jdx)
@@ -346,7 +350,7 @@ class LfgnssEkf:
                 if kept:
                     steps[k] = ekf.F
                 if online:
-                    ask_noise(k, idx, ekf.x)
+                    idx, jdx = ask_noise(k, idx, ekf.x)
                 gated = gate(k, idx, jdx)
                 inconsistent = False
                 if (gate_sigma > 0 and coarse_ok[k] and idx.size >= cfg.reset_min_sats

@@ -73,12 +73,12 @@ from lfgnss.sequence import Sequence
 from lfgnss.velocity import DopplerVelocity, doppler_velocity
 
 from .base import (STATUS_COASTED, STATUS_NONE, STATUS_UPDATED, Solution, check_flag, check_sequence, epoch_range,
-                   options_of, register, usable_sequence)
+                   keep_slots, options_of, register, usable_sequence)
 from .consistency import covariance_inflation, residual_variance_factor
 from .ekf import config_of
 from .models import EkfConfig, still_fixes, used_doppler_variance_m2_s2
 from .noise import (HeuristicNoise, NoiseModel, checked_noise, default_noise, describe_noise, noise_output,
-                    resolve_noise)
+                    resolve_noise, switched_on, warn_no_filter_settings)
 
 MODES = ("batch", "fixed-lag")
 ROBUST_KERNELS = ("huber", "cauchy")
@@ -194,7 +194,8 @@ class LfgnssFgo:
     noise : NoiseModel, str or Path
         ``noise(sequence) -> (r_m2, vc_m)``, (T, N) each; sigma_i = sqrt(r_i), measurement pr + vc; or the path
         of a model file (read with ``learning.export.load_model``). None: ``HeuristicNoise``; ``create("fgo")``
-        gives the bundled model.
+        gives the bundled model. An R above ``estimators.noise.R_OFF_M2`` (1e12 m^2; 1e30, say) switches the
+        satellite off: its pseudorange and Doppler are left out as if masked (``switched_on``).
     mode : {"batch", "fixed-lag"}
         Whole-trajectory smoothing, or causal fixed-lag estimation (filtered estimate per epoch).
     lag_s : float
@@ -243,9 +244,10 @@ class LfgnssFgo:
         Sigma per axis [m/s] of a zero-velocity prior on ``V(k)`` at every epoch whose Doppler fix finds the
         receiver standing still (needs ``doppler_sigma_m_s > 0``); None: none. "model": the setting of the filter
         the learned model runs in (``estimators.ekf.config_of(noise).zupt_sigma_m_s``; None for hand-set noise or
-        with ``doppler_sigma_m_s=0``). Off by default: with the hk-tst-2019 model's 0.02 m/s the batch graph's
-        train / val 3D RMSE went 11.37 / 6.25 -> 12.31 / 6.12 m (fixed-lag 9.32 / 6.42 -> 9.41 / 5.69), while the
-        static receiver's went 1.12 / 1.09 -> 0.78 / 0.92 m (fixed-lag 1.31 / 4.12 -> 0.88 / 4.07).
+        with ``doppler_sigma_m_s=0``; a function wrapping a learned model has none: a warning says so, as the EKF's).
+        Off by default: with the hk-tst-2019 model's 0.02 m/s the batch graph's train / val 3D RMSE went 11.37 / 6.25
+        -> 12.31 / 6.12 m (fixed-lag 9.32 / 6.42 -> 9.41 / 5.69), while the static receiver's went 1.12 / 1.09 ->
+        0.78 / 0.92 m (fixed-lag 1.31 / 4.12 -> 0.88 / 4.07).
     zupt_max_speed_m_s : float or None
         The standstill test's speed bound [m/s] (``estimators.models.still_fixes``); None: the model's filter's
         (``EkfConfig.zupt_max_speed_m_s``, 0.5 m/s by default).
@@ -340,11 +342,22 @@ class LfgnssFgo:
         """The zero-velocity prior's sigma [m/s] (None: off) and speed bound [m/s], "model"/None resolved.
 
         The model's filter is read only where it gives a value: a graph without the prior ignores its settings, and
-        "model" without ``dopplers`` to find a standstill is off."""
+        "model" without ``dopplers`` to find a standstill is off. Read for noise that carries no filter (a function
+        wrapping a learned model), it is the default EkfConfig, which a warning says, as the EKF's does."""
+        read: dict[str, float | None] = {}          # the settings taken from the model's filter, with their values
         if isinstance(sigma, str) and sigma == "model":
-            sigma = config_of(self.noise).zupt_sigma_m_s if dopplers else None
+            sigma = None
+            if dopplers:
+                sigma = read["zupt_sigma_m_s"] = config_of(self.noise).zupt_sigma_m_s
         if max_speed is None:
-            max_speed = DEFAULT_ZUPT_MAX_SPEED_M_S if sigma is None else config_of(self.noise).zupt_max_speed_m_s
+            max_speed = DEFAULT_ZUPT_MAX_SPEED_M_S
+            if sigma is not None:
+                max_speed = read["zupt_max_speed_m_s"] = config_of(self.noise).zupt_max_speed_m_s
+        if read:
+            warn_no_filter_settings(
+                self.noise, type(self).__name__,
+                "it gets the default EkfConfig's " + ", ".join(f"{key}={value!r}" for key, value in read.items()),
+                ", ".join(f"{key}=estimators.config_of(model).{key}" for key in read))
         for key, value in (("zupt_sigma_m_s", sigma), ("zupt_max_speed_m_s", max_speed)):
             if value is None and key == "zupt_sigma_m_s":
                 continue
@@ -467,6 +480,7 @@ class LfgnssFgo:
             raise ValueError(f"estimators/fgo.py: {seq.name!r}: time not increasing at epoch {k + 1}")
         r_m2, vc_m = checked_noise(type(self).__name__, seq.name, seq.mask,
                                    *noise_output(type(self).__name__, self.noise(seq)))
+        seq = keep_slots(seq, switched_on(seq.mask, r_m2))
         z_m = np.where(seq.mask, seq.pr_m + vc_m, 0.0)
         sigma_m = np.sqrt(np.where(seq.mask, r_m2, 1.0))
 

@@ -44,6 +44,21 @@ def default_noise() -> NoiseModel:
     return load_model(default_model_path())
 
 
+def carries_filter(noise: object) -> bool:
+    """Whether ``noise`` says which filter it belongs to: a learned model (its file's metadata), or a hand-set one."""
+    return isinstance(noise, (HeuristicNoise, FixedNoise, TruthNoise)) or isinstance(getattr(noise, "metadata", None),
+                                                                                       dict)
+
+
+def warn_no_filter_settings(noise: object, owner: str, uses: str, keep: str) -> None:
+    """Warn, unless ``noise`` ``carries_filter``, that ``owner`` takes the default EkfConfig's settings (``uses``
+    says which and how) for it, and how a wrapped learned model keeps its own (``keep``)."""
+    if not carries_filter(noise):
+        warnings.warn(f"{owner}: the noise model {describe_noise(noise)} carries no filter settings of its own "
+                      f"(it is not a learned model file), so {uses}; a wrapped learned model keeps its own with "
+                      f"{keep}", stacklevel=caller_stacklevel())
+
+
 def describe_noise(noise: object) -> str:
     """A noise model in a few words for reprs: its file for a learned model, its name for a function, else its repr."""
     path = getattr(noise, "path", None)
@@ -87,11 +102,28 @@ def noise_output(owner: str, out: object) -> tuple[object, object]:
     raise TypeError(f"{owner}: a noise model must return (r_m2, vc_m), two (T, N) arrays [m^2, m]; got {got}")
 
 
+#: Pseudorange variance [m^2] above which a noise model switches a satellite off (sigma 1000 km, beyond any
+#: pseudorange error): ``switched_on`` treats the slot as masked out, pseudorange and Doppler (``checked_noise``).
+R_OFF_M2 = 1e12
+
+
+def switched_on(usable: np.ndarray, r_m2: np.ndarray) -> np.ndarray:
+    """(T, N) bool: ``usable`` slots whose R [m^2] is at most ``R_OFF_M2``; the others are switched off.
+
+    Dropping a pseudorange of variance r [m^2] moves an estimate by about (posterior variance / r) times its
+    innovation: above ``R_OFF_M2``, a micrometre for a 1000 km innovation at a posterior variance of 1 m^2. Keeping it
+    makes the innovation covariance ``S = H P H^T + R`` singular to machine precision (rcond ~ min(r) / max(r):
+    scipy's LinAlgWarning at every update).
+    """
+    return usable & (r_m2 <= R_OFF_M2)
+
+
 def checked_noise(owner: str, sequence_name: str, usable: np.ndarray, r_m2: object, vc_m: object
                   ) -> tuple[np.ndarray, np.ndarray]:
     """A noise model's ``(r_m2, vc_m)`` as float arrays shaped like ``usable``; ValueError naming the first bad epoch.
 
-    R must be finite and > 0 [m^2] and v^c finite [m] on the usable slots; other slots may hold anything.
+    R must be finite and > 0 [m^2] and v^c finite [m] on the usable slots; other slots may hold anything. An R above
+    ``R_OFF_M2`` (1e30, say) switches the satellite off (``switched_on``): the estimators leave it out as if masked.
     """
     r = np.asarray(r_m2, float)
     vc = np.asarray(vc_m, float)

@@ -363,3 +363,40 @@ def test_stationary_marks_no_epoch_before_the_first_fix():
 def test_simulated_stops_take_two_or_three_numbers():
     with pytest.raises(ValueError, match=r"stops_s takes \(start, end\) or \(start, end, speed\)"):
         simulate_sequence(10, stops_s=((1.0, 2.0, 0.1, 5.0),))
+
+
+def test_a_wrapped_learned_model_is_warned_of_where_a_setting_comes_from_the_model():
+    """A function around a learned model has none of its filter settings: a setting taken "from the model" is the
+    default EkfConfig's, which the graph says as the EKF does (one check, ``estimators.noise.warn_no_filter_settings``);
+    ``config_of(model)`` brings the model's."""
+    import warnings
+
+    import estimators
+    from estimators.models import EkfConfig
+
+    model = default_noise()
+
+    def wrapped(s):
+        return model(s)
+
+    with pytest.warns(UserWarning, match=r"LfgnssFgo: the noise model <function .*wrapped> carries no filter settings "
+                                         r"of its own .* default EkfConfig's zupt_sigma_m_s=None; .* "
+                                         r"zupt_sigma_m_s=estimators.config_of\(model\).zupt_sigma_m_s"):
+        assert LfgnssFgo(noise=wrapped, zupt_sigma_m_s="model").zupt_sigma_m_s is None
+    with pytest.warns(UserWarning, match=r"default EkfConfig's zupt_max_speed_m_s=0.5; .* "
+                                         r"zupt_max_speed_m_s=estimators.config_of\(model\).zupt_max_speed_m_s"):
+        create("fgo", noise=wrapped, zupt_sigma_m_s=0.02)
+    with pytest.warns(UserWarning, match="LfgnssEkf: .* carries no filter settings of its own .* default EkfConfig"):
+        estimators.LfgnssEkf(noise=wrapped)
+    config = estimators.config_of(model)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        kept = LfgnssFgo(noise=wrapped, zupt_sigma_m_s=config.zupt_sigma_m_s,
+                         zupt_max_speed_m_s=config.zupt_max_speed_m_s)
+        assert (kept.zupt_sigma_m_s, kept.zupt_max_speed_m_s) == (LfgnssFgo(noise=model, zupt_sigma_m_s="model")
+                                                                  .zupt_sigma_m_s, config.zupt_max_speed_m_s)
+        LfgnssFgo(noise=wrapped)                                                  # no setting from the model
+        LfgnssFgo(noise=wrapped, zupt_sigma_m_s="model", doppler_sigma_m_s=0.0)   # not read without Dopplers
+        LfgnssFgo(noise=HeuristicNoise(), zupt_sigma_m_s="model")                 # hand-set: the defaults are its own
+        LfgnssFgo(noise=FixedNoise(np.ones((3, 2)), np.zeros((3, 2))), zupt_sigma_m_s=0.02)
+    assert EkfConfig().zupt_sigma_m_s is None
