@@ -2,6 +2,8 @@
 
     python -m learning.crossval --config learning/configs/default.toml --folds 3 [--set key=value ...]
                                 [--fold J ...] [--out runs/cv-NAME] [--no-progress]
+                                [--reuse DIR --set ekf.KEY=VALUE]      # rescore saved folds in another filter
+    python -m learning.crossval --folds 3 --pool DIR0 --pool DIR1 --pool DIR2 --out DIR   # join --fold runs
 
 A validation split of a minute or two is one street: whether a recipe generalises cannot be read from
 it. Here each dataset's train and validation epochs, in time order and joined where they are contiguous
@@ -510,7 +512,9 @@ def main(argv: list[str] | None = None) -> int:
                         "processes, each with its own --out")
     p.add_argument("--reuse", metavar="DIR", type=path_option,
                    help="train nothing: score the saved fold models of an earlier run (its --out) again on their "
-                        "held-out blocks under this run's [ekf] settings (--set ekf.KEY=VALUE)")
+                        "held-out blocks under this run's [ekf] settings (--set ekf.KEY=VALUE); give that run's "
+                        "--config, --folds and other --set's again (a run made before folds joined the train and "
+                        "validation epochs is refused)")
     p.add_argument("--pool", metavar="DIR", type=path_option, action="append",
                    help="train and score nothing: put the folds of parallel --fold runs (their --out folders, "
                         "repeat --pool) in one table with the pooled rows, written to --out")

@@ -9,7 +9,8 @@ the dataset's own model was trained in a filter other than the default one (proc
 the plain EKF runs in that filter too, so that the learned noise's share of the gain shows.
 Writes a Markdown results table (all test epochs, and the epochs RTKLIB solved, and each learned row against the
 targets and yardstick of BENCHMARK.md), CDF and track PNGs per dataset, into ``--out`` (default ``lfgnss-benchmark/``
-in the current folder; ``--out docs`` from the repository root regenerates its committed docs/results.md).
+in the current folder; ``--out docs`` from the repository root regenerates its committed docs/results.md, and
+takes only the whole default run: a dataset subset, a dataset of one's own or other models are refused there).
 
 An ``rnx2rtkp`` that fails, hangs or writes an unreadable solution costs the RTKLIB row only (a warning says why).
 
@@ -452,6 +453,24 @@ def _prepare_out(out: Path, plots: bool) -> Path:
     return report
 
 
+def _refuse_partial_docs(args: argparse.Namespace, ids: list[str]) -> None:
+    """InputError unless a run into the repository's docs/ (its committed results) is the whole default run: all three
+    benchmark datasets present, the bundled models, no dataset of one's own; a part would replace the whole table."""
+    from .paths import REPO_DIR
+
+    committed = (REPO_DIR / "docs").resolve()
+    out = Path(args.out).resolve()
+    if out != committed and committed not in out.parents:
+        return
+    what = ([f"--register {', '.join(map(str, args.register))}"] if args.register else []) \
+        + ([f"--models {args.models}"] if Path(args.models).resolve() != MODEL_DIR.resolve() else []) \
+        + ([f"datasets {', '.join(ids) or '(none present)'} only"] if tuple(ids) != DEFAULT_DATASETS else [])
+    if what:
+        raise InputError(args.out, f"holds the committed results of the whole default run (all of "
+                                   f"{', '.join(DEFAULT_DATASETS)}, the bundled models); this run ({'; '.join(what)}) "
+                                   "would replace them with a part: give another --out")
+
+
 def _check_cache() -> None:
     """InputError naming ``$LFGNSS_CACHE`` when the cache folder cannot be made (a file in its place, no such disk)."""
     from .paths import cache_dir
@@ -485,7 +504,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=path_option, default=None,
                    help="folder for results.md and figures/ (default: lfgnss-benchmark in the current folder, "
                         "lfgnss-benchmark/warm-up-SPLIT with --warm-up; --out docs, and --out docs/warm-up-val "
-                        "with --warm-up val, regenerate the repository's committed results)")
+                        "with --warm-up val, regenerate the repository's committed results: the whole default "
+                        "run only, all three datasets with the bundled models)")
     p.add_argument("--warm-up", choices=WARM_UP, default=None, metavar="SPLIT",
                    help="start every estimator at the first epoch of this split (train or val; its observations, "
                         "never its truth) and score the test split only, so the filters enter it warm")
@@ -494,9 +514,11 @@ def main(argv: list[str] | None = None) -> int:
     if args.out is None:            # never the repository's docs/ unless asked for (--out docs)
         root = Path(DEFAULT_OUT)
         args.out = root if args.warm_up is None else root / f"warm-up-{args.warm_up}"
-    warnings.simplefilter("ignore", FutureWarning)
     try:
-        return _main(args, argv)
+        with warnings.catch_warnings():     # one line each ("warning: ..."), not Python's with a source line
+            warnings.simplefilter("ignore", FutureWarning)
+            warnings.showwarning = _print_warning
+            return _main(args, argv)
     except (*INPUT_ERRORS, OSError) as err:
         print(f"error: {input_line(err)}", file=sys.stderr)
         return 2
@@ -507,6 +529,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: internal error in the benchmark ({type(err).__name__}: {one_line(err)}); please report it",
               file=sys.stderr)
         return 3
+
+
+def _print_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """``warnings.showwarning`` of the command line: ``warning: MESSAGE`` on one line of stderr."""
+    print(f"warning: {one_line(message)}", file=sys.stderr)
 
 
 def _nothing_run(failed: list[str], report: Path) -> InputError:
@@ -526,6 +553,7 @@ def _main(args: argparse.Namespace, argv: list[str] | None) -> int:
     lost = [i for i in ids if datasets.get(i).source is not None and datasets.get(i).missing()]
     failed = [f"{i}: not run ({datasets.get(i).missing_note()})" for i in lost]
     asked, ids = ids, datasets.present([i for i in ids if i not in lost])
+    _refuse_partial_docs(args, ids)
     if not ids and failed:
         raise _nothing_run(failed, args.out / "results.md")
     if not ids:

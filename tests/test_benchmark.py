@@ -321,3 +321,52 @@ def test_the_help_names_the_dataset_ids_and_how_model_files_are_matched(monkeypa
     assert "lfgnss-default.npz gives the shipped model's rows" in shown
     assert "lfgnss-<dataset id>.npz gives the per-dataset model's rows on that dataset only" in shown
     assert "default: lfgnss-benchmark in the current folder" in shown and "--out docs" in shown
+
+
+def test_a_part_of_the_benchmark_never_replaces_the_committed_results(tmp_path, monkeypatch, capsys, sample_toml):
+    """--out docs (the repository's) takes only the whole default run; a dataset subset, a dataset of one's own or
+    other models would have left a docs/results.md of that part alone. Refused before any work, in one line."""
+    import argparse
+
+    import lfgnss.paths
+    from lfgnss.benchmark import _refuse_partial_docs
+
+    monkeypatch.setattr(lfgnss.paths, "REPO_DIR", tmp_path)
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(datasets, "_REGISTRY", {})
+    (tmp_path / "docs").mkdir()
+    (tmp_path / "docs" / "results.md").write_text("committed")
+    toml = sample_toml("my-part")
+    for out in ("docs", "docs/sub"):
+        assert main(["--register", str(toml), "--out", out, "--no-plots"]) == 2
+        assert capsys.readouterr().err == (
+            f"error: {out}: holds the committed results of the whole default run (all of "
+            f"{', '.join(DEFAULT_DATASETS)}, the bundled models); this run (--register {toml}; datasets my-part "
+            "only) would replace them with a part: give another --out\n")
+    assert (tmp_path / "docs" / "results.md").read_text() == "committed" and not (tmp_path / "docs" / "sub").exists()
+    whole = argparse.Namespace(out=tmp_path / "docs", register=[], models=MODEL_DIR)
+    assert _refuse_partial_docs(whole, list(DEFAULT_DATASETS)) is None
+    with pytest.raises(InputError, match=r"this run \(--models .*other\) would replace"):
+        _refuse_partial_docs(argparse.Namespace(out=tmp_path / "docs", register=[], models=tmp_path / "other"),
+                             list(DEFAULT_DATASETS))
+    assert _refuse_partial_docs(argparse.Namespace(out=tmp_path / "elsewhere", register=[str(toml)], models=MODEL_DIR),
+                                ["my-part"]) is None
+
+
+def test_warnings_during_a_run_are_one_line_each(monkeypatch, capsys):
+    """A warning raised while the benchmark runs (a dataset TOML's constellation left out, say) is printed as
+    ``warning: ...`` on one line, not Python's two lines with the source line that raised it."""
+    import warnings
+
+    import lfgnss.benchmark as bench
+
+    def warns(args, argv):
+        warnings.warn("dataset x: constellation(s) J of its systems have no usable observation\nand are left out")
+        warnings.warn("deprecated", FutureWarning)                          # ignored, as before
+        return 0
+
+    monkeypatch.setattr(bench, "_main", warns)
+    assert main(["--no-plots"]) == 0
+    assert capsys.readouterr().err == ("warning: dataset x: constellation(s) J of its systems have no usable "
+                                       "observation and are left out\n")
+    assert warnings.showwarning is not bench._print_warning                  # restored after the run
