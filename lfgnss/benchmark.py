@@ -12,6 +12,7 @@ targets and yardstick of BENCHMARK.md), CDF and track PNGs per dataset, into ``-
 in the current folder; ``--out docs`` from the repository root regenerates its committed docs/results.md, and
 takes only the whole default run: a dataset subset, a dataset of one's own or other models are refused there).
 
+results.md records the command, the code (lfgnss version, git commit) and the SHA-256 of each model file read.
 An ``rnx2rtkp`` that fails, hangs or writes an unreadable solution costs the RTKLIB row only (a warning says why).
 
 ``--models`` names another folder of such files, matched to the rows by name as the bundled ones are
@@ -385,11 +386,34 @@ def target_rows(all_rows: list[dict], rtk_rows: list[dict]) -> list[dict]:
     return out
 
 
+def model_files(model_dir: Path, ids: list[str]) -> list[Path]:
+    """The model files a run over ``ids`` reads from ``--models`` (a folder, matched by name, or one file)."""
+    if Path(model_dir).is_file():
+        return [Path(model_dir)]
+    names = [DEFAULT_MODEL, *ABLATIONS.values(), *(f"lfgnss-{i}.npz" for i in ids)]
+    return [Path(model_dir) / n for n in names if (Path(model_dir) / n).is_file()]
+
+
+def provenance_text(models: list[Path]) -> str:
+    """results.md's line on what made the figures: lfgnss's version, the code's git commit, each model's SHA-256."""
+    import hashlib
+
+    from learning.provenance import code_text, git_state
+
+    from . import __version__
+
+    digests = ", ".join(f"`{m.name}` {hashlib.sha256(m.read_bytes()).hexdigest()[:16]}" for m in models)
+    return (f"Code: lfgnss {__version__}, {code_text(git_state())}. Model files (SHA-256, first 16 hex digits): "
+            f"{digests or 'none'}.")
+
+
 def write_report(path: Path, all_rows: list[dict], rtk_rows: list[dict], command: str,
-                 warm_up: str | None = None, figures: bool = True, failed: list[str] = ()) -> Path:
+                 warm_up: str | None = None, figures: bool = True, failed: list[str] = (),
+                 made_by: str = "") -> Path:
     """Markdown results file with both tables and how they were made.
 
-    ``warm_up``: the split the filters started at; ``failed``: ``ID: reason`` of datasets that could not be run.
+    ``warm_up``: the split the filters started at; ``failed``: ``ID: reason`` of datasets that could not be run;
+    ``made_by``: the code and model files (``provenance_text``).
     """
     targets = target_rows(all_rows, rtk_rows)
     start = "" if warm_up is None else (
@@ -406,6 +430,7 @@ def write_report(path: Path, all_rows: list[dict], rtk_rows: list[dict], command
             "" if warm_up is None else " The targets table reads these figures against BENCHMARK.md's bars and "
             "yardstick, which are stated for the test split without saying where the filter starts; whether a warm "
             "start is the protocol's is for the team (README, Results)."),
+        *(["", made_by] if made_by else []),
         "",
         *([f"**Not run** (bad input; the tables leave these datasets out): {'; '.join(failed)}.", ""]
           if failed else []),
@@ -575,7 +600,8 @@ def _main(args: argparse.Namespace, argv: list[str] | None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     command = shlex.join(["python", "-m", "lfgnss.benchmark", *argv])
     try:                            # before the tables go to stdout, which may be a pipe closed early (| head)
-        written = write_report(report, all_rows, rtk_rows, command, args.warm_up, not args.no_plots, failed)
+        written = write_report(report, all_rows, rtk_rows, command, args.warm_up, not args.no_plots, failed,
+                               provenance_text(model_files(args.models, ids)))
     except OSError as err:
         written = None
         unwritten.append(f"{err.filename or report}: {cannot_write(err)}")

@@ -370,3 +370,26 @@ def test_warnings_during_a_run_are_one_line_each(monkeypatch, capsys):
     assert capsys.readouterr().err == ("warning: dataset x: constellation(s) J of its systems have no usable "
                                        "observation and are left out\n")
     assert warnings.showwarning is not bench._print_warning                  # restored after the run
+
+
+def test_the_results_file_names_the_code_and_the_model_files_it_was_made_with(tmp_path):
+    """results.md says which code and which model files (by content) made its figures: the command alone does not."""
+    import hashlib
+
+    from lfgnss import __version__
+    from lfgnss.benchmark import model_files, provenance_text, write_report
+
+    used = model_files(MODEL_DIR, ["berlin-pp"])
+    assert [m.name for m in used] == ["lfgnss-default.npz", "lfgnss-no_dpc.npz", "lfgnss-no_hem.npz",
+                                      "lfgnss-no_dpc_no_hem.npz", "lfgnss-berlin-pp.npz"]    # not the transfer base
+    one = tmp_path / "model.npz"
+    shutil.copy(MODEL_DIR / "lfgnss-default.npz", one)
+    assert model_files(one, ["berlin-pp"]) == [one]
+    text = provenance_text([one])
+    digest = hashlib.sha256(one.read_bytes()).hexdigest()[:16]
+    assert text.startswith(f"Code: lfgnss {__version__}, git ") or "code not in a git checkout" in text
+    assert text.endswith(f"Model files (SHA-256, first 16 hex digits): `model.npz` {digest}.")
+    rows = [_row("x", PLAIN, 30.0, 20.0)]
+    report = write_report(tmp_path / "results.md", rows, [], "python -m lfgnss.benchmark", figures=False,
+                          made_by=text)
+    assert f"\n\n{text}\n\n## All labelled test epochs" in report.read_text()
