@@ -433,6 +433,41 @@ def _legend(ax) -> None:
         ax.legend(loc="best")
 
 
+#: Line styles of successive groups of ten runs (with :func:`run_styles`' colours).
+_LINESTYLES = ("-", "--", ":", "-.")
+
+
+def run_styles(names: Sequence[str]) -> dict[str, tuple[tuple[float, float, float], str]]:
+    """``name -> (RGB colour, line style)`` for the runs of a plot, by their order: the same in every figure.
+
+    The first ten get tab10's colours with solid lines, the next ten the light shades of those hues (tab20's) with
+    dashed lines: up to 20 runs get 20 distinct colours, and a light shade also differs from its dark hue's run in line
+    style. Beyond 20 the colours repeat with dotted, then dash-dotted lines (40 distinct pairs).
+    """
+    import matplotlib
+
+    tab20 = matplotlib.colormaps["tab20"].colors
+    palette = tab20[::2] + tab20[1::2]              # tab10's colours (the dark hues), then their light ones
+    out: dict[str, tuple[tuple[float, float, float], str]] = {}
+    for i, name in enumerate(dict.fromkeys(names)):
+        out[name] = (tuple(palette[i % len(palette)]), _LINESTYLES[(i // 10) % len(_LINESTYLES)])
+    return out
+
+
+def _log_ticks(axis) -> None:
+    """Plain decimal tick labels on a log ``axis`` (0.01, 0.5, 20; not ScalarFormatter's "0.0" for 0.01): decades
+    always, the 2 and 5 (or all) minor ticks as well when the view spans few decades, as matplotlib's LogFormatter
+    chooses."""
+    from matplotlib.ticker import LogFormatter
+
+    class _Plain(LogFormatter):
+        def __call__(self, x, pos=None):
+            return f"{x:g}" if super().__call__(x, pos) else ""
+
+    axis.set_major_formatter(_Plain(labelOnlyBase=False))
+    axis.set_minor_formatter(_Plain(labelOnlyBase=False))
+
+
 def _named(extra: Mapping[str, Solution] | Sequence[Solution] | None) -> list[tuple[str, Solution]]:
     if extra is None:
         return []
@@ -453,7 +488,8 @@ def plot_solution(out_dir: str | Path, solution: Solution, truth_ecef_m: np.ndar
 
     Extra solutions (a name -> Solution mapping, or Solutions named by their backend) are matched to
     ``solution``'s epochs by GPS time rounded to 0.1 s. ``label`` names ``solution`` (default: its backend).
-    Every run gets its own colour (tab10's, then their light shades beyond ten runs).
+    Every run gets its own colour and line style (:func:`run_styles`), the same in every figure. Log axes
+    are labelled in plain decimals (0.01, 0.1, 1, 10 m).
 
     Returns
     -------
@@ -461,13 +497,24 @@ def plot_solution(out_dir: str | Path, solution: Solution, truth_ecef_m: np.ndar
         The files written, in the order above.
     """
     _check_args("plot_solution", out_dir, solution, "out_dir")
-    import matplotlib
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-    from matplotlib.ticker import NullFormatter, ScalarFormatter
-
+    figures = _solution_figures(solution, truth_ecef_m, extra_solutions, label)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    written: list[Path] = []
+    for name, fig in figures.items():
+        p = out_dir / f"{prefix}{name}"
+        fig.savefig(p, dpi=120)
+        written.append(p)
+    return written
+
+
+def _solution_figures(solution: Solution, truth_ecef_m: np.ndarray | None = None,
+                      extra_solutions: Mapping[str, Solution] | Sequence[Solution] | None = None,
+                      label: str | None = None) -> dict:
+    """:func:`plot_solution`'s figures (matplotlib ``Figure`` on an Agg canvas) by file name, not yet saved."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
     t = np.asarray(solution.time_gps_s, dtype=float)
     runs = [(label or solution.backend, np.where(solution.has_position()[:, None], solution.pos_ecef_m, np.nan))]
     runs += [(name, align_to(t, s)) for name, s in _named(extra_solutions)]
@@ -479,19 +526,16 @@ def plot_solution(out_dir: str | Path, solution: Solution, truth_ecef_m: np.ndar
     candidates = [truth] if truth is not None else []
     candidates += [p for _, p in runs]
     ref = next((c[np.isfinite(c).all(axis=1)][0] for c in candidates if np.isfinite(c).all(axis=1).any()), None)
-    written: list[Path] = []
-    tab20 = matplotlib.colormaps["tab20"].colors
-    palette = tab20[::2] + tab20[1::2]              # tab10's colours (the dark hues), then their light ones
-    colour = {name: palette[i % len(palette)] for i, (name, _) in enumerate(runs)}   # the same in every figure
+    figures: dict = {}
+    style = run_styles([name for name, _ in runs])            # the same in every figure
 
-    def save(fig: Figure, name: str) -> None:
+    def new_figure(name: str, figsize: tuple[float, float]) -> Figure:
+        fig = Figure(figsize=figsize, layout="constrained")
         FigureCanvasAgg(fig)
-        p = out_dir / f"{prefix}{name}"
-        fig.savefig(p, dpi=120)
-        written.append(p)
+        figures[name] = fig
+        return fig
 
-    fig = Figure(figsize=(7, 7), layout="constrained")
-    ax = fig.add_subplot()
+    ax = new_figure("track.png", (7, 7)).add_subplot()
     if ref is not None:
         rot = enu_rotations(ref[None])[0]
         if truth is not None:
@@ -499,7 +543,8 @@ def plot_solution(out_dir: str | Path, solution: Solution, truth_ecef_m: np.ndar
             ax.plot(enu[:, 0], enu[:, 1], "k-", lw=2, label="truth")
         for name, p in runs:
             enu = (p[np.isfinite(p).all(axis=1)] - ref) @ rot.T  # join across epochs without position
-            ax.plot(enu[:, 0], enu[:, 1], ".-", ms=2, lw=0.8, color=colour[name], label=name)
+            ax.plot(enu[:, 0], enu[:, 1], marker=".", ms=2, lw=0.8, color=style[name][0], ls=style[name][1],
+                    label=name)
         _legend(ax)
     else:
         ax.text(0.5, 0.5, "no position", ha="center", va="center", transform=ax.transAxes)
@@ -507,48 +552,43 @@ def plot_solution(out_dir: str | Path, solution: Solution, truth_ecef_m: np.ndar
     ax.set_ylabel("north [m]")
     ax.set_aspect("equal", adjustable="datalim")
     ax.grid(True, alpha=0.3)
-    ax.set_title(f"track ({runs[0][0]})")
-    save(fig, "track.png")
+    # the figure shows every run: name the run only when it is the only one
+    ax.set_title("horizontal track" if len(runs) > 1 else f"horizontal track ({runs[0][0]})")
 
     if truth is None:
-        return written
+        return figures
     t_rel = t - t[0] if len(t) else t
     errors = [(name, enu_errors(p, truth)) for name, p in runs]
-    fig = Figure(figsize=(10, 6), layout="constrained")
-    ax2, axu = fig.subplots(2, 1, sharex=True)
+    ax2, axu = new_figure("errors.png", (10, 6)).subplots(2, 1, sharex=True)
     for name, e in errors:
         # dots: isolated epochs
-        ax2.plot(t_rel, np.hypot(e[:, 0], e[:, 1]), ".-", ms=3, lw=0.8, color=colour[name], label=name)
-        axu.plot(t_rel, e[:, 2], ".-", ms=3, lw=0.8, color=colour[name], label=name)
+        kw = dict(marker=".", ms=3, lw=0.8, color=style[name][0], ls=style[name][1], label=name)
+        ax2.plot(t_rel, np.hypot(e[:, 0], e[:, 1]), **kw)
+        axu.plot(t_rel, e[:, 2], **kw)
     ax2.set_ylabel("2D error [m]")
     ax2.set_yscale("log")                   # 0.5 m and 50 m both readable when estimators differ tenfold
-    ax2.yaxis.set_major_formatter(ScalarFormatter())
-    ax2.yaxis.set_minor_formatter(NullFormatter())
+    _log_ticks(ax2.yaxis)
     axu.set_ylabel("up error [m]")
     axu.set_xlabel("time since first epoch [s]")
     for a in (ax2, axu):
         a.grid(True, alpha=0.3)
     _legend(ax2)
-    save(fig, "errors.png")
 
-    fig = Figure(figsize=(10, 5), layout="constrained")
-    ax_h, ax_3 = fig.subplots(1, 2, sharey=True)
+    ax_h, ax_3 = new_figure("cdf.png", (10, 5)).subplots(1, 2, sharey=True)
     labelled = np.isfinite(truth).all(axis=1)
     for name, e in errors:
         for a, v in ((ax_h, np.hypot(e[:, 0], e[:, 1])), (ax_3, np.linalg.norm(e, axis=1))):
             v = np.sort(v[np.isfinite(v)])
             if v.size:
                 # CDF over labelled epochs: unsolved epochs count as missing, so curves end at availability.
-                a.step(v, np.arange(1, v.size + 1) / max(labelled.sum(), 1), where="post", color=colour[name],
-                       label=name)
+                a.step(v, np.arange(1, v.size + 1) / max(labelled.sum(), 1), where="post", color=style[name][0],
+                       ls=style[name][1], label=name)
     for a, title in ((ax_h, "2D error [m]"), (ax_3, "3D error [m]")):
         a.set_xlabel(title)
         a.set_xscale("log")
-        a.xaxis.set_major_formatter(ScalarFormatter())
-        a.xaxis.set_minor_formatter(NullFormatter())
+        _log_ticks(a.xaxis)
         a.grid(True, which="both", alpha=0.3)
     ax_h.set_ylabel("share of labelled epochs")
     ax_h.set_ylim(0, 1.0)
     _legend(ax_h)
-    save(fig, "cdf.png")
-    return written
+    return figures

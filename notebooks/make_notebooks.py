@@ -12,18 +12,25 @@ def nb(cells, path):
 
 nb([
 ("md", "# Comparing estimators\n\nEqual-weight least squares, the plain EKF (hand-set C/N0 noise, innovation gate), and the LF-GNSS EKF (forward, and smoothed backwards with `smooth=True` for post-processing) and factor graph with the shipped model, on the bundled Berlin drive (smartLoc, CC BY-SA 4.0) and, when present, on a shared benchmark dataset's test split."),
-("code", """import warnings
+("code", """import tempfile, warnings
+from pathlib import Path
 warnings.simplefilter("ignore", FutureWarning)
 import numpy as np
-import matplotlib
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
+from IPython.display import Image, display
+from matplotlib.figure import Figure
 
 import lfgnss
 import estimators
 from lfgnss import datasets
-from lfgnss.metrics import accuracy_table, enu_errors, format_markdown
-from lfgnss.solve import DEFAULT_MODEL, SAMPLE_NAV, SAMPLE_OBS, SAMPLE_TRUTH"""),
+from lfgnss.metrics import METRIC_COLUMNS, accuracy_table, enu_errors, markdown_table
+from lfgnss.solve import DEFAULT_MODEL, SAMPLE_NAV, SAMPLE_OBS, SAMPLE_TRUTH
+
+folder = Path(tempfile.mkdtemp())      # figures go here, not into the notebook's folder
+
+def table(rows, keys):
+    \"\"\"Markdown table of only these accuracy_table columns, with format_markdown's headings.\"\"\"
+    text = markdown_table(rows, keys)
+    return "| " + " | ".join(METRIC_COLUMNS.get(k, k) for k in keys) + " |" + text[text.index("\\n"):]"""),
 ("code", """meas = lfgnss.load(SAMPLE_OBS, SAMPLE_NAV)
 fix = lfgnss.spp(meas)
 truth = datasets.read_truth(SAMPLE_TRUTH, meas.time_gps_s, "smartloc")   # (T, 3) ECEF [m], NaN where none
@@ -45,14 +52,19 @@ def compare(seq):
     return sols, rows
 
 sols, rows = compare(seq)
-print(format_markdown([{k: r[k] for k in ("method", "availability", "rmse_2d_m", "rmse_3d_m", "p95_3d_m")} for r in rows]))"""),
-("code", """fig, ax = plt.subplots(figsize=(6, 4))
+print(table(rows, ["method", "availability", "rmse_2d_m", "rmse_3d_m", "p95_3d_m"]))"""),
+("code", """fig = Figure(figsize=(7, 4), layout="constrained")
+ax = fig.subplots()
+labelled = np.isfinite(seq.truth_ecef_m).all(axis=1).sum()
 for name, s in sols.items():
     err = np.linalg.norm(enu_errors(s.pos_ecef_m, seq.truth_ecef_m), axis=1)
     err = np.sort(err[np.isfinite(err)])
-    ax.plot(err, np.linspace(0, 1, err.size), label=name)
-ax.set_xscale("log"); ax.set_xlabel("3D error [m]"); ax.set_ylabel("CDF"); ax.legend(); ax.grid(True, alpha=0.3)
-fig.savefig("comparison_cdf.png", dpi=100)"""),
+    # over the labelled epochs: a curve ends at the estimator's availability
+    ax.step(err, np.arange(1, err.size + 1) / labelled, where="post", label=name)
+ax.set_xscale("log"); ax.set_xlabel("3D error [m]"); ax.set_ylabel("share of labelled epochs")
+ax.set_ylim(0, 1); ax.set_title("Berlin drive: CDF of the 3D error"); ax.legend(); ax.grid(True, which="both", alpha=0.3)
+fig.savefig(folder / "comparison_cdf.png", dpi=100)
+display(Image(filename=str(folder / "comparison_cdf.png")))"""),
 ("md", "## A shared benchmark dataset (skipped when `../shared/data` is absent)"),
 ("code", """spec = datasets.get("hk-tst-static-2020")
 if spec.missing():
@@ -60,15 +72,18 @@ if spec.missing():
 else:
     test = datasets.load_split("hk-tst-static-2020", "test")[0]
     _, rows = compare(test)
-    print(format_markdown([{k: r[k] for k in ("method", "availability", "rmse_2d_m", "rmse_3d_m")} for r in rows]))"""),
+    print(table(rows, ["method", "availability", "rmse_2d_m", "rmse_3d_m"]))"""),
 ], "notebooks/estimator_comparison.ipynb")
 
 nb([
 ("md", "# Training walk-through\n\nThe LF-GNSS network is trained end to end through a differentiable EKF (`learning.torch_ekf`). This notebook trains a small model for a few epochs on simulated urban drives (seconds on a laptop), exports it to a model file and uses it in the filterpy EKF plug-in. For the real benchmark data use `python -m learning.train --config learning/configs/shipped.toml` (`lfgnss/data/model/README.md` gives the command and configuration behind each shipped model)."),
-("code", """import tempfile, warnings
+("code", """import csv, tempfile, warnings
 from pathlib import Path
 warnings.simplefilter("ignore", FutureWarning)
 import numpy as np
+from IPython.display import Image, display
+from matplotlib.figure import Figure
+from matplotlib.ticker import MaxNLocator
 from learning.train import load_config, train
 from learning.export import load_model
 import estimators
@@ -81,7 +96,22 @@ config = load_config(None, ['data.datasets=["synthetic"]', "train.epochs=3", "da
 print({k: config[k] for k in ("data", "loss")})"""),
 ("code", """out = Path(tempfile.mkdtemp()) / "run"
 result = train(config, out, progress=False)
-print(open(out / "log.csv").read())"""),
+
+# the training curves, from the run's log.csv (one row per epoch; epoch 0 scores the untrained model, so it has
+# no training loss)
+log = list(csv.DictReader(open(out / "log.csv")))
+value = lambda row, key: float(row[key]) if row[key] not in ("", None) else np.nan
+epoch = [int(r["epoch"]) for r in log]
+fig = Figure(figsize=(9, 3.5), layout="constrained")
+ax_loss, ax_val = fig.subplots(1, 2)
+ax_loss.plot(epoch, [value(r, "train_loss") for r in log], "o-")
+ax_loss.set_xlabel("epoch"); ax_loss.set_ylabel("training loss [m]"); ax_loss.set_title("training loss")
+ax_val.plot(epoch, [value(r, "val_rmse_3d_m") for r in log], "o-", color="C1")
+ax_val.set_xlabel("epoch"); ax_val.set_ylabel("3D RMSE [m]"); ax_val.set_title("validation (whole sequences)")
+for a in (ax_loss, ax_val):
+    a.xaxis.set_major_locator(MaxNLocator(integer=True)); a.grid(True, alpha=0.3)
+fig.savefig(out / "training_curves.png", dpi=100)
+display(Image(filename=str(out / "training_curves.png")))"""),
 ("md", "Three epochs on two short simulated drives only show the mechanics: expect this model to lose to the plain EKF below. The shipped models train for 30-120 epochs on real drives, and cross-validation (next section) is how to tell whether a recipe helps."),
 ("code", """model = load_model(out / "model.npz")
 print(model, model.metadata["val_rmse_3d_m"])
@@ -104,8 +134,9 @@ warnings.simplefilter("ignore", FutureWarning)
 import estimators
 from lfgnss import datasets
 from lfgnss.metrics import accuracy_table
-from lfgnss.outputs import write_csv, write_pos
+from lfgnss.outputs import plot_solution, write_csv, write_pos
 from lfgnss.solve import SAMPLE_DIR
+from IPython.display import Image, display
 
 folder = Path(tempfile.mkdtemp())
 config = folder / "my-drive.toml"
@@ -130,6 +161,10 @@ print(spec.id, [p.name for p in spec.files()])"""),
 sol = estimators.create("plain-ekf").solve(test)
 print(accuracy_table(sol.pos_ecef_m, test.truth_ecef_m, sol.available, method="plain-ekf"))
 print(write_pos(folder / "my-drive.pos", sol), write_csv(folder / "my-drive.csv", sol, test.truth_ecef_m))"""),
+("md", "`plot_solution` writes the track, the error against time and the error CDF as PNG files (here into the temporary folder); the error against time:"),
+("code", """figures = plot_solution(folder / "figures", sol, test.truth_ecef_m, prefix="my-drive-", label="plain EKF")
+print([f.name for f in figures])
+display(Image(filename=str(folder / "figures" / "my-drive-errors.png")))"""),
 ("md", "## Fine-tune the shipped model on your drive\n\nWith a few minutes of labelled data, start from the shipped model rather than from scratch: `train.init` loads its weights, network, features, normalisation and filter (the `[ekf]` keys you set win), and the new model file records what it started from. `data.register` names your dataset TOML files. One epoch here, to keep the notebook quick (the bundled drive is also one the shipped model was trained on, so this shows the mechanics, not a gain). The same from the shell:\n\n    python -m learning.train --config learning/configs/finetune.toml --set 'data.register=[\"my-drive.toml\"]' --set 'data.datasets=[\"my-drive\"]' --out runs/my-drive\n\n`python -m lfgnss.datasets --register my-drive.toml` prints the alignment report."),
 ("code", """from learning.export import load_model
 from learning.train import load_config, train

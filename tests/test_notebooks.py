@@ -19,5 +19,12 @@ def test_notebook_runs(path, tmp_path, monkeypatch):
     client.execute()
     outputs = [o for c in notebook.cells if c.cell_type == "code" for o in c.get("outputs", [])]
     assert not [o for o in outputs if o.get("output_type") == "error"]
+    assert not [p.name for p in tmp_path.iterdir() if p.name != "cache"]   # figures and files go to temporary folders
+    # each walks through with at least one plot, shown in the notebook
+    assert [o for o in outputs if "image/png" in o.get("data", {})]
+    text = "".join(o.get("text", "") for o in outputs)
+    if path.stem == "estimator_comparison":         # tables of the columns computed: no cell is "-" for lack of one
+        tables = [line for line in text.splitlines() if line.startswith("| ")]
+        assert tables and not [line for line in tables if "| - |" in line or line.endswith("| -")], tables
     if path.stem == "training_walkthrough":         # trains on simulated drives, never on a shared dataset
         assert "'datasets': ['synthetic']" in "".join(o.get("text", "") for o in outputs)

@@ -1,0 +1,107 @@
+"""plot_solution's figures: log-axis tick labels, a distinct style per method, the track's title."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+pytest.importorskip("matplotlib")
+
+from estimators.base import STATUS_UPDATED, Solution  # noqa: E402
+from lfgnss.frames import lla_to_ecef  # noqa: E402
+from lfgnss.metrics import enu_rotations  # noqa: E402
+from lfgnss.outputs import _solution_figures, plot_solution, run_styles  # noqa: E402
+
+
+def _run(east_error_m: np.ndarray, backend: str = "ekf") -> tuple[Solution, np.ndarray]:
+    """A solution whose error is ``east_error_m`` [m] east of the truth at each epoch (2D = 3D error)."""
+    t = len(east_error_m)
+    truth = lla_to_ecef(np.radians(52.5048 + 1e-5 * np.arange(t)), np.radians(13.375 + 1e-5 * np.arange(t)),
+                        np.full(t, 40.0))
+    enu = np.column_stack([east_error_m, np.zeros(t), np.zeros(t)])
+    pos = truth + np.einsum("tji,tj->ti", enu_rotations(truth), enu)        # R^T enu: ENU offset -> ECEF
+    sol = Solution(backend=backend, time_gps_s=1e9 + np.arange(t, dtype=float), pos_ecef_m=pos,
+                   cov_ecef_m2=np.tile(np.eye(3), (t, 1, 1)), clock_m=np.zeros(t), n_used=np.full(t, 8),
+                   status=np.full(t, STATUS_UPDATED))
+    return sol, truth
+
+
+def _labels(axis) -> list[tuple[float, str]]:
+    """(tick value, label text) of the labelled ticks (major and minor) inside the view, after drawing."""
+    lo, hi = sorted(axis.get_view_interval())
+    out = []
+    for tick in axis.get_major_ticks() + axis.get_minor_ticks():
+        loc, text = tick.get_loc(), tick.label1.get_text()
+        if text and lo <= loc <= hi:
+            out.append((loc, text))
+    return out
+
+
+def _check_labels(axis, must: set[str] = frozenset()) -> list[str]:
+    labels = _labels(axis)
+    texts = [text for _, text in labels]
+    assert len(texts) >= 2, texts
+    assert len(set(texts)) == len(texts), f"duplicated tick labels: {texts}"
+    assert "0.0" not in texts and "0" not in texts, texts
+    for loc, text in labels:            # every label says the value at its tick
+        assert float(text.replace("\N{MINUS SIGN}", "-")) == pytest.approx(loc, rel=1e-6), (loc, text)
+    assert must <= set(texts), (must, texts)
+    return texts
+
+
+def test_log_axes_label_centimetres_to_hundreds_of_metres():
+    sol, truth = _run(np.logspace(-2, 2, 60))           # 0.01 m ... 100 m
+    figs = _solution_figures(sol, truth)
+    for fig in figs.values():
+        fig.canvas.draw()
+    decades = {"0.01", "0.1", "1", "10", "100"}
+    _check_labels(figs["errors.png"].axes[0].yaxis, decades)
+    for ax in figs["cdf.png"].axes:
+        _check_labels(ax.xaxis, decades)
+    assert [ax.get_xlabel() for ax in figs["cdf.png"].axes] == ["2D error [m]", "3D error [m]"]
+
+
+def test_log_axes_within_one_decade_still_labelled():
+    """0.2-0.9 m holds no decade: the minor ticks carry the labels, as plain decimals."""
+    sol, truth = _run(np.linspace(0.2, 0.9, 40))
+    figs = _solution_figures(sol, truth)
+    figs["errors.png"].canvas.draw()
+    texts = _check_labels(figs["errors.png"].axes[0].yaxis)
+    assert all(t.startswith("0.") for t in texts), texts
+
+
+@pytest.mark.parametrize("n", [1, 2, 10, 11, 16, 20])
+def test_run_styles_distinct_and_deterministic(n):
+    names = [f"method {k}" for k in range(n)]
+    styles = run_styles(names)
+    assert list(styles) == names
+    assert len(set(styles.values())) == n
+    assert len({colour for colour, _ in styles.values()}) == n       # up to 20: the colours alone differ
+    assert run_styles(names) == styles
+    assert run_styles(names[:1]) == {names[0]: styles[names[0]]}       # by order, not by how many
+
+
+def test_sixteen_methods_get_distinct_lines_in_every_figure(tmp_path):
+    sol, truth = _run(np.logspace(-1, 1, 30), backend="LF-GNSS EKF")
+    extra = {f"method {k}": _run(np.logspace(-1, 1, 30) * (k + 2))[0] for k in range(15)}
+    figs = _solution_figures(sol, truth, extra_solutions=extra, label="LF-GNSS EKF")
+    names = ["LF-GNSS EKF", *extra]
+    for fname, fig in figs.items():
+        for ax in fig.axes:
+            lines = {ln.get_label(): (tuple(ln.get_color()), ln.get_linestyle()) for ln in ax.get_lines()
+                     if ln.get_label() in names}
+            assert set(lines) == set(names), fname
+            assert len(set(lines.values())) == len(names), fname
+            assert lines == run_styles(names)
+    files = plot_solution(tmp_path, sol, truth, extra_solutions=extra, label="LF-GNSS EKF")
+    assert [f.name for f in files] == ["track.png", "errors.png", "cdf.png"]
+
+
+def test_track_title_names_no_single_method_when_it_shows_several():
+    sol, truth = _run(np.full(10, 2.0), backend="LF-GNSS EKF")
+    other, _ = _run(np.full(10, 5.0), backend="wls")
+    several = _solution_figures(sol, truth, extra_solutions=[other], label="LF-GNSS EKF")
+    assert several["track.png"].axes[0].get_title() == "horizontal track"
+    alone = _solution_figures(sol, truth, label="LF-GNSS EKF")
+    assert alone["track.png"].axes[0].get_title() == "horizontal track (LF-GNSS EKF)"
+    assert [several["track.png"].axes[0].get_xlabel(), several["track.png"].axes[0].get_ylabel()] == \
+        ["east [m]", "north [m]"]
