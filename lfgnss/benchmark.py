@@ -589,6 +589,7 @@ def _main(args: argparse.Namespace, argv: list[str] | None) -> int:
             if shared_data_dir() in first.parents else ""
         raise InputError(args.out / "results.md", f"not written: no dataset has all its files (first missing: "
                                                   f"{first}{where})")
+    made_by = provenance_text(model_files(args.models, ids))    # before any file is written: --out docs is tracked
     report = _prepare_out(args.out, plots=not args.no_plots)
     _check_cache()
     unwritten: list[str] = []      # figures and results.md that could not be written: the rest is kept, exit 2
@@ -600,8 +601,7 @@ def _main(args: argparse.Namespace, argv: list[str] | None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     command = shlex.join(["python", "-m", "lfgnss.benchmark", *argv])
     try:                            # before the tables go to stdout, which may be a pipe closed early (| head)
-        written = write_report(report, all_rows, rtk_rows, command, args.warm_up, not args.no_plots, failed,
-                               provenance_text(model_files(args.models, ids)))
+        written = write_report(report, all_rows, rtk_rows, command, args.warm_up, not args.no_plots, failed, made_by)
     except OSError as err:
         written = None
         unwritten.append(f"{err.filename or report}: {cannot_write(err)}")
