@@ -15,15 +15,21 @@ from pathlib import Path
 CODE_ROOT = Path(__file__).resolve().parents[1]
 
 
-def git_state(root: str | Path = CODE_ROOT) -> dict | None:
-    """{"commit": 40 hex digits, "dirty": tracked files modified} of the checkout at ``root``; None if not one."""
+def git_state(root: str | Path = CODE_ROOT, ignore: tuple[str | Path, ...] = ()) -> dict | None:
+    """{"commit": 40 hex digits, "dirty": tracked files modified} of the checkout at ``root``; None if not one.
+
+    Changes under ``ignore`` (a run's own output folders, where inside the checkout) do not count as dirty.
+    """
     def git(*args: str) -> str:
         return subprocess.run(["git", "-C", str(root), *args], capture_output=True, text=True, check=True,
                               timeout=10).stdout.strip()
 
+    top = Path(root).resolve()
+    inside = [q for q in (Path(p).resolve() for p in ignore) if q == top or top in q.parents]
     try:
         commit = git("rev-parse", "--verify", "HEAD")
-        dirty = bool(git("status", "--porcelain", "--untracked-files=no"))
+        dirty = bool(git("status", "--porcelain", "--untracked-files=no", "--", ".",
+                         *(f":(exclude){q}" for q in inside)))
     except (OSError, subprocess.SubprocessError):      # no git, not a checkout, a hung filesystem
         return None
     return {"commit": commit, "dirty": dirty}

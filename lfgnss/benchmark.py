@@ -394,8 +394,9 @@ def model_files(model_dir: Path, ids: list[str]) -> list[Path]:
     return [Path(model_dir) / n for n in names if (Path(model_dir) / n).is_file()]
 
 
-def provenance_text(models: list[Path]) -> str:
-    """results.md's line on what made the figures: lfgnss's version, the code's git commit, each model's SHA-256."""
+def provenance_text(models: list[Path], out: Path | None = None) -> str:
+    """results.md's line on what made the figures: lfgnss's version, the code's git commit (changes under the run's
+    ``out`` folder aside: regenerating docs/ rewrites tracked files), each model's SHA-256."""
     import hashlib
 
     from learning.provenance import code_text, git_state
@@ -403,7 +404,7 @@ def provenance_text(models: list[Path]) -> str:
     from . import __version__
 
     digests = ", ".join(f"`{m.name}` {hashlib.sha256(m.read_bytes()).hexdigest()[:16]}" for m in models)
-    return (f"Code: lfgnss {__version__}, {code_text(git_state())}. Model files (SHA-256, first 16 hex digits): "
+    return (f"Code: lfgnss {__version__}, {code_text(git_state(ignore=(out,) if out else ()))}. Model files (SHA-256, first 16 hex digits): "
             f"{digests or 'none'}.")
 
 
@@ -589,7 +590,7 @@ def _main(args: argparse.Namespace, argv: list[str] | None) -> int:
             if shared_data_dir() in first.parents else ""
         raise InputError(args.out / "results.md", f"not written: no dataset has all its files (first missing: "
                                                   f"{first}{where})")
-    made_by = provenance_text(model_files(args.models, ids))    # before any file is written: --out docs is tracked
+    made_by = provenance_text(model_files(args.models, ids), args.out)     # before the run writes anything
     report = _prepare_out(args.out, plots=not args.no_plots)
     _check_cache()
     unwritten: list[str] = []      # figures and results.md that could not be written: the rest is kept, exit 2

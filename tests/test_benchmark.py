@@ -393,3 +393,25 @@ def test_the_results_file_names_the_code_and_the_model_files_it_was_made_with(tm
     report = write_report(tmp_path / "results.md", rows, [], "python -m lfgnss.benchmark", figures=False,
                           made_by=text)
     assert f"\n\n{text}\n\n## All labelled test epochs" in report.read_text()
+
+
+def test_the_code_is_clean_when_only_the_runs_own_output_folder_changed(tmp_path):
+    """Regenerating the committed docs/ rewrites tracked files; those changes are the run's, not the code's."""
+    import subprocess
+
+    from learning.provenance import git_state
+
+    def git(*args):
+        subprocess.run(["git", "-C", str(tmp_path), *args], check=True, capture_output=True)
+
+    git("init", "-q")
+    (tmp_path / "code.py").write_text("x = 1\n")
+    (tmp_path / "docs").mkdir()
+    (tmp_path / "docs" / "results.md").write_text("old\n")
+    git("add", ".")
+    git("-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "c")
+    (tmp_path / "docs" / "results.md").write_text("new\n")
+    assert git_state(tmp_path)["dirty"] and not git_state(tmp_path, ignore=(tmp_path / "docs",))["dirty"]
+    assert not git_state(tmp_path, ignore=(tmp_path / "docs", "/somewhere/else"))["dirty"]   # outside: no matter
+    (tmp_path / "code.py").write_text("x = 2\n")
+    assert git_state(tmp_path, ignore=(tmp_path / "docs",))["dirty"]
