@@ -162,14 +162,17 @@ def _table(rows: Iterable[Mapping], digits: int) -> tuple[list[str], list[list[s
     return head, body
 
 
-def format_markdown(rows: Iterable[Mapping], digits: int = 2) -> str:
+def format_markdown(rows: Iterable[Mapping], digits: int = 2, columns: list[str] | None = None) -> str:
     """Rows of :func:`accuracy_table` as a Markdown table (labels left, numbers right-aligned).
 
-    Missing or non-finite values print as ``-``; availability prints in percent.
+    ``columns``: only these keys (e.g. ``["method", "rmse_2d_m", "rmse_3d_m"]``), in that order; default: the labels
+    and every metric. Missing or non-finite values print as ``-``; availability prints in percent.
     """
-    head, body = _table(rows, digits)
-    n_lab = len(head) - len(METRIC_COLUMNS)
-    return _markdown(head, body, ["---"] * n_lab + ["---:"] * len(METRIC_COLUMNS))
+    rows = list(rows)
+    cols = _columns(rows) if columns is None else list(columns)
+    head = [METRIC_COLUMNS.get(c, c) for c in cols]
+    body = [[_cell(c, row.get(c), digits) for c in cols] for row in rows]
+    return _markdown(head, body, ["---:" if c in METRIC_COLUMNS else "---" for c in cols])
 
 
 def markdown_table(rows: Iterable[Mapping], keys: list[str] | None = None, digits: int = 2) -> str:

@@ -22,15 +22,10 @@ from matplotlib.figure import Figure
 import lfgnss
 import estimators
 from lfgnss import datasets
-from lfgnss.metrics import METRIC_COLUMNS, accuracy_table, enu_errors, markdown_table
+from lfgnss.metrics import accuracy_table, enu_errors, format_markdown
 from lfgnss.solve import DEFAULT_MODEL, SAMPLE_NAV, SAMPLE_OBS, SAMPLE_TRUTH
 
-folder = Path(tempfile.mkdtemp())      # figures go here, not into the notebook's folder
-
-def table(rows, keys):
-    \"\"\"Markdown table of only these accuracy_table columns, with format_markdown's headings.\"\"\"
-    text = markdown_table(rows, keys)
-    return "| " + " | ".join(METRIC_COLUMNS.get(k, k) for k in keys) + " |" + text[text.index("\\n"):]"""),
+folder = Path(tempfile.mkdtemp())      # figures go here, not into the notebook's folder"""),
 ("code", """meas = lfgnss.load(SAMPLE_OBS, SAMPLE_NAV)
 fix = lfgnss.spp(meas)
 truth = datasets.read_truth(SAMPLE_TRUTH, meas.time_gps_s, "smartloc")   # (T, 3) ECEF [m], NaN where none
@@ -52,7 +47,7 @@ def compare(seq):
     return sols, rows
 
 sols, rows = compare(seq)
-print(table(rows, ["method", "availability", "rmse_2d_m", "rmse_3d_m", "p95_3d_m"]))"""),
+print(format_markdown(rows, columns=["method", "availability", "rmse_2d_m", "rmse_3d_m", "p95_3d_m"]))"""),
 ("code", """fig = Figure(figsize=(7, 4), layout="constrained")
 ax = fig.subplots()
 labelled = np.isfinite(seq.truth_ecef_m).all(axis=1).sum()
@@ -72,7 +67,7 @@ if spec.missing():
 else:
     test = datasets.load_split("hk-tst-static-2020", "test")[0]
     _, rows = compare(test)
-    print(table(rows, ["method", "availability", "rmse_2d_m", "rmse_3d_m"]))"""),
+    print(format_markdown(rows, columns=["method", "availability", "rmse_2d_m", "rmse_3d_m"]))"""),
 ], "notebooks/estimator_comparison.ipynb")
 
 nb([

@@ -90,3 +90,16 @@ def test_tables_format_rows():
     assert len(tl) == 4 and tl[0].startswith("method")
     assert len({len(tl[0]), len(tl[1])}) == 1
     assert "nan" not in txt.lower()
+
+
+def test_format_markdown_takes_only_the_columns_asked_for():
+    """A table of a few columns: their headings, numbers right-aligned, no "-" for the metrics not asked for."""
+    from lfgnss.metrics import METRIC_COLUMNS, accuracy_table, format_markdown
+
+    truth = np.zeros((4, 3)) + [6378137.0, 0.0, 0.0]
+    row = accuracy_table(truth + [[0, 3, 4]] * 4, truth, np.ones(4, bool), method="x")
+    lines = format_markdown([row], columns=["method", "availability", "rmse_3d_m"]).splitlines()
+    assert lines[0] == f"| method | {METRIC_COLUMNS['availability']} | {METRIC_COLUMNS['rmse_3d_m']} |"
+    assert lines[1] == "| --- | ---: | ---: |" and lines[2] == "| x | 100.0 | 5.00 |"
+    assert format_markdown([row]) == format_markdown([row], columns=None)           # the default: every column
+    assert " - " not in format_markdown([row])
