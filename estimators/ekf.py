@@ -225,7 +225,7 @@ class LfgnssEkf:
         sat_all = sequence.sat_pos_ecef_m
         sys_all = sequence.system_index
         coarse_ok = coarse_available(sequence)
-        coarse_judges = coarse_ok & (models.snapshot_redundancy(usable, sys_all, n_sys) >= cfg.reset_min_redundancy)
+        coarse_judges = coarse_ok & models.fix_can_judge(usable, sys_all, n_sys, cfg)
         p0 = models.initial_covariance(n_sys, cfg)
         q1, q2, q3 = models.process_noise_coefficients(n_sys, cfg)
         a = models.transition_generator(n_sys)
@@ -301,8 +301,7 @@ class LfgnssEkf:
             on = switched_on(usable[k], r)
             if not np.array_equal(on, usable[k]):       # as if masked out: redo what the epoch's slots decided
                 usable[k], doppler_ok[k] = on, doppler_ok[k] & on
-                coarse_judges[k] = coarse_ok[k] & (models.snapshot_redundancy(on, sys_all[k], n_sys)
-                                                   >= cfg.reset_min_redundancy)
+                coarse_judges[k] = coarse_ok[k] & models.fix_can_judge(on, sys_all[k], n_sys, cfg)
                 row = slice(k, k + 1)
                 still[k] = models.stationary_epochs(prr_all[row], doppler_ok[row], sat_all[row], satvel_all[row],
                                                     sequence.coarse_ecef_m[row], r_doppler_all[row], cfg)[0]

@@ -406,6 +406,12 @@ def snapshot_redundancy(usable: np.ndarray, system_index: np.ndarray, n_systems:
     return usable.sum(-1) - 3 - present.sum(-1)
 
 
+def fix_can_judge(usable: np.ndarray, system_index: np.ndarray, n_systems: int, config: EkfConfig) -> np.ndarray:
+    """(...,) bool: whether the snapshot fix of these satellites (``usable``, ``system_index``: (..., N)) is redundant
+    enough (``config.reset_min_redundancy``) for the divergence reset to trust it over the filter."""
+    return snapshot_redundancy(usable, system_index, n_systems) >= config.reset_min_redundancy
+
+
 def lower_median(values: np.ndarray) -> float:
     """Median that picks the lower middle element for even counts (as ``torch.nanmedian`` does)."""
     v = np.sort(np.asarray(values, float))

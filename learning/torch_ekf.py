@@ -318,8 +318,8 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor | None, vc_m: torch.Tensor 
     coarse_ok_all = torch.isfinite(batch.coarse_ecef_m).all(-1) & torch.isfinite(batch.coarse_clock_m[..., 0])
     coarse_pos_all = torch.where(coarse_ok_all[..., None], batch.coarse_ecef_m.to(f64), zero)
     judges_all = coarse_ok_all & torch.as_tensor(    # a decision, not differentiated: numpy, as the plug-in
-        models.snapshot_redundancy(usable_all.cpu().numpy(), batch.system_index.cpu().numpy(), n_systems)
-        >= config.reset_min_redundancy, device=dev)
+        models.fix_can_judge(usable_all.cpu().numpy(), batch.system_index.cpu().numpy(), n_systems, config),
+        device=dev)
     clk = torch.nan_to_num(batch.coarse_clock_m[..., :n_systems].to(f64), nan=0.0)
     x0_all = torch.zeros(b_len, t_len, n, dtype=f64, device=dev)
     x0_all[..., :3] = coarse_pos_all

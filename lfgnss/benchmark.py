@@ -390,8 +390,7 @@ def model_files(model_dir: Path, ids: list[str]) -> list[Path]:
     """The model files a run over ``ids`` reads from ``--models`` (a folder, matched by name, or one file)."""
     if Path(model_dir).is_file():
         return [Path(model_dir)]
-    names = [DEFAULT_MODEL, *ABLATIONS.values(), *(f"lfgnss-{i}.npz" for i in ids)]
-    return [Path(model_dir) / n for n in names if (Path(model_dir) / n).is_file()]
+    return [Path(model_dir) / n for n in expected_model_names(ids) if (Path(model_dir) / n).is_file()]
 
 
 def provenance_text(models: list[Path], out: Path | None = None) -> str:
@@ -404,8 +403,8 @@ def provenance_text(models: list[Path], out: Path | None = None) -> str:
     from . import __version__
 
     digests = ", ".join(f"`{m.name}` {hashlib.sha256(m.read_bytes()).hexdigest()[:16]}" for m in models)
-    return (f"Code: lfgnss {__version__}, {code_text(git_state(ignore=(out,) if out else ()))}. Model files (SHA-256, first 16 hex digits): "
-            f"{digests or 'none'}.")
+    code = code_text(git_state(ignore=(out,) if out else ()))
+    return f"Code: lfgnss {__version__}, {code}. Model files (SHA-256, first 16 hex digits): {digests or 'none'}."
 
 
 def write_report(path: Path, all_rows: list[dict], rtk_rows: list[dict], command: str,
