@@ -315,11 +315,10 @@ def check_config(config: dict) -> dict:
 
 def _beside(path: Path, name: object) -> object:
     """``name`` read next to the configuration file ``path`` when it is a relative path found there, else as given."""
-    try:
-        if isinstance(name, str) and name and not Path(name).is_absolute() and (path.parent / name).exists():
-            return str(path.parent / name)
-    except (OSError, ValueError):                         # a name too long, or with a NUL: not a file there
-        pass
+    from lfgnss.paths import names_something
+
+    if isinstance(name, str) and name and not Path(name).is_absolute() and names_something(path.parent / name):
+        return str(path.parent / name)
     return name
 
 

@@ -41,7 +41,7 @@ import numpy as np
 from .constants import SYSTEMS, unknown_systems
 from .errors import InputError
 from .frames import NEAR_SURFACE_RADIUS_M, lla_to_ecef
-from .paths import cache_dir, shared_data_dir
+from .paths import cache_dir, names_something, shared_data_dir
 from .sequence import DEFAULT_FEATURES, Sequence, load_sequence, save_sequence
 from .time import SECONDS_PER_WEEK, gps_s_to_week_tow, week_tow_to_gps_s
 
@@ -182,14 +182,6 @@ def _split_bounds(path: Path, name: str, value, axis: str) -> tuple[float, float
     return value[0], value[1]
 
 
-def _exists(path: Path) -> bool:
-    """Whether ``path`` names something; a name too long or with a NUL names nothing."""
-    try:
-        return path.exists()
-    except (OSError, ValueError):
-        return False
-
-
 def find_dataset_toml(path: str | Path, look_in: tuple[str | Path, ...] = ()) -> Path:
     """A dataset TOML file: a relative ``path`` in the first folder of ``look_in`` that has it, else as given.
 
@@ -199,7 +191,7 @@ def find_dataset_toml(path: str | Path, look_in: tuple[str | Path, ...] = ()) ->
     path = Path(path)
     places = list(dict.fromkeys([*(Path(folder) / path for folder in look_in), path]))
     for place in places:
-        if _exists(place):
+        if names_something(place):
             return place
     looked = "" if path.is_absolute() else f"; looked for {', '.join(str(p.absolute()) for p in places)}"
     raise InputError(path, f"unreadable dataset config (No such file or directory{looked})")

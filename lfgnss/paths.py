@@ -9,6 +9,14 @@ REPO_DIR = PACKAGE_DIR.parent
 MODEL_PREFIX = "lfgnss-"          # a bundled model file is lfgnss-NAME.npz, and NAME is how users pick it
 
 
+def names_something(path: str | os.PathLike) -> bool:
+    """Whether ``path`` exists; a name too long or with a NUL names nothing (``Path.exists`` raises on those)."""
+    try:
+        return Path(path).exists()
+    except (OSError, ValueError):
+        return False
+
+
 def shared_data_dir() -> Path:
     """Benchmark data folder: $LFGNSS_SHARED_DATA, else ``../shared/data`` beside the checkout."""
     env = os.environ.get("LFGNSS_SHARED_DATA")
@@ -41,7 +49,7 @@ def model_path(model: str | os.PathLike) -> Path:
     """A model file: ``model`` itself where that path exists or has a folder or suffix, else the bundled model of
     that name (``"hk-tst-2019"``: lfgnss-hk-tst-2019.npz), else ``model`` as it is."""
     path = Path(model)
-    if path.exists() or not may_name_a_bundled_model(path):
+    if names_something(path) or not may_name_a_bundled_model(path):
         return path
     return bundled_models().get(path.name, path)
 

@@ -64,3 +64,14 @@ def test_a_training_config_naming_a_missing_dataset_toml_lists_both_places(tmp_p
                               f"{config_dir / 'gone.toml'}, {work / 'gone.toml'})")
     (work / "gone.toml").write_text("")              # found in the current folder: kept as that path
     assert load_config(str(config_dir / "mine.toml"), [])["data"]["register"] == ["gone.toml"]
+
+
+def test_names_something_is_false_for_names_no_file_system_takes(tmp_path):
+    from lfgnss.paths import model_path, names_something
+
+    (tmp_path / "here.toml").write_text("")
+    assert names_something(tmp_path / "here.toml")
+    assert not names_something(tmp_path / "gone.toml")
+    assert not names_something(tmp_path / ("x" * 5000))     # ENAMETOOLONG from the OS
+    assert not names_something("a\x00b")                    # ValueError from pathlib
+    assert model_path("a\x00b") == Path("a\x00b")           # left for the reader's own one-line error
