@@ -17,20 +17,37 @@ An ``rnx2rtkp`` that fails, hangs or writes an unreadable solution costs the RTK
 
 ``--models`` names another folder of such files, matched to the rows by name as the bundled ones are
 (``lfgnss-default.npz``, the ablations' ``lfgnss-no_*.npz``, ``lfgnss-<dataset id>.npz``), or one model file (a
-training run's ``model.npz``), which then takes the shipped model's rows on every dataset; ``--register
+training run's ``model.npz``), which then takes the shipped model's rows on every dataset, named after the file so
+that they are told apart from the shipped model's: ``LF-GNSS EKF (model.npz)``, ``LF-GNSS EKF + RTS smoother
+(model.npz)``, ``LF-GNSS FGO (model.npz)`` and, where it was trained in a filter of its own, ``plain EKF in the
+LF-GNSS EKF's filter (model.npz)`` (``file_label``); they keep their targets row and bars. ``--register
 my-drive.toml`` adds a user's dataset (``lfgnss.datasets.register_toml``) to the run.
+
+An estimator of one's own runs as rows too: ``--plugin my_filter.py`` (a ``.py`` file, or a module's dotted name)
+is imported first, and its ``@estimators.register("my-filter")`` class is then ``--backend my-filter``: a row named
+``my-filter`` on every dataset, made with ``estimators.create("my-filter")`` (no options: no model either), after
+the built-in rows. From Python, ``run(ids, extra=[Method("mine", "my-filter", options={...})])`` (and
+``methods(..., extra=...)``) adds such rows; a name that a built-in row has is a ValueError. On the command line an
+error in that estimator's own code costs its row on that dataset (``error: ...`` at the end, exit status 2), not
+the run; ``run`` raises it unless given a ``left_out`` list. The targets table reads only rows whose name starts
+with ``LF-GNSS``.
 """
 from __future__ import annotations
 
 import argparse
+import importlib
 import os
+import re
 import shlex
 import sys
 import tempfile
 import time
 import warnings
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from types import ModuleType
+from typing import Collection, Iterator
 
 import numpy as np
 
@@ -62,6 +79,8 @@ PLAIN_RTS = "plain EKF + RTS smoother"
 PLAIN_OWN_FILTER = "plain EKF in the per-dataset model's filter"
 PLAIN_MAIN_FILTER = "plain EKF in the LF-GNSS EKF's filter"
 OWN_EKF = "LF-GNSS EKF, per-dataset model"
+MAIN_EKF = "LF-GNSS EKF"
+MAIN_FGO = "LF-GNSS FGO"
 RTS = " + RTS smoother"
 RTKLIB = "RTKLIB rnx2rtkp"
 #: Splits ``--warm-up`` may start the filters at (it must come before the test split).
@@ -70,7 +89,10 @@ WARM_UP = ("train", "val")
 
 @dataclass
 class Method:
-    """One row of the benchmark: a name and how to make its estimator."""
+    """One row of the benchmark: its name and ``estimators.create(backend, **options)``, ``model`` loaded as ``noise``.
+
+    Rows of one's own go to ``run(..., extra=[Method("mine", "my-filter")])`` after ``@estimators.register``.
+    """
 
     name: str
     backend: str
@@ -89,13 +111,28 @@ class Method:
         return estimators.create(self.backend, **options)
 
 
-def methods(model_dir: Path = MODEL_DIR, dataset_id: str | None = None) -> list[Method]:
-    """Baselines always; learned rows where their model file exists (per-dataset ones for ``dataset_id``).
+def file_label(model_dir: Path) -> str:
+    """What the shipped model's row names get from ``--models``: `` (FILE NAME)`` for one model file, else nothing."""
+    return f" ({Path(model_dir).name})" if Path(model_dir).is_file() else ""
+
+
+def split_label(name: str) -> tuple[str, str]:
+    """A row name as (built-in name, ``file_label``): ``LF-GNSS FGO (m.npz)`` -> (``LF-GNSS FGO``, `` (m.npz)``)."""
+    for base in (MAIN_EKF, MAIN_EKF + RTS, MAIN_FGO, PLAIN_MAIN_FILTER):
+        if name.startswith(base + " (") and name.endswith(")"):
+            return base, name[len(base):]
+    return name, ""
+
+
+def methods(model_dir: Path = MODEL_DIR, dataset_id: str | None = None,
+            extra: list[Method] | tuple[Method, ...] = ()) -> list[Method]:
+    """Baselines always; learned rows where their model file exists (per-dataset ones for ``dataset_id``); ``extra``.
 
     A model trained in a filter other than the default also brings the plain EKF in that filter (``PLAIN_OWN_FILTER``
     for the per-dataset model, ``PLAIN_MAIN_FILTER`` for the shipped one; its file is read here for the settings).
     ``model_dir`` is a folder of ``lfgnss-*.npz`` files, or one model file that takes the rows of the shipped (joint)
-    model on every dataset.
+    model on every dataset, their names ending in its ``file_label``. ``extra``: rows of one's own, last; ValueError
+    for one named as another row.
     """
     from learning.export import load_model
 
@@ -111,19 +148,32 @@ def methods(model_dir: Path = MODEL_DIR, dataset_id: str | None = None) -> list[
     has_own = dataset_id is not None and model_dir.is_dir() and own.exists()
     if has_own:
         rows += plain_in_its_filter(own, PLAIN_OWN_FILTER)
-    default = model_dir if model_dir.is_file() else model_dir / DEFAULT_MODEL
+    default, label = (model_dir if model_dir.is_file() else model_dir / DEFAULT_MODEL), file_label(model_dir)
     if default.is_file():
-        rows += plain_in_its_filter(default, PLAIN_MAIN_FILTER)
-        rows += [Method("LF-GNSS EKF", "ekf", default), Method("LF-GNSS EKF" + RTS, "ekf", default, {"smooth": True}),
-                 Method("LF-GNSS FGO", "fgo", default)]
-    if not model_dir.is_dir():
-        return rows
-    rows += [Method(name, "ekf", model_dir / f) for name, f in ABLATIONS.items() if (model_dir / f).exists()]
+        rows += plain_in_its_filter(default, PLAIN_MAIN_FILTER + label)
+        rows += [Method(MAIN_EKF + label, "ekf", default),
+                 Method(MAIN_EKF + RTS + label, "ekf", default, {"smooth": True}),
+                 Method(MAIN_FGO + label, "fgo", default)]
+    if model_dir.is_dir():
+        rows += [Method(name, "ekf", model_dir / f) for name, f in ABLATIONS.items() if (model_dir / f).exists()]
     if has_own:
         rows += [Method(OWN_EKF, "ekf", own),
                  Method(f"LF-GNSS EKF{RTS}, per-dataset model", "ekf", own, {"smooth": True}),
                  Method("LF-GNSS FGO, per-dataset model", "fgo", own)]
-    return rows
+    return rows + _checked_extra(rows, extra)
+
+
+def _checked_extra(rows: list[Method], extra: list[Method] | tuple[Method, ...]) -> list[Method]:
+    """``extra`` as a list; TypeError for what is no Method, ValueError for a name the table has already."""
+    taken = {m.name for m in rows} | {RTKLIB, "RTKLIB"}      # "RTKLIB": the figures' name for its row
+    for m in extra:
+        if not isinstance(m, Method):
+            raise TypeError(f"extra rows: expected lfgnss.benchmark.Method objects, got {type(m).__name__}")
+        if m.name in taken:
+            raise ValueError(f"{m.name}: the benchmark has a row of that name already (built in, or given twice); "
+                             "give the estimator of your own another name")
+        taken.add(m.name)
+    return list(extra)
 
 
 def own_filter(noise):
@@ -170,6 +220,60 @@ def check_models(models: Path, dataset_ids: list[str]) -> list[str]:
         found = f"; it holds only {', '.join(unused)}" if unused else ""
         raise InputError(models, f"no model file for {', '.join(dataset_ids)} in this folder: {expected}{found}{hint}")
     return [f"{models}: not using {', '.join(unused)}: {expected}{hint}"] if unused else []
+
+
+def load_plugin(spec: str) -> ModuleType:
+    """Import a ``--plugin``: a ``.py`` file by its path (any name with a folder in it too), else a dotted module name.
+
+    Its import is to register estimators (``@estimators.register``); InputError naming ``spec`` and the exception
+    if it fails, the plugin's own code included.
+    """
+    is_file = spec.endswith(".py") or os.sep in spec or bool(os.altsep and os.altsep in spec)
+    if is_file and not Path(spec).is_file():
+        raise InputError(spec, "no such .py file (--plugin)")
+    try:
+        return _import_file(Path(spec)) if is_file else importlib.import_module(spec)
+    except (Exception, SystemExit) as err:  # whatever the plugin's code raises: one line, no traceback
+        raise InputError(spec, f"cannot import (--plugin): {type(err).__name__}: {one_line(err)}") from None
+
+
+def _import_file(path: Path) -> ModuleType:
+    """The module of a ``.py`` file, imported as ``lfgnss_plugin_<its stem>``."""
+    import importlib.util
+
+    name = "lfgnss_plugin_" + re.sub(r"\W", "_", path.stem)
+    spec = importlib.util.spec_from_file_location(name, path)
+    if spec is None:
+        raise ImportError("not a Python file (a .py file, or a module's dotted name)")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module          # as an import does: dataclasses and pickle look the module up there
+    try:
+        spec.loader.exec_module(module)
+    except BaseException:
+        sys.modules.pop(name, None)
+        raise
+    return module
+
+
+def own_rows(plugins: list[str], backends: list[str]) -> list[Method]:
+    """The ``--backend`` rows, after importing the ``--plugin``s; InputError for a back end unknown or not made."""
+    import estimators
+
+    for spec in dict.fromkeys(plugins):
+        load_plugin(spec)
+    for name in backends:
+        if name not in estimators.available():
+            raise InputError(name, f"unknown back end (--backend); available: {', '.join(estimators.available())}; "
+                                   f"one of your own: give the module or .py file whose import registers it "
+                                   f"(@estimators.register({name!r})) as --plugin")
+    rows = [Method(name, name) for name in backends]
+    for m in rows:                      # made once now, so that one that cannot be made costs no run
+        try:
+            m.create()
+        except Exception as err:
+            raise InputError(m.name, f"estimators.create({m.name!r}) failed (--backend): {type(err).__name__}: "
+                                     f"{one_line(err)}") from None
+    return rows
 
 
 def resolve_datasets(ids: list[str], toml_files: list[str | Path] = (),
@@ -258,19 +362,24 @@ def scored_span(dataset_id: str, feature_names: tuple[str, ...], warm_up: str | 
 
 def run(dataset_ids: list[str], *, model_dir: Path = MODEL_DIR, out_dir: Path | None = None,
         plots: bool = True, unwritten: list[str] | None = None, warm_up: str | None = None,
-        failed: list[str] | None = None) -> tuple[list[dict], list[dict]]:
+        failed: list[str] | None = None, extra: list[Method] | tuple[Method, ...] = (),
+        left_out: list[str] | None = None) -> tuple[list[dict], list[dict]]:
     """Rows over all test epochs and rows over RTKLIB's solved test epochs, for each dataset.
 
     ``unwritten``: a list that collects ``FILE: cannot write (reason)`` for figures that could not be written (the
     run goes on); without it such an OSError is raised. ``warm_up``: a split of ``WARM_UP`` the estimators start at
     (``scored_span``); the rows still score the test split only. ``failed``: a list that collects ``ID: reason`` for a
-    dataset whose files turn out bad (the other datasets still run); without it that error is raised.
+    dataset whose files turn out bad (the other datasets still run); without it that error is raised. ``extra``: rows
+    of one's own (``Method``), after the built-in ones on every dataset; a name taken is a ValueError before any
+    work. ``left_out``: a list that collects ``ID: row 'NAME' left out: ...`` where the estimator of such a row
+    raises (the other rows are kept); without it that error is raised.
     """
-    from .outputs import plot_solution
-
+    ids = datasets.present(dataset_ids)
+    rows_of = {dataset_id: methods(model_dir, dataset_id, extra) for dataset_id in ids}    # names checked first
+    own = {m.name for m in extra}
     all_rows, rtk_rows = [], []
-    for dataset_id in datasets.present(dataset_ids):
-        plugins = [(m.name, m.create()) for m in methods(model_dir, dataset_id)]
+    for dataset_id in ids:
+        plugins = _made(rows_of[dataset_id], own, dataset_id, left_out)
         try:                        # reading the dataset: bad files cost this dataset only (estimator bugs do not)
             span, k = scored_span(dataset_id, _features_for(e for _, e in plugins), warm_up)
         except (*INPUT_ERRORS, OSError) as err:
@@ -278,27 +387,59 @@ def run(dataset_ids: list[str], *, model_dir: Path = MODEL_DIR, out_dir: Path | 
                 raise
             failed.append(f"{dataset_id}: not run ({input_line(err)})")
             continue
-        rows, rtk, solutions, truth = dataset_rows(dataset_id, plugins, span, k)
+        rows, rtk, solutions, truth = dataset_rows(dataset_id, plugins, span, k, own, left_out)
         all_rows += rows
         rtk_rows += rtk
         if plots and out_dir is not None and solutions:
-            main_name = "LF-GNSS EKF" if "LF-GNSS EKF" in solutions else next(iter(solutions))
-            extra = {name: sol for name, sol in solutions.items() if name != main_name}
-            try:
-                plot_solution(out_dir / "figures", solutions[main_name], truth, extra_solutions=extra,
-                              prefix=f"{dataset_id}-", label=main_name)
-            except OSError as err:
-                if unwritten is None:
-                    raise
-                unwritten.append(f"{err.filename or out_dir / 'figures'}: {cannot_write(err)}")
+            _plot(out_dir / "figures", dataset_id, solutions, truth, unwritten)
     return all_rows, rtk_rows
 
 
-def dataset_rows(dataset_id: str, plugins: list[tuple[str, object]], span: Sequence,
-                 k: int = 0) -> tuple[list[dict], list[dict], dict, np.ndarray]:
+def _plot(folder: Path, dataset_id: str, solutions: dict, truth: np.ndarray, unwritten: list[str] | None) -> None:
+    """The dataset's CDF, track and error PNGs: the LF-GNSS EKF (of ``--models``; else the first row) and the rest."""
+    from .outputs import plot_solution
+
+    main_name = next((name for name in solutions if split_label(name)[0] == MAIN_EKF), next(iter(solutions)))
+    others = {name: sol for name, sol in solutions.items() if name != main_name}
+    try:
+        plot_solution(folder, solutions[main_name], truth, extra_solutions=others, prefix=f"{dataset_id}-",
+                      label=main_name)
+    except OSError as err:
+        if unwritten is None:
+            raise
+        unwritten.append(f"{err.filename or folder}: {cannot_write(err)}")
+
+
+@contextmanager
+def _own_code(name: str, own: Collection[str], dataset_id: str, left_out: list[str] | None) -> Iterator[None]:
+    """Around a row's estimator: an error in the code of one of one's ``own`` rows costs that row on this dataset,
+    noted in ``left_out`` (raised without it); the built-in rows' errors are raised."""
+    try:
+        yield
+    except Exception as err:  # any bug of the user's code; Ctrl-C still stops the run
+        if left_out is None or name not in own:
+            raise
+        left_out.append(f"{dataset_id}: row {name!r} left out: its estimator raised {type(err).__name__}: "
+                        f"{shortened(one_line(err), 300)}")
+
+
+def _made(rows: list[Method], own: Collection[str], dataset_id: str,
+          left_out: list[str] | None) -> list[tuple[str, object]]:
+    """(row name, estimator) pairs of ``rows``; one of one's ``own`` that cannot be made is left out (``_own_code``)."""
+    made = []
+    for m in rows:
+        with _own_code(m.name, own, dataset_id, left_out):
+            made.append((m.name, m.create()))
+    return made
+
+
+def dataset_rows(dataset_id: str, plugins: list[tuple[str, object]], span: Sequence, k: int = 0,
+                 own: Collection[str] = (), left_out: list[str] | None = None
+                 ) -> tuple[list[dict], list[dict], dict, np.ndarray]:
     """One dataset's rows over all test epochs and over RTKLIB's solved ones, the Solutions by row name, the truth.
 
-    ``plugins``: (row name, estimator) pairs; ``span``, ``k``: ``scored_span``'s sequence and warm-up epochs.
+    ``plugins``: (row name, estimator) pairs; ``span``, ``k``: ``scored_span``'s sequence and warm-up epochs;
+    ``own``, ``left_out``: the names of rows of one's own, whose errors ``left_out`` collects (``_own_code``).
     """
     from estimators.base import STATUS_NONE, STATUS_UPDATED, Solution
 
@@ -313,17 +454,11 @@ def dataset_rows(dataset_id: str, plugins: list[tuple[str, object]], span: Seque
         rows.append(accuracy_table(rtk_pos, truth, ok, dataset=dataset_id, method=RTKLIB,
                                    trained_on="-") | {"epochs_per_s": float("nan")})
     for name, estimator in plugins:
-        start = time.perf_counter()
-        sol = estimator.solve(span)
-        rate = len(span) / (time.perf_counter() - start)
-        sol = sol.subset(slice(k, None)) if k else sol
-        solutions[name] = sol
-        trained = _trained_on(getattr(estimator, "noise", None))
-        rows.append(accuracy_table(sol.pos_ecef_m, truth, sol.available, dataset=dataset_id, method=name,
-                                   trained_on=trained) | {"epochs_per_s": rate})
-        if ok.any():
-            rtk_rows.append(accuracy_table(sol.pos_ecef_m[ok], truth[ok], sol.available[ok], dataset=dataset_id,
-                                           method=name, trained_on=trained))
+        with _own_code(name, own, dataset_id, left_out):
+            row, rtk_row, solutions[name] = _scored(dataset_id, name, estimator, span, k, truth, ok)
+            rows.append(row)
+            if rtk_row is not None:
+                rtk_rows.append(rtk_row)
     if ok.any():
         rtk_rows.append(accuracy_table(rtk_pos[ok], truth[ok], ok[ok], dataset=dataset_id,
                                        method=RTKLIB, trained_on="-"))
@@ -331,6 +466,32 @@ def dataset_rows(dataset_id: str, plugins: list[tuple[str, object]], span: Seque
                                        np.zeros(len(test)), np.zeros(len(test), int),
                                        np.where(ok, STATUS_UPDATED, STATUS_NONE))
     return rows, rtk_rows, solutions, truth
+
+
+def _scored(dataset_id: str, name: str, estimator, span: Sequence, k: int, truth: np.ndarray,
+            ok: np.ndarray) -> tuple[dict, dict | None, object]:
+    """A row's figures over all test epochs and over RTKLIB's solved ones (``ok``; None if none), and its Solution."""
+    start = time.perf_counter()
+    sol = _checked_solution(estimator.solve(span), len(span))
+    rate = len(span) / (time.perf_counter() - start)
+    sol = sol.subset(slice(k, None)) if k else sol
+    trained = _trained_on(getattr(estimator, "noise", None))
+    row = accuracy_table(sol.pos_ecef_m, truth, sol.available, dataset=dataset_id, method=name,
+                         trained_on=trained) | {"epochs_per_s": rate}
+    rtk_row = accuracy_table(sol.pos_ecef_m[ok], truth[ok], sol.available[ok], dataset=dataset_id, method=name,
+                             trained_on=trained) if ok.any() else None
+    return row, rtk_row, sol
+
+
+def _checked_solution(sol: object, epochs: int):
+    """``sol`` if it is a Solution with ``epochs`` epochs; TypeError or ValueError saying what it is instead."""
+    from estimators.base import Solution
+
+    if not isinstance(sol, Solution):
+        raise TypeError(f"solve returned {type(sol).__name__}, not an estimators.Solution")
+    if len(sol) != epochs:
+        raise ValueError(f"solve returned {len(sol)} epochs for a sequence of {epochs}")
+    return sol
 
 
 def _trained_on(noise) -> str:
@@ -352,7 +513,9 @@ def _select(rows: list[dict]) -> list[dict]:
 def target_rows(all_rows: list[dict], rtk_rows: list[dict]) -> list[dict]:
     """Each learned EKF/FGO row against the targets, the plain EKF, the yardstick and RTKLIB (on its epochs).
 
-    Cells read ``figure (yes|no)``: whether this row's 3D (or 2D) RMSE [m] is at or below the bar.
+    Cells read ``figure (yes|no)``: whether this row's 3D (or 2D) RMSE [m] is at or below the bar. The rows are those
+    whose name starts with ``LF-GNSS`` (not the ablations); a model file's rows are read by their built-in name
+    (``split_label``), the plain EKF in its filter with the same ``file_label``.
     """
     def fig(rows: list[dict], dataset: str, method: str, key: str) -> float:
         found = [r[key] for r in rows if r["dataset"] == dataset and r["method"] == method]
@@ -369,10 +532,11 @@ def target_rows(all_rows: list[dict], rtk_rows: list[dict]) -> list[dict]:
         if not m.startswith("LF-GNSS") or " w/o " in m:
             continue
         t3, t2 = TARGETS.get(d, (float("nan"), float("nan")))
-        smoother = "FGO" in m or RTS in m     # uses later epochs too: against the yardstick's batch graph
+        base, label = split_label(m)        # "LF-GNSS FGO (model.npz)": a file name never makes it a smoother
+        smoother = "FGO" in base or RTS in base     # uses later epochs too: against the yardstick's batch graph
         y3, y2 = (YARDSTICK_GRAPH if smoother else YARDSTICK_EKF).get(d, (float("nan"), float("nan")))
-        plain = PLAIN_RTS if RTS in m else PLAIN
-        own = {OWN_EKF: PLAIN_OWN_FILTER, "LF-GNSS EKF": PLAIN_MAIN_FILTER}.get(m)
+        plain = PLAIN_RTS if RTS in base else PLAIN
+        own = {OWN_EKF: PLAIN_OWN_FILTER, MAIN_EKF: PLAIN_MAIN_FILTER + label}.get(base)
         if own is not None and np.isfinite(fig(all_rows, d, own, "rmse_3d_m")):
             plain = own                     # the stronger bar: the same filter, hand-set noise
         out.append({"dataset": d, "method": m, "trained_on": r.get("trained_on", "-"),
@@ -409,11 +573,12 @@ def provenance_text(models: list[Path], out: Path | None = None) -> str:
 
 def write_report(path: Path, all_rows: list[dict], rtk_rows: list[dict], command: str,
                  warm_up: str | None = None, figures: bool = True, failed: list[str] = (),
-                 made_by: str = "") -> Path:
+                 made_by: str = "", left_out: list[str] = ()) -> Path:
     """Markdown results file with both tables and how they were made.
 
     ``warm_up``: the split the filters started at; ``failed``: ``ID: reason`` of datasets that could not be run;
-    ``made_by``: the code and model files (``provenance_text``).
+    ``made_by``: the code and model files (``provenance_text``); ``left_out``: rows of one's own whose estimator
+    raised (``run``).
     """
     targets = target_rows(all_rows, rtk_rows)
     start = "" if warm_up is None else (
@@ -434,6 +599,8 @@ def write_report(path: Path, all_rows: list[dict], rtk_rows: list[dict], command
         "",
         *([f"**Not run** (bad input; the tables leave these datasets out): {'; '.join(failed)}.", ""]
           if failed else []),
+        *([f"**Rows left out** (the estimator of one's own raised; the tables leave that row out on that dataset): "
+           f"{'; '.join(left_out)}.", ""] if left_out else []),
         "## All labelled test epochs",
         "",
         format_markdown(_select(all_rows)),
@@ -480,7 +647,8 @@ def _prepare_out(out: Path, plots: bool) -> Path:
 
 def _refuse_partial_docs(args: argparse.Namespace, ids: list[str]) -> None:
     """InputError unless a run into the repository's docs/ (its committed results) is the whole default run: all three
-    benchmark datasets present, the bundled models, no dataset of one's own; a part would replace the whole table."""
+    benchmark datasets present, the bundled models, no dataset or estimator (--plugin, --backend) of one's own; a part
+    would replace the whole table, and rows of one's own are no part of the committed results."""
     from .paths import REPO_DIR
 
     committed = (REPO_DIR / "docs").resolve()
@@ -489,6 +657,7 @@ def _refuse_partial_docs(args: argparse.Namespace, ids: list[str]) -> None:
         return
     what = ([f"--register {', '.join(map(str, args.register))}"] if args.register else []) \
         + ([f"--models {args.models}"] if Path(args.models).resolve() != MODEL_DIR.resolve() else []) \
+        + [f"--{option} {name}" for option in ("plugin", "backend") for name in getattr(args, option, None) or ()] \
         + ([f"datasets {', '.join(ids) or '(none present)'} only"] if tuple(ids) != DEFAULT_DATASETS else [])
     if what:
         raise InputError(args.out, f"holds the committed results of the whole default run (all of "
@@ -510,9 +679,10 @@ def _check_cache() -> None:
 def main(argv: list[str] | None = None) -> int:
     """Run the benchmark and write the results file.
 
-    Exit status 0; 2 for bad input (one line ``error: ...``, before any work where it can be seen then) or a results
-    file or figure that could not be written (the tables are printed all the same); 3 for an internal error; 130 for
-    Ctrl-C.
+    Exit status 0; 2 for bad input (one line ``error: ...``, before any work where it can be seen then: a --plugin
+    that does not import, an unknown --backend), a results file or figure that could not be written, or a --backend
+    row whose estimator raised (the tables are printed all the same, without what is lost); 3 for an internal error;
+    130 for Ctrl-C.
     """
     p = argparse.ArgumentParser(prog="python -m lfgnss.benchmark", description=__doc__.split("\n\n")[0])
     p.add_argument("datasets", nargs="*", default=[],
@@ -525,7 +695,9 @@ def main(argv: list[str] | None = None) -> int:
                         f"model's rows (LF-GNSS EKF, + RTS smoother, FGO) and {', '.join(ABLATIONS.values())} the "
                         "ablation rows, on every dataset; lfgnss-<dataset id>.npz gives the per-dataset model's rows "
                         "on that dataset only; other files are not used. Or one model file, which takes the shipped "
-                        "model's rows on every dataset (default: the bundled models, lfgnss/data/model)")
+                        "model's rows on every dataset, named after the file: LF-GNSS EKF (model.npz), LF-GNSS EKF + "
+                        "RTS smoother (model.npz), LF-GNSS FGO (model.npz) for runs/x/model.npz (default: the bundled "
+                        "models, lfgnss/data/model)")
     p.add_argument("--out", type=path_option, default=None,
                    help="folder for results.md and figures/ (default: lfgnss-benchmark in the current folder, "
                         "lfgnss-benchmark/warm-up-SPLIT with --warm-up; --out docs, and --out docs/warm-up-val "
@@ -534,6 +706,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--warm-up", choices=WARM_UP, default=None, metavar="SPLIT",
                    help="start every estimator at the first epoch of this split (train or val; its observations, "
                         "never its truth) and score the test split only, so the filters enter it warm")
+    p.add_argument("--plugin", action="append", default=[], metavar="MODULE_OR_FILE",
+                   help="a .py file (by its path) or a Python module (by its dotted name) imported before the run, "
+                        "whose import registers estimators of your own: @estimators.register(\"NAME\") on the class; "
+                        "repeatable")
+    p.add_argument("--backend", action="append", default=[], metavar="NAME",
+                   help="a row named NAME on every dataset, after the built-in ones: the registered back end NAME "
+                        "(one of estimators.available(), or of a --plugin) made with estimators.create(NAME), no "
+                        "options and no model file; repeatable. The targets table reads only LF-GNSS rows (names "
+                        "starting with LF-GNSS), so such a row is in the results tables only")
     p.add_argument("--no-plots", action="store_true", help="skip the CDF, track and error PNGs")
     args = p.parse_args(argv)
     if args.out is None:            # never the repository's docs/ unless asked for (--out docs)
@@ -571,9 +752,12 @@ def _nothing_run(failed: list[str], report: Path) -> InputError:
 
 def _main(args: argparse.Namespace, argv: list[str] | None) -> int:
     """``main`` after parsing: check everything, run, write results.md, then print the tables."""
+    extra = own_rows(args.plugin, args.backend)
     ids = resolve_datasets(args.datasets, args.register, ("test",) + ((args.warm_up,) if args.warm_up else ()))
     for message in check_models(args.models, ids):
         print(f"warning: {message}", file=sys.stderr)
+    for dataset_id in ids:          # a --backend named as a built-in row is refused here, before any work
+        methods(args.models, dataset_id, extra)
     # a dataset of one's own whose files are missing is an error (exit 2); the benchmark sets' absent data a note
     lost = [i for i in ids if datasets.get(i).source is not None and datasets.get(i).missing()]
     failed = [f"{i}: not run ({datasets.get(i).missing_note()})" for i in lost]
@@ -593,15 +777,17 @@ def _main(args: argparse.Namespace, argv: list[str] | None) -> int:
     report = _prepare_out(args.out, plots=not args.no_plots)
     _check_cache()
     unwritten: list[str] = []      # figures and results.md that could not be written: the rest is kept, exit 2
+    left_out: list[str] = []       # --backend rows whose estimator raised: the other rows are kept, exit 2
     # datasets whose files are missing or turn out bad (failed, above): the others are kept, exit 2
     all_rows, rtk_rows = run(ids, model_dir=args.models, out_dir=args.out, plots=not args.no_plots,
-                             unwritten=unwritten, warm_up=args.warm_up, failed=failed)
+                             unwritten=unwritten, warm_up=args.warm_up, failed=failed, extra=extra, left_out=left_out)
     if failed and not all_rows:    # an empty table never replaces a results file
         raise _nothing_run(failed, report)
     argv = sys.argv[1:] if argv is None else argv
     command = shlex.join(["python", "-m", "lfgnss.benchmark", *argv])
     try:                            # before the tables go to stdout, which may be a pipe closed early (| head)
-        written = write_report(report, all_rows, rtk_rows, command, args.warm_up, not args.no_plots, failed, made_by)
+        written = write_report(report, all_rows, rtk_rows, command, args.warm_up, not args.no_plots, failed, made_by,
+                               left_out)
     except OSError as err:
         written = None
         unwritten.append(f"{err.filename or report}: {cannot_write(err)}")
@@ -615,9 +801,9 @@ def _main(args: argparse.Namespace, argv: list[str] | None) -> int:
         sys.stdout.flush()
     except BrokenPipeError:         # the reader went away: results.md is written, nothing more to say on stdout
         stdout_gone()
-    for message in failed + unwritten:
+    for message in failed + left_out + unwritten:
         print(f"error: {message}", file=sys.stderr)
-    return 2 if failed or unwritten else 0
+    return 2 if failed or left_out or unwritten else 0
 
 
 if __name__ == "__main__":
