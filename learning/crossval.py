@@ -3,6 +3,7 @@
     python -m learning.crossval --config learning/configs/default.toml --folds 3 [--set key=value ...]
                                 [--fold J ...] [--out runs/cv-NAME] [--no-progress]
                                 [--reuse DIR --set ekf.KEY=VALUE]      # rescore saved folds in another filter
+                                [--reuse DIR0 --reuse DIR1 ...]        # score the ensemble of runs' fold models
     python -m learning.crossval --folds 3 --pool DIR0 --pool DIR1 --pool DIR2 --out DIR   # join --fold runs
 
 A validation split of a minute or two is one street: whether a recipe generalises cannot be read from
@@ -35,7 +36,9 @@ gets a row per dataset (``J:ID``, its last epoch on that dataset's held-out piec
 same recipe) again on its held-out block, under this run's ``[ekf]`` settings, e.g. ``--set ekf.huber_k=2``: an
 inference-time variant of the filter judged on every block in a minute instead of a retraining. Anything else that
 differs from the saved run's configuration (seed included) is refused; so is a held-out block whose data changed.
-The "untrained" and "best" columns are empty there; a fold checkpoint that did not reach ``train.epochs`` (its fold was
+``--reuse`` repeated (runs of one recipe with different ``--set seed=S``) scores, per fold, the ensemble of the runs'
+fold models (``learning.network.NetworkEnsemble``, as ``python -m learning.export`` writes several checkpoints):
+their seeds may differ, nothing else. The "untrained" and "best" columns are empty there; a fold checkpoint that did not reach ``train.epochs`` (its fold was
 interrupted or diverged), or whose weights do not load or are not finite, is refused.
 
 A run stopped among its folds (Ctrl-C, a diverged fold, a bad checkpoint) writes the finished folds' rows to
@@ -116,17 +119,19 @@ def plain_ekf_rmse_m(sequences: list[Sequence], config: dict, smooth: bool = Fal
 def _saved_rmse_m(checkpoint: Path, config: dict, prep) -> tuple[dict, float, float]:
     """A fold's saved checkpoint, read once, and its (RTS-smoothed 3D, forward 2D) RMSE [m] over the held-out block."""
     saved = read_checkpoint(checkpoint)
-    return (saved, *_model_rmse_m(saved, config, prep.val_batches, prep.n_systems)[1:])
+    return (saved, *_model_rmse_m([saved], config, prep.val_batches, prep.n_systems)[1:])
 
 
-def _model_rmse_m(saved: dict, config: dict, batches: list, n_systems: int) -> tuple[float, float, float]:
-    """(3D as trained (forward, or smoothed with ``train.smooth``), RTS-smoothed 3D, forward 2D) RMSE [m] of a
-    checkpoint's weights over ``batches``, under ``config``'s EKF."""
+def _model_rmse_m(saved: list[dict], config: dict, batches: list, n_systems: int) -> tuple[float, float, float]:
+    """(3D as trained (forward, or smoothed with ``train.smooth``), RTS-smoothed 3D, forward 2D) RMSE [m] of
+    checkpoints' weights (several: their ensemble) over ``batches``, under ``config``'s EKF."""
+    from .network import NetworkEnsemble
     from .train import checkpoint_network, evaluate
 
-    model, _ = checkpoint_network(saved)
+    nets = [checkpoint_network(s)[0] for s in saved]
+    model = nets[0] if len(nets) == 1 else NetworkEnsemble(nets)
     run = dict(n_systems=n_systems, ekf_cfg=ekf_config(config))
-    smooth = bool(saved["config"]["train"].get("smooth", False))    # the run's own last_rmse_3d_m: as trained
+    smooth = bool(saved[0]["config"]["train"].get("smooth", False))    # the run's own last_rmse_3d_m: as trained
     return (evaluate(model, batches, smooth=smooth, **run)[0], evaluate(model, batches, smooth=True, **run)[0],
             evaluate(model, batches, up_weight=0.0, **run)[0])
 
@@ -145,9 +150,10 @@ def _recipe(config: dict, free: tuple[str, ...] = RESCORE_FREE) -> dict:
     return flat
 
 
-def saved_fold(reuse_dir: str | Path, fold: int, config: dict, held: list[Sequence]) -> dict:
-    """The checkpoint ``reuse_dir/fold<fold>/last.pt``, checked to be of ``config``'s recipe (``[ekf]`` aside)
-    and of the held-out pieces ``held``."""
+def saved_fold(reuse_dir: str | Path, fold: int, config: dict, held: list[Sequence],
+               free: tuple[str, ...] = RESCORE_FREE) -> dict:
+    """The checkpoint ``reuse_dir/fold<fold>/last.pt``, checked to be of ``config``'s recipe (the ``free`` settings
+    aside) and of the held-out pieces ``held``."""
     from .train import fingerprint
 
     path = Path(reuse_dir) / f"fold{fold}" / "last.pt"
@@ -156,12 +162,12 @@ def saved_fold(reuse_dir: str | Path, fold: int, config: dict, held: list[Sequen
         saved_config, prints = saved["config"], saved["data_fingerprints"]
     except Exception as exc:            # torch.load raises many kinds on a file that is not a checkpoint
         raise ValueError(f"{path}: not a learning.train checkpoint ({type(exc).__name__}: {exc})") from exc
-    was, now = _recipe(saved_config), _recipe(config)
+    was, now = _recipe(saved_config, free), _recipe(config, free)
     changed = sorted(k for k in was.keys() | now.keys() if was.get(k, "(unset)") != now.get(k, "(unset)"))
     if changed:
         k = changed[0]
         raise ValueError(f"{path}: trained with {k} = {was.get(k, '(unset)')!r}, this run has "
-                         f"{now.get(k, '(unset)')!r}; a rescore may change only {', '.join(RESCORE_FREE)} settings")
+                         f"{now.get(k, '(unset)')!r}; a rescore may change only {', '.join(free)} settings")
     val = config["data"]["val_split"]
     trained_on = [(p["sequence"], p["sha256_16"]) for p in prints if p["split"] == val]
     if trained_on != [(s.name, fingerprint(s)) for s in held]:
@@ -169,6 +175,23 @@ def saved_fold(reuse_dir: str | Path, fold: int, config: dict, held: list[Sequen
                          "it was trained, or an older learning.crossval cut it, which broke folds at the "
                          "train/validation boundary)")
     _check_weights(path, saved)
+    return saved
+
+
+def saved_ensemble(reuse_dirs: list[str | Path], fold: int, config: dict, held: list[Sequence]) -> list[dict]:
+    """``saved_fold`` of each folder; several must be runs of one recipe that differ in their seed only (as
+    ``learning.export`` takes an ensemble's members), on identically normalised features."""
+    free = RESCORE_FREE + (("seed",) if len(reuse_dirs) > 1 else ())
+    saved = [saved_fold(r, fold, config, held, free) for r in reuse_dirs]
+    seeds = [s["config"].get("seed") for s in saved]
+    for r, s in zip(reuse_dirs[1:], saved[1:]):
+        path = Path(r) / f"fold{fold}" / "last.pt"
+        if seeds.count(s["config"].get("seed")) > 1:
+            raise ValueError(f"{path}: trained with seed {s['config'].get('seed')}, as another --reuse folder's: an "
+                             "ensemble's members are runs with different seeds")
+        if s["normaliser"]["feature_names"] != saved[0]["normaliser"]["feature_names"] or not all(
+                np.array_equal(s["normaliser"][k], saved[0]["normaliser"][k]) for k in ("mean", "std")):
+            raise ValueError(f"{path}: its features are normalised otherwise than {reuse_dirs[0]}'s fold {fold}")
     return saved
 
 
@@ -202,14 +225,15 @@ def _fold_row(fold: int, held: list[Sequence], config: dict, learned: dict) -> d
             "plain_ekf_rmse_2d_m": plain_2d, **learned}
 
 
-def _rescored_row(fold: int, saved: dict, config: dict, held: list[Sequence]) -> dict:
-    """A crossval row for a saved fold model scored again on its held-out pieces (no untrained / best figures)."""
+def _rescored_row(fold: int, saved: list[dict], config: dict, held: list[Sequence]) -> dict:
+    """A crossval row for a saved fold model (several: their ensemble) scored again on its held-out pieces (no
+    untrained / best figures)."""
     from .data import sequence_batch
     from .normalise import Normaliser
 
-    normaliser = Normaliser.from_dict(saved["normaliser"])
-    batches = [sequence_batch(s, normaliser, n_systems=int(saved["n_systems"])) for s in held]
-    last_3d, last_smoothed_3d, last_2d = _model_rmse_m(saved, config, batches, int(saved["n_systems"]))
+    normaliser = Normaliser.from_dict(saved[0]["normaliser"])
+    batches = [sequence_batch(s, normaliser, n_systems=int(saved[0]["n_systems"])) for s in held]
+    last_3d, last_smoothed_3d, last_2d = _model_rmse_m(saved, config, batches, int(saved[0]["n_systems"]))
     return _fold_row(fold, held, config, {"untrained_rmse_3d_m": math.nan, "last_rmse_3d_m": last_3d,
                                           "best_rmse_3d_m": math.nan, "best_epoch": "-",
                                           "last_smoothed_rmse_3d_m": last_smoothed_3d, "last_rmse_2d_m": last_2d})
@@ -222,11 +246,12 @@ def pooled_rmse(rmse: list[float], counts: list[int]) -> float:
 
 
 def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = True,
-             only: list[int] | None = None, reuse: str | Path | None = None, command: str | None = None,
+             only: list[int] | None = None, reuse: str | Path | list | None = None, command: str | None = None,
              config_file: str | Path | None = None, epoch_lines: bool | None = None) -> list[dict]:
     """Train ``config`` on each fold (or the folds ``only``); one row per fold, plus a ``pooled`` row when all ran.
 
-    ``reuse``: train nothing, score the folds' saved models in that folder under ``config``'s EKF (``saved_fold``).
+    ``reuse``: train nothing, score the folds' saved models in that folder under ``config``'s EKF (``saved_fold``);
+    a list of folders: the ensemble of their fold models (runs of the recipe with different seeds).
     ``command``: the command line, recorded at the top of crossval.md and in the folds' checkpoints.
     ``config_file``: the ``--config`` file ``config`` was read from, recorded in the folds' checkpoints as
     ``learning.train`` records it.
@@ -246,7 +271,8 @@ def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = 
                          "into blocks, so each epoch would be there twice, held out and trained on; give two splits "
                          "that share no epochs")
     _refuse_used_out(out)
-    missing = [] if reuse is None else [p for j in chosen if not (p := Path(reuse) / f"fold{j}" / "last.pt").is_file()]
+    reuse = None if reuse is None else [reuse] if isinstance(reuse, (str, Path)) else list(reuse)
+    missing = [p for r in reuse or [] for j in chosen if not (p := Path(r) / f"fold{j}" / "last.pt").is_file()]
     if missing:
         raise ValueError(f"{missing[0]}: no saved fold model (--reuse takes the --out folder of an earlier "
                          f"cross-validation of the same recipe and --folds; --folds {folds} asks for fold "
@@ -439,7 +465,7 @@ def _run_folds(rows: list[dict], chosen, folds: int, whole: dict, config: dict, 
             threads = torch.get_num_threads()
             torch.set_num_threads(int(config["threads"]))       # as train() runs: a shared machine stays shared
             try:
-                saved = saved_fold(reuse, j, config, held)
+                saved = saved_ensemble(reuse, j, config, held)
                 rows.append(_rescored_row(j, saved, config, held))
                 rows.extend(_dataset_rows(j, saved, config, parts))
             finally:
@@ -460,12 +486,13 @@ def _run_folds(rows: list[dict], chosen, folds: int, whole: dict, config: dict, 
             "best_rmse_3d_m": best["val_rmse_3d_m"], "best_epoch": best["epoch"],
             "last_smoothed_rmse_3d_m": last_smoothed_3d, "last_rmse_2d_m": last_2d}))
         if len(parts) > 1:
-            rows.extend(_dataset_rows(j, saved, config, parts))
+            rows.extend(_dataset_rows(j, [saved], config, parts))
 
 
-def _dataset_rows(fold: int, saved: dict, config: dict, parts: dict) -> list[dict]:
+def _dataset_rows(fold: int, saved: list[dict], config: dict, parts: dict) -> list[dict]:
     """With several datasets, one row per dataset (fold ``"J:ID"``) of the fold's model on that dataset's held-out
-    pieces: a pooled row is dominated by the datasets with the most epochs, and can hide a loss on the others."""
+    pieces (several models: their ensemble): a pooled row is dominated by the datasets with the most epochs, and can
+    hide a loss on the others."""
     if len(parts) < 2:
         return []
     return [_rescored_row(f"{fold}:{ds}", saved, config, held) for ds, (_, held) in parts.items() if held]
@@ -510,11 +537,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--fold", dest="only", type=int, action="append", metavar="J",
                    help="run only fold J (repeatable; no pooled row unless every fold runs): folds in parallel "
                         "processes, each with its own --out")
-    p.add_argument("--reuse", metavar="DIR", type=path_option,
+    p.add_argument("--reuse", metavar="DIR", type=path_option, action="append",
                    help="train nothing: score the saved fold models of an earlier run (its --out) again on their "
                         "held-out blocks under this run's [ekf] settings (--set ekf.KEY=VALUE); give that run's "
                         "--config, --folds and other --set's again (a run made before folds joined the train and "
-                        "validation epochs is refused)")
+                        "validation epochs is refused). Repeated: the ensemble of several runs' fold models (runs "
+                        "that differ in --set seed=S only)")
     p.add_argument("--pool", metavar="DIR", type=path_option, action="append",
                    help="train and score nothing: put the folds of parallel --fold runs (their --out folders, "
                         "repeat --pool) in one table with the pooled rows, written to --out")

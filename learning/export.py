@@ -18,6 +18,12 @@ Format (``FORMAT_NAME`` version ``FORMAT_VERSION``), arrays in one uncompressed 
     normaliser_std      (d,) float64   per-feature std
     param/<name>        float32        every tensor of ``LfgnssNet.state_dict()``
 
+Version ``ENSEMBLE_FORMAT_VERSION`` (2) is an ensemble (``export_ensemble``): networks of one recipe trained with
+different seeds, run as one noise model (R: geometric mean of the members', v^c: their mean). Its ``param/<name>``
+are the first member's, ``member<i>/param/<name>`` the others' (i = 1, 2, ...), and its metadata (the first
+member's) adds ``ensemble``: ``combine`` and ``members``, per member its checkpoint, seed, epoch, val_rmse_3d_m and
+provenance. Version 1 readers refuse it rather than run one member as if it were the whole.
+
 ``load_model`` checks the file and returns an ``LfgnssModel`` whose ``predict`` re-implements the
 network's forward pass in numpy (float64), and whose ``__call__(sequence)`` makes it an
 ``estimators.noise.NoiseModel``. A model trained with ``model.innovation`` reads the filter's prior
@@ -48,6 +54,12 @@ from .normalise import Normaliser, select_features
 
 FORMAT_NAME = "lfgnss-noise-model"
 FORMAT_VERSION = 1
+#: The format version of an ensemble file (``export_ensemble``); a single network is still written as version 1.
+ENSEMBLE_FORMAT_VERSION = 2
+#: How an ensemble file's members are combined (``learning.network.combine_members``), as its metadata says.
+ENSEMBLE_COMBINE = "R: geometric mean of the members'; v^c: mean of the members'"
+#: Training settings an ensemble's members may differ in (everything else must be the same recipe and data).
+ENSEMBLE_FREE = ("seed", "threads", "device")
 #: Variance of padded slots (same as ``learning.network.PAD_R_M2``, repeated to stay torch-free).
 PAD_R_M2 = 1.0
 #: Epochs per pass of the network in ``LfgnssModel.predict`` (memory is linear in it, the result independent of it).
@@ -76,6 +88,55 @@ def export_model(checkpoint_path: str | Path, out_path: str | Path, *, extra_met
     params, normaliser, meta = _checkpoint_contents(checkpoint_path)
     meta.update(extra_metadata or {})
     return _write_model_file(out_path, params, normaliser, meta)
+
+
+def export_ensemble(checkpoint_paths: list[str | Path], out_path: str | Path) -> Path:
+    """Write training checkpoints of one recipe, trained with different seeds, as one ensemble model file.
+
+    The members must share features, normaliser, network, filter and training data; their training
+    configurations may differ only in ``ENSEMBLE_FREE`` (ModelFileError naming the checkpoint and the setting).
+    A single checkpoint is written as ``export_model`` writes it.
+    """
+    paths = [Path(p) for p in checkpoint_paths]
+    if not paths:
+        raise ValueError("export_ensemble: no checkpoint given")
+    contents = [_checkpoint_contents(p) for p in paths]
+    if len(paths) == 1:
+        return _write_model_file(out_path, *contents[0])
+    (params, normaliser, meta), seen = contents[0], {}
+    for path, (_, norm, other) in zip(paths, contents):
+        if path.resolve() in seen:
+            raise ModelFileError(path, f"given twice (as {seen[path.resolve()]}): an ensemble's members are "
+                                       "different training runs")
+        seen[path.resolve()] = path
+        key = _member_difference(meta, normaliser, other, norm)
+        if key is not None:
+            raise ModelFileError(path, f"{key} differs from {paths[0]}'s: an ensemble's members must be one recipe "
+                                       f"on the same data, differing only in {', '.join(ENSEMBLE_FREE)}")
+    meta = {**meta, "format_version": ENSEMBLE_FORMAT_VERSION, "ensemble": {
+        "combine": ENSEMBLE_COMBINE,
+        "members": [{"checkpoint": str(p), "seed": (m.get("config") or {}).get("seed"), "epoch": m.get("epoch"),
+                     "val_rmse_3d_m": m.get("val_rmse_3d_m"), "provenance": m.get("provenance")}
+                    for p, (_, _, m) in zip(paths, contents)]}}
+    return _write_model_file(out_path, params, normaliser, meta, members=[c[0] for c in contents[1:]])
+
+
+def _member_difference(meta: dict, normaliser: Normaliser, other: dict, other_normaliser: Normaliser) -> str | None:
+    """The first setting in which a would-be ensemble member (``other``) differs from the first one, or None."""
+    if list(normaliser.feature_names) != list(other_normaliser.feature_names):
+        return "feature_names"
+    if not (np.array_equal(normaliser.mean, other_normaliser.mean)
+            and np.array_equal(normaliser.std, other_normaliser.std)):
+        return "the normaliser (the training data's feature statistics)"
+    for key in ("model", "ekf_config", "n_systems", "data_fingerprints", "init_model"):
+        if json.dumps(meta.get(key), default=_json_default, sort_keys=True) != \
+                json.dumps(other.get(key), default=_json_default, sort_keys=True):
+            return key
+    from .train import _flat
+
+    a, b = _flat(meta.get("config") or {}), _flat(other.get("config") or {})
+    changed = sorted(k for k in a.keys() | b.keys() if k not in ENSEMBLE_FREE and a.get(k) != b.get(k))
+    return f"config {changed[0]}" if changed else None
 
 
 def _checkpoint_contents(checkpoint_path: str | Path) -> tuple[dict[str, np.ndarray], Normaliser, dict]:
@@ -125,12 +186,15 @@ def _checkpoint_contents(checkpoint_path: str | Path) -> tuple[dict[str, np.ndar
     return params, normaliser, meta
 
 
-def _write_model_file(out_path: str | Path, params: dict[str, np.ndarray], normaliser: Normaliser, meta: dict) -> Path:
-    """The model file's arrays (weights as float32) written to ``out_path`` atomically (a kill mid-write keeps the
-    file that was there)."""
+def _write_model_file(out_path: str | Path, params: dict[str, np.ndarray], normaliser: Normaliser, meta: dict,
+                      members: list[dict[str, np.ndarray]] = ()) -> Path:
+    """The model file's arrays (weights as float32; ``members``: an ensemble's further networks) written to
+    ``out_path`` atomically (a kill mid-write keeps the file that was there)."""
     from .train import _replace_atomically     # train imports this module
 
     arrays = {f"param/{k}": np.asarray(v, np.float32) for k, v in params.items()}    # the format's float32
+    for i, member in enumerate(members, start=1):
+        arrays.update({f"member{i}/param/{k}": np.asarray(v, np.float32) for k, v in member.items()})
     arrays["normaliser_mean"] = normaliser.mean.astype(np.float64)
     arrays["normaliser_std"] = normaliser.std.astype(np.float64)
     arrays["metadata"] = np.array(json.dumps(meta, default=_json_default))
@@ -179,9 +243,12 @@ class LfgnssModel:
     normaliser : Normaliser
     """
 
-    def __init__(self, path: str, params: dict[str, np.ndarray], normaliser: Normaliser, metadata: dict) -> None:
+    def __init__(self, path: str, params: dict[str, np.ndarray], normaliser: Normaliser, metadata: dict,
+                 members: list[dict[str, np.ndarray]] = ()) -> None:
         self.path = path
         self.params = {k: v.astype(np.float64) for k, v in params.items()}
+        #: every network's parameters, ``params`` first; more than one for an ensemble file (``export_ensemble``)
+        self.members = [self.params] + [{k: v.astype(np.float64) for k, v in m.items()} for m in members]
         self.normaliser = normaliser
         self.metadata = metadata
         self.feature_names = tuple(normaliser.feature_names)
@@ -247,9 +314,16 @@ class LfgnssModel:
         return r, vc
 
     def _forward(self, x: np.ndarray, m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The network on normalised inputs x (M, N, d) with mask m (M, N): (r_m2, vc_m), each (M, N), pads unset."""
+        """The network(s) on normalised inputs x (M, N, d) with mask m (M, N): (r_m2, vc_m), each (M, N), pads unset;
+        an ensemble's members combined as ``learning.network.combine_members`` does."""
+        if len(self.members) == 1:
+            return self._network(x, m, self.params)
+        outs = [self._network(x, m, p) for p in self.members]
+        return np.exp(np.log(np.stack([o[0] for o in outs])).mean(0)), np.stack([o[1] for o in outs]).mean(0)
+
+    def _network(self, x: np.ndarray, m: np.ndarray, p: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """One network with parameters ``p`` on x (M, N, d), mask m (M, N): (r_m2, vc_m), each (M, N)."""
         n = m.shape[-1]
-        p = self.params
         # h0 = x W_e^T + b_e
         h0 = _linear(x, p, "embed")
         # multi-head self-attention, keys of padded slots masked (all slots if the epoch has none)
@@ -442,9 +516,10 @@ def load_model(path: str | Path, expected_features: Iterable[str] | None = None)
     missing = [k for k in _REQUIRED_META if k not in meta]
     if missing or meta.get("format") != FORMAT_NAME:
         raise ModelFileError(path, f"not an {FORMAT_NAME} file (format {meta.get('format')!r}, missing {missing})")
-    if meta["format_version"] != FORMAT_VERSION:
+    if meta["format_version"] not in (FORMAT_VERSION, ENSEMBLE_FORMAT_VERSION):
         raise ModelFileError(path, f"format version {meta['format_version']!r} is not supported "
-                                   f"(this lfgnss reads version {FORMAT_VERSION})")
+                                   f"(this lfgnss reads versions {FORMAT_VERSION} and {ENSEMBLE_FORMAT_VERSION})")
+    n_members = _ensemble_size(path, meta)
     names = meta["feature_names"]
     if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
         raise ModelFileError(path, f"feature_names is not a list of names ({names!r:.80})")
@@ -453,13 +528,17 @@ def load_model(path: str | Path, expected_features: Iterable[str] | None = None)
         raise ModelFileError(path, f"the model needs feature(s) {', '.join(unknown)} that this lfgnss cannot compute "
                                    f"(it computes {', '.join(AVAILABLE_FEATURES)})")
     _check_metadata(path, meta)
-    params = {}
-    for name, shape in meta["parameters"].items():
-        arr = arrays.get(f"param/{name}")
-        if (arr is None or list(arr.shape) != list(shape) or arr.dtype.kind not in "fiu"
-                or not np.all(np.isfinite(arr))):
-            raise ModelFileError(path, f"parameter {name!r} missing, mis-shaped or not finite")
-        params[name] = arr
+    members = []
+    for prefix in ["", *(f"member{i}/" for i in range(1, n_members))]:
+        params = {}
+        for name, shape in meta["parameters"].items():
+            arr = arrays.get(f"{prefix}param/{name}")
+            if (arr is None or list(arr.shape) != list(shape) or arr.dtype.kind not in "fiu"
+                    or not np.all(np.isfinite(arr))):
+                raise ModelFileError(path, f"parameter {prefix}{name!r} missing, mis-shaped or not finite")
+            params[name] = arr
+        members.append(params)
+    params = members[0]
     try:
         normaliser = Normaliser(tuple(meta["feature_names"]), arrays["normaliser_mean"], arrays["normaliser_std"])
     except (KeyError, ValueError, TypeError) as exc:
@@ -468,7 +547,7 @@ def load_model(path: str | Path, expected_features: Iterable[str] | None = None)
     settings = model_settings(meta)
     n_inputs = len(normaliser.feature_names) + settings["innovation"]
     shapes = _parameter_shapes(settings, n_inputs)
-    absent = [k for k in shapes if k not in params]
+    absent = [k for k in shapes if not all(k in p for p in members)]
     if absent:
         layers = f" (model.hidden is {settings['hidden']})" if any(k.startswith("mlp.") for k in absent) else ""
         raise ModelFileError(path, f"parameters {absent} missing{layers}")
@@ -483,7 +562,7 @@ def load_model(path: str | Path, expected_features: Iterable[str] | None = None)
         raise ModelFileError(path, f"model features {list(normaliser.feature_names)} do not match the expected "
                                    f"{list(expected_features)}")
     try:  # backstop: one epoch of two satellites at the normaliser mean must give usable noise
-        model = LfgnssModel(path, params, normaliser, meta)
+        model = LfgnssModel(path, params, normaliser, meta, members[1:])
         with np.errstate(all="ignore"):
             r, vc = model.predict(np.tile(normaliser.mean, (1, 2, 1)), np.ones((1, 2), bool),
                                   np.zeros((1, 2)) if model.online else None)
@@ -493,6 +572,21 @@ def load_model(path: str | Path, expected_features: Iterable[str] | None = None)
     if not (np.all(np.isfinite(r)) and np.all(r > 0) and np.all(np.isfinite(vc))):
         raise ModelFileError(path, "the network gives non-finite or non-positive noise on a test input")
     return model
+
+
+def _ensemble_size(path: str, meta: dict) -> int:
+    """How many networks a model file holds: 1 for version 1, its ``ensemble.members`` (>= 2) for version 2."""
+    ensemble = meta.get("ensemble")
+    if meta["format_version"] == FORMAT_VERSION:
+        if ensemble is not None:
+            raise ModelFileError(path, f"metadata ensemble in a format version {FORMAT_VERSION} file (ensembles "
+                                       f"are version {ENSEMBLE_FORMAT_VERSION})")
+        return 1
+    members = ensemble.get("members") if isinstance(ensemble, dict) else None
+    if not (isinstance(members, list) and len(members) >= 2 and all(isinstance(m, dict) for m in members)):
+        raise ModelFileError(path, "metadata ensemble.members must list two or more networks in a format version "
+                                   f"{ENSEMBLE_FORMAT_VERSION} (ensemble) file")
+    return len(members)
 
 
 def refilter_model(source_path: str | Path, out_path: str | Path, changes: dict, command: str | None = None) -> Path:
@@ -512,10 +606,10 @@ def refilter_model(source_path: str | Path, out_path: str | Path, changes: dict,
 
     if str(source_path).endswith(".npz"):
         source = load_model(source_path)
-        params, normaliser = source.params, source.normaliser
+        params, normaliser, members = source.params, source.normaliser, source.members[1:]
         meta = json.loads(json.dumps(source.metadata, default=_json_default))
     else:
-        params, normaliser, meta = _checkpoint_contents(source_path)
+        (params, normaliser, meta), members = _checkpoint_contents(source_path), []
     known = {f.name for f in dataclasses.fields(EkfConfig)}
     unknown = sorted(set(changes) - known)
     if unknown or not changes:
@@ -535,7 +629,7 @@ def refilter_model(source_path: str | Path, out_path: str | Path, changes: dict,
         "source": str(source_path), "command": command, "git": git_state(),
         "versions": {"lfgnss": lfgnss.__version__, "numpy": np.__version__},
         "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")}]
-    out = _write_model_file(out_path, params, normaliser, meta)   # out may be source_path itself
+    out = _write_model_file(out_path, params, normaliser, meta, members)   # out may be source_path itself
     load_model(out)                                            # the written file must read back
     return out
 
@@ -572,8 +666,12 @@ def untrained_reason(model: LfgnssModel) -> str | None:
     ``train.init``, that epoch is the init model itself, which is trained, so only a run from scratch counts here.
     """
     meta = model.metadata
-    if meta.get("epoch") != 0 or meta.get("init_model"):
+    epochs = [m.get("epoch") for m in (meta.get("ensemble") or {}).get("members", [])] or [meta.get("epoch")]
+    if 0 not in epochs or meta.get("init_model"):
         return None
+    if len(epochs) > 1:
+        return (f"member {epochs.index(0)} of this ensemble holds no training: it is epoch 0 of its run, the randomly "
+                "initialised network that no training epoch beat on validation")
     return ("holds no training: it is epoch 0 of its run, the randomly initialised network that no training epoch "
             "beat on validation; its noise can give positions far worse than the plain EKF's")
 
@@ -669,7 +767,9 @@ def describe_model(model: LfgnssModel) -> list[str]:
         (" (in the training filter)" if meta.get("refilter") and val is not None else "")
     return [f"{model.path}",
             f"trained on: {trained_on(meta)}; epoch {meta.get('epoch')}, validation 3D RMSE "
-            f"{'-' if val is None else f'{val:.3f} m'}{where}",
+            f"{'-' if val is None else f'{val:.3f} m'}{where}" + (" (its first network)" if meta.get("ensemble")
+                                                                  else ""),
+            *ensemble_lines(meta),
             f"features: {', '.join(model.feature_names)}",
             f"filter (settings other than the defaults): {config_changes(config_of(model))}",
             *([] if untrained is None else [f"warning: {untrained}"]),
@@ -678,6 +778,22 @@ def describe_model(model: LfgnssModel) -> list[str]:
             *made,
             f"{'network exported' if meta.get('refilter') else 'written'} {meta.get('created_utc', '?')} by lfgnss "
             f"{versions.get('lfgnss', '?')}, torch {versions.get('torch', '?')}"]
+
+
+def ensemble_lines(metadata: dict) -> list[str]:
+    """``--show`` lines on an ensemble file's networks (none for a single network)."""
+    ensemble = metadata.get("ensemble")
+    if not ensemble:
+        return []
+
+    def member(m: dict) -> str:
+        val = m.get("val_rmse_3d_m")
+        return (f"seed {m.get('seed')}, epoch {m.get('epoch')}, validation 3D RMSE "
+                f"{'-' if not isinstance(val, (int, float)) else f'{val:.3f} m'} ({m.get('checkpoint')})")
+
+    members = ensemble.get("members", [])
+    return [f"ensemble of {len(members)} networks of one recipe ({ensemble.get('combine')}):",
+            *(f"  {i}: {member(m)}" for i, m in enumerate(members))]
 
 
 def _ekf_assignment(text: str) -> tuple[str, object]:
@@ -701,8 +817,9 @@ def _ekf_assignment(text: str) -> tuple[str, object]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m learning.export CHECKPOINT OUT.npz`` writes a model file; ``--show MODEL.npz`` describes one
-    (``--show MODEL.npz --config`` prints its stored training configuration).
+    """``python -m learning.export CHECKPOINT OUT.npz`` writes a model file (several CHECKPOINTs: an ensemble,
+    ``export_ensemble``); ``--show MODEL.npz`` describes one (``--show MODEL.npz --config`` prints its stored
+    training configuration).
 
     Exit status 0; 2 for bad input (one line naming the file).
     """
@@ -715,8 +832,10 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m learning.export",
                                 description="Write a training checkpoint (best.pt / last.pt of learning.train) as a "
                                             "model file, or describe a model file.")
-    p.add_argument("checkpoint", nargs="?", type=path_option, help="best.pt or last.pt of a learning.train run")
-    p.add_argument("out", nargs="?", type=path_option, help="model file to write (.npz)")
+    p.add_argument("paths", nargs="*", type=path_option, metavar="CHECKPOINT [CHECKPOINT ...] OUT.npz",
+                   help="best.pt or last.pt of a learning.train run, and the model file to write (.npz); several "
+                        "checkpoints (runs of one recipe with different seeds, train.seed) are written as one "
+                        "ensemble: R the geometric mean of the networks', v^c their mean")
     p.add_argument("--show", metavar="MODEL", type=path_option,
                    help="describe a model file (or a bundled model by name: default, hk-tst-2019, ...): its data, "
                         "filter and how it was made (command, git commit, where recorded)")
@@ -727,12 +846,17 @@ def main(argv: list[str] | None = None) -> int:
                    help="write the model to run in a filter with this EKF setting changed (estimators.EkfConfig; "
                         "repeatable); the source may then be a model file (.npz), and the change is recorded")
     args = p.parse_args(argv)
+    args.checkpoint, args.out, members = (args.paths[0], args.paths[-1], args.paths[:-1]) if len(args.paths) > 1 \
+        else ((args.paths or [None])[0], None, [])
     if args.config and args.show is None:
         p.error("--config goes with --show MODEL: it prints the training configuration stored in that model file")
     if (args.show is None) == (args.checkpoint is None) or (args.checkpoint is not None and args.out is None):
         p.error("give CHECKPOINT OUT.npz to export, or --show MODEL.npz to describe a model file")
     if args.show is not None and args.ekf:
         p.error("--ekf changes a filter while writing a model file; --show only describes one")
+    if len(members) > 1 and args.ekf:
+        p.error("--ekf takes one source: write the ensemble first, then change its filter "
+                "(python -m learning.export ENSEMBLE.npz OUT.npz --ekf KEY=VALUE)")
     try:
         if args.show is not None:
             if str(args.show).endswith(".pt"):
@@ -746,10 +870,13 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         if not str(args.out).endswith(".npz"):
             raise InputError(args.out, "give the model file a .npz name (numpy would add it)")
-        from_model = str(args.checkpoint).endswith(".npz")
-        if from_model and not args.ekf:
-            raise InputError(args.checkpoint, "a model file, not a training checkpoint: give --ekf KEY=VALUE to "
-                                              "write it with another filter setting, or --show to describe it")
+        model_source = next((m for m in members if str(m).endswith(".npz")), None)
+        if model_source is not None and len(members) > 1:
+            raise InputError(model_source, "a model file, not a training checkpoint: an ensemble is written from "
+                                           "the checkpoints (best.pt / last.pt) of its training runs")
+        if model_source is not None and not args.ekf:
+            raise InputError(model_source, "a model file, not a training checkpoint: give --ekf KEY=VALUE to "
+                                           "write it with another filter setting, or --show to describe it")
         changes = {}
         try:
             for key, value in (_ekf_assignment(a) for a in args.ekf):
@@ -767,9 +894,14 @@ def main(argv: list[str] | None = None) -> int:
             except (TypeError, ValueError) as exc:
                 p.error(f"--ekf: {exc}")
         else:
-            written = export_model(args.checkpoint, args.out)
-        print(f"{written}: model of {args.checkpoint} (epoch {load_model(written).metadata.get('epoch')})"
-              + (f", filter changed: {', '.join(args.ekf)}" if changes else ""))
+            written = export_ensemble(members, args.out)
+        if len(members) > 1:
+            epochs = [m.get("epoch") for m in load_model(written).metadata["ensemble"]["members"]]
+            print(f"{written}: ensemble of {len(members)} networks: {', '.join(map(str, members))} (epochs "
+                  f"{', '.join(map(str, epochs))})")
+        else:
+            print(f"{written}: model of {args.checkpoint} (epoch {load_model(written).metadata.get('epoch')})"
+                  + (f", filter changed: {', '.join(args.ekf)}" if changes else ""))
     except (*INPUT_ERRORS, OSError) as exc:
         p.exit(2, f"{p.prog}: error: {input_line(exc)}\n")
     return 0

@@ -145,6 +145,38 @@ class LfgnssNet(nn.Module):
         return r.reshape(*lead, n), vc.reshape(*lead, n)
 
 
+def combine_members(r_m2: list[torch.Tensor], vc_m: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+    """One noise from an ensemble's members: the geometric mean of their R [m^2], the mean of their v^c [m].
+
+    A geometric mean because R spans orders of magnitude: a member that distrusts a satellite 100-fold and one that
+    trusts it meet at 10-fold, not at 50-fold. ``learning.export`` does the same in numpy (no torch at inference).
+    """
+    return torch.exp(torch.log(torch.stack(r_m2)).mean(0)), torch.stack(vc_m).mean(0)
+
+
+class NetworkEnsemble(nn.Module):
+    """Networks of one recipe trained with different seeds, run as one noise model (``combine_members``).
+
+    Every member reads the same (identically normalised) features; the training runs differ in their seed only,
+    which moves a recipe trained on a few minutes of driving by metres (docs/training/cv-ensemble.md).
+    """
+
+    def __init__(self, members: list[LfgnssNet]) -> None:
+        super().__init__()
+        if not members:
+            raise ValueError("an ensemble needs at least one network")
+        if len({m.innovation for m in members}) > 1:
+            raise ValueError("an ensemble's networks must all read the filter's innovations, or none")
+        self.members = nn.ModuleList(members)
+        self.innovation = members[0].innovation
+
+    def forward(self, features: torch.Tensor, mask: torch.Tensor, innovation: torch.Tensor | None = None
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``LfgnssNet.forward`` of each member, combined: (r_m2, vc_m), shaped like ``mask``."""
+        outs = [m(features, mask, innovation) for m in self.members]
+        return combine_members([o[0] for o in outs], [o[1] for o in outs])
+
+
 def prior_variance(x_norm: torch.Tensor, prior: dict) -> torch.Tensor:
     """Hand-set variance [m^2] from normalised features (..., N, d): HeuristicNoise's formula in torch."""
     cn0 = x_norm[..., prior["cn0_index"]] * prior["cn0_std"] + prior["cn0_mean"]

@@ -394,7 +394,12 @@ def init_model(config: dict):
         return None
     from .export import load_model
 
-    return load_model(path)
+    model = load_model(path)
+    if len(model.members) > 1:
+        raise ValueError(f"train.init: {model.path} is an ensemble of {len(model.members)} networks; fine-tuning "
+                         "starts from one network: export one member's checkpoint (python -m learning.export "
+                         "CHECKPOINT OUT.npz) and give that")
+    return model
 
 
 def adopt_init(config: dict) -> dict:

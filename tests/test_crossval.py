@@ -392,3 +392,41 @@ def test_a_finished_run_says_how_to_train_its_recipe(monkeypatch, tmp_path, caps
         "--set 'data.datasets=['\"'\"'a b'\"'\"']' --set seed=2 --out runs/NAME)")
     assert cv.next_step(None, []) == ("next: train this recipe on data.train_split (python -m learning.train "
                                       "--out runs/NAME)")
+
+
+def test_reuse_of_several_runs_scores_their_fold_models_as_one_ensemble(trained_run, tmp_path, capsys):
+    """``--reuse A --reuse B``: per fold the ensemble of A's and B's models. Two copies of one network (seeds told
+    apart) give that network's figures back exactly; a run with another seed gives figures of its own; two runs of
+    one seed, or of different recipes, are one line and exit 2."""
+    import shutil
+
+    import torch
+
+    run, _ = trained_run
+    twin = tmp_path / "twin"
+    for j in (0, 1):
+        (twin / f"fold{j}").mkdir(parents=True)
+        saved = torch.load(run / f"fold{j}" / "last.pt", map_location="cpu", weights_only=False)
+        saved["config"]["seed"] = 7
+        torch.save(saved, twin / f"fold{j}" / "last.pt")
+    assert main(RECIPE + ["--out", str(tmp_path / "same"), "--reuse", str(run), "--reuse", str(twin)]) == 0
+    for a, b in zip(_rows(tmp_path / "same"), _rows(run)):
+        for key in ("last_rmse_3d_m", "last_smoothed_rmse_3d_m", "last_rmse_2d_m"):
+            assert float(a[key]) == pytest.approx(float(b[key]), rel=1e-9), key
+    other = tmp_path / "seed1"
+    assert main(RECIPE + ["--set", "seed=1", "--out", str(other)]) == 0
+    assert main(RECIPE + ["--out", str(tmp_path / "ens"), "--reuse", str(run), "--reuse", str(other)]) == 0
+    ens, one, two = _rows(tmp_path / "ens"), _rows(run), _rows(other)
+    assert all(float(e["last_rmse_3d_m"]) not in (float(a["last_rmse_3d_m"]), float(b["last_rmse_3d_m"]))
+               for e, a, b in zip(ens, one, two))
+    assert [e["plain_ekf_rmse_3d_m"] for e in ens] == [a["plain_ekf_rmse_3d_m"] for a in one]
+    capsys.readouterr()
+    shutil.copytree(run, tmp_path / "copy", ignore=shutil.ignore_patterns("crossval.*"))
+    for reuse, message in (([run, tmp_path / "copy"], "copy/fold0/last.pt: trained with seed 0, as another --reuse "
+                                                      "folder's"),
+                           ([run, other], "trained with train.epochs = 2, this run has 3")):
+        extra = ["--set", "train.epochs=3"] if "epochs" in message else []
+        with pytest.raises(SystemExit) as exit_info:
+            main(RECIPE + extra + ["--out", str(tmp_path / "x"), *[a for r in reuse for a in ("--reuse", str(r))]])
+        err = capsys.readouterr().err
+        assert exit_info.value.code == 2 and message in err and "Traceback" not in err

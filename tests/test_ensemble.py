@@ -1,0 +1,149 @@
+"""Ensemble model files: several seeds' networks of one recipe run as one noise model (learning.export)."""
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from learning.export import (ENSEMBLE_FORMAT_VERSION, FORMAT_VERSION, ModelFileError, export_ensemble, export_model,
+                             load_model, main)
+from learning.network import LfgnssNet, NetworkEnsemble
+from learning.normalise import Normaliser, select_features
+from lfgnss.sequence import DEFAULT_FEATURES
+from lfgnss.simulate import simulate_sequence
+
+CONFIG = {"seed": 0, "train": {"lr": 1e-3}, "data": {"datasets": ["synthetic"], "train_split": "train"}}
+
+
+def _checkpoint(path, seed: int, norm: Normaliser, config: dict | None = None) -> tuple:
+    """A checkpoint of a network initialised with ``seed`` (weights moved so that R and v^c vary)."""
+    torch.manual_seed(seed)
+    net = LfgnssNet(len(DEFAULT_FEATURES), r_floor_m2=0.02, r_scale_m2=3.0, r_init_m2=20.0)
+    with torch.no_grad():
+        for p in net.parameters():
+            p.add_(0.1 * torch.randn_like(p))
+    config = {**CONFIG, "seed": seed} if config is None else config
+    torch.save({"model": net.state_dict(), "model_hparams": net.hyperparameters(), "normaliser": norm.to_dict(),
+                "config": config, "epoch": 3 + seed, "history": [{"epoch": 3 + seed, "val_rmse_3d_m": 4.0 + seed}],
+                "data_fingerprints": [{"dataset": "synthetic", "sha256_16": "abc"}]}, path)
+    return path, net
+
+
+@pytest.fixture(scope="module")
+def members(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("ensemble")
+    seq = simulate_sequence(30, seed=3, n_slots=16)
+    norm = Normaliser.fit([seq], DEFAULT_FEATURES)
+    runs = [_checkpoint(tmp / f"s{s}.pt", s, norm) for s in (0, 1, 2)]
+    return tmp, seq, norm, runs
+
+
+def test_an_ensemble_file_gives_the_geometric_mean_of_its_members_r_and_the_mean_of_their_vc(members):
+    tmp, seq, norm, runs = members
+    ensemble = load_model(export_ensemble([p for p, _ in runs], tmp / "ens.npz"))
+    singles = [load_model(export_model(p, tmp / f"{p.stem}.npz")) for p, _ in runs]
+    raw, mask = select_features(seq, DEFAULT_FEATURES), seq.mask
+    r, vc = ensemble.predict(raw, mask)
+    each = [m.predict(raw, mask) for m in singles]
+    np.testing.assert_allclose(r, np.exp(np.mean([np.log(e[0]) for e in each], axis=0)), rtol=1e-12)
+    np.testing.assert_allclose(vc, np.mean([e[1] for e in each], axis=0), rtol=1e-12, atol=1e-12)
+    assert not np.allclose(each[0][0], each[1][0])               # the members differ: the test means something
+    x = torch.as_tensor(norm.apply(raw, mask))                   # the torch ensemble that learning.crossval scores
+    nets = []
+    for _, net in runs:
+        net64 = LfgnssNet(**net.hyperparameters()).double().eval()
+        net64.load_state_dict(net.state_dict())
+        nets.append(net64)
+    with torch.no_grad():
+        r_t, vc_t = NetworkEnsemble(nets)(x, torch.as_tensor(mask))
+    np.testing.assert_allclose(r, r_t.numpy(), rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(vc, vc_t.numpy(), rtol=1e-9, atol=1e-9)
+
+
+def test_an_ensemble_is_format_version_2_and_records_each_member(members):
+    tmp, _, _, runs = members
+    model = load_model(export_ensemble([p for p, _ in runs], tmp / "e2.npz"))
+    meta = model.metadata
+    assert meta["format_version"] == ENSEMBLE_FORMAT_VERSION and len(model.members) == 3
+    assert [(m["seed"], m["epoch"], m["val_rmse_3d_m"]) for m in meta["ensemble"]["members"]] == \
+        [(0, 3, 4.0), (1, 4, 5.0), (2, 5, 6.0)]
+    single = load_model(export_ensemble([runs[0][0]], tmp / "one.npz"))      # one checkpoint: a plain file
+    assert single.metadata["format_version"] == FORMAT_VERSION and len(single.members) == 1
+    assert "ensemble" not in single.metadata
+
+
+@pytest.mark.parametrize("damage, message", [
+    (lambda meta, arrays: meta.pop("ensemble"), "metadata ensemble.members must list two or more networks"),
+    (lambda meta, arrays: meta["ensemble"]["members"].pop(), "parameter member2/"),   # 2 listed, 3 stored: fine
+    (lambda meta, arrays: arrays.pop("member1/param/head.bias"), "parameter member1/'head.bias' missing"),
+    (lambda meta, arrays: meta.update(format_version=FORMAT_VERSION), "metadata ensemble in a format version 1"),
+])
+def test_a_damaged_ensemble_file_is_one_line_naming_it(members, tmp_path, damage, message):
+    tmp, _, _, runs = members
+    path = export_ensemble([p for p, _ in runs], tmp_path / "e.npz")
+    with np.load(path) as z:
+        arrays = {k: z[k] for k in z.files}
+    meta = json.loads(str(arrays["metadata"]))
+    damage(meta, arrays)
+    arrays["metadata"] = np.array(json.dumps(meta))
+    np.savez(tmp_path / "bad.npz", **arrays)
+    if message == "parameter member2/":                    # fewer members listed than stored: the listed ones run
+        assert len(load_model(tmp_path / "bad.npz").members) == 2
+        return
+    with pytest.raises(ModelFileError) as info:
+        load_model(tmp_path / "bad.npz")
+    assert message in str(info.value) and "bad.npz" in str(info.value) and "\n" not in str(info.value)
+
+
+def test_members_of_other_recipes_or_data_or_the_same_run_twice_are_refused(members, tmp_path):
+    tmp, seq, norm, runs = members
+    other_lr = _checkpoint(tmp_path / "lr.pt", 5, norm, {**CONFIG, "seed": 5, "train": {"lr": 3e-4}})[0]
+    other_data = _checkpoint(tmp_path / "data.pt", 6, Normaliser.fit([simulate_sequence(30, seed=9, n_slots=16)],
+                                                                      DEFAULT_FEATURES))[0]
+    for paths, message in (([runs[0][0], other_lr], "lr.pt: config train.lr differs from"),
+                           ([runs[0][0], other_data], "data.pt: the normaliser (the training data's feature "
+                                                      "statistics) differs"),
+                           ([runs[0][0], runs[0][0]], "s0.pt: given twice")):
+        with pytest.raises(ModelFileError) as info:
+            export_ensemble(paths, tmp_path / "x.npz")
+        assert message in str(info.value)
+    assert not (tmp_path / "x.npz").exists()
+
+
+def test_the_command_writes_shows_and_refilters_an_ensemble(members, tmp_path, capsys):
+    _, seq, _, runs = members
+    out = tmp_path / "ens.npz"
+    assert main([*(str(p) for p, _ in runs), str(out)]) == 0
+    assert "ens.npz: ensemble of 3 networks" in capsys.readouterr().out
+    assert main(["--show", str(out)]) == 0
+    shown = capsys.readouterr().out
+    assert "ensemble of 3 networks of one recipe (R: geometric mean" in shown
+    assert "  2: seed 2, epoch 5, validation 3D RMSE 6.000 m" in shown
+    refiltered = tmp_path / "gated.npz"                      # a filter change keeps every member
+    assert main([str(out), str(refiltered), "--ekf", "gate_sigma=2.5"]) == 0
+    capsys.readouterr()
+    a, b = load_model(out), load_model(refiltered)
+    assert len(b.members) == 3 and b.metadata["ekf_config"]["gate_sigma"] == 2.5
+    np.testing.assert_array_equal(a.predict(select_features(seq, DEFAULT_FEATURES), seq.mask)[0],
+                                  b.predict(select_features(seq, DEFAULT_FEATURES), seq.mask)[0])
+    for argv, message in (([str(runs[0][0]), str(runs[1][0]), str(tmp_path / "y.npz"), "--ekf", "gate_sigma=2"],
+                           "--ekf takes one source"),
+                          ([str(runs[0][0]), str(out), str(tmp_path / "y.npz")],
+                           "ens.npz: a model file, not a training checkpoint: an ensemble is written from")):
+        with pytest.raises(SystemExit) as info:
+            main(argv)
+        err = capsys.readouterr().err
+        assert info.value.code == 2 and message in err.strip().splitlines()[-1] and "Traceback" not in err
+
+
+def test_an_ensemble_runs_in_the_ekf_and_cannot_start_a_fine_tuning(members, tmp_path):
+    import estimators
+    from learning.train import init_model
+
+    tmp, seq, _, runs = members
+    path = export_ensemble([p for p, _ in runs], tmp_path / "ens.npz")
+    sol = estimators.create("ekf", noise=str(path)).solve(seq)
+    assert np.all(np.isfinite(sol.pos_ecef_m[sol.available]))
+    with pytest.raises(ValueError, match="is an ensemble of 3 networks; fine-tuning starts from one network"):
+        init_model({"train": {"init": str(path)}})
+
