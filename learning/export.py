@@ -647,10 +647,13 @@ def refilter_lines(metadata: dict) -> list[str]:
 # --------------------------------------------------------------------------- command line
 
 def trained_on(metadata: dict) -> str:
-    """The data a model file was trained on, e.g. 'berlin-pp (train)' or '... (train), fine-tuned from X (train)'."""
+    """The data a model file was trained on, e.g. 'berlin-pp (train)', 'berlin-pp (train), 3 seeds' (an ensemble) or
+    '... (train), fine-tuned from X (train)'."""
     data = (metadata.get("config") or {}).get("data", {})
     trained = "+".join(data.get("datasets", [])) + f" ({data.get('train_split', 'train')})"
     init = metadata.get("init_model")
+    members = len((metadata.get("ensemble") or {}).get("members", []))
+    trained += f", {members} seeds" if members else ""
     return trained if not init else (f"{trained}, fine-tuned from {'+'.join(init.get('datasets', []))} "
                                      f"({init.get('train_split', 'train')})")
 

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from learning.export import (ENSEMBLE_FORMAT_VERSION, FORMAT_VERSION, ModelFileError, export_ensemble, export_model,
-                             load_model, main)
+                             load_model, main, trained_on)
 from learning.network import LfgnssNet, NetworkEnsemble
 from learning.normalise import Normaliser, select_features
 from lfgnss.sequence import DEFAULT_FEATURES
@@ -70,6 +70,7 @@ def test_an_ensemble_is_format_version_2_and_records_each_member(members):
     single = load_model(export_ensemble([runs[0][0]], tmp / "one.npz"))      # one checkpoint: a plain file
     assert single.metadata["format_version"] == FORMAT_VERSION and len(single.members) == 1
     assert "ensemble" not in single.metadata
+    assert trained_on(meta) == "synthetic (train), 3 seeds" and trained_on(single.metadata) == "synthetic (train)"
 
 
 @pytest.mark.parametrize("damage, message", [

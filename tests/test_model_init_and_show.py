@@ -25,7 +25,7 @@ TINY = BASE + ["data.burn_in=0"]
 def _rewritten(source: str, out: Path, **metadata) -> Path:
     """A copy of a bundled model file with some metadata changed (so no longer that file's bytes)."""
     model = load_model(source)
-    return _write_model_file(out, model.params, model.normaliser, {**model.metadata, **metadata})
+    return _write_model_file(out, model.params, model.normaliser, {**model.metadata, **metadata}, model.members[1:])
 
 
 @pytest.mark.parametrize("config, name", [("finetune.toml", "default"), ("hk_finetune.toml", "transfer-base")])
@@ -93,7 +93,7 @@ def test_show_of_a_bundled_model_names_its_readme_row_and_how_to_print_its_confi
 
 
 def test_show_of_another_file_without_provenance_does_not_point_at_the_bundled_readme(tmp_path, capsys):
-    mine = _rewritten("berlin-pp", tmp_path / "mine.npz", created_utc="2026-01-01T00:00:00+00:00")
+    mine = _rewritten("hk-tst-static-2020", tmp_path / "mine.npz", created_utc="2026-01-01T00:00:00+00:00")
     assert bundled_name(mine) is None
     assert export_main(["--show", str(mine)]) == 0
     shown = capsys.readouterr().out
