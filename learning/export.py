@@ -753,7 +753,11 @@ def describe_model(model: LfgnssModel) -> list[str]:
     else:
         configuration = ("configuration file: its path was not recorded, but the configuration itself is stored in "
                          f"the model: {show_config}")
-    if meta.get("provenance"):
+    members = (meta.get("ensemble") or {}).get("members") or []
+    if members:                                         # each network's own training run
+        made = [line for i, m in enumerate(members)
+                for line in [f"network {i}:", *(f"  {x}" for x in describe(m.get("provenance")))]]
+    elif meta.get("provenance"):
         made = describe(meta["provenance"])
     elif name is not None:
         made = [f"provenance: not recorded (trained before lfgnss recorded the command and git commit); the command "

@@ -87,13 +87,29 @@ def test_export_command_writes_the_runs_model_and_show_describes_it(run, tmp_pat
 
 
 def test_show_of_a_bundled_model_says_what_is_not_recorded(capsys):
-    assert export_main(["--show", "lfgnss/data/model/lfgnss-berlin-pp.npz"]) == 0
+    assert export_main(["--show", "lfgnss/data/model/lfgnss-hk-tst-static-2020.npz"]) == 0
     shown = capsys.readouterr().out
-    assert "trained on: berlin-pp (train); epoch 120" in shown
-    assert "huber_k=2.0" in shown and "q_vel_up_m2_s3=0.1" in shown
-    assert "provenance: not recorded" in shown and "lfgnss-berlin-pp.npz row of lfgnss/data/model/README.md" in shown
+    assert "trained on: hk-tst-static-2020 (train); epoch 27" in shown
+    assert "zupt_sigma_m_s=0.02" in shown
+    assert "provenance: not recorded" in shown
+    assert "lfgnss-hk-tst-static-2020.npz row of lfgnss/data/model/README.md" in shown
     assert "its path was not recorded, but the configuration itself is stored in the model: " \
-           "python -m learning.export --show berlin-pp --config prints it" in shown
+           "python -m learning.export --show hk-tst-static-2020 --config prints it" in shown
+
+
+def test_show_of_the_bundled_ensemble_gives_each_networks_run(capsys):
+    """The berlin-pp model is three training runs (seeds 0, 1, 2): --show names each run's command and commit."""
+    assert export_main(["--show", "berlin-pp"]) == 0
+    shown = capsys.readouterr().out
+    assert "trained on: berlin-pp (train), 3 seeds; epoch 120" in shown
+    assert "huber_k=2.0" in shown and "q_vel_up_m2_s3=0.1" in shown
+    assert "ensemble of 3 networks of one recipe (R: geometric mean" in shown
+    for seed in (0, 1, 2):
+        assert f"  {seed}: seed {seed}, epoch 120, validation 3D RMSE" in shown
+        assert f"network {seed}:" in shown
+        assert (f"    command: python -m learning.train --config learning/configs/berlin.toml --set seed={seed} "
+                f"--set threads=1 --out runs/berlin-s{seed}") in shown
+    assert "provenance: not recorded" not in shown
 
 
 def test_export_ekf_writes_the_same_network_in_another_filter(run, tmp_path, capsys):
