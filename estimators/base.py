@@ -357,3 +357,8 @@ def create(name: str, /, **options: object) -> Estimator:
 def available() -> list[str]:
     """Names of the registered estimators."""
     return sorted(set(_REGISTRY) | set(_LAZY))
+
+
+def factories() -> dict[str, object]:
+    """Each back end's name -> what ``create`` calls for it, or the module that registers it on first use (a str)."""
+    return {**_LAZY, **_REGISTRY}

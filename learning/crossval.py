@@ -38,8 +38,9 @@ inference-time variant of the filter judged on every block in a minute instead o
 differs from the saved run's configuration (seed included) is refused; so is a held-out block whose data changed.
 ``--reuse`` repeated (runs of one recipe with different ``--set seed=S``) scores, per fold, the ensemble of the runs'
 fold models (``learning.network.NetworkEnsemble``, as ``python -m learning.export`` writes several checkpoints):
-their seeds may differ, nothing else. The "untrained" and "best" columns are empty there; a fold checkpoint that did not reach ``train.epochs`` (its fold was
-interrupted or diverged), or whose weights do not load or are not finite, is refused.
+their seeds may differ, nothing else. The "untrained" and "best" columns are empty there; a fold checkpoint that
+did not reach ``train.epochs`` (its fold was interrupted or diverged), or whose weights do not load or are not
+finite, is refused.
 
 A run stopped among its folds (Ctrl-C, a diverged fold, a bad checkpoint) writes the finished folds' rows to
 ``crossval.csv`` / ``crossval.md`` before it ends; bad options and an unusable ``--out`` are refused before any work

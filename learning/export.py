@@ -103,12 +103,18 @@ def export_ensemble(checkpoint_paths: list[str | Path], out_path: str | Path) ->
     contents = [_checkpoint_contents(p) for p in paths]
     if len(paths) == 1:
         return _write_model_file(out_path, *contents[0])
-    (params, normaliser, meta), seen = contents[0], {}
+    (params, normaliser, meta), seen, seeds = contents[0], {}, {}
     for path, (_, norm, other) in zip(paths, contents):
         if path.resolve() in seen:
             raise ModelFileError(path, f"given twice (as {seen[path.resolve()]}): an ensemble's members are "
                                        "different training runs")
         seen[path.resolve()] = path
+        seed = (other.get("config") or {}).get("seed")
+        if not isinstance(seed, int) or isinstance(seed, bool) or seed in seeds:
+            why = f"has the seed of {seeds[seed]}" if seed in seeds else "records no seed"
+            raise ModelFileError(path, f"{why}: an ensemble's members are runs of one recipe with different seeds "
+                                       "(learning.train --set seed=S)")
+        seeds[seed] = path
         key = _member_difference(meta, normaliser, other, norm)
         if key is not None:
             raise ModelFileError(path, f"{key} differs from {paths[0]}'s: an ensemble's members must be one recipe "
@@ -121,6 +127,11 @@ def export_ensemble(checkpoint_paths: list[str | Path], out_path: str | Path) ->
     return _write_model_file(out_path, params, normaliser, meta, members=[c[0] for c in contents[1:]])
 
 
+#: Training settings that name files rather than say what was trained: the files' contents are compared instead
+#: (``data_fingerprints``, ``init_model``'s SHA-256), so runs started from other folders still make one ensemble.
+_MEMBER_PATH_KEYS = ("train.init", "data.register")
+
+
 def _member_difference(meta: dict, normaliser: Normaliser, other: dict, other_normaliser: Normaliser) -> str | None:
     """The first setting in which a would-be ensemble member (``other``) differs from the first one, or None."""
     if list(normaliser.feature_names) != list(other_normaliser.feature_names):
@@ -128,14 +139,21 @@ def _member_difference(meta: dict, normaliser: Normaliser, other: dict, other_no
     if not (np.array_equal(normaliser.mean, other_normaliser.mean)
             and np.array_equal(normaliser.std, other_normaliser.std)):
         return "the normaliser (the training data's feature statistics)"
-    for key in ("model", "ekf_config", "n_systems", "data_fingerprints", "init_model"):
-        if json.dumps(meta.get(key), default=_json_default, sort_keys=True) != \
-                json.dumps(other.get(key), default=_json_default, sort_keys=True):
-            return key
-    from .train import _flat
 
-    a, b = _flat(meta.get("config") or {}), _flat(other.get("config") or {})
-    changed = sorted(k for k in a.keys() | b.keys() if k not in ENSEMBLE_FREE and a.get(k) != b.get(k))
+    def same(a: object, b: object) -> bool:
+        return json.dumps(a, default=_json_default, sort_keys=True) == json.dumps(b, default=_json_default,
+                                                                                  sort_keys=True)
+
+    for key in ("model", "ekf_config", "n_systems", "data_fingerprints"):
+        if not same(meta.get(key), other.get(key)):
+            return key
+    if (meta.get("init_model") or {}).get("sha256_16") != (other.get("init_model") or {}).get("sha256_16"):
+        return "init_model (the model fine-tuning started from)"
+    from .train import DEFAULT_CONFIG, _flat, _merge_free
+
+    a, b = (_flat(_merge_free(DEFAULT_CONFIG, m.get("config") or {})) for m in (meta, other))
+    changed = sorted(k for k in a.keys() | b.keys()
+                     if k not in ENSEMBLE_FREE + _MEMBER_PATH_KEYS and not same(a.get(k), b.get(k)))
     return f"config {changed[0]}" if changed else None
 
 
@@ -187,13 +205,13 @@ def _checkpoint_contents(checkpoint_path: str | Path) -> tuple[dict[str, np.ndar
 
 
 def _write_model_file(out_path: str | Path, params: dict[str, np.ndarray], normaliser: Normaliser, meta: dict,
-                      members: list[dict[str, np.ndarray]] = ()) -> Path:
+                      members: list[dict[str, np.ndarray]] | None = None) -> Path:
     """The model file's arrays (weights as float32; ``members``: an ensemble's further networks) written to
     ``out_path`` atomically (a kill mid-write keeps the file that was there)."""
     from .train import _replace_atomically     # train imports this module
 
     arrays = {f"param/{k}": np.asarray(v, np.float32) for k, v in params.items()}    # the format's float32
-    for i, member in enumerate(members, start=1):
+    for i, member in enumerate(members or [], start=1):
         arrays.update({f"member{i}/param/{k}": np.asarray(v, np.float32) for k, v in member.items()})
     arrays["normaliser_mean"] = normaliser.mean.astype(np.float64)
     arrays["normaliser_std"] = normaliser.std.astype(np.float64)
@@ -244,11 +262,11 @@ class LfgnssModel:
     """
 
     def __init__(self, path: str, params: dict[str, np.ndarray], normaliser: Normaliser, metadata: dict,
-                 members: list[dict[str, np.ndarray]] = ()) -> None:
+                 members: list[dict[str, np.ndarray]] | None = None) -> None:
         self.path = path
         self.params = {k: v.astype(np.float64) for k, v in params.items()}
         #: every network's parameters, ``params`` first; more than one for an ensemble file (``export_ensemble``)
-        self.members = [self.params] + [{k: v.astype(np.float64) for k, v in m.items()} for m in members]
+        self.members = [self.params] + [{k: v.astype(np.float64) for k, v in m.items()} for m in members or []]
         self.normaliser = normaliser
         self.metadata = metadata
         self.feature_names = tuple(normaliser.feature_names)
@@ -535,9 +553,14 @@ def load_model(path: str | Path, expected_features: Iterable[str] | None = None)
             arr = arrays.get(f"{prefix}param/{name}")
             if (arr is None or list(arr.shape) != list(shape) or arr.dtype.kind not in "fiu"
                     or not np.all(np.isfinite(arr))):
-                raise ModelFileError(path, f"parameter {prefix}{name!r} missing, mis-shaped or not finite")
+                raise ModelFileError(path, f"parameter {prefix + name!r} missing, mis-shaped or not finite")
             params[name] = arr
         members.append(params)
+    unlisted = sorted(k for k in arrays if k.startswith("member") and k.split("/")[0] not in
+                      {f"member{i}" for i in range(1, n_members)})
+    if unlisted:
+        raise ModelFileError(path, f"array {unlisted[0]} belongs to no network its metadata lists "
+                                   f"({n_members}; ensemble.members)")
     params = members[0]
     try:
         normaliser = Normaliser(tuple(meta["feature_names"]), arrays["normaliser_mean"], arrays["normaliser_std"])
@@ -722,7 +745,10 @@ def config_text(model: LfgnssModel) -> str:
     if not isinstance(config, dict):
         raise ModelFileError(model.path, "no training configuration is recorded in this model file")
     nulls = _null_keys(config)
+    members = len(model.members)
     head = [f"# The training configuration stored in {model.path}",
+            *([f"# (its first network's: the file is an ensemble of {members} runs of this configuration that differ "
+               "in train seed only)"] if members > 1 else []),
             "# (as learning.train ran it: defaults, --set, and a train.init model's network and filter included)",
             *([f"# not set (null: the default): {', '.join(nulls)}"] if nulls else [])]
     try:
@@ -839,8 +865,9 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m learning.export",
                                 description="Write a training checkpoint (best.pt / last.pt of learning.train) as a "
                                             "model file, or describe a model file.")
-    p.add_argument("paths", nargs="*", type=path_option, metavar="CHECKPOINT [CHECKPOINT ...] OUT.npz",
-                   help="best.pt or last.pt of a learning.train run, and the model file to write (.npz); several "
+    p.add_argument("paths", nargs="*", type=path_option, metavar="PATH",
+                   help="CHECKPOINT [CHECKPOINT ...] OUT.npz: best.pt or last.pt of a learning.train run, and the "
+                        "model file to write (.npz); several "
                         "checkpoints (runs of one recipe with different seeds, train.seed) are written as one "
                         "ensemble: R the geometric mean of the networks', v^c their mean")
     p.add_argument("--show", metavar="MODEL", type=path_option,
@@ -907,8 +934,11 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{written}: ensemble of {len(members)} networks: {', '.join(map(str, members))} (epochs "
                   f"{', '.join(map(str, epochs))})")
         else:
-            print(f"{written}: model of {args.checkpoint} (epoch {load_model(written).metadata.get('epoch')})"
-                  + (f", filter changed: {', '.join(args.ekf)}" if changes else ""))
+            model = load_model(written)
+            what = f"ensemble of {len(model.members)} networks" if len(model.members) > 1 else \
+                f"epoch {model.metadata.get('epoch')}"
+            print(f"{written}: model of {args.checkpoint} ({what})" + (f", filter changed: {', '.join(args.ekf)}"
+                                                                        if changes else ""))
     except (*INPUT_ERRORS, OSError) as exc:
         p.exit(2, f"{p.prog}: error: {input_line(exc)}\n")
     return 0

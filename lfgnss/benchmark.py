@@ -246,6 +246,9 @@ def _import_file(path: Path) -> ModuleType:
     if spec is None:
         raise ImportError("not a Python file (a .py file, or a module's dotted name)")
     module = importlib.util.module_from_spec(spec)
+    folder = str(path.resolve().parent)
+    if folder not in sys.path:          # as running the file would: modules beside it import
+        sys.path.insert(0, folder)
     sys.modules[name] = module          # as an import does: dataclasses and pickle look the module up there
     try:
         spec.loader.exec_module(module)
@@ -258,10 +261,20 @@ def _import_file(path: Path) -> ModuleType:
 def own_rows(plugins: list[str], backends: list[str]) -> list[Method]:
     """The ``--backend`` rows, after importing the ``--plugin``s; InputError for a back end unknown or not made."""
     import estimators
+    from estimators.base import factories
 
     for spec in dict.fromkeys(plugins):
+        before = factories()
         load_plugin(spec)
+        taken = [n for n, f in before.items() if factories()[n] is not f
+                 and not (isinstance(f, str) and getattr(factories()[n], "__module__", None) == f)]
+        if taken:                       # else every built-in row of that back end would run the plugin's code
+            raise InputError(spec, f"replaces the built-in back end {taken[0]!r} (--plugin): register your "
+                                   "estimator under a name of its own")
     for name in backends:
+        if not name.strip() or any(c in name for c in "|\r\n"):
+            raise InputError(name, "a row name (--backend) must not be blank or hold '|' or a line break: it is a "
+                                   "cell of the results tables")
         if name not in estimators.available():
             raise InputError(name, f"unknown back end (--backend); available: {', '.join(estimators.available())}; "
                                    f"one of your own: give the module or .py file whose import registers it "
@@ -752,6 +765,8 @@ def _nothing_run(failed: list[str], report: Path) -> InputError:
 
 def _main(args: argparse.Namespace, argv: list[str] | None) -> int:
     """``main`` after parsing: check everything, run, write results.md, then print the tables."""
+    if args.plugin or args.backend:     # refused into docs/ before a plugin's code runs
+        _refuse_partial_docs(args, list(DEFAULT_DATASETS))
     extra = own_rows(args.plugin, args.backend)
     ids = resolve_datasets(args.datasets, args.register, ("test",) + ((args.warm_up,) if args.warm_up else ()))
     for message in check_models(args.models, ids):

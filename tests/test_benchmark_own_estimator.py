@@ -281,3 +281,29 @@ def test_rows_of_ones_own_never_go_into_the_committed_results(tmp_path, monkeypa
                               backend=["my-filter"])
     with pytest.raises(InputError, match=r"this run \(--plugin my_filter.py; --backend my-filter\) would replace"):
         _refuse_partial_docs(args, list(DEFAULT_DATASETS))
+
+
+@pytest.mark.parametrize("name", ["ekf", "fgo"])
+def test_a_plugin_that_replaces_a_built_in_back_end_is_refused(name, tmp_path, plugin, sample_toml, monkeypatch,
+                                                               capsys):
+    """Else every built-in row of that back end (LF-GNSS EKF, FGO ...) would run the plugin's code under its name."""
+    path = plugin(PLUGIN.replace('"my-filter"', f'"{name}"'))
+    monkeypatch.setattr(bench, "run", lambda *a, **k: pytest.fail("ran a plugin that replaced a built-in back end"))
+    assert main(["my-drive", "--register", str(sample_toml("my-drive")), "--plugin", str(path),
+                 "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert err[-1] == (f"error: {path}: replaces the built-in back end {name!r} (--plugin): register your estimator "
+                       "under a name of its own")
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_plugin_imports_the_modules_beside_it_and_a_row_name_is_one_table_cell(tmp_path, plugin, sample_toml,
+                                                                                 monkeypatch, capsys):
+    (tmp_path / "my_filters_helper.py").write_text("SHIFT_M = 2.0\n")
+    path = plugin("import my_filters_helper\n" + PLUGIN.replace("shift_m=1.0", "shift_m=my_filters_helper.SHIFT_M"))
+    bench.load_plugin(str(path))
+    assert estimators.create("my-filter").shift_m == 2.0
+    monkeypatch.setattr(bench, "run", lambda *a, **k: pytest.fail("ran with a row name that breaks the tables"))
+    assert main(["my-drive", "--register", str(sample_toml("my-drive")), "--backend", "a|b",
+                 "--out", str(tmp_path / "out")]) == 2
+    assert "a|b: a row name (--backend) must not be blank or hold '|'" in capsys.readouterr().err
