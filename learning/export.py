@@ -90,12 +90,13 @@ def export_model(checkpoint_path: str | Path, out_path: str | Path, *, extra_met
     return _write_model_file(out_path, params, normaliser, meta)
 
 
-def export_ensemble(checkpoint_paths: list[str | Path], out_path: str | Path) -> Path:
+def export_ensemble(checkpoint_paths: list[str | Path], out_path: str | Path, command: str | None = None) -> Path:
     """Write training checkpoints of one recipe, trained with different seeds, as one ensemble model file.
 
     The members must share features, normaliser, network, filter and training data; their training
     configurations may differ only in ``ENSEMBLE_FREE`` (ModelFileError naming the checkpoint and the setting).
-    A single checkpoint is written as ``export_model`` writes it.
+    ``command``, the working folder and the git state are recorded as how the file was put together
+    (``ensemble.exported``). A single checkpoint is written as ``export_model`` writes it.
     """
     paths = [Path(p) for p in checkpoint_paths]
     if not paths:
@@ -119,8 +120,12 @@ def export_ensemble(checkpoint_paths: list[str | Path], out_path: str | Path) ->
         if key is not None:
             raise ModelFileError(path, f"{key} differs from {paths[0]}'s: an ensemble's members must be one recipe "
                                        f"on the same data, differing only in {', '.join(ENSEMBLE_FREE)}")
+    from .provenance import git_state
+
     meta = {**meta, "format_version": ENSEMBLE_FORMAT_VERSION, "ensemble": {
         "combine": ENSEMBLE_COMBINE,
+        "exported": {"command": command, "cwd": str(Path.cwd()), "git": git_state(),
+                     "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")},
         "members": [{"checkpoint": str(p), "seed": (m.get("config") or {}).get("seed"), "epoch": m.get("epoch"),
                      "val_rmse_3d_m": m.get("val_rmse_3d_m"), "provenance": m.get("provenance")}
                     for p, (_, _, m) in zip(paths, contents)]}}
@@ -824,9 +829,13 @@ def ensemble_lines(metadata: dict) -> list[str]:
         return (f"seed {m.get('seed')}, epoch {m.get('epoch')}, validation 3D RMSE "
                 f"{'-' if not isinstance(val, (int, float)) else f'{val:.3f} m'} ({m.get('checkpoint')})")
 
-    members = ensemble.get("members", [])
+    from .provenance import code_text
+
+    members, exported = ensemble.get("members", []), ensemble.get("exported") or {}
     return [f"ensemble of {len(members)} networks of one recipe ({ensemble.get('combine')}):",
-            *(f"  {i}: {member(m)}" for i, m in enumerate(members))]
+            *(f"  {i}: {member(m)}" for i, m in enumerate(members)),
+            f"  put together {exported.get('created_utc', '?')} in {exported.get('cwd', '?')}, "
+            f"{code_text(exported.get('git'))}: {exported.get('command') or '(called from Python, no command line)'}"]
 
 
 def _ekf_assignment(text: str) -> tuple[str, object]:
@@ -928,7 +937,8 @@ def main(argv: list[str] | None = None) -> int:
             except (TypeError, ValueError) as exc:
                 p.error(f"--ekf: {exc}")
         else:
-            written = export_ensemble(members, args.out)
+            written = export_ensemble(members, args.out,
+                                      command_line("python -m learning.export", list(argv or sys.argv[1:])))
         if len(members) > 1:
             epochs = [m.get("epoch") for m in load_model(written).metadata["ensemble"]["members"]]
             print(f"{written}: ensemble of {len(members)} networks: {', '.join(map(str, members))} (epochs "

@@ -122,6 +122,8 @@ def test_the_command_writes_shows_and_refilters_an_ensemble(members, tmp_path, c
     shown = capsys.readouterr().out
     assert "ensemble of 3 networks of one recipe (R: geometric mean" in shown
     assert "  2: seed 2, epoch 5, validation 3D RMSE 6.000 m" in shown
+    put_together = next(line for line in shown.splitlines() if line.startswith("  put together "))
+    assert put_together.endswith(f"python -m learning.export {' '.join(str(p) for p, _ in runs)} {out}")
     refiltered = tmp_path / "gated.npz"                      # a filter change keeps every member
     assert main([str(out), str(refiltered), "--ekf", "gate_sigma=2.5"]) == 0
     capsys.readouterr()
