@@ -247,7 +247,8 @@ def pooled_rmse(rmse: list[float], counts: list[int]) -> float:
 
 
 def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = True,
-             only: list[int] | None = None, reuse: str | Path | list | None = None, command: str | None = None,
+             only: list[int] | None = None, reuse: str | Path | list[str | Path] | None = None,
+             command: str | None = None,
              config_file: str | Path | None = None, epoch_lines: bool | None = None) -> list[dict]:
     """Train ``config`` on each fold (or the folds ``only``); one row per fold, plus a ``pooled`` row when all ran.
 
