@@ -65,6 +65,7 @@ from lfgnss.metrics import accuracy_table, markdown_table
 from lfgnss.paths import model_path
 from lfgnss.sequence import Sequence
 
+from .normalise import Normaliser
 from .provenance import code_text, command_line, git_state
 from .train import (DEFAULT_CONFIG, _flat, _merge_free, adopt_init, ekf_config, exit_on_input_error, init_model,
                     load_config, load_sequences, prepare, read_checkpoint, train, trained_datasets)
@@ -190,8 +191,7 @@ def saved_ensemble(reuse_dirs: list[str | Path], fold: int, config: dict, held: 
         if seeds.count(s["config"].get("seed")) > 1:
             raise ValueError(f"{path}: trained with seed {s['config'].get('seed')}, as another --reuse folder's: an "
                              "ensemble's members are runs with different seeds")
-        if s["normaliser"]["feature_names"] != saved[0]["normaliser"]["feature_names"] or not all(
-                np.array_equal(s["normaliser"][k], saved[0]["normaliser"][k]) for k in ("mean", "std")):
+        if not Normaliser.from_dict(s["normaliser"]).same_as(Normaliser.from_dict(saved[0]["normaliser"])):
             raise ValueError(f"{path}: its features are normalised otherwise than {reuse_dirs[0]}'s fold {fold}")
     return saved
 
@@ -230,7 +230,6 @@ def _rescored_row(fold: int, saved: list[dict], config: dict, held: list[Sequenc
     """A crossval row for a saved fold model (several: their ensemble) scored again on its held-out pieces (no
     untrained / best figures)."""
     from .data import sequence_batch
-    from .normalise import Normaliser
 
     normaliser = Normaliser.from_dict(saved[0]["normaliser"])
     batches = [sequence_batch(s, normaliser, n_systems=int(saved[0]["n_systems"])) for s in held]

@@ -126,9 +126,9 @@ def export_ensemble(checkpoint_paths: list[str | Path], out_path: str | Path, co
         "combine": ENSEMBLE_COMBINE,
         "exported": {"command": command, "cwd": str(Path.cwd()), "git": git_state(),
                      "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")},
-        "members": [{"checkpoint": str(p), "seed": (m.get("config") or {}).get("seed"), "epoch": m.get("epoch"),
+        "members": [{"checkpoint": str(p), "seed": seed, "epoch": m.get("epoch"),
                      "val_rmse_3d_m": m.get("val_rmse_3d_m"), "provenance": m.get("provenance")}
-                    for p, (_, _, m) in zip(paths, contents)]}}
+                    for p, (_, _, m), seed in zip(paths, contents, seeds)]}}
     return _write_model_file(out_path, params, normaliser, meta, members=[c[0] for c in contents[1:]])
 
 
@@ -141,8 +141,7 @@ def _member_difference(meta: dict, normaliser: Normaliser, other: dict, other_no
     """The first setting in which a would-be ensemble member (``other``) differs from the first one, or None."""
     if list(normaliser.feature_names) != list(other_normaliser.feature_names):
         return "feature_names"
-    if not (np.array_equal(normaliser.mean, other_normaliser.mean)
-            and np.array_equal(normaliser.std, other_normaliser.std)):
+    if not normaliser.same_as(other_normaliser):
         return "the normaliser (the training data's feature statistics)"
 
     def same(a: object, b: object) -> bool:
@@ -561,8 +560,8 @@ def load_model(path: str | Path, expected_features: Iterable[str] | None = None)
                 raise ModelFileError(path, f"parameter {prefix + name!r} missing, mis-shaped or not finite")
             params[name] = arr
         members.append(params)
-    unlisted = sorted(k for k in arrays if k.startswith("member") and k.split("/")[0] not in
-                      {f"member{i}" for i in range(1, n_members)})
+    listed = {f"member{i}" for i in range(1, n_members)}
+    unlisted = sorted(k for k in arrays if k.startswith("member") and k.split("/")[0] not in listed)
     if unlisted:
         raise ModelFileError(path, f"array {unlisted[0]} belongs to no network its metadata lists "
                                    f"({n_members}; ensemble.members)")
@@ -575,7 +574,7 @@ def load_model(path: str | Path, expected_features: Iterable[str] | None = None)
     settings = model_settings(meta)
     n_inputs = len(normaliser.feature_names) + settings["innovation"]
     shapes = _parameter_shapes(settings, n_inputs)
-    absent = [k for k in shapes if not all(k in p for p in members)]
+    absent = [k for k in shapes if k not in params]       # every member has the same names (meta["parameters"])
     if absent:
         layers = f" (model.hidden is {settings['hidden']})" if any(k.startswith("mlp.") for k in absent) else ""
         raise ModelFileError(path, f"parameters {absent} missing{layers}")
@@ -615,6 +614,16 @@ def _ensemble_size(path: str, meta: dict) -> int:
         raise ModelFileError(path, "metadata ensemble.members must list two or more networks in a format version "
                                    f"{ENSEMBLE_FORMAT_VERSION} (ensemble) file")
     return len(members)
+
+
+def ensemble_members(metadata: dict) -> list[dict]:
+    """An ensemble file's ``ensemble.members`` records (seed, epoch, ... of each network); [] for a single network."""
+    return (metadata.get("ensemble") or {}).get("members") or []
+
+
+def member_epochs(metadata: dict) -> list:
+    """The training epoch of each network in a model file (one for a single network)."""
+    return [m.get("epoch") for m in ensemble_members(metadata)] or [metadata.get("epoch")]
 
 
 def refilter_model(source_path: str | Path, out_path: str | Path, changes: dict, command: str | None = None) -> Path:
@@ -680,7 +689,7 @@ def trained_on(metadata: dict) -> str:
     data = (metadata.get("config") or {}).get("data", {})
     trained = "+".join(data.get("datasets", [])) + f" ({data.get('train_split', 'train')})"
     init = metadata.get("init_model")
-    members = len((metadata.get("ensemble") or {}).get("members", []))
+    members = len(ensemble_members(metadata))
     trained += f", {members} seeds" if members else ""
     return trained if not init else (f"{trained}, fine-tuned from {'+'.join(init.get('datasets', []))} "
                                      f"({init.get('train_split', 'train')})")
@@ -697,7 +706,7 @@ def untrained_reason(model: LfgnssModel) -> str | None:
     ``train.init``, that epoch is the init model itself, which is trained, so only a run from scratch counts here.
     """
     meta = model.metadata
-    epochs = [m.get("epoch") for m in (meta.get("ensemble") or {}).get("members", [])] or [meta.get("epoch")]
+    epochs = member_epochs(meta)
     if 0 not in epochs or meta.get("init_model"):
         return None
     if len(epochs) > 1:
@@ -784,7 +793,7 @@ def describe_model(model: LfgnssModel) -> list[str]:
     else:
         configuration = ("configuration file: its path was not recorded, but the configuration itself is stored in "
                          f"the model: {show_config}")
-    members = (meta.get("ensemble") or {}).get("members") or []
+    members = ensemble_members(meta)
     if members:                                         # each network's own training run
         made = [line for i, m in enumerate(members)
                 for line in [f"network {i}:", *(f"  {x}" for x in describe(m.get("provenance")))]]
@@ -831,7 +840,7 @@ def ensemble_lines(metadata: dict) -> list[str]:
 
     from .provenance import code_text
 
-    members, exported = ensemble.get("members", []), ensemble.get("exported") or {}
+    members, exported = ensemble_members(metadata), ensemble.get("exported") or {}
     return [f"ensemble of {len(members)} networks of one recipe ({ensemble.get('combine')}):",
             *(f"  {i}: {member(m)}" for i, m in enumerate(members)),
             f"  put together {exported.get('created_utc', '?')} in {exported.get('cwd', '?')}, "
@@ -939,14 +948,12 @@ def main(argv: list[str] | None = None) -> int:
         else:
             written = export_ensemble(members, args.out,
                                       command_line("python -m learning.export", list(argv or sys.argv[1:])))
+        epochs = member_epochs(load_model(written).metadata)
         if len(members) > 1:
-            epochs = [m.get("epoch") for m in load_model(written).metadata["ensemble"]["members"]]
             print(f"{written}: ensemble of {len(members)} networks: {', '.join(map(str, members))} (epochs "
                   f"{', '.join(map(str, epochs))})")
         else:
-            model = load_model(written)
-            what = f"ensemble of {len(model.members)} networks" if len(model.members) > 1 else \
-                f"epoch {model.metadata.get('epoch')}"
+            what = f"ensemble of {len(epochs)} networks" if len(epochs) > 1 else f"epoch {epochs[0]}"
             print(f"{written}: model of {args.checkpoint} ({what})" + (f", filter changed: {', '.join(args.ekf)}"
                                                                         if changes else ""))
     except (*INPUT_ERRORS, OSError) as exc:

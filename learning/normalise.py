@@ -66,6 +66,11 @@ class Normaliser:
         std = np.where(std < MIN_STD, 1.0, std)
         return cls(names, mean, std)
 
+    def same_as(self, other: "Normaliser") -> bool:
+        """Whether ``other`` normalises exactly as this one does: the same names, means and stds."""
+        return (tuple(self.feature_names) == tuple(other.feature_names) and np.array_equal(self.mean, other.mean)
+                and np.array_equal(self.std, other.std))
+
     def apply(self, features: np.ndarray, mask: np.ndarray) -> np.ndarray:
         """Normalised copy of raw ``features`` (..., N, d) with padded slots (mask (..., N) False) zero."""
         x = (np.asarray(features, dtype=np.float64) - self.mean) / self.std
