@@ -746,6 +746,7 @@ def _plot(path: Path, history: list[dict]) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import MaxNLocator
 
     ep = [h["epoch"] for h in history]
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 4))
@@ -754,6 +755,7 @@ def _plot(path: Path, history: list[dict]) -> None:
     a2.plot(ep, [h["val_rmse_3d_m"] for h in history], "o-", color="C1")
     a2.set_xlabel("epoch"), a2.set_ylabel("3D RMSE [m]"), a2.set_title("validation (whole sequences)")
     for a in (a1, a2):
+        a.xaxis.set_major_locator(MaxNLocator(integer=True))      # epochs are whole: no 0.5 ticks on short runs
         a.grid(alpha=0.3)
     fig.tight_layout()
     _replace_atomically(path, lambda tmp: fig.savefig(tmp, dpi=100, format="png"))

@@ -15,14 +15,13 @@ nb([
 ("code", """import tempfile, warnings
 from pathlib import Path
 warnings.simplefilter("ignore", FutureWarning)
-import numpy as np
 from IPython.display import Image, display
-from matplotlib.figure import Figure
 
 import lfgnss
 import estimators
 from lfgnss import datasets
-from lfgnss.metrics import accuracy_table, enu_errors, format_markdown
+from lfgnss.metrics import accuracy_table, format_markdown
+from lfgnss.outputs import plot_solution
 from lfgnss.solve import DEFAULT_MODEL, SAMPLE_NAV, SAMPLE_OBS, SAMPLE_TRUTH
 
 folder = Path(tempfile.mkdtemp())      # figures go here, not into the notebook's folder"""),
@@ -48,18 +47,12 @@ def compare(seq):
 
 sols, rows = compare(seq)
 print(format_markdown(rows, columns=["method", "availability", "rmse_2d_m", "rmse_3d_m", "p95_3d_m"]))"""),
-("code", """fig = Figure(figsize=(7, 4), layout="constrained")
-ax = fig.subplots()
-labelled = np.isfinite(seq.truth_ecef_m).all(axis=1).sum()
-for name, s in sols.items():
-    err = np.linalg.norm(enu_errors(s.pos_ecef_m, seq.truth_ecef_m), axis=1)
-    err = np.sort(err[np.isfinite(err)])
-    # over the labelled epochs: a curve ends at the estimator's availability
-    ax.step(err, np.arange(1, err.size + 1) / labelled, where="post", label=name)
-ax.set_xscale("log"); ax.set_xlabel("3D error [m]"); ax.set_ylabel("share of labelled epochs")
-ax.set_ylim(0, 1); ax.set_title("Berlin drive: CDF of the 3D error"); ax.legend(); ax.grid(True, which="both", alpha=0.3)
-fig.savefig(folder / "comparison_cdf.png", dpi=100)
-display(Image(filename=str(folder / "comparison_cdf.png")))"""),
+("code", """# plot_solution draws every run against the truth (track, error against time, error CDF over the labelled
+# epochs, so that a curve ends at the estimator's availability); the CDFs:
+others = {name: s for name, s in sols.items() if name != "LF-GNSS EKF"}
+plot_solution(folder, sols["LF-GNSS EKF"], seq.truth_ecef_m, extra_solutions=others, prefix="berlin-",
+              label="LF-GNSS EKF")
+display(Image(filename=str(folder / "berlin-cdf.png")))"""),
 ("md", "## A shared benchmark dataset (skipped when `../shared/data` is absent)"),
 ("code", """spec = datasets.get("hk-tst-static-2020")
 if spec.missing():
@@ -72,13 +65,10 @@ else:
 
 nb([
 ("md", "# Training walk-through\n\nThe LF-GNSS network is trained end to end through a differentiable EKF (`learning.torch_ekf`). This notebook trains a small model for a few epochs on simulated urban drives (seconds on a laptop), exports it to a model file and uses it in the filterpy EKF plug-in. For the real benchmark data use `python -m learning.train --config learning/configs/shipped.toml` (`lfgnss/data/model/README.md` gives the command and configuration behind each shipped model)."),
-("code", """import csv, tempfile, warnings
+("code", """import tempfile, warnings
 from pathlib import Path
 warnings.simplefilter("ignore", FutureWarning)
-import numpy as np
 from IPython.display import Image, display
-from matplotlib.figure import Figure
-from matplotlib.ticker import MaxNLocator
 from learning.train import load_config, train
 from learning.export import load_model
 import estimators
@@ -92,21 +82,9 @@ print({k: config[k] for k in ("data", "loss")})"""),
 ("code", """out = Path(tempfile.mkdtemp()) / "run"
 result = train(config, out, progress=False)
 
-# the training curves, from the run's log.csv (one row per epoch; epoch 0 scores the untrained model, so it has
-# no training loss)
-log = list(csv.DictReader(open(out / "log.csv")))
-value = lambda row, key: float(row[key]) if row[key] not in ("", None) else np.nan
-epoch = [int(r["epoch"]) for r in log]
-fig = Figure(figsize=(9, 3.5), layout="constrained")
-ax_loss, ax_val = fig.subplots(1, 2)
-ax_loss.plot(epoch, [value(r, "train_loss") for r in log], "o-")
-ax_loss.set_xlabel("epoch"); ax_loss.set_ylabel("training loss [m]"); ax_loss.set_title("training loss")
-ax_val.plot(epoch, [value(r, "val_rmse_3d_m") for r in log], "o-", color="C1")
-ax_val.set_xlabel("epoch"); ax_val.set_ylabel("3D RMSE [m]"); ax_val.set_title("validation (whole sequences)")
-for a in (ax_loss, ax_val):
-    a.xaxis.set_major_locator(MaxNLocator(integer=True)); a.grid(True, alpha=0.3)
-fig.savefig(out / "training_curves.png", dpi=100)
-display(Image(filename=str(out / "training_curves.png")))"""),
+# the run's training curves, which learning.train draws from its log.csv (one row per epoch; epoch 0 scores the
+# untrained model, so it has no training loss)
+display(Image(filename=str(out / "curves.png")))"""),
 ("md", "Three epochs on two short simulated drives only show the mechanics: expect this model to lose to the plain EKF below. The shipped models train for 30-120 epochs on real drives, and cross-validation (next section) is how to tell whether a recipe helps."),
 ("code", """model = load_model(out / "model.npz")
 print(model, model.metadata["val_rmse_3d_m"])
