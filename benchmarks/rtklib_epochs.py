@@ -22,7 +22,8 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from smoothing_lag import command_line, estimators_for, publish, script_parser  # noqa: E402  (a sibling script)
+from smoothing_lag import (command_line, estimators_for, publish, script_parser,  # noqa: E402  (a sibling script)
+                           unknown_datasets)
 
 DOC = REPO / "docs" / "rtklib_epochs.md"
 SPLITS = ("train", "val", "test")
@@ -111,12 +112,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     warnings.simplefilter("ignore", FutureWarning)
     sys.path.insert(0, str(REPO))
-    from lfgnss import datasets
-
-    unknown = [d for d in args.datasets if d not in datasets.registered()]
-    if unknown:
-        print(f"rtklib_epochs.py: unknown dataset {', '.join(unknown)}; known: {', '.join(datasets.registered())}",
-              file=sys.stderr)
+    if unknown_datasets("rtklib_epochs.py", args.datasets):
         return 2
     rows = run(args.datasets, tuple(args.splits))
     if not rows:

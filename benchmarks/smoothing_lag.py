@@ -98,6 +98,17 @@ def script_parser(doc: str, write_help: str) -> argparse.ArgumentParser:
     return p
 
 
+def unknown_datasets(script: str, dataset_ids: list[str]) -> bool:
+    """True, with a one-line error naming them, if any of ``dataset_ids`` is not a registered dataset."""
+    from lfgnss import datasets
+
+    unknown = [d for d in dataset_ids if d not in datasets.registered()]
+    if unknown:
+        print(f"{script}: unknown dataset {', '.join(unknown)}; known: {', '.join(datasets.registered())}",
+              file=sys.stderr)
+    return bool(unknown)
+
+
 def publish(text: str, doc: Path, write: bool, figure=None) -> int:
     """Print the page; with ``write`` also write it to ``doc`` and draw ``figure()`` (-> its path). Exit status 0."""
     print(text)
@@ -140,6 +151,8 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     warnings.simplefilter("ignore", FutureWarning)
     sys.path.insert(0, str(REPO))
+    if unknown_datasets("smoothing_lag.py", args.datasets):
+        return 2
     rows = run(args.datasets, args.split)
     text = markdown(rows, args.split, command_line("smoothing_lag.py", argv))
     return publish(text, DOC, args.write, lambda: plot(rows, FIGURE, args.split))
