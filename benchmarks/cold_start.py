@@ -7,10 +7,10 @@ For each dataset, the plain EKF and the LF-GNSS EKF with the dataset's own model
 joint one) run forward over each split twice: cold, as the benchmark runs them (from the first epoch's
 least-squares fix with the filter's P0), and started at the true position with a 1 m sd per axis (only the
 position is given; velocity and clock start as in the cold run). The second run is not a method (it reads the
-truth): it bounds what any initialisation can win, a robust first fix or a graph as initialiser. Each split is scored
-over all its labelled epochs, its first ``--head`` seconds and the rest. The figure shows the test split's
-horizontal error over time. The models were trained on the train split, so only the validation and test columns are
-out of sample. Nothing is chosen from these figures.
+truth): it shows what a perfect first fix would win, and so the most a robust first fix or a graph as initialiser
+could. Each split is scored over all its labelled epochs, its first ``--head`` seconds and the rest. The figure
+shows the test split's horizontal error over time. The models were trained on the train split, so only the
+validation and test columns are out of sample. Nothing is chosen from these figures.
 """
 from __future__ import annotations
 
@@ -115,10 +115,10 @@ def markdown(rows: list[dict], command: str, head_s: float = HEAD_S) -> str:
     out = ["# How much of the error is the cold start", "",
            f"Produced by `{command}` (3D / 2D RMSE in metres over each split's labelled epochs, all of them, the first "
            f"{head_s:g} s and the rest; 100 % availability). Cold: as the benchmark runs the filters. At the truth: "
-           f"the same filter started at the true position with a {TRUE_START_SD_M:g} m sd per axis, a bound on what "
-           "any initialisation can win, not a method. The models were trained on the train split: its columns are "
-           "in-sample. Resets counts the filter's (re-)initialisations, the start included. Figure: "
-           f"`figures/{FIGURE.name}` (test split).", ""]
+           f"the same filter started at the true position with a {TRUE_START_SD_M:g} m sd per axis: what a "
+           "perfect first fix would give, not a method (it reads the truth). The models were trained on the train "
+           "split: its columns are in-sample. Resets counts the filter's (re-)initialisations, the start included. "
+           f"Figure: `figures/{FIGURE.name}` (test split).", ""]
     for dataset in dict.fromkeys(r["dataset"] for r in rows):
         mine = [r for r in rows if r["dataset"] == dataset]
         splits = list(dict.fromkeys(r["split"] for r in mine))
