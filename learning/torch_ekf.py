@@ -41,6 +41,7 @@ import torch
 from estimators import models
 from estimators.base import STATUS_COASTED, STATUS_NONE, STATUS_RESET, STATUS_UPDATED
 from estimators.models import EkfConfig
+from estimators.noise import R_OFF_M2
 from lfgnss.constants import OMEGA_EARTH_RAD_S, SPEED_OF_LIGHT_M_S
 
 from .types import WindowBatch
@@ -258,7 +259,9 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor | None, vc_m: torch.Tensor 
     batch : WindowBatch
         Geometry, pseudoranges, masks, times and coarse fixes (float64).
     r_m2 : (B, T, N)
-        Pseudorange variances R [m^2], > 0 on usable slots (any value elsewhere).
+        Pseudorange variances R [m^2], > 0 on usable slots (any value elsewhere). Above ``R_OFF_M2`` a slot is
+        switched off, pseudorange and Doppler, as in the plug-in (not with ``noise_step``: the network cannot
+        reach it).
     vc_m : (B, T, N)
         Innovation compensations v^c [m] (any finite value on unusable slots).
     n_systems : int
@@ -292,6 +295,8 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor | None, vc_m: torch.Tensor 
     sat_ok = torch.isfinite(batch.sat_pos_ecef_m).all(-1)
     usable_all = (batch.mask & torch.isfinite(batch.pr_m) & sat_ok & (batch.system_index >= 0)
                   & (batch.system_index < n_systems))
+    if r_m2 is not None:                 # switched off as in the plug-in (estimators.noise.switched_on); NaN stays on
+        usable_all = usable_all & ~(r_m2.detach() > R_OFF_M2)
     far = torch.tensor(_FAR_SAT_ECEF_M, dtype=f64, device=dev)
     sat_all = torch.where(usable_all[..., None], batch.sat_pos_ecef_m.to(f64), far)
     pr = torch.where(usable_all, batch.pr_m.to(f64), torch.zeros((), dtype=f64, device=dev))

@@ -144,6 +144,23 @@ def _assert_matches_plugin(out, seqs, r, vc, cfg) -> None:
         np.testing.assert_allclose(out.cov[i].numpy()[live], sol.info["cov"][live], rtol=1e-6, atol=1e-6)
 
 
+def test_switched_off_slots_match_the_plugin(cases):
+    """An R above R_OFF_M2 leaves the slot out of both filters, pseudorange and Doppler (estimators.noise.switched_on):
+    the same states, counts and covariances, and not those of the same R kept in."""
+    seqs, r, vc = cases
+    rng = np.random.default_rng(3)
+    off = np.stack([s.mask for s in seqs]) & (rng.random(r.shape) < 0.2)
+    off[0, 30, :] = np.stack([s.mask for s in seqs])[0, 30]           # a whole epoch off: it coasts in both
+    r_off = np.where(off, 1e30, r)
+    cfg = EkfConfig(doppler_sigma_m_s=0.5)
+    out = batch_ekf(to_batch(seqs), torch.as_tensor(r_off), torch.as_tensor(vc), n_systems=2, config=cfg)
+    _assert_matches_plugin(out, seqs, r_off, vc, cfg)
+    full = batch_ekf(to_batch(seqs), torch.as_tensor(r), torch.as_tensor(vc), n_systems=2, config=cfg)
+    assert out.n_doppler[0, 30].item() == 0 and out.n_used[0, 30].item() == 0
+    assert (out.n_doppler.numpy() < full.n_doppler.numpy()).any()
+    assert not np.allclose(out.pos_ecef_m.numpy(), full.pos_ecef_m.numpy(), rtol=0, atol=1e-3, equal_nan=True)
+
+
 def test_huber_update_matches_the_plugin(cases):
     """huber_k in both filters: the same states, counts and covariances, and not those of the hard gate alone."""
     seqs, r, vc = cases
