@@ -18,8 +18,14 @@ import dataclasses
 import sys
 import warnings
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from estimators.ekf import LfgnssEkf
+    from estimators.models import EkfConfig
+    from lfgnss.sequence import Sequence
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -34,7 +40,7 @@ TRUE_START_SD_M = 1.0
 HEAD_S = 35.0
 
 
-def started_at_truth(sequence):
+def started_at_truth(sequence: "Sequence") -> "Sequence":
     """``sequence`` whose first epoch's coarse fix is its true position (the filter's start); unchanged without one."""
     truth = sequence.truth_ecef_m[0]
     if not np.isfinite(truth).all():
@@ -44,7 +50,7 @@ def started_at_truth(sequence):
     return dataclasses.replace(sequence, coarse_ecef_m=coarse)
 
 
-def truth_start_config(estimator):
+def truth_start_config(estimator: "LfgnssEkf") -> "EkfConfig":
     """The EkfConfig of ``estimator`` with a P0 position sd of ``TRUE_START_SD_M`` [m] per axis."""
     return dataclasses.replace(estimator.config, p0_pos_m2=TRUE_START_SD_M ** 2)
 
@@ -56,9 +62,9 @@ def _runs(dataset_id: str) -> list[tuple[str, str, object, bool]]:
     out = []
     for name, make in estimators_for(dataset_id).items():
         cold = make(0.0)
-        warm = estimators.create("ekf" if name.startswith("LF-GNSS") else "plain-ekf", noise=cold.noise,
-                                 config=truth_start_config(cold))
-        out += [(name, STARTS[0], cold, False), (name, STARTS[1], warm, True)]
+        from_truth = estimators.create("ekf" if name.startswith("LF-GNSS") else "plain-ekf", noise=cold.noise,
+                                       config=truth_start_config(cold))
+        out += [(name, STARTS[0], cold, False), (name, STARTS[1], from_truth, True)]
     return out
 
 
