@@ -57,13 +57,10 @@ def truth_start_config(estimator: "LfgnssEkf") -> "EkfConfig":
 
 def _runs(dataset_id: str) -> list[tuple[str, str, object, bool]]:
     """(filter name, start, estimator, started at the truth) for the dataset's two filters and both starts."""
-    import estimators
-
     out = []
     for name, make in estimators_for(dataset_id).items():
         cold = make(0.0)
-        from_truth = estimators.create("ekf" if name.startswith("LF-GNSS") else "plain-ekf", noise=cold.noise,
-                                       config=truth_start_config(cold))
+        from_truth = type(cold)(noise=cold.noise, config=truth_start_config(cold))
         out += [(name, STARTS[0], cold, False), (name, STARTS[1], from_truth, True)]
     return out
 
@@ -96,11 +93,11 @@ def run(dataset_ids: list[str], splits: tuple[str, ...] = SPLITS, head_s: float 
                 continue
             truth = np.concatenate([s.truth_ecef_m for s in seqs])
             since = np.concatenate([s.time_gps_s - s.time_gps_s[0] for s in seqs])
+            head = since < head_s
             for name, start, estimator, at_truth in runs:
                 sols = [estimator.solve(started_at_truth(s) if at_truth else s) for s in seqs]
                 pos = np.concatenate([x.pos_ecef_m for x in sols])
                 available = np.concatenate([x.available for x in sols])
-                head = since < head_s
                 rows.append({"dataset": dataset_id, "split": split, "filter": name, "start": start,
                              "epochs": len(truth), "head_epochs": int(head.sum()),
                              "resets": int(sum((x.status == STATUS_RESET).sum() for x in sols)),
