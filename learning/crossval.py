@@ -3,7 +3,8 @@
     python -m learning.crossval --config learning/configs/default.toml --folds 3 [--set key=value ...]
                                 [--fold J ...] [--out runs/cv-NAME] [--no-progress]
                                 [--reuse DIR --set ekf.KEY=VALUE]      # rescore saved folds in another filter
-                                [--reuse DIR0 --reuse DIR1 ...]        # score the ensemble of runs' fold models
+                                [--reuse DIR0 --reuse DIR1 ... [--combine mixture]]   # score the ensemble of
+                                                                       # runs' fold models
     python -m learning.crossval --folds 3 --pool DIR0 --pool DIR1 --pool DIR2 --out DIR   # join --fold runs
 
 A validation split of a minute or two is one street: whether a recipe generalises cannot be read from
@@ -38,9 +39,10 @@ inference-time variant of the filter judged on every block in a minute instead o
 differs from the saved run's configuration (seed included) is refused; so is a held-out block whose data changed.
 ``--reuse`` repeated (runs of one recipe with different ``--set seed=S``) scores, per fold, the ensemble of the runs'
 fold models (``learning.network.NetworkEnsemble``, as ``python -m learning.export`` writes several checkpoints):
-their seeds may differ, nothing else. The "untrained" and "best" columns are empty there; a fold checkpoint that
-did not reach ``train.epochs`` (its fold was interrupted or diverged), or whose weights do not load or are not
-finite, is refused.
+their seeds may differ, nothing else; ``--combine mixture`` combines the members as a moment-matched Gaussian
+mixture instead of by the geometric mean of their R (``learning.network.combine_members``). The "untrained" and
+"best" columns are empty there; a fold checkpoint that did not reach ``train.epochs`` (its fold was interrupted or
+diverged), or whose weights do not load or are not finite, is refused.
 
 A run stopped among its folds (Ctrl-C, a diverged fold, a bad checkpoint) writes the finished folds' rows to
 ``crossval.csv`` / ``crossval.md`` before it ends; bad options and an unusable ``--out`` are refused before any work
@@ -124,14 +126,16 @@ def _saved_rmse_m(checkpoint: Path, config: dict, prep) -> tuple[dict, float, fl
     return (saved, *_model_rmse_m([saved], config, prep.val_batches, prep.n_systems)[1:])
 
 
-def _model_rmse_m(saved: list[dict], config: dict, batches: list, n_systems: int) -> tuple[float, float, float]:
+def _model_rmse_m(saved: list[dict], config: dict, batches: list, n_systems: int, combine: str = "geometric"
+                  ) -> tuple[float, float, float]:
     """(3D as trained (forward, or smoothed with ``train.smooth``), RTS-smoothed 3D, forward 2D) RMSE [m] of
-    checkpoints' weights (several: their ensemble) over ``batches``, under ``config``'s EKF."""
+    checkpoints' weights (several: their ensemble, members combined by the rule ``combine``) over ``batches``, under
+    ``config``'s EKF."""
     from .network import NetworkEnsemble
     from .train import checkpoint_network, evaluate
 
     nets = [checkpoint_network(s)[0] for s in saved]
-    model = nets[0] if len(nets) == 1 else NetworkEnsemble(nets)
+    model = nets[0] if len(nets) == 1 else NetworkEnsemble(nets, combine)
     run = dict(n_systems=n_systems, ekf_cfg=ekf_config(config))
     smooth = bool(saved[0]["config"]["train"].get("smooth", False))    # the run's own last_rmse_3d_m: as trained
     return (evaluate(model, batches, smooth=smooth, **run)[0], evaluate(model, batches, smooth=True, **run)[0],
@@ -226,14 +230,15 @@ def _fold_row(fold: int, held: list[Sequence], config: dict, learned: dict) -> d
             "plain_ekf_rmse_2d_m": plain_2d, **learned}
 
 
-def _rescored_row(fold: int, saved: list[dict], config: dict, held: list[Sequence]) -> dict:
+def _rescored_row(fold: int, saved: list[dict], config: dict, held: list[Sequence], combine: str = "geometric"
+                  ) -> dict:
     """A crossval row for a saved fold model (several: their ensemble) scored again on its held-out pieces (no
     untrained / best figures)."""
     from .data import sequence_batch
 
     normaliser = Normaliser.from_dict(saved[0]["normaliser"])
     batches = [sequence_batch(s, normaliser, n_systems=int(saved[0]["n_systems"])) for s in held]
-    last_3d, last_smoothed_3d, last_2d = _model_rmse_m(saved, config, batches, int(saved[0]["n_systems"]))
+    last_3d, last_smoothed_3d, last_2d = _model_rmse_m(saved, config, batches, int(saved[0]["n_systems"]), combine)
     return _fold_row(fold, held, config, {"untrained_rmse_3d_m": math.nan, "last_rmse_3d_m": last_3d,
                                           "best_rmse_3d_m": math.nan, "best_epoch": "-",
                                           "last_smoothed_rmse_3d_m": last_smoothed_3d, "last_rmse_2d_m": last_2d})
@@ -248,11 +253,13 @@ def pooled_rmse(rmse: list[float], counts: list[int]) -> float:
 def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = True,
              only: list[int] | None = None, reuse: str | Path | list[str | Path] | None = None,
              command: str | None = None,
-             config_file: str | Path | None = None, epoch_lines: bool | None = None) -> list[dict]:
+             config_file: str | Path | None = None, epoch_lines: bool | None = None,
+             combine: str = "geometric") -> list[dict]:
     """Train ``config`` on each fold (or the folds ``only``); one row per fold, plus a ``pooled`` row when all ran.
 
     ``reuse``: train nothing, score the folds' saved models in that folder under ``config``'s EKF (``saved_fold``);
-    a list of folders: the ensemble of their fold models (runs of the recipe with different seeds).
+    a list of folders: the ensemble of their fold models (runs of the recipe with different seeds), its members
+    combined by the rule ``combine`` (``learning.network.combine_members``).
     ``command``: the command line, recorded at the top of crossval.md and in the folds' checkpoints.
     ``config_file``: the ``--config`` file ``config`` was read from, recorded in the folds' checkpoints as
     ``learning.train`` records it.
@@ -273,6 +280,12 @@ def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = 
                          "that share no epochs")
     _refuse_used_out(out)
     reuse = None if reuse is None else [reuse] if isinstance(reuse, (str, Path)) else list(reuse)
+    from .network import COMBINE_RULES
+
+    if combine not in COMBINE_RULES:
+        raise ValueError(f"combine {combine!r}: expected one of {', '.join(COMBINE_RULES)}")
+    if combine != COMBINE_RULES[0] and (reuse is None or len(reuse) < 2):
+        raise ValueError(f"combine {combine!r} combines an ensemble's members: it needs two or more --reuse folders")
     missing = [p for r in reuse or [] for j in chosen if not (p := Path(r) / f"fold{j}" / "last.pt").is_file()]
     if missing:
         raise ValueError(f"{missing[0]}: no saved fold model (--reuse takes the --out folder of an earlier "
@@ -289,7 +302,8 @@ def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = 
     whole = cv_sequences(config)
     rows, started = [], None if init is None else str(init.path)
     try:
-        _run_folds(rows, chosen, folds, whole, config, out, progress, reuse, command, config_file, epoch_lines)
+        _run_folds(rows, chosen, folds, whole, config, out, progress, reuse, command, config_file, epoch_lines,
+                   combine)
     except BaseException as exc:        # Ctrl-C, a diverged fold, a bad checkpoint: the finished folds' rows are kept
         exc.crossval_stopped = (out, None, [])
         if rows:
@@ -445,7 +459,7 @@ def _write_results(out: Path, rows: list[dict], command: str | None = None, init
 
 def _run_folds(rows: list[dict], chosen, folds: int, whole: dict, config: dict, out: Path, progress: bool,
                reuse, command: str | None = None, config_file: str | Path | None = None,
-               epoch_lines: bool = False) -> None:
+               epoch_lines: bool = False, combine: str = "geometric") -> None:
     """Train (or with ``reuse`` rescore) each chosen fold, appending its row to ``rows`` as soon as it is done."""
     data = config["data"]
     for j in chosen:
@@ -467,8 +481,8 @@ def _run_folds(rows: list[dict], chosen, folds: int, whole: dict, config: dict, 
             torch.set_num_threads(int(config["threads"]))       # as train() runs: a shared machine stays shared
             try:
                 saved = saved_ensemble(reuse, j, config, held)
-                rows.append(_rescored_row(j, saved, config, held))
-                rows.extend(_dataset_rows(j, saved, config, parts))
+                rows.append(_rescored_row(j, saved, config, held, combine))
+                rows.extend(_dataset_rows(j, saved, config, parts, combine))
             finally:
                 torch.set_num_threads(threads)
             continue
@@ -490,13 +504,13 @@ def _run_folds(rows: list[dict], chosen, folds: int, whole: dict, config: dict, 
             rows.extend(_dataset_rows(j, [saved], config, parts))
 
 
-def _dataset_rows(fold: int, saved: list[dict], config: dict, parts: dict) -> list[dict]:
+def _dataset_rows(fold: int, saved: list[dict], config: dict, parts: dict, combine: str = "geometric") -> list[dict]:
     """With several datasets, one row per dataset (fold ``"J:ID"``) of the fold's model on that dataset's held-out
     pieces (several models: their ensemble): a pooled row is dominated by the datasets with the most epochs, and can
     hide a loss on the others."""
     if len(parts) < 2:
         return []
-    return [_rescored_row(f"{fold}:{ds}", saved, config, held) for ds, (_, held) in parts.items() if held]
+    return [_rescored_row(f"{fold}:{ds}", saved, config, held, combine) for ds, (_, held) in parts.items() if held]
 
 
 def _kept(exc: BaseException) -> str:
@@ -544,6 +558,10 @@ def main(argv: list[str] | None = None) -> int:
                         "--config, --folds and other --set's again (a run made before folds joined the train and "
                         "validation epochs is refused). Repeated: the ensemble of several runs' fold models (runs "
                         "that differ in --set seed=S only)")
+    p.add_argument("--combine", choices=("geometric", "mixture"), default="geometric",
+                   help="with several --reuse: how the ensemble's members are combined (learning.network."
+                        "combine_members): geometric mean of R (default, as model files do) or their moment-matched "
+                        "Gaussian mixture (mean R plus the spread of v^c)")
     p.add_argument("--pool", metavar="DIR", type=path_option, action="append",
                    help="train and score nothing: put the folds of parallel --fold runs (their --out folders, "
                         "repeat --pool) in one table with the pooled rows, written to --out")
@@ -551,7 +569,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-progress", action="store_true",
                    help="no progress bars (the fold and epoch lines are printed all the same)")
     args = p.parse_args(argv)
-    if args.pool and (args.reuse or args.only or args.config or args.overrides or not args.out):
+    if args.pool and (args.reuse or args.only or args.config or args.overrides or not args.out
+                      or args.combine != "geometric"):
         p.error("--pool takes only --folds and an --out of its own (the recipe is the runs' own)")
     out = Path(args.out or Path("runs") / f"cv-{Path(args.config).stem if args.config else 'default'}")
     command = command_line(p.prog, sys.argv[1:] if argv is None else list(argv))
@@ -561,7 +580,7 @@ def main(argv: list[str] | None = None) -> int:
         else:
             config = load_config(args.config, args.overrides)
             crossval(config, args.folds, out, progress=not args.no_progress, only=args.only, reuse=args.reuse,
-                     command=command, config_file=args.config, epoch_lines=True)
+                     command=command, config_file=args.config, epoch_lines=True, combine=args.combine)
     except UnwrittenResults as exc:           # computed, not written: the table goes to stdout all the same
         print(markdown_table(exc.rows, COLUMNS), end="")
         exit_on_input_error(p, exc)

@@ -145,13 +145,29 @@ class LfgnssNet(nn.Module):
         return r.reshape(*lead, n), vc.reshape(*lead, n)
 
 
-def combine_members(r_m2: list[torch.Tensor], vc_m: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
-    """One noise from an ensemble's members: the geometric mean of their R [m^2], the mean of their v^c [m].
+#: How an ensemble's members can be combined (``combine_members``); the first is the default.
+COMBINE_RULES = ("geometric", "mixture")
 
-    A geometric mean because R spans orders of magnitude: a member that distrusts a satellite 100-fold and one that
-    trusts it meet at 10-fold, not at 50-fold. ``learning.export`` does the same in numpy (no torch at inference).
+
+def combine_members(r_m2: list[torch.Tensor], vc_m: list[torch.Tensor], rule: str = "geometric"
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
+    """One noise (r_m2 [m^2], vc_m [m]) from an ensemble's members; v^c is always the mean of theirs.
+
+    ``"geometric"``: R is the geometric mean of theirs. R spans orders of magnitude: a member that distrusts a
+    satellite 100-fold and one that trusts it meet at 10-fold, not at 50-fold.
+    ``"mixture"``: the moment-matched equal-weight mixture of the members' N(v^c_m, R_m),
+    ``R = mean_m R_m + mean_m (v^c_m - mean v^c)^2``: where the members' corrections disagree, R grows by their spread.
+    Model files combine geometrically (``learning.export``, numpy, no torch at inference); the mixture is for
+    ``learning.crossval --reuse ... --combine mixture`` (cross-validated worse on berlin-pp,
+    docs/training/cv-berlin-mixture-ensemble.md).
     """
-    return torch.exp(torch.log(torch.stack(r_m2)).mean(0)), torch.stack(vc_m).mean(0)
+    r, vc = torch.stack(r_m2), torch.stack(vc_m)
+    mean_vc = vc.mean(0)
+    if rule == "geometric":
+        return torch.exp(torch.log(r).mean(0)), mean_vc
+    if rule == "mixture":
+        return r.mean(0) + ((vc - mean_vc) ** 2).mean(0), mean_vc
+    raise ValueError(f"ensemble combination {rule!r}: expected one of {', '.join(COMBINE_RULES)}")
 
 
 class NetworkEnsemble(nn.Module):
@@ -161,20 +177,23 @@ class NetworkEnsemble(nn.Module):
     which moves a recipe trained on a few minutes of driving by metres (docs/training/cv-ensemble.md).
     """
 
-    def __init__(self, members: list[LfgnssNet]) -> None:
+    def __init__(self, members: list[LfgnssNet], combine: str = COMBINE_RULES[0]) -> None:
         super().__init__()
         if not members:
             raise ValueError("an ensemble needs at least one network")
+        if combine not in COMBINE_RULES:
+            raise ValueError(f"ensemble combination {combine!r}: expected one of {', '.join(COMBINE_RULES)}")
         if len({m.innovation for m in members}) > 1:
             raise ValueError("an ensemble's networks must all read the filter's innovations, or none")
         self.members = nn.ModuleList(members)
         self.innovation = members[0].innovation
+        self.combine = combine
 
     def forward(self, features: torch.Tensor, mask: torch.Tensor, innovation: torch.Tensor | None = None
                 ) -> tuple[torch.Tensor, torch.Tensor]:
         """``LfgnssNet.forward`` of each member, combined: (r_m2, vc_m), shaped like ``mask``."""
         outs = [m(features, mask, innovation) for m in self.members]
-        return combine_members([o[0] for o in outs], [o[1] for o in outs])
+        return combine_members([o[0] for o in outs], [o[1] for o in outs], self.combine)
 
 
 def prior_variance(x_norm: torch.Tensor, prior: dict) -> torch.Tensor:

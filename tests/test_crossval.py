@@ -420,7 +420,20 @@ def test_reuse_of_several_runs_scores_their_fold_models_as_one_ensemble(trained_
     assert all(float(e["last_rmse_3d_m"]) not in (float(a["last_rmse_3d_m"]), float(b["last_rmse_3d_m"]))
                for e, a, b in zip(ens, one, two))
     assert [e["plain_ekf_rmse_3d_m"] for e in ens] == [a["plain_ekf_rmse_3d_m"] for a in one]
+    # --combine mixture: identical members have no spread, so the twin ensemble is the network again; two seeds differ
+    assert main(RECIPE + ["--out", str(tmp_path / "mix-same"), "--reuse", str(run), "--reuse", str(twin),
+                          "--combine", "mixture"]) == 0
+    for a, b in zip(_rows(tmp_path / "mix-same"), one):
+        assert float(a["last_rmse_3d_m"]) == pytest.approx(float(b["last_rmse_3d_m"]), rel=1e-9)
+    assert main(RECIPE + ["--out", str(tmp_path / "mix"), "--reuse", str(run), "--reuse", str(other),
+                          "--combine", "mixture"]) == 0
+    assert "--combine mixture" in (tmp_path / "mix" / "crossval.md").read_text().splitlines()[0]
+    assert all(float(m["last_rmse_3d_m"]) != float(e["last_rmse_3d_m"]) for m, e in zip(_rows(tmp_path / "mix"), ens))
     capsys.readouterr()
+    with pytest.raises(SystemExit) as exit_info:
+        main(RECIPE + ["--out", str(tmp_path / "m1"), "--reuse", str(run), "--combine", "mixture"])
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and "needs two or more --reuse folders" in err and "Traceback" not in err
     shutil.copytree(run, tmp_path / "copy", ignore=shutil.ignore_patterns("crossval.*"))
     for reuse, message in (([run, tmp_path / "copy"], "copy/fold0/last.pt: trained with seed 0, as another --reuse "
                                                       "folder's"),

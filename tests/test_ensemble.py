@@ -7,7 +7,7 @@ import torch
 
 from learning.export import (ENSEMBLE_FORMAT_VERSION, FORMAT_VERSION, ModelFileError, export_ensemble, export_model,
                              load_model, main, trained_on)
-from learning.network import LfgnssNet, NetworkEnsemble
+from learning.network import LfgnssNet, NetworkEnsemble, combine_members
 from learning.normalise import Normaliser, select_features
 from lfgnss.sequence import DEFAULT_FEATURES
 from lfgnss.simulate import simulate_sequence
@@ -58,6 +58,24 @@ def test_an_ensemble_file_gives_the_geometric_mean_of_its_members_r_and_the_mean
         r_t, vc_t = NetworkEnsemble(nets)(x, torch.as_tensor(mask))
     np.testing.assert_allclose(r, r_t.numpy(), rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(vc, vc_t.numpy(), rtol=1e-9, atol=1e-9)
+
+
+def test_the_mixture_combination_is_the_moment_matched_mixture_of_the_members_gaussians():
+    """Two members N(vc_m, R_m) with equal weight: the mixture's mean is the mean of v^c, its variance the mean R plus
+    the v^c spread (here (1 + 3) / 2 + 2^2 = 6 m^2); members that agree keep their arithmetic-mean R."""
+    r = [torch.tensor([1.0, 4.0]), torch.tensor([3.0, 4.0])]
+    vc = [torch.tensor([-1.0, 0.5]), torch.tensor([3.0, 0.5])]
+    r_mix, vc_mix = combine_members(r, vc, "mixture")
+    assert r_mix.tolist() == [6.0, 4.0] and vc_mix.tolist() == [1.0, 0.5]
+    rng = np.random.default_rng(0)                               # against samples of the mixture itself
+    draws = np.concatenate([rng.normal(m, np.sqrt(v), 200_000) for m, v in ((-1.0, 1.0), (3.0, 3.0))])
+    assert draws.var() == pytest.approx(6.0, rel=0.02)
+    r_geo, _ = combine_members(r, vc)
+    assert r_geo.tolist() == pytest.approx([3 ** 0.5, 4.0])
+    with pytest.raises(ValueError, match="ensemble combination 'median': expected one of geometric, mixture"):
+        combine_members(r, vc, "median")
+    with pytest.raises(ValueError, match="ensemble combination 'median'"):
+        NetworkEnsemble([LfgnssNet(len(DEFAULT_FEATURES))], combine="median")
 
 
 def test_an_ensemble_is_format_version_2_and_records_each_member(members):
