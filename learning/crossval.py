@@ -67,6 +67,7 @@ from lfgnss.metrics import accuracy_table, markdown_table
 from lfgnss.paths import model_path
 from lfgnss.sequence import Sequence
 
+from .network import COMBINE_RULES
 from .normalise import Normaliser
 from .provenance import code_text, command_line, git_state
 from .train import (DEFAULT_CONFIG, _flat, _merge_free, adopt_init, ekf_config, exit_on_input_error, init_model,
@@ -280,8 +281,6 @@ def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = 
                          "that share no epochs")
     _refuse_used_out(out)
     reuse = None if reuse is None else [reuse] if isinstance(reuse, (str, Path)) else list(reuse)
-    from .network import COMBINE_RULES
-
     if combine not in COMBINE_RULES:
         raise ValueError(f"combine {combine!r}: expected one of {', '.join(COMBINE_RULES)}")
     if combine != COMBINE_RULES[0] and (reuse is None or len(reuse) < 2):
@@ -558,7 +557,7 @@ def main(argv: list[str] | None = None) -> int:
                         "--config, --folds and other --set's again (a run made before folds joined the train and "
                         "validation epochs is refused). Repeated: the ensemble of several runs' fold models (runs "
                         "that differ in --set seed=S only)")
-    p.add_argument("--combine", choices=("geometric", "mixture"), default="geometric",
+    p.add_argument("--combine", choices=COMBINE_RULES, default=COMBINE_RULES[0],
                    help="with several --reuse: how the ensemble's members are combined (learning.network."
                         "combine_members): geometric mean of R (default, as model files do) or their moment-matched "
                         "Gaussian mixture (mean R plus the spread of v^c)")
@@ -570,7 +569,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="no progress bars (the fold and epoch lines are printed all the same)")
     args = p.parse_args(argv)
     if args.pool and (args.reuse or args.only or args.config or args.overrides or not args.out
-                      or args.combine != "geometric"):
+                      or args.combine != COMBINE_RULES[0]):
         p.error("--pool takes only --folds and an --out of its own (the recipe is the runs' own)")
     out = Path(args.out or Path("runs") / f"cv-{Path(args.config).stem if args.config else 'default'}")
     command = command_line(p.prog, sys.argv[1:] if argv is None else list(argv))
