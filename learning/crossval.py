@@ -67,7 +67,7 @@ from lfgnss.metrics import accuracy_table, markdown_table
 from lfgnss.paths import model_path
 from lfgnss.sequence import Sequence
 
-from .network import COMBINE_RULES
+from .network import COMBINE_RULES, check_combine
 from .normalise import Normaliser
 from .provenance import code_text, command_line, git_state
 from .train import (DEFAULT_CONFIG, _flat, _merge_free, adopt_init, ekf_config, exit_on_input_error, init_model,
@@ -281,9 +281,7 @@ def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = 
                          "that share no epochs")
     _refuse_used_out(out)
     reuse = None if reuse is None else [reuse] if isinstance(reuse, (str, Path)) else list(reuse)
-    if combine not in COMBINE_RULES:
-        raise ValueError(f"combine {combine!r}: expected one of {', '.join(COMBINE_RULES)}")
-    if combine != COMBINE_RULES[0] and (reuse is None or len(reuse) < 2):
+    if check_combine(combine) != COMBINE_RULES[0] and (reuse is None or len(reuse) < 2):
         raise ValueError(f"combine {combine!r} combines an ensemble's members: it needs two or more --reuse folders")
     missing = [p for r in reuse or [] for j in chosen if not (p := Path(r) / f"fold{j}" / "last.pt").is_file()]
     if missing:

@@ -149,6 +149,13 @@ class LfgnssNet(nn.Module):
 COMBINE_RULES = ("geometric", "mixture")
 
 
+def check_combine(rule: str) -> str:
+    """``rule`` if it is one of ``COMBINE_RULES``; a ValueError naming them otherwise."""
+    if rule not in COMBINE_RULES:
+        raise ValueError(f"ensemble combination {rule!r}: expected one of {', '.join(COMBINE_RULES)}")
+    return rule
+
+
 def combine_members(r_m2: list[torch.Tensor], vc_m: list[torch.Tensor], rule: str = "geometric"
                     ) -> tuple[torch.Tensor, torch.Tensor]:
     """One noise (r_m2 [m^2], vc_m [m]) from an ensemble's members; v^c is always the mean of theirs.
@@ -161,13 +168,12 @@ def combine_members(r_m2: list[torch.Tensor], vc_m: list[torch.Tensor], rule: st
     ``learning.crossval --reuse ... --combine mixture`` (cross-validated worse on berlin-pp,
     docs/training/cv-berlin-mixture-ensemble.md).
     """
+    check_combine(rule)
     r, vc = torch.stack(r_m2), torch.stack(vc_m)
     mean_vc = vc.mean(0)
     if rule == "geometric":
         return torch.exp(torch.log(r).mean(0)), mean_vc
-    if rule == "mixture":
-        return r.mean(0) + ((vc - mean_vc) ** 2).mean(0), mean_vc
-    raise ValueError(f"ensemble combination {rule!r}: expected one of {', '.join(COMBINE_RULES)}")
+    return r.mean(0) + ((vc - mean_vc) ** 2).mean(0), mean_vc
 
 
 class NetworkEnsemble(nn.Module):
@@ -181,8 +187,7 @@ class NetworkEnsemble(nn.Module):
         super().__init__()
         if not members:
             raise ValueError("an ensemble needs at least one network")
-        if combine not in COMBINE_RULES:
-            raise ValueError(f"ensemble combination {combine!r}: expected one of {', '.join(COMBINE_RULES)}")
+        check_combine(combine)
         if len({m.innovation for m in members}) > 1:
             raise ValueError("an ensemble's networks must all read the filter's innovations, or none")
         self.members = nn.ModuleList(members)
