@@ -71,7 +71,7 @@ from .network import COMBINE_RULES, check_combine
 from .normalise import Normaliser
 from .provenance import code_text, command_line, git_state
 from .train import (DEFAULT_CONFIG, _flat, _merge_free, adopt_init, ekf_config, exit_on_input_error, init_model,
-                    load_config, load_sequences, prepare, read_checkpoint, train, trained_datasets)
+                    load_config, load_sequences, prepare, read_checkpoint, torch_threads, train, trained_datasets)
 
 COLUMNS = ["fold", "held_out_epochs", "plain_ekf_rmse_3d_m", "untrained_rmse_3d_m", "last_rmse_3d_m",
            "best_rmse_3d_m", "best_epoch", "plain_ekf_smoothed_rmse_3d_m", "last_smoothed_rmse_3d_m",
@@ -299,8 +299,11 @@ def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = 
     whole = cv_sequences(config)
     rows, started = [], None if init is None else str(init.path)
     try:
-        _run_folds(rows, chosen, folds, whole, config, out, progress, reuse, command, config_file, epoch_lines,
-                   combine)
+        # scoring too on ``threads`` CPU threads, as training: folds run side by side with threads = 1 would
+        # otherwise each score on every core, and small torch kernels slow down several times on shared cores
+        with torch_threads(int(config["threads"])):
+            _run_folds(rows, chosen, folds, whole, config, out, progress, reuse, command, config_file, epoch_lines,
+                       combine)
     except BaseException as exc:        # Ctrl-C, a diverged fold, a bad checkpoint: the finished folds' rows are kept
         exc.crossval_stopped = (out, None, [])
         if rows:
@@ -472,16 +475,9 @@ def _run_folds(rows: list[dict], chosen, folds: int, whole: dict, config: dict, 
 
         held = [s for _, h in parts.values() for s in h]
         if reuse is not None:
-            import torch
-
-            threads = torch.get_num_threads()
-            torch.set_num_threads(int(config["threads"]))       # as train() runs: a shared machine stays shared
-            try:
-                saved = saved_ensemble(reuse, j, config, held)
-                rows.append(_rescored_row(j, saved, config, held, combine))
-                rows.extend(_dataset_rows(j, saved, config, parts, combine))
-            finally:
-                torch.set_num_threads(threads)
+            saved = saved_ensemble(reuse, j, config, held)
+            rows.append(_rescored_row(j, saved, config, held, combine))
+            rows.extend(_dataset_rows(j, saved, config, parts, combine))
             continue
         pieces = [s for t, _ in parts.values() for s in t]
         if epoch_lines:                 # its epoch lines follow; their "val 3D RMSE" is on the held-out block

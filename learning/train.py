@@ -55,7 +55,7 @@ import time
 import warnings
 import tomllib
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import numpy as np
 import torch
@@ -206,6 +206,17 @@ def resolve_device(name: object) -> torch.device:
         if (device.index or 0) >= torch.cuda.device_count():
             raise ValueError(f"device = {name!r}: only {torch.cuda.device_count()} CUDA GPU(s) here")
     return device
+
+
+@contextlib.contextmanager
+def torch_threads(n: int) -> Iterator[None]:
+    """Run the block on ``n`` CPU threads (the ``threads`` setting), then give back the previous number."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 def _setting(config: dict, key: str) -> Any:
@@ -925,8 +936,7 @@ def train(config: dict, out_dir: str | Path, *, resume: bool = False, overrides:
               f"note: {seen}: its validation RMSE is optimistic; train.select = \"last\" chooses nothing on it",
               file=sys.stderr)
 
-    threads, deterministic = torch.get_num_threads(), torch.are_deterministic_algorithms_enabled()
-    torch.set_num_threads(int(config["threads"]))
+    deterministic = torch.are_deterministic_algorithms_enabled()
     on_gpu = resolve_device(config.get("device", "cpu")).type == "cuda"
     if on_gpu:
         # cuBLAS is deterministic only with a fixed workspace; must be set before its first use in the process
@@ -936,7 +946,7 @@ def train(config: dict, out_dir: str | Path, *, resume: bool = False, overrides:
     torch.use_deterministic_algorithms(True, warn_only=True)
     last_saved = {"epoch": None if checkpoint is None else int(checkpoint["epoch"])}   # the epoch last.pt holds
     try:
-        with warnings.catch_warnings():
+        with warnings.catch_warnings(), torch_threads(int(config["threads"])):
             if on_gpu:                                  # said once above instead of at every kernel
                 warnings.filterwarnings("ignore", ".*does not have a deterministic implementation", UserWarning)
                 warnings.filterwarnings("ignore", ".*defaults to a non-deterministic algorithm", UserWarning)
@@ -947,7 +957,6 @@ def train(config: dict, out_dir: str | Path, *, resume: bool = False, overrides:
         exc.last_saved_epoch = last_saved["epoch"]
         raise
     finally:
-        torch.set_num_threads(threads)
         torch.use_deterministic_algorithms(deterministic)
 
 

@@ -195,6 +195,33 @@ def test_each_fold_trains_on_the_other_blocks_and_scores_the_held_out_one(monkey
         assert sum(len(s) for s in train) == 120
 
 
+def test_scoring_runs_on_the_threads_setting_as_training_does(monkeypatch, tmp_path):
+    """Folds run side by side with threads = 1 must not each score on every core (the plain EKF and the fold
+    model's figures); the caller's thread count is given back, also when a fold fails."""
+    import torch
+
+    import learning.crossval as cv
+    from learning.train import load_config
+
+    config = load_config("learning/configs/default.toml", ["data.datasets=['synthetic']", "data.synthetic.n_epochs=60",
+                                                           "data.window=20", "data.stride=10", "threads=1"])
+    _spy_on_folds(monkeypatch, "synthetic")
+    scored = []
+    monkeypatch.setattr(cv, "_saved_rmse_m", lambda *a, **k: scored.append(torch.get_num_threads()) or ({}, 1.0, 0.5))
+    monkeypatch.setattr(cv, "plain_ekf_rmse_m", lambda *a, **k: scored.append(torch.get_num_threads()) or (2.0, 1.0))
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        cv.crossval(config, 2, tmp_path / "a", progress=False)
+        assert scored and set(scored) == {1} and torch.get_num_threads() == 2
+        monkeypatch.setattr(cv, "plain_ekf_rmse_m", lambda *a, **k: 1 / 0)
+        with pytest.raises(ZeroDivisionError):
+            cv.crossval(config, 2, tmp_path / "b", progress=False)
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
+
+
 def test_a_diverging_fold_is_one_line_and_exit_3(tmp_path, capsys):
     """A non-finite training loss (here an overflowing loss weight) ends the run in one line, as learning.train."""
     with pytest.raises(SystemExit) as exit_info:
