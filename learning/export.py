@@ -21,8 +21,9 @@ Format (``FORMAT_NAME`` version ``FORMAT_VERSION``), arrays in one uncompressed 
 Version ``ENSEMBLE_FORMAT_VERSION`` (2) is an ensemble (``export_ensemble``): networks of one recipe trained with
 different seeds, run as one noise model (R: geometric mean of the members', v^c: their mean). Its ``param/<name>``
 are the first member's, ``member<i>/param/<name>`` the others' (i = 1, 2, ...), and its metadata (the first
-member's) adds ``ensemble``: ``combine`` and ``members``, per member its checkpoint, seed, epoch, val_rmse_3d_m and
-provenance. Version 1 readers refuse it rather than run one member as if it were the whole.
+member's) adds ``ensemble``: ``combine`` and ``members``, per member its checkpoint, seed, epoch, val_rmse_3d_m,
+provenance and, for a network taken from a model file, that file (``model_file``). Version 1 readers refuse it
+rather than run one member as if it were the whole.
 
 ``load_model`` checks the file and returns an ``LfgnssModel`` whose ``predict`` re-implements the
 network's forward pass in numpy (float64), and whose ``__call__(sequence)`` makes it an
@@ -90,46 +91,72 @@ def export_model(checkpoint_path: str | Path, out_path: str | Path, *, extra_met
     return _write_model_file(out_path, params, normaliser, meta)
 
 
-def export_ensemble(checkpoint_paths: list[str | Path], out_path: str | Path, command: str | None = None) -> Path:
+def export_ensemble(sources: list[str | Path], out_path: str | Path, command: str | None = None) -> Path:
     """Write training checkpoints of one recipe, trained with different seeds, as one ensemble model file.
 
-    The members must share features, normaliser, network, filter and training data; their training
-    configurations may differ only in ``ENSEMBLE_FREE`` (ModelFileError naming the checkpoint and the setting).
-    ``command``, the working folder and the git state are recorded as how the file was put together
-    (``ensemble.exported``). A single checkpoint is written as ``export_model`` writes it.
+    A source may also be a model file (``.npz``, single network or ensemble): its networks join the ensemble with
+    their records, so seeds trained later grow a shipped ensemble without its members' checkpoints.
+    The networks must share features, normaliser, network, filter and training data; their training
+    configurations may differ only in ``ENSEMBLE_FREE``, their seeds must differ (ModelFileError naming the source
+    and the setting). ``command``, the working folder and the git state are recorded as how the file was put
+    together (``ensemble.exported``). A single checkpoint is written as ``export_model`` writes it.
     """
-    paths = [Path(p) for p in checkpoint_paths]
+    paths = [Path(p) for p in sources]
     if not paths:
         raise ValueError("export_ensemble: no checkpoint given")
-    contents = [_checkpoint_contents(p) for p in paths]
-    if len(paths) == 1:
-        return _write_model_file(out_path, *contents[0])
-    (params, normaliser, meta), seen, seeds = contents[0], {}, {}
-    for path, (_, norm, other) in zip(paths, contents):
+    if len(paths) == 1 and not str(paths[0]).endswith(".npz"):
+        return _write_model_file(out_path, *_checkpoint_contents(paths[0]))
+    seen, seeds, networks, records, meta = {}, {}, [], [], None
+    for path in paths:
         if path.resolve() in seen:
             raise ModelFileError(path, f"given twice (as {seen[path.resolve()]}): an ensemble's members are "
                                        "different training runs")
         seen[path.resolve()] = path
-        seed = (other.get("config") or {}).get("seed")
-        if not isinstance(seed, int) or isinstance(seed, bool) or seed in seeds:
-            why = f"has the seed of {seeds[seed]}" if seed in seeds else "records no seed"
-            raise ModelFileError(path, f"{why}: an ensemble's members are runs of one recipe with different seeds "
-                                       "(learning.train --set seed=S)")
-        seeds[seed] = path
-        key = _member_difference(meta, normaliser, other, norm)
-        if key is not None:
-            raise ModelFileError(path, f"{key} differs from {paths[0]}'s: an ensemble's members must be one recipe "
-                                       f"on the same data, differing only in {', '.join(ENSEMBLE_FREE)}")
+        for net, norm, other, record in _source_networks(path):
+            if meta is None:
+                params, normaliser, meta = net, norm, other
+            seed = record.get("seed")
+            if not isinstance(seed, int) or isinstance(seed, bool) or seed in seeds:
+                why = f"has the seed of {seeds[seed]}" if seed in seeds else "records no seed"
+                raise ModelFileError(path, f"{why}: an ensemble's members are runs of one recipe with different "
+                                           "seeds (learning.train --set seed=S)")
+            seeds[seed] = path
+            key = _member_difference(meta, normaliser, other, norm)
+            if key is not None:
+                raise ModelFileError(path, f"{key} differs from {paths[0]}'s: an ensemble's members must be one "
+                                           f"recipe on the same data, differing only in {', '.join(ENSEMBLE_FREE)}")
+            networks.append(net)
+            records.append(record)
+    if len(networks) == 1:
+        raise ModelFileError(paths[0], "holds one network: an ensemble needs two or more (give the checkpoints or "
+                                       "model files of other seeds too)")
     from .provenance import git_state
 
+    meta = {k: v for k, v in meta.items() if k != "ensemble"}
     meta = {**meta, "format_version": ENSEMBLE_FORMAT_VERSION, "ensemble": {
         "combine": ENSEMBLE_COMBINE,
         "exported": {"command": command, "cwd": str(Path.cwd()), "git": git_state(),
                      "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")},
-        "members": [{"checkpoint": str(p), "seed": seed, "epoch": m.get("epoch"),
-                     "val_rmse_3d_m": m.get("val_rmse_3d_m"), "provenance": m.get("provenance")}
-                    for p, (_, _, m), seed in zip(paths, contents, seeds)]}}
-    return _write_model_file(out_path, params, normaliser, meta, members=[c[0] for c in contents[1:]])
+        "members": records}}
+    return _write_model_file(out_path, params, normaliser, meta, members=networks[1:])
+
+
+def _source_networks(path: Path) -> list[tuple[dict[str, np.ndarray], Normaliser, dict, dict]]:
+    """Each network of an ensemble source (a checkpoint, or a model file's members): its weights, normaliser, the
+    metadata it is checked by and its ``ensemble.members`` record (checkpoint, seed, epoch, validation RMSE,
+    provenance; a model file's members keep theirs and add ``model_file``, the file they came from)."""
+    if not str(path).endswith(".npz"):
+        params, normaliser, meta = _checkpoint_contents(path)
+        return [(params, normaliser, meta, {"checkpoint": str(path), "seed": (meta.get("config") or {}).get("seed"),
+                                            "epoch": meta.get("epoch"), "val_rmse_3d_m": meta.get("val_rmse_3d_m"),
+                                            "provenance": meta.get("provenance")})]
+    model = load_model(path)
+    meta = json.loads(json.dumps(model.metadata, default=_json_default))
+    records = ensemble_members(meta) or [{"checkpoint": None, "seed": (meta.get("config") or {}).get("seed"),
+                                          "epoch": meta.get("epoch"), "val_rmse_3d_m": meta.get("val_rmse_3d_m"),
+                                          "provenance": meta.get("provenance")}]
+    return [({k: v.astype(np.float32) for k, v in net.items()}, model.normaliser, meta,
+             {**record, "model_file": str(path)}) for net, record in zip(model.members, records)]
 
 
 #: Training settings that name files rather than say what was trained: the files' contents are compared instead
@@ -148,9 +175,11 @@ def _member_difference(meta: dict, normaliser: Normaliser, other: dict, other_no
         return json.dumps(a, default=_json_default, sort_keys=True) == json.dumps(b, default=_json_default,
                                                                                   sort_keys=True)
 
-    for key in ("model", "ekf_config", "n_systems", "data_fingerprints"):
+    for key in ("model", "ekf_config", "n_systems"):
         if not same(meta.get(key), other.get(key)):
             return key
+    if not _same_data(meta, other):
+        return "data_fingerprints"
     if (meta.get("init_model") or {}).get("sha256_16") != (other.get("init_model") or {}).get("sha256_16"):
         return "init_model (the model fine-tuning started from)"
     from .train import DEFAULT_CONFIG, _flat, _merge_free
@@ -159,6 +188,21 @@ def _member_difference(meta: dict, normaliser: Normaliser, other: dict, other_no
     changed = sorted(k for k in a.keys() | b.keys()
                      if k not in ENSEMBLE_FREE + _MEMBER_PATH_KEYS and not same(a.get(k), b.get(k)))
     return f"config {changed[0]}" if changed else None
+
+
+def _same_data(meta: dict, other: dict) -> bool:
+    """Whether two networks were trained on the same data: the same sequences' fingerprints or, for runs on another
+    machine, whose features differ in rounding and so in their hashes, the same sequences (names, splits, epochs) of
+    the same input files (``source_files``' SHA-256; the normalisers are compared too, ``Normaliser.same_as``)."""
+    prints, others = meta.get("data_fingerprints") or [], other.get("data_fingerprints") or []
+    if prints == others:
+        return True
+
+    def unhashed(fingerprints: list) -> list:
+        return [{k: v for k, v in p.items() if k != "sha256_16"} for p in fingerprints]
+
+    return bool(meta.get("source_files")) and meta.get("source_files") == other.get("source_files") \
+        and unhashed(prints) == unhashed(others)
 
 
 def _checkpoint_contents(checkpoint_path: str | Path) -> tuple[dict[str, np.ndarray], Normaliser, dict]:
@@ -836,7 +880,8 @@ def ensemble_lines(metadata: dict) -> list[str]:
     def member(m: dict) -> str:
         val = m.get("val_rmse_3d_m")
         return (f"seed {m.get('seed')}, epoch {m.get('epoch')}, validation 3D RMSE "
-                f"{'-' if not isinstance(val, (int, float)) else f'{val:.3f} m'} ({m.get('checkpoint')})")
+                f"{'-' if not isinstance(val, (int, float)) else f'{val:.3f} m'} ({m.get('checkpoint')}"
+                + (f", via {m['model_file']})" if m.get("model_file") else ")"))
 
     from .provenance import code_text
 
@@ -868,9 +913,9 @@ def _ekf_assignment(text: str) -> tuple[str, object]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m learning.export CHECKPOINT OUT.npz`` writes a model file (several CHECKPOINTs: an ensemble,
-    ``export_ensemble``); ``--show MODEL.npz`` describes one (``--show MODEL.npz --config`` prints its stored
-    training configuration).
+    """``python -m learning.export CHECKPOINT OUT.npz`` writes a model file (several CHECKPOINTs, or model files
+    and CHECKPOINTs: an ensemble, ``export_ensemble``); ``--show MODEL.npz`` describes one (``--show MODEL.npz
+    --config`` prints its stored training configuration).
 
     Exit status 0; 2 for bad input (one line naming the file).
     """
@@ -887,7 +932,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="CHECKPOINT [CHECKPOINT ...] OUT.npz: best.pt or last.pt of a learning.train run, and the "
                         "model file to write (.npz); several "
                         "checkpoints (runs of one recipe with different seeds, train.seed) are written as one "
-                        "ensemble: R the geometric mean of the networks', v^c their mean")
+                        "ensemble: R the geometric mean of the networks', v^c their mean; a model file among "
+                        "them adds its networks (grows an ensemble by the seeds trained since)")
     p.add_argument("--show", metavar="MODEL", type=path_option,
                    help="describe a model file (or a bundled model by name: default, hk-tst-2019, ...): its data, "
                         "filter and how it was made (command, git commit, where recorded)")
@@ -922,13 +968,10 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         if not str(args.out).endswith(".npz"):
             raise InputError(args.out, "give the model file a .npz name (numpy would add it)")
-        model_source = next((m for m in members if str(m).endswith(".npz")), None)
-        if model_source is not None and len(members) > 1:
-            raise InputError(model_source, "a model file, not a training checkpoint: an ensemble is written from "
-                                           "the checkpoints (best.pt / last.pt) of its training runs")
-        if model_source is not None and not args.ekf:
-            raise InputError(model_source, "a model file, not a training checkpoint: give --ekf KEY=VALUE to "
-                                           "write it with another filter setting, or --show to describe it")
+        if len(members) == 1 and str(members[0]).endswith(".npz") and not args.ekf:
+            raise InputError(members[0], "a model file, not a training checkpoint: give --ekf KEY=VALUE to write it "
+                                         "with another filter setting, checkpoints of other seeds to grow it into an "
+                                         "ensemble, or --show to describe it")
         changes = {}
         try:
             for key, value in (_ekf_assignment(a) for a in args.ekf):
@@ -950,7 +993,7 @@ def main(argv: list[str] | None = None) -> int:
                                       command_line("python -m learning.export", list(argv or sys.argv[1:])))
         epochs = member_epochs(load_model(written).metadata)
         if len(members) > 1:
-            print(f"{written}: ensemble of {len(members)} networks: {', '.join(map(str, members))} (epochs "
+            print(f"{written}: ensemble of {len(epochs)} networks: {', '.join(map(str, members))} (epochs "
                   f"{', '.join(map(str, epochs))})")
         else:
             what = f"ensemble of {len(epochs)} networks" if len(epochs) > 1 else f"epoch {epochs[0]}"

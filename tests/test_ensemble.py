@@ -1,5 +1,6 @@
 """Ensemble model files: several seeds' networks of one recipe run as one noise model (learning.export)."""
 import json
+import re
 
 import numpy as np
 import pytest
@@ -15,8 +16,9 @@ from lfgnss.simulate import simulate_sequence
 CONFIG = {"seed": 0, "train": {"lr": 1e-3}, "data": {"datasets": ["synthetic"], "train_split": "train"}}
 
 
-def _checkpoint(path, seed: int, norm: Normaliser, config: dict | None = None) -> tuple:
-    """A checkpoint of a network initialised with ``seed`` (weights moved so that R and v^c vary)."""
+def _checkpoint(path, seed: int, norm: Normaliser, config: dict | None = None, **saved) -> tuple:
+    """A checkpoint of a network initialised with ``seed`` (weights moved so that R and v^c vary); ``saved`` replaces
+    or adds checkpoint keys."""
     torch.manual_seed(seed)
     net = LfgnssNet(len(DEFAULT_FEATURES), r_floor_m2=0.02, r_scale_m2=3.0, r_init_m2=20.0)
     with torch.no_grad():
@@ -25,7 +27,7 @@ def _checkpoint(path, seed: int, norm: Normaliser, config: dict | None = None) -
     config = {**CONFIG, "seed": seed} if config is None else config
     torch.save({"model": net.state_dict(), "model_hparams": net.hyperparameters(), "normaliser": norm.to_dict(),
                 "config": config, "epoch": 3 + seed, "history": [{"epoch": 3 + seed, "val_rmse_3d_m": 4.0 + seed}],
-                "data_fingerprints": [{"dataset": "synthetic", "sha256_16": "abc"}]}, path)
+                "data_fingerprints": [{"dataset": "synthetic", "sha256_16": "abc"}], **saved}, path)
     return path, net
 
 
@@ -152,11 +154,70 @@ def test_the_command_writes_shows_and_refilters_an_ensemble(members, tmp_path, c
     for argv, message in (([str(runs[0][0]), str(runs[1][0]), str(tmp_path / "y.npz"), "--ekf", "gate_sigma=2"],
                            "--ekf takes one source"),
                           ([str(runs[0][0]), str(out), str(tmp_path / "y.npz")],
-                           "ens.npz: a model file, not a training checkpoint: an ensemble is written from")):
+                           f"ens.npz: has the seed of {runs[0][0]}: an ensemble's members are runs of one recipe"),
+                          ([str(out), str(tmp_path / "y.npz")],
+                           "ens.npz: a model file, not a training checkpoint: give --ekf KEY=VALUE to write it with "
+                           "another filter setting, checkpoints of other seeds to grow it into an ensemble")):
         with pytest.raises(SystemExit) as info:
             main(argv)
         err = capsys.readouterr().err
         assert info.value.code == 2 and message in err.strip().splitlines()[-1] and "Traceback" not in err
+
+
+def test_a_model_file_grows_by_the_seeds_trained_since_as_if_all_were_exported_at_once(members, tmp_path, capsys):
+    """A shipped ensemble whose checkpoints are gone takes new seeds' checkpoints: the same networks, records and noise
+    as one export of every checkpoint; a seed it holds, another filter or a lone network is one line naming the file."""
+    _, seq, _, runs = members
+    raw, mask = select_features(seq, DEFAULT_FEATURES), seq.mask
+    first_two = export_ensemble([runs[0][0], runs[1][0]], tmp_path / "two.npz")
+    grown = load_model(export_ensemble([first_two, runs[2][0]], tmp_path / "grown.npz"))
+    at_once = load_model(export_ensemble([p for p, _ in runs], tmp_path / "once.npz"))
+    for a, b in zip(grown.predict(raw, mask), at_once.predict(raw, mask)):
+        np.testing.assert_array_equal(a, b)
+    records = grown.metadata["ensemble"]["members"]
+    assert [(m["seed"], m["checkpoint"], m.get("model_file")) for m in records] == \
+        [(0, str(runs[0][0]), str(first_two)), (1, str(runs[1][0]), str(first_two)), (2, str(runs[2][0]), None)]
+    assert main(["--show", str(tmp_path / "grown.npz")]) == 0
+    shown = capsys.readouterr().out
+    assert f"  1: seed 1, epoch 4, validation 3D RMSE 5.000 m ({runs[1][0]}, via {first_two})" in shown
+    single = export_model(runs[0][0], tmp_path / "s0.npz")               # a single-network file grows too
+    assert len(load_model(export_ensemble([single, runs[1][0]], tmp_path / "pair.npz")).members) == 2
+    gated = tmp_path / "gated.npz"
+    assert main([str(first_two), str(gated), "--ekf", "gate_sigma=2.5"]) == 0
+    for sources, message in (([first_two, runs[1][0]], f"s1.pt: has the seed of {first_two}"),
+                             ([gated, runs[2][0]], f"s2.pt: ekf_config differs from {gated}'s"),
+                             ([single], "s0.npz: holds one network: an ensemble needs two or more")):
+        with pytest.raises(ModelFileError) as info:
+            export_ensemble(sources, tmp_path / "x.npz")
+        assert message in str(info.value) and "\n" not in str(info.value)
+    assert not (tmp_path / "x.npz").exists()
+
+
+def test_runs_of_the_same_files_on_another_machine_join_though_their_features_differ_in_rounding(members, tmp_path):
+    """Features computed on two machines differ by ~1e-11 of their spread, so the sequences' hashes differ: the same
+    input files (SHA-256), sequences and statistics within Normaliser.SAME_TOL still make one ensemble; other input
+    files or statistics beyond rounding do not."""
+    _, _, norm, _ = members
+    files = {"synthetic": {"drive.obs": "1111", "truth.txt": "2222"}}
+    here = _checkpoint(tmp_path / "here.pt", 0, norm, data_fingerprints=[{"sequence": "s/train", "sha256_16": "aa"}],
+                       source_files=files)[0]
+
+    def elsewhere(name, seed, shift, **saved):
+        moved = Normaliser(norm.feature_names, norm.mean + shift * norm.std, norm.std * (1 + shift))
+        saved = {"data_fingerprints": [{"sequence": "s/train", "sha256_16": "bb"}], "source_files": files, **saved}
+        return _checkpoint(tmp_path / name, seed, moved, **saved)[0]
+
+    model = load_model(export_ensemble([here, elsewhere("there.pt", 1, 1e-11)], tmp_path / "e.npz"))
+    assert len(model.members) == 2
+    for path, message in ((elsewhere("far.pt", 2, 1e-6), "far.pt: the normaliser (the training data's feature "
+                                                         "statistics) differs"),
+                          (elsewhere("other.pt", 3, 0.0, source_files={"synthetic": {"drive.obs": "3333"}}),
+                           "other.pt: data_fingerprints differs"),
+                          (elsewhere("longer.pt", 4, 0.0, data_fingerprints=[{"sequence": "s/train+val",
+                                                                              "sha256_16": "bb"}]),
+                           "longer.pt: data_fingerprints differs")):
+        with pytest.raises(ModelFileError, match=re.escape(message)):
+            export_ensemble([here, path], tmp_path / "x.npz")
 
 
 def test_an_ensemble_runs_in_the_ekf_and_cannot_start_a_fine_tuning(members, tmp_path):

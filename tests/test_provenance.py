@@ -183,7 +183,7 @@ def test_export_to_an_unwritable_place_is_one_line_naming_it(where, tmp_path, ca
     (["--ekf", "huber_k=2"], "--ekf: huber_k is already 2.0 in this model's filter"),
     (["--ekf", "gate_sigma=.5x"], "--ekf: estimators/models.py: EkfConfig.gate_sigma must be"),
     (["--ekf", "=4"], "--ekf: expects KEY=VALUE, got '=4'"),
-    ([], "lfgnss-berlin-pp.npz: a model file, not a training checkpoint: give --ekf KEY=VALUE"),
+    ([], "lfgnss-berlin-pp.npz: a model file, not a training checkpoint: give --ekf KEY=VALUE to write it"),
 ])
 def test_export_ekf_bad_input_is_one_line(ekf, message, tmp_path, capsys):
     with pytest.raises(SystemExit) as exit_info:
