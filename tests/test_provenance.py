@@ -98,14 +98,17 @@ def test_show_of_a_bundled_model_says_what_is_not_recorded(capsys):
 
 
 def test_show_of_the_bundled_ensemble_gives_each_networks_run(capsys):
-    """The berlin-pp model is three training runs (seeds 0, 1, 2): --show names each run's command and commit."""
+    """The berlin-pp model is six training runs (seeds 0-5; 0-2 brought in by the three-network file it grew from):
+    --show names each run's command and commit."""
     assert export_main(["--show", "berlin-pp"]) == 0
     shown = capsys.readouterr().out
-    assert "trained on: berlin-pp (train), 3 seeds; epoch 120" in shown
+    assert "trained on: berlin-pp (train), 6 seeds; epoch 120" in shown
     assert "huber_k=2.0" in shown and "q_vel_up_m2_s3=0.1" in shown
-    assert "ensemble of 3 networks of one recipe (R: geometric mean" in shown
-    for seed in (0, 1, 2):
+    assert "ensemble of 6 networks of one recipe (R: geometric mean" in shown
+    for seed in range(6):
+        via = ", via lfgnss/data/model/lfgnss-berlin-pp.npz)" if seed < 3 else ")"
         assert f"  {seed}: seed {seed}, epoch 120, validation 3D RMSE" in shown
+        assert f"(runs/berlin-s{seed}/last.pt{via}" in shown
         assert f"network {seed}:" in shown
         assert (f"    command: python -m learning.train --config learning/configs/berlin.toml --set seed={seed} "
                 f"--set threads=1 --out runs/berlin-s{seed}") in shown
