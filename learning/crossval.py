@@ -161,7 +161,7 @@ def saved_fold(reuse_dir: str | Path, fold: int, config: dict, held: list[Sequen
                free: tuple[str, ...] = RESCORE_FREE) -> dict:
     """The checkpoint ``reuse_dir/fold<fold>/last.pt``, checked to be of ``config``'s recipe (the ``free`` settings
     aside) and of the held-out pieces ``held``."""
-    from .train import fingerprint
+    from .train import fingerprint, source_file_hashes
 
     path = Path(reuse_dir) / f"fold{fold}" / "last.pt"
     try:
@@ -178,6 +178,14 @@ def saved_fold(reuse_dir: str | Path, fold: int, config: dict, held: list[Sequen
     val = config["data"]["val_split"]
     trained_on = [(p["sequence"], p["sha256_16"]) for p in prints if p["split"] == val]
     if trained_on != [(s.name, fingerprint(s)) for s in held]:
+        files = {ds: source_file_hashes(ds) for ds in config["data"]["datasets"]}
+        if (any(files.values()) and saved.get("source_files") == files
+                and [(p["sequence"], p.get("epochs")) for p in prints if p["split"] == val] ==
+                [(s.name, len(s)) for s in held]):
+            raise ValueError(f"{path}: its held-out block's features differ from this run's, though they come from "
+                             "the same input files and epochs: trained on another machine (whose arithmetic differs "
+                             "in the last digits) or another version of lfgnss's front end; rescore it where it was "
+                             "trained")
         raise ValueError(f"{path}: its held-out block is not this run's (another --folds, the data changed since "
                          "it was trained, or an older learning.crossval cut it, which broke folds at the "
                          "train/validation boundary)")

@@ -88,7 +88,8 @@ def test_command_writes_per_fold_and_pooled_rows(trained_run, capsys):
     assert exit_info.value.code == 2 and "already holds a cross-validation" in capsys.readouterr().err
 
 
-def test_reuse_scores_the_saved_fold_models_again_under_new_filter_settings(trained_run, tmp_path, capsys):
+def test_reuse_scores_the_saved_fold_models_again_under_new_filter_settings(trained_run, tmp_path, capsys,
+                                                                           monkeypatch):
     """``--reuse`` trains nothing: unchanged settings give the run's own figures back; an [ekf] change moves them;
     any other change, a missing run or a changed held-out block is one line and exit 2."""
     import torch
@@ -131,6 +132,15 @@ def test_reuse_scores_the_saved_fold_models_again_under_new_filter_settings(trai
     with pytest.raises(SystemExit) as exit_info:
         main(RECIPE + ["--fold", "0", "--out", str(tmp_path / "z"), "--reuse", str(tmp_path / "tampered")])
     assert exit_info.value.code == 2 and "its held-out block is not this run's" in capsys.readouterr().err
+    saved["source_files"] = {"synthetic": {"drive.obs": "1234"}}     # the same files, another machine's features
+    torch.save(saved, tampered / "last.pt")
+    with monkeypatch.context() as m:
+        m.setattr("learning.train.source_file_hashes", lambda ds: {"drive.obs": "1234"})
+        with pytest.raises(SystemExit) as exit_info:
+            main(RECIPE + ["--fold", "0", "--out", str(tmp_path / "z"), "--reuse", str(tmp_path / "tampered")])
+    assert exit_info.value.code == 2 and "tampered/fold0/last.pt: its held-out block's features differ from this " \
+        "run's, though they come from the same input files and epochs: trained on another machine" \
+        in capsys.readouterr().err
     (tampered / "last.pt").write_text("not a checkpoint")
     with pytest.raises(SystemExit) as exit_info:
         main(RECIPE + ["--fold", "0", "--out", str(tmp_path / "w"), "--reuse", str(tmp_path / "tampered")])
