@@ -22,8 +22,10 @@ Version ``ENSEMBLE_FORMAT_VERSION`` (2) is an ensemble (``export_ensemble``): ne
 different seeds, run as one noise model (R: geometric mean of the members', v^c: their mean). Its ``param/<name>``
 are the first member's, ``member<i>/param/<name>`` the others' (i = 1, 2, ...), and its metadata (the first
 member's) adds ``ensemble``: ``combine`` and ``members``, per member its checkpoint, seed, epoch, val_rmse_3d_m,
-provenance and, for a network taken from a model file, that file (``model_file``). Version 1 readers refuse it
-rather than run one member as if it were the whole.
+provenance and, for a network taken from a model file, the first file it came through (``model_file``,
+``model_file_sha256_16``) and, trained on another machine's features, its own ``data_fingerprints``; an ensemble grown
+from model files lists them in ``ensemble.grown_from`` (path, SHA-256, and how each was put together). Version 1
+readers refuse it rather than run one member as if it were the whole.
 
 ``load_model`` checks the file and returns an ``LfgnssModel`` whose ``predict`` re-implements the
 network's forward pass in numpy (float64), and whose ``__call__(sequence)`` makes it an
@@ -92,26 +94,30 @@ def export_model(checkpoint_path: str | Path, out_path: str | Path, *, extra_met
 
 
 def export_ensemble(sources: list[str | Path], out_path: str | Path, command: str | None = None) -> Path:
-    """Write training checkpoints of one recipe, trained with different seeds, as one ensemble model file.
+    """Write networks of one recipe, trained with different seeds (checkpoints or model files), as one ensemble file.
 
-    A source may also be a model file (``.npz``, single network or ensemble): its networks join the ensemble with
-    their records, so seeds trained later grow a shipped ensemble without its members' checkpoints.
+    A source may be a model file (``.npz`` or a bundled model's name, single network or ensemble): its networks join
+    the ensemble with their records, and the file, its SHA-256 and how it was put together are kept in
+    ``ensemble.grown_from``, so seeds trained later grow a shipped ensemble without its members' checkpoints;
+    ``out_path`` may be that file (it is replaced only by a file that reads back).
     The networks must share features, normaliser, network, filter and training data; their training
     configurations may differ only in ``ENSEMBLE_FREE``, their seeds must differ (ModelFileError naming the source
     and the setting). ``command``, the working folder and the git state are recorded as how the file was put
     together (``ensemble.exported``). A single checkpoint is written as ``export_model`` writes it.
     """
-    paths = [Path(p) for p in sources]
+    paths = [source_file(p) for p in sources]
     if not paths:
-        raise ValueError("export_ensemble: no checkpoint given")
+        raise ValueError("export_ensemble: no source given")
     if len(paths) == 1 and not str(paths[0]).endswith(".npz"):
         return _write_model_file(out_path, *_checkpoint_contents(paths[0]))
-    seen, seeds, networks, records, meta = {}, {}, [], [], None
+    seen, seeds, networks, records, meta, grown_from = {}, {}, [], [], None, []
     for path in paths:
         if path.resolve() in seen:
             raise ModelFileError(path, f"given twice (as {seen[path.resolve()]}): an ensemble's members are "
                                        "different training runs")
         seen[path.resolve()] = path
+        if str(path).endswith(".npz"):
+            grown_from.append(_grown_from_record(path))
         for net, norm, other, record in _source_networks(path):
             if meta is None:
                 params, normaliser, meta = net, norm, other
@@ -125,26 +131,52 @@ def export_ensemble(sources: list[str | Path], out_path: str | Path, command: st
             if key is not None:
                 raise ModelFileError(path, f"{key} differs from {paths[0]}'s: an ensemble's members must be one "
                                            f"recipe on the same data, differing only in {', '.join(ENSEMBLE_FREE)}")
+            if other.get("data_fingerprints") != meta.get("data_fingerprints"):   # another machine's rounding
+                record = {**record, "data_fingerprints": other.get("data_fingerprints")}
             networks.append(net)
             records.append(record)
     if len(networks) == 1:
         raise ModelFileError(paths[0], "holds one network: an ensemble needs two or more (give the checkpoints or "
                                        "model files of other seeds too)")
+    import lfgnss
+
     from .provenance import git_state
 
+    now = _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
     meta = {k: v for k, v in meta.items() if k != "ensemble"}
-    meta = {**meta, "format_version": ENSEMBLE_FORMAT_VERSION, "ensemble": {
-        "combine": ENSEMBLE_COMBINE,
-        "exported": {"command": command, "cwd": str(Path.cwd()), "git": git_state(),
-                     "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")},
-        "members": records}}
+    meta = {**meta, "format_version": ENSEMBLE_FORMAT_VERSION, "created_utc": now,
+            "versions": {**(meta.get("versions") or {}), "lfgnss": lfgnss.__version__, "numpy": np.__version__},
+            "ensemble": {"combine": ENSEMBLE_COMBINE,
+                         "exported": {"command": command, "cwd": str(Path.cwd()), "git": git_state(),
+                                      "created_utc": now},
+                         "members": records, **({"grown_from": grown_from} if grown_from else {})}}
     return _write_model_file(out_path, params, normaliser, meta, members=networks[1:])
+
+
+def source_file(source: str | Path) -> Path:
+    """An ensemble source as a path: a bundled model's name (``"berlin-pp"``) is its model file."""
+    path = Path(source)
+    return model_path(path) if not path.exists() and may_name_a_bundled_model(path) else path
+
+
+def _grown_from_record(path: Path) -> dict:
+    """What an ensemble keeps of a model file it grew from: path, SHA-256 (first 16) and how it was put together."""
+    import hashlib
+
+    model = load_model(path)
+    ensemble = model.metadata.get("ensemble") or {}
+    return {"model_file": str(path), "sha256_16": hashlib.sha256(path.read_bytes()).hexdigest()[:16],
+            "networks": len(model.members), "exported": ensemble.get("exported"),
+            **({"grown_from": ensemble["grown_from"]} if ensemble.get("grown_from") else {})}
 
 
 def _source_networks(path: Path) -> list[tuple[dict[str, np.ndarray], Normaliser, dict, dict]]:
     """Each network of an ensemble source (a checkpoint, or a model file's members): its weights, normaliser, the
     metadata it is checked by and its ``ensemble.members`` record (checkpoint, seed, epoch, validation RMSE,
-    provenance; a model file's members keep theirs and add ``model_file``, the file they came from)."""
+    provenance; a model file's members keep theirs, and one not yet from a model file adds ``model_file`` and
+    ``model_file_sha256_16``: the file it came from, which a grown ensemble written in place replaces)."""
+    import hashlib
+
     if not str(path).endswith(".npz"):
         params, normaliser, meta = _checkpoint_contents(path)
         return [(params, normaliser, meta, {"checkpoint": str(path), "seed": (meta.get("config") or {}).get("seed"),
@@ -155,8 +187,10 @@ def _source_networks(path: Path) -> list[tuple[dict[str, np.ndarray], Normaliser
     records = ensemble_members(meta) or [{"checkpoint": None, "seed": (meta.get("config") or {}).get("seed"),
                                           "epoch": meta.get("epoch"), "val_rmse_3d_m": meta.get("val_rmse_3d_m"),
                                           "provenance": meta.get("provenance")}]
+    via = {"model_file": str(path), "model_file_sha256_16": hashlib.sha256(path.read_bytes()).hexdigest()[:16]}
     return [({k: v.astype(np.float32) for k, v in net.items()}, model.normaliser, meta,
-             {**record, "model_file": str(path)}) for net, record in zip(model.members, records)]
+             record if record.get("model_file") else {**record, **via})
+            for net, record in zip(model.members, records)]
 
 
 #: Training settings that name files rather than say what was trained: the files' contents are compared instead
@@ -201,7 +235,7 @@ def _same_data(meta: dict, other: dict) -> bool:
     def unhashed(fingerprints: list) -> list:
         return [{k: v for k, v in p.items() if k != "sha256_16"} for p in fingerprints]
 
-    return bool(meta.get("source_files")) and meta.get("source_files") == other.get("source_files") \
+    return any((meta.get("source_files") or {}).values()) and meta.get("source_files") == other.get("source_files") \
         and unhashed(prints) == unhashed(others)
 
 
@@ -255,7 +289,8 @@ def _checkpoint_contents(checkpoint_path: str | Path) -> tuple[dict[str, np.ndar
 def _write_model_file(out_path: str | Path, params: dict[str, np.ndarray], normaliser: Normaliser, meta: dict,
                       members: list[dict[str, np.ndarray]] | None = None) -> Path:
     """The model file's arrays (weights as float32; ``members``: an ensemble's further networks) written to
-    ``out_path`` atomically (a kill mid-write keeps the file that was there)."""
+    ``out_path`` atomically (a kill mid-write, or a written file that does not read back, keeps the file that was
+    there)."""
     from .train import _replace_atomically     # train imports this module
 
     arrays = {f"param/{k}": np.asarray(v, np.float32) for k, v in params.items()}    # the format's float32
@@ -268,6 +303,7 @@ def _write_model_file(out_path: str | Path, params: dict[str, np.ndarray], norma
     def write(tmp: Path) -> None:
         with open(tmp, "wb") as fh:
             np.savez(fh, **arrays)
+        load_model(tmp)                             # before it replaces anything (out may be a source)
 
     out = Path(out_path)
     if out.is_dir():
@@ -710,9 +746,7 @@ def refilter_model(source_path: str | Path, out_path: str | Path, changes: dict,
         "source": str(source_path), "command": command, "git": git_state(),
         "versions": {"lfgnss": lfgnss.__version__, "numpy": np.__version__},
         "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")}]
-    out = _write_model_file(out_path, params, normaliser, meta, members)   # out may be source_path itself
-    load_model(out)                                            # the written file must read back
-    return out
+    return _write_model_file(out_path, params, normaliser, meta, members)   # out may be source_path itself
 
 
 def refilter_lines(metadata: dict) -> list[str]:
@@ -880,8 +914,18 @@ def ensemble_lines(metadata: dict) -> list[str]:
     def member(m: dict) -> str:
         val = m.get("val_rmse_3d_m")
         return (f"seed {m.get('seed')}, epoch {m.get('epoch')}, validation 3D RMSE "
-                f"{'-' if not isinstance(val, (int, float)) else f'{val:.3f} m'} ({m.get('checkpoint')}"
+                f"{'-' if not isinstance(val, (int, float)) else f'{val:.3f} m'} "
+                f"({m.get('checkpoint') or 'checkpoint not recorded'}"
                 + (f", via {m['model_file']})" if m.get("model_file") else ")"))
+
+    def grown(records: list, depth: int = 1) -> list[str]:
+        lines = []
+        for g in records or []:
+            done = g.get("exported") or {}
+            lines += [f"{'  ' * depth}grown from {g.get('model_file')} (sha256 {g.get('sha256_16')}..., "
+                      f"{g.get('networks')} networks, put together {done.get('created_utc', '?')}: "
+                      f"{done.get('command') or 'command not recorded'})", *grown(g.get("grown_from"), depth + 1)]
+        return lines
 
     from .provenance import code_text
 
@@ -889,7 +933,8 @@ def ensemble_lines(metadata: dict) -> list[str]:
     return [f"ensemble of {len(members)} networks of one recipe ({ensemble.get('combine')}):",
             *(f"  {i}: {member(m)}" for i, m in enumerate(members)),
             f"  put together {exported.get('created_utc', '?')} in {exported.get('cwd', '?')}, "
-            f"{code_text(exported.get('git'))}: {exported.get('command') or '(called from Python, no command line)'}"]
+            f"{code_text(exported.get('git'))}: {exported.get('command') or '(called from Python, no command line)'}",
+            *grown(ensemble.get("grown_from"))]
 
 
 def _ekf_assignment(text: str) -> tuple[str, object]:
@@ -946,6 +991,8 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     args.checkpoint, args.out, members = (args.paths[0], args.paths[-1], args.paths[:-1]) if len(args.paths) > 1 \
         else ((args.paths or [None])[0], None, [])
+    members = [source_file(m) for m in members]                 # a bundled model's name: its file
+    args.checkpoint = members[0] if members else args.checkpoint
     if args.config and args.show is None:
         p.error("--config goes with --show MODEL: it prints the training configuration stored in that model file")
     if (args.show is None) == (args.checkpoint is None) or (args.checkpoint is not None and args.out is None):

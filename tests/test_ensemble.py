@@ -241,3 +241,76 @@ def test_runs_that_name_their_files_otherwise_still_make_one_ensemble(members, t
     other = _checkpoint(tmp_path / "moved.pt", 8, norm, moved)[0]
     model = load_model(export_ensemble([runs[0][0], other], tmp_path / "e.npz"))
     assert len(model.members) == 2
+
+
+def test_an_ensemble_grown_in_place_keeps_where_its_networks_came_from(members, tmp_path, capsys):
+    """Growing a model file onto itself (the shipped-model workflow): the file it grew from is kept in
+    ``ensemble.grown_from`` with its SHA-256 and how it was put together, each network keeps the first file it came
+    through, and the written file's time and versions are the growth's; ``--show`` prints it all."""
+    import hashlib
+
+    _, _, _, runs = members
+    grown = tmp_path / "model.npz"
+    assert main([str(runs[0][0]), str(runs[1][0]), str(grown)]) == 0
+    before = load_model(grown).metadata
+    sha = hashlib.sha256(grown.read_bytes()).hexdigest()[:16]
+    assert main([str(grown), str(runs[2][0]), str(grown)]) == 0                   # in place, from the command line
+    assert "model.npz: ensemble of 3 networks" in capsys.readouterr().out
+    meta = load_model(grown).metadata
+    ensemble = meta["ensemble"]
+    assert [(m["seed"], m.get("model_file"), m.get("model_file_sha256_16")) for m in ensemble["members"]] == \
+        [(0, str(grown), sha), (1, str(grown), sha), (2, None, None)]
+    (source,) = ensemble["grown_from"]
+    assert source["model_file"] == str(grown) and source["sha256_16"] == sha and source["networks"] == 2
+    assert source["exported"] == before["ensemble"]["exported"]
+    assert meta["created_utc"] == ensemble["exported"]["created_utc"] >= before["created_utc"]
+    again = tmp_path / "again.npz"                                              # a second growth keeps the first
+    export_ensemble([grown, _checkpoint(tmp_path / "s7.pt", 7, members[2])[0]], again)
+    meta = load_model(again).metadata
+    assert [m.get("model_file") for m in meta["ensemble"]["members"]] == [str(grown)] * 3 + [None]
+    assert meta["ensemble"]["grown_from"][0]["grown_from"] == [source]
+    assert main(["--show", str(again)]) == 0
+    shown = capsys.readouterr().out
+    assert f"  grown from {grown} (sha256 " in shown and f"    grown from {grown} (sha256 {sha}..., 2 networks" in shown
+    single = export_model(runs[0][0], tmp_path / "single.npz")                   # a lone network records no checkpoint
+    meta = load_model(export_ensemble([single, runs[1][0]], tmp_path / "pair.npz")).metadata
+    assert meta["ensemble"]["members"][0]["checkpoint"] is None
+    assert main(["--show", str(tmp_path / "pair.npz")]) == 0
+    assert f"  0: seed 0, epoch 3, validation 3D RMSE 4.000 m (checkpoint not recorded, via {single})" in \
+        capsys.readouterr().out
+
+
+def test_a_grown_file_that_does_not_read_back_leaves_the_source_whole(members, tmp_path, monkeypatch):
+    import learning.export as export
+
+    _, _, _, runs = members
+    path = export_ensemble([runs[0][0], runs[1][0]], tmp_path / "model.npz")
+    kept = path.read_bytes()
+
+    def broken(p, *a, **k):
+        if ".partial" in str(p):
+            raise ModelFileError(p, "does not read back")
+        return load_model(p, *a, **k)
+
+    monkeypatch.setattr(export, "load_model", broken)
+    with pytest.raises(ModelFileError, match="does not read back"):
+        export_ensemble([path, runs[2][0]], path)
+    assert path.read_bytes() == kept and [p.name for p in tmp_path.iterdir()] == ["model.npz"]
+
+
+def test_a_bundled_model_is_a_source_by_name_and_members_from_elsewhere_keep_their_fingerprints(members, tmp_path):
+    from lfgnss.paths import bundled_models
+
+    _, _, norm, _ = members
+    name = sorted(bundled_models())[0]
+    with pytest.raises(ModelFileError) as info:                               # read as the model file, not a checkpoint
+        export_ensemble([name, _checkpoint(tmp_path / "s99.pt", 99, norm)[0]], tmp_path / "x.npz")
+    assert f"differs from {bundled_models()[name]}'s" in str(info.value)
+    files = {"synthetic": {"drive.obs": "1111"}}
+    here = _checkpoint(tmp_path / "here.pt", 0, norm, data_fingerprints=[{"sequence": "s", "sha256_16": "aa"}],
+                       source_files=files)[0]
+    there = _checkpoint(tmp_path / "there.pt", 1, norm, data_fingerprints=[{"sequence": "s", "sha256_16": "bb"}],
+                        source_files=files)[0]
+    records = load_model(export_ensemble([here, there], tmp_path / "e.npz")).metadata["ensemble"]["members"]
+    assert "data_fingerprints" not in records[0] and records[1]["data_fingerprints"] == [{"sequence": "s",
+                                                                                         "sha256_16": "bb"}]
