@@ -38,6 +38,7 @@ from __future__ import annotations
 import dataclasses
 import datetime as _dt
 import errno
+import hashlib
 import json
 import shlex
 import sys
@@ -116,9 +117,9 @@ def export_ensemble(sources: list[str | Path], out_path: str | Path, command: st
             raise ModelFileError(path, f"given twice (as {seen[path.resolve()]}): an ensemble's members are "
                                        "different training runs")
         seen[path.resolve()] = path
-        if str(path).endswith(".npz"):
-            grown_from.append(_grown_from_record(path))
-        for net, norm, other, record in _source_networks(path):
+        source_networks, grown = _source_networks(path)
+        grown_from += [grown] if grown else []
+        for net, norm, other, record in source_networks:
             if meta is None:
                 params, normaliser, meta = net, norm, other
             seed = record.get("seed")
@@ -159,38 +160,30 @@ def source_file(source: str | Path) -> Path:
     return model_path(path) if not path.exists() and may_name_a_bundled_model(path) else path
 
 
-def _grown_from_record(path: Path) -> dict:
-    """What an ensemble keeps of a model file it grew from: path, SHA-256 (first 16) and how it was put together."""
-    import hashlib
-
-    model = load_model(path)
-    ensemble = model.metadata.get("ensemble") or {}
-    return {"model_file": str(path), "sha256_16": hashlib.sha256(path.read_bytes()).hexdigest()[:16],
-            "networks": len(model.members), "exported": ensemble.get("exported"),
-            **({"grown_from": ensemble["grown_from"]} if ensemble.get("grown_from") else {})}
-
-
-def _source_networks(path: Path) -> list[tuple[dict[str, np.ndarray], Normaliser, dict, dict]]:
+def _source_networks(path: Path) -> tuple[list[tuple[dict[str, np.ndarray], Normaliser, dict, dict]], dict | None]:
     """Each network of an ensemble source (a checkpoint, or a model file's members): its weights, normaliser, the
     metadata it is checked by and its ``ensemble.members`` record (checkpoint, seed, epoch, validation RMSE,
     provenance; a model file's members keep theirs, and one not yet from a model file adds ``model_file`` and
-    ``model_file_sha256_16``: the file it came from, which a grown ensemble written in place replaces)."""
-    import hashlib
-
+    ``model_file_sha256_16``: the file it came from, which a grown ensemble written in place replaces); and, for a
+    model file, its ``ensemble.grown_from`` record (path, SHA-256, networks, how it was put together)."""
     if not str(path).endswith(".npz"):
         params, normaliser, meta = _checkpoint_contents(path)
         return [(params, normaliser, meta, {"checkpoint": str(path), "seed": (meta.get("config") or {}).get("seed"),
                                             "epoch": meta.get("epoch"), "val_rmse_3d_m": meta.get("val_rmse_3d_m"),
-                                            "provenance": meta.get("provenance")})]
+                                            "provenance": meta.get("provenance")})], None
     model = load_model(path)
     meta = json.loads(json.dumps(model.metadata, default=_json_default))
     records = ensemble_members(meta) or [{"checkpoint": None, "seed": (meta.get("config") or {}).get("seed"),
                                           "epoch": meta.get("epoch"), "val_rmse_3d_m": meta.get("val_rmse_3d_m"),
                                           "provenance": meta.get("provenance")}]
-    via = {"model_file": str(path), "model_file_sha256_16": hashlib.sha256(path.read_bytes()).hexdigest()[:16]}
+    sha = hashlib.sha256(path.read_bytes()).hexdigest()[:16]
+    ensemble = meta.get("ensemble") or {}
+    grown = {"model_file": str(path), "sha256_16": sha, "networks": len(model.members),
+             "exported": ensemble.get("exported"),
+             **({"grown_from": ensemble["grown_from"]} if ensemble.get("grown_from") else {})}
     return [({k: v.astype(np.float32) for k, v in net.items()}, model.normaliser, meta,
-             record if record.get("model_file") else {**record, **via})
-            for net, record in zip(model.members, records)]
+             record if record.get("model_file") else {**record, "model_file": str(path), "model_file_sha256_16": sha})
+            for net, record in zip(model.members, records)], grown
 
 
 #: Training settings that name files rather than say what was trained: the files' contents are compared instead
