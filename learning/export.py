@@ -293,12 +293,17 @@ def _write_model_file(out_path: str | Path, params: dict[str, np.ndarray], norma
     arrays["normaliser_std"] = normaliser.std.astype(np.float64)
     arrays["metadata"] = np.array(json.dumps(meta, default=_json_default))
 
+    out = Path(out_path)
+
     def write(tmp: Path) -> None:
         with open(tmp, "wb") as fh:
             np.savez(fh, **arrays)
-        load_model(tmp)                             # before it replaces anything (out may be a source)
+        try:
+            load_model(tmp)                         # before it replaces anything (out may be a source)
+        except ModelFileError as exc:
+            raise ModelFileError(out, f"the file written does not read back, so it was not written ({exc.reason})") \
+                from exc
 
-    out = Path(out_path)
     if out.is_dir():
         raise IsADirectoryError(errno.EISDIR, "a folder, not a model file to write", str(out))
     try:
