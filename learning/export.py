@@ -50,7 +50,7 @@ import numpy as np
 
 from lfgnss.errors import InputError
 from lfgnss.features import AVAILABLE_FEATURES
-from lfgnss.paths import MODEL_PREFIX, bundled_models, may_name_a_bundled_model, model_path
+from lfgnss.paths import MODEL_PREFIX, bundled_models, may_name_a_bundled_model, model_path, replace_atomically
 from lfgnss.sequence import Sequence
 from lfgnss.weighted_fix import cn0_elevation_variance_m2
 
@@ -284,8 +284,6 @@ def _write_model_file(out_path: str | Path, params: dict[str, np.ndarray], norma
     """The model file's arrays (weights as float32; ``members``: an ensemble's further networks) written to
     ``out_path`` atomically (a kill mid-write, or a written file that does not read back, keeps the file that was
     there)."""
-    from .train import _replace_atomically     # train imports this module
-
     arrays = {f"param/{k}": np.asarray(v, np.float32) for k, v in params.items()}    # the format's float32
     for i, member in enumerate(members or [], start=1):
         arrays.update({f"member{i}/param/{k}": np.asarray(v, np.float32) for k, v in member.items()})
@@ -308,7 +306,7 @@ def _write_model_file(out_path: str | Path, params: dict[str, np.ndarray], norma
         raise IsADirectoryError(errno.EISDIR, "a folder, not a model file to write", str(out))
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
-        _replace_atomically(out, write)
+        replace_atomically(out, write)
     except OSError as exc:                          # name the file asked for, not the temporary one beside it
         raise OSError(exc.errno, f"cannot write the model file ({exc.strerror or exc})", str(out)) from exc
     return out

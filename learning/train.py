@@ -62,6 +62,7 @@ import torch
 
 from lfgnss.datasets import load_split, register_toml, split_parts
 from lfgnss.errors import INPUT_ERRORS, one_line, shortened
+from lfgnss.paths import replace_atomically
 from lfgnss.sequence import DEFAULT_FEATURES, Sequence
 
 from . import provenance
@@ -726,21 +727,6 @@ def dataset_balance(sequences: list[Sequence], dataset_ids: list[str], ekf_cfg) 
     return factors
 
 
-def _replace_atomically(path: Path, write: Callable[[Path], object]) -> None:
-    """``write(tmp)`` to ``.NAME.partial`` beside ``path``, then renamed onto ``path`` (``os.replace``, atomic): a run
-    killed mid-write keeps the previous file whole (and at most a stray partial file, which the next write replaces)."""
-    tmp = path.with_name(f".{path.stem}.partial{path.suffix}")
-    try:
-        write(tmp)
-        with open(tmp, "r+b") as fh:            # on the disk before the rename, so a power cut leaves one or the other
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            tmp.unlink()
-        raise
-
-
 def _write_log(path: Path, history: list[dict]) -> None:
     def write(tmp: Path) -> None:
         with open(tmp, "w", newline="") as fh:
@@ -749,7 +735,7 @@ def _write_log(path: Path, history: list[dict]) -> None:
             w.writeheader()
             w.writerows(history)
 
-    _replace_atomically(path, write)
+    replace_atomically(path, write)
 
 
 def _plot(path: Path, history: list[dict]) -> None:
@@ -769,7 +755,7 @@ def _plot(path: Path, history: list[dict]) -> None:
         a.xaxis.set_major_locator(MaxNLocator(integer=True))      # epochs are whole: no 0.5 ticks on short runs
         a.grid(alpha=0.3)
     fig.tight_layout()
-    _replace_atomically(path, lambda tmp: fig.savefig(tmp, dpi=100, format="png"))
+    replace_atomically(path, lambda tmp: fig.savefig(tmp, dpi=100, format="png"))
     plt.close(fig)
 
 
@@ -1017,7 +1003,7 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
                  "n_systems": prep.n_systems, "config": config, "ekf_config": dataclasses.asdict(ekf_cfg),
                  "data_fingerprints": prep.fingerprints, "source_files": prep.source_files,
                  "init_model": started_from, "config_file": config_record, "provenance": made}
-        _replace_atomically(path, lambda tmp: torch.save(state, tmp))
+        replace_atomically(path, lambda tmp: torch.save(state, tmp))
         if path == last_path and last_saved is not None:
             last_saved["epoch"] = epoch
 

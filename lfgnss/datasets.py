@@ -41,7 +41,7 @@ import numpy as np
 from .constants import SYSTEMS, unknown_systems
 from .errors import InputError
 from .frames import NEAR_SURFACE_RADIUS_M, lla_to_ecef
-from .paths import cache_dir, names_something, shared_data_dir
+from .paths import cache_dir, names_something, replace_atomically, shared_data_dir
 from .sequence import DEFAULT_FEATURES, Sequence, load_sequence, save_sequence
 from .time import SECONDS_PER_WEEK, gps_s_to_week_tow, week_tow_to_gps_s
 
@@ -575,7 +575,7 @@ def build(dataset_id: str, *, feature_names: tuple[str, ...] = DEFAULT_FEATURES,
         seq = build_sequence(meas, fix, feature_names=feature_names, name=dataset_id, truth_ecef_m=truth)
         if cache:
             target.parent.mkdir(parents=True, exist_ok=True)
-            save_sequence(target, seq)
+            replace_atomically(target, lambda tmp: save_sequence(tmp, seq))    # parallel builds each write whole
     _warn_truth(spec, seq, notes)
     dropped = [c for c in spec.systems or () if c not in seq.systems]
     if dropped:

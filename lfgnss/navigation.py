@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Iterable
 import numpy as np
 
 from .errors import RinexError
-from .paths import cache_dir
+from .paths import cache_dir, replace_atomically
 from .rinex import RinexWarning, _decode
 from .time import BDT_MINUS_GPST_S, SECONDS_PER_WEEK, datetime64_to_gps_s, utc_to_gps_s
 
@@ -181,10 +181,7 @@ def _load_cached(paths: list[Path]) -> Navigation:
             target.unlink(missing_ok=True)
     nav = _parse_nav(paths)
     target.parent.mkdir(parents=True, exist_ok=True)
-    tmp = target.with_suffix(".tmp")
-    with open(tmp, "wb") as f:
-        pickle.dump(nav, f, protocol=pickle.HIGHEST_PROTOCOL)
-    tmp.replace(target)
+    replace_atomically(target, lambda tmp: tmp.write_bytes(pickle.dumps(nav, protocol=pickle.HIGHEST_PROTOCOL)))
     return nav
 
 

@@ -1,7 +1,10 @@
 """Where lfgnss finds shared benchmark data, bundled data and its cache."""
 from __future__ import annotations
 
+import contextlib
 import os
+import secrets
+from collections.abc import Callable
 from pathlib import Path
 
 PACKAGE_DIR = Path(__file__).resolve().parent
@@ -60,3 +63,22 @@ def cache_dir() -> Path:
     path = Path(env) if env else Path.home() / ".cache" / "lfgnss"
     path.mkdir(parents=True, exist_ok=True)
     return path
+
+
+def replace_atomically(path: Path, write: Callable[[Path], object]) -> None:
+    """``write(tmp)`` to a temporary file beside ``path``, then renamed onto it (``os.replace``, atomic).
+
+    A run killed mid-write keeps the previous file whole, and readers never see half a file. The temporary name is
+    ``.STEM.PID-RANDOM.partial.SUFFIX``, its own for each write, so two processes filling one cache entry at once
+    (parallel tests, two solves of one file) each rename a whole file instead of writing into each other's.
+    """
+    tmp = path.with_name(f".{path.stem}.{os.getpid()}-{secrets.token_hex(4)}.partial{path.suffix}")
+    try:
+        write(tmp)
+        with open(tmp, "r+b") as fh:            # on the disk before the rename, so a power cut leaves one or the other
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise

@@ -25,7 +25,7 @@ import numpy as np
 from .constants import SYSTEMS
 from .errors import RinexError
 from .observations import Observations
-from .paths import cache_dir
+from .paths import cache_dir, replace_atomically
 from .time import utc_to_gps_s
 
 if TYPE_CHECKING:
@@ -676,10 +676,9 @@ def _to_npz(target: Path, obs: Observations) -> None:
     target.parent.mkdir(parents=True, exist_ok=True)
     meta = json.dumps({"version": obs.version, "codes": obs.codes, "warnings": list(obs.warnings),
                        "path": str(obs.path)})
-    tmp = target.with_suffix(".tmp.npz")
-    np.savez(tmp, time_gps_s=obs.time_gps_s, sv=obs.sv, pr_m=obs.pr_m, cn0_dbhz=obs.cn0_dbhz,
-             doppler_hz=obs.doppler_hz, approx_ecef_m=obs.approx_ecef_m, meta=np.array(meta))
-    tmp.replace(target)
+    replace_atomically(target, lambda tmp: np.savez(
+        tmp, time_gps_s=obs.time_gps_s, sv=obs.sv, pr_m=obs.pr_m, cn0_dbhz=obs.cn0_dbhz, doppler_hz=obs.doppler_hz,
+        approx_ecef_m=obs.approx_ecef_m, meta=np.array(meta)))
 
 
 def _from_npz(source: Path, path: Path) -> Observations:

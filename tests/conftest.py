@@ -1,12 +1,17 @@
 """Generic fixtures: shared benchmark data and the RTKLIB binary, skipped with a reason when absent."""
 from __future__ import annotations
 
+import os
 import shutil
 from pathlib import Path
 
 import pytest
 
 from lfgnss.paths import shared_data_dir
+
+if "PYTEST_XDIST_WORKER_COUNT" in os.environ:      # pytest -n N: N workers share the cores, so torch's threads do too
+    _workers = int(os.environ["PYTEST_XDIST_WORKER_COUNT"])
+    os.environ.setdefault("OMP_NUM_THREADS", str(max(1, (os.cpu_count() or 1) // _workers)))
 
 
 @pytest.fixture(scope="session")
