@@ -55,7 +55,7 @@ import time
 import warnings
 import tomllib
 from pathlib import Path
-from typing import Any, Callable, Iterator
+from typing import Any, Iterator
 
 import numpy as np
 import torch
