@@ -62,7 +62,7 @@ import numpy as np
 
 from lfgnss.datasets import contiguous_runs, split_parts
 from lfgnss.errors import (INPUT_ERRORS, InputError, cannot_write, input_line, one_line, path_option, shortened,
-                           stdout_gone)
+                           stdout_gone, warnings_on_one_line)
 from lfgnss.metrics import accuracy_table, markdown_table
 from lfgnss.paths import model_path
 from lfgnss.sequence import Sequence
@@ -576,12 +576,13 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out or Path("runs") / f"cv-{Path(args.config).stem if args.config else 'default'}")
     command = command_line(p.prog, sys.argv[1:] if argv is None else list(argv))
     try:
-        if args.pool:
-            pool(args.pool, args.folds, out, command)
-        else:
-            config = load_config(args.config, args.overrides)
-            crossval(config, args.folds, out, progress=not args.no_progress, only=args.only, reuse=args.reuse,
-                     command=command, config_file=args.config, epoch_lines=True, combine=args.combine)
+        with warnings_on_one_line():
+            if args.pool:
+                pool(args.pool, args.folds, out, command)
+            else:
+                config = load_config(args.config, args.overrides)
+                crossval(config, args.folds, out, progress=not args.no_progress, only=args.only, reuse=args.reuse,
+                         command=command, config_file=args.config, epoch_lines=True, combine=args.combine)
     except UnwrittenResults as exc:           # computed, not written: the table goes to stdout all the same
         print(markdown_table(exc.rows, COLUMNS), end="")
         exit_on_input_error(p, exc)

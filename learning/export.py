@@ -252,7 +252,8 @@ def _checkpoint_contents(checkpoint_path: str | Path) -> tuple[dict[str, np.ndar
         params = {name: t.detach().cpu().numpy().astype(np.float32) for name, t in state.items()}
     except (OSError, RuntimeError, KeyError, ValueError, TypeError, AttributeError, EOFError,
             pickle.UnpicklingError) as exc:
-        raise ModelFileError(checkpoint_path, f"not a usable training checkpoint ({type(exc).__name__}: {exc})") from exc
+        reason = str(exc) if str(exc).startswith("not a torch file") else f"{type(exc).__name__}: {exc}"
+        raise ModelFileError(checkpoint_path, f"not a usable training checkpoint ({reason})") from exc
     history = ckpt.get("history") or []
     row = next((h for h in history if h.get("epoch") == ckpt.get("epoch")), {})
     meta = {

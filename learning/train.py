@@ -61,7 +61,7 @@ import numpy as np
 import torch
 
 from lfgnss.datasets import load_split, register_toml, split_parts
-from lfgnss.errors import INPUT_ERRORS, one_line, shortened
+from lfgnss.errors import INPUT_ERRORS, one_line, shortened, warnings_on_one_line
 from lfgnss.paths import replace_atomically
 from lfgnss.sequence import DEFAULT_FEATURES, Sequence
 
@@ -777,10 +777,18 @@ def read_checkpoint(path: str | Path) -> Any:
         try:
             return torch.load(path, map_location="cpu", weights_only=True)
         except pickle.UnpicklingError as exc:
+            operand = re.search(r"Unsupported operand (\d+)", str(exc))
+            if operand:                     # the first byte is no pickle instruction: text, random bytes
+                raise ValueError(f"not a torch file (UnpicklingError: unknown pickle operand {operand[1]})") from None
             found = re.search(r"GLOBAL (\S+)|got <class '([^']+)'>", str(exc))
             what = f" ({found[1] or found[2]})" if found else ""
             raise ValueError(f"it holds an object other than tensors, plain containers and numpy arrays{what}, which "
                              f"is not read (it could run code)") from None
+        except Exception as exc:
+            if isinstance(exc, (OSError, RuntimeError, EOFError, ValueError)):
+                raise
+            # torch's reader of old-style files fails with IndexError, struct.error, ... on text or other files
+            raise ValueError(f"not a torch file ({type(exc).__name__}: {exc})") from None
 
 
 def load_checkpoint(path: str | Path) -> dict:
@@ -1135,9 +1143,10 @@ def main(argv: list[str] | None = None) -> int:
     out = args.out or str(Path("runs") / (Path(args.config).stem if args.config else "default"))
     try:
         config = load_config(args.config, args.overrides)
-        history = train(config, out, resume=args.resume, overrides=args.overrides, progress=not args.no_progress,
-                        epoch_lines=True, config_file=args.config,
-                        command=provenance.command_line(p.prog, sys.argv[1:] if argv is None else list(argv)))
+        with warnings_on_one_line():
+            history = train(config, out, resume=args.resume, overrides=args.overrides, progress=not args.no_progress,
+                            epoch_lines=True, config_file=args.config,
+                            command=provenance.command_line(p.prog, sys.argv[1:] if argv is None else list(argv)))
     except INPUT_ERRORS as exc:
         exit_on_input_error(p, exc)
     except KeyboardInterrupt as exc:          # Ctrl-C: one line saying what is kept and how to go on

@@ -53,7 +53,7 @@ import numpy as np
 
 from . import datasets
 from .errors import (INPUT_ERRORS, InputError, cannot_write, input_line, one_line, path_option, shortened,
-                     stdout_gone)
+                     stdout_gone, warnings_on_one_line)
 from .metrics import METRIC_COLUMNS, accuracy_table, format_markdown, format_text, markdown_table
 from .paths import bundled_data_dir
 from .sequence import Sequence
@@ -678,17 +678,6 @@ def _refuse_partial_docs(args: argparse.Namespace, ids: list[str]) -> None:
                                    "would replace them with a part: give another --out")
 
 
-def _check_cache() -> None:
-    """InputError naming ``$LFGNSS_CACHE`` when the cache folder cannot be made (a file in its place, no such disk)."""
-    from .paths import cache_dir
-
-    try:
-        cache_dir()
-    except OSError as err:
-        where = os.environ.get("LFGNSS_CACHE") or err.filename
-        raise InputError(where, f"cannot be used as the cache folder ($LFGNSS_CACHE): {err.strerror or err}") from None
-
-
 def main(argv: list[str] | None = None) -> int:
     """Run the benchmark and write the results file.
 
@@ -734,9 +723,8 @@ def main(argv: list[str] | None = None) -> int:
         root = Path(DEFAULT_OUT)
         args.out = root if args.warm_up is None else root / f"warm-up-{args.warm_up}"
     try:
-        with warnings.catch_warnings():     # one line each ("warning: ..."), not Python's with a source line
+        with warnings_on_one_line():
             warnings.simplefilter("ignore", FutureWarning)
-            warnings.showwarning = _print_warning
             return _main(args, argv)
     except (*INPUT_ERRORS, OSError) as err:
         print(f"error: {input_line(err)}", file=sys.stderr)
@@ -748,11 +736,6 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: internal error in the benchmark ({type(err).__name__}: {one_line(err)}); please report it",
               file=sys.stderr)
         return 3
-
-
-def _print_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    """``warnings.showwarning`` of the command line: ``warning: MESSAGE`` on one line of stderr."""
-    print(f"warning: {one_line(message)}", file=sys.stderr)
 
 
 def _nothing_run(failed: list[str], report: Path) -> InputError:
@@ -790,7 +773,6 @@ def _main(args: argparse.Namespace, argv: list[str] | None) -> int:
                                                   f"{first}{where})")
     made_by = provenance_text(model_files(args.models, ids), args.out)     # before the run writes anything
     report = _prepare_out(args.out, plots=not args.no_plots)
-    _check_cache()
     unwritten: list[str] = []      # figures and results.md that could not be written: the rest is kept, exit 2
     left_out: list[str] = []       # --backend rows whose estimator raised: the other rows are kept, exit 2
     # datasets whose files are missing or turn out bad (failed, above): the others are kept, exit 2

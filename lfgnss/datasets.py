@@ -23,6 +23,13 @@ file (``register_toml``)::
     test = [47001, 47186]
 
 A key not listed here (a typo) is refused, naming the file, the key and the keys known there.
+
+Truth rows (numbers separated by commas or spaces; ``TRUTH_COLUMNS``):
+
+- ``urbannav``: GPS week, TOW [s], latitude, longitude [deg], ellipsoidal height [m];
+- ``smartloc``: ``point3``, t [s since ``time_origin_gps_s``], ECEF X, Y, Z [m] (libRSF; ``#`` lines are comments);
+- ``static``: TOW [s], TOW [s], latitude, longitude [deg], ellipsoidal height [m]; the first row labels every epoch;
+- ``ecef-csv``: GPS seconds since 1980-01-06, ECEF X, Y, Z [m].
 """
 from __future__ import annotations
 
@@ -41,7 +48,7 @@ import numpy as np
 from .constants import SYSTEMS, unknown_systems
 from .errors import InputError
 from .frames import NEAR_SURFACE_RADIUS_M, lla_to_ecef
-from .paths import cache_dir, names_something, replace_atomically, shared_data_dir
+from .paths import cache_file, load_cached, names_something, shared_data_dir, store_cached
 from .sequence import DEFAULT_FEATURES, Sequence, load_sequence, save_sequence
 from .time import SECONDS_PER_WEEK, gps_s_to_week_tow, week_tow_to_gps_s
 
@@ -260,7 +267,7 @@ def register_toml(path: str | Path, *, need_splits: tuple[str, ...] = ()) -> Dat
         tolerance, origin = truth.get("match_tolerance_s"), truth.get("time_origin_gps_s")
         spec = DatasetSpec(
             id=str(cfg["id"]), obs=tuple(base / p for p in cfg["obs"]), nav=tuple(base / p for p in cfg["nav"]),
-            truth=base / truth["file"], truth_format=str(truth.get("format", "urbannav")), splits=splits,
+            truth=base / truth["file"], truth_format=str(truth.get("format", "urbannav")).lower(), splits=splits,
             split_axis=str(axis), systems=None if systems is None else tuple(systems),
             match_tolerance_s=None if tolerance is None else float(tolerance),
             time_origin_gps_s=None if origin is None else float(origin), description=str(cfg.get("description", "")),
@@ -289,6 +296,7 @@ def get(dataset_id: str, *, hint: str | None = None) -> DatasetSpec:
 #: height and more), ellipsoidal height [m] within TRUTH_HEIGHT_M.
 TRUTH_RADIUS_M = NEAR_SURFACE_RADIUS_M
 TRUTH_HEIGHT_M = (-1.0e4, 1.0e5)
+GPS_WEEK_MAX = 9999             # full GPS weeks since 1980-01-06 (week 9999 is in 2171)
 
 
 def _lla_problem(values: list[float]) -> str | None:
@@ -301,6 +309,20 @@ def _lla_problem(values: list[float]) -> str | None:
     if not TRUTH_HEIGHT_M[0] <= h <= TRUTH_HEIGHT_M[1]:
         return f"height {h:g} m outside [{TRUTH_HEIGHT_M[0]:g}, {TRUTH_HEIGHT_M[1]:g}]"
     return None
+
+
+def _week_tow_problem(values: list[float]) -> str | None:
+    """Why a row of (GPS week, TOW [s], latitude [deg], longitude [deg], height [m]) is no position in time, or None.
+
+    A static file's first column (a time of week, 0-604800 s) read as the week fails here, so the file is not taken
+    for urbannav truth whose every time is thousands of weeks off.
+    """
+    week, tow = values[:2]
+    if not (0 <= week <= GPS_WEEK_MAX and week == int(week)):
+        return f"GPS week {week:g} is not a whole number in [0, {GPS_WEEK_MAX}]"
+    if not 0.0 <= tow <= SECONDS_PER_WEEK:
+        return f"time of week {tow:g} s outside [0, {SECONDS_PER_WEEK:g}]"
+    return _lla_problem(values)
 
 
 def _ecef_problem(values: list[float]) -> str | None:
@@ -355,8 +377,17 @@ def _numeric_rows(path: Path, n_cols: int, record_word: str | None = None,
 
 
 #: Each truth format's rows, as _numeric_rows' (numbers per row, record word, plausibility check).
-_ROW_LAYOUTS = {"urbannav": (5, None, _lla_problem), "smartloc": (4, "point3", _ecef_problem),
+_ROW_LAYOUTS = {"urbannav": (5, None, _week_tow_problem), "smartloc": (4, "point3", _ecef_problem),
                 "static": (5, None, _lla_problem), "ecef-csv": (4, None, _ecef_problem)}
+
+#: The columns of each truth format's rows (comma- or space-separated; '#' lines are comments in smartloc files).
+TRUTH_COLUMNS = {
+    "urbannav": "GPS week, TOW [s], latitude, longitude [deg], ellipsoidal height [m]",
+    "smartloc": "the word point3, t [s since the truth origin: --truth-origin or time_origin_gps_s, default the "
+                "first epoch], ECEF X, Y, Z [m]",
+    "static": "TOW [s], TOW [s], latitude, longitude [deg], ellipsoidal height [m]; the first row labels every epoch",
+    "ecef-csv": "GPS seconds since 1980-01-06, ECEF X, Y, Z [m]",
+}
 
 
 def _readable_as(path: Path, truth_format: str) -> str | None:
@@ -425,6 +456,41 @@ def read_ecef_csv(path: Path, spec: DatasetSpec) -> tuple[np.ndarray, np.ndarray
 TRUTH_READERS = {"urbannav": read_urbannav, "smartloc": read_smartloc, "static": read_static, "ecef-csv": read_ecef_csv}
 
 
+#: A truth whose times read as UTC sit at most this fraction of the distance [m] from the coarse fixes that they do
+#: read as GPST, and this much closer, is taken for a truth stamped in UTC: GPST - UTC (17-18 s) at driving speed is
+#: 100-300 m, against the coarse fixes' median error of 40-90 m in a city (the bundled Berlin drive at 6 m/s, its
+#: truth stamped in UTC: a median 72 m read as UTC against 121 m read as GPST).
+UTC_STAMP_RATIO = 0.75
+UTC_STAMP_GAIN_M = 30.0
+
+
+def utc_stamp_note(spec: DatasetSpec, time_gps_s: np.ndarray, fix_ecef_m: np.ndarray) -> str | None:
+    """A note when ``spec``'s truth matches the coarse fixes (T, 3) [m] far better with its times read as UTC.
+
+    UrbanNav and ecef-csv truth times are GPST; a file stamped in UTC is off by the leap seconds (18 s since 2017),
+    which costs a moving receiver 100 m and more of apparent error. Static and smartloc truth (times relative to an
+    origin the user gives) are not checked.
+    """
+    from .time import leap_seconds
+
+    time_gps_s = np.asarray(time_gps_s, dtype=float)
+    if spec.truth_format not in ("urbannav", "ecef-csv") or time_gps_s.size == 0:
+        return None
+    leap = leap_seconds(time_gps_s)
+    as_gpst, as_utc = align_truth(time_gps_s, spec)[0], align_truth(time_gps_s - leap, spec)[0]
+    both = np.isfinite(as_gpst).all(axis=1) & np.isfinite(as_utc).all(axis=1) & np.isfinite(fix_ecef_m).all(axis=1)
+    if both.sum() < 10:
+        return None
+    gpst_m = float(np.median(np.linalg.norm(as_gpst[both] - fix_ecef_m[both], axis=1)))
+    utc_m = float(np.median(np.linalg.norm(as_utc[both] - fix_ecef_m[both], axis=1)))
+    if utc_m > UTC_STAMP_RATIO * gpst_m or gpst_m - utc_m < UTC_STAMP_GAIN_M:
+        return None
+    return (f"{spec.truth}: the truth lies a median {utc_m:.0f} m from the receiver's least-squares fixes with its "
+            f"times read as UTC, against {gpst_m:.0f} m read as GPST (on {int(both.sum())} epochs): are its times UTC? "
+            f"{spec.truth_format} times are GPST (GPST - UTC = {float(np.median(leap)):g} s here); shift them by that "
+            "much, it is scored as GPST all the same")
+
+
 def read_truth(path: str | Path, time_gps_s: np.ndarray, truth_format: str = "urbannav", *,
                time_origin_gps_s: float | None = None, match_tolerance_s: float | None = None) -> np.ndarray:
     """(T, 3) ECEF ground truth [m] at epoch times [GPS s] from a truth file; NaN where none lies within the tolerance.
@@ -457,7 +523,11 @@ def align_truth(time_gps_s: np.ndarray, spec: DatasetSpec) -> tuple[np.ndarray, 
     except InputError as err:
         other = _readable_as(spec.truth, spec.truth_format) if spec.truth_format in _ROW_LAYOUTS else None
         if other is None:
-            raise
+            columns = TRUTH_COLUMNS.get(spec.truth_format)
+            if columns is None or not err.reason.startswith("no readable ground-truth line"):
+                raise
+            raise InputError(err.path, f"{err.reason} (truth format {spec.truth_format!r} has rows of {columns})",
+                             line=err.line) from None
         give = f'format = "{other}" in [truth] of {spec.source}' if spec.source else f"--truth-format {other}"
         raise InputError(err.path, f"{err.reason} (read as truth format {spec.truth_format!r}; the file reads as "
                                    f"{other!r}: give {give})", line=err.line) from None
@@ -558,13 +628,8 @@ def build(dataset_id: str, *, feature_names: tuple[str, ...] = DEFAULT_FEATURES,
         note = spec.missing_note() if spec.source else f"missing {', '.join(map(str, missing))}"
         raise FileNotFoundError(f"dataset {dataset_id}: {note}")
     feature_names = check_feature_names(feature_names)
-    target = cache_dir() / "sequences" / f"{dataset_id}-{_fingerprint(spec, feature_names)}.npz"
-    seq = None
-    if cache and target.exists():
-        try:
-            seq = load_sequence(target)
-        except Exception:
-            target.unlink(missing_ok=True)
+    target = cache_file("sequences", f"{dataset_id}-{_fingerprint(spec, feature_names)}.npz") if cache else None
+    seq = load_cached(target, load_sequence)
     if seq is not None:
         notes = align_truth(seq.time_gps_s, spec)[1]    # a cached build warns as the first one did
     else:
@@ -573,9 +638,7 @@ def build(dataset_id: str, *, feature_names: tuple[str, ...] = DEFAULT_FEATURES,
         fix = spp(meas)
         truth, notes = align_truth(meas.time_gps_s, spec)
         seq = build_sequence(meas, fix, feature_names=feature_names, name=dataset_id, truth_ecef_m=truth)
-        if cache:
-            target.parent.mkdir(parents=True, exist_ok=True)
-            replace_atomically(target, lambda tmp: save_sequence(tmp, seq))    # parallel builds each write whole
+        store_cached(target, lambda tmp: save_sequence(tmp, seq))
     _warn_truth(spec, seq, notes)
     dropped = [c for c in spec.systems or () if c not in seq.systems]
     if dropped:
@@ -656,6 +719,9 @@ def alignment_report(dataset_ids: list[str] | None = None) -> str:
         labelled = seq.labelled
         lines.append(f"{dataset_id}: {len(seq)} epochs, {int(labelled.sum())} with truth; systems "
                      f"{''.join(seq.systems)}; {spec.description}")
+        note = utc_stamp_note(spec, seq.time_gps_s, seq.coarse_ecef_m)
+        if note:
+            warnings.warn(note, stacklevel=2)
         for split in spec.splits:
             idx = split_index(seq, spec, split)
             if not idx.any():

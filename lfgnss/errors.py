@@ -1,8 +1,11 @@
 """Exceptions with one-line messages that name the file (and line) at fault."""
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
+import warnings
+from collections.abc import Iterator
 from pathlib import Path
 
 
@@ -74,3 +77,16 @@ def path_option(text: str) -> Path:
     if not text.strip():
         raise argparse.ArgumentTypeError("needs a path, got an empty string")
     return Path(text)
+
+
+def print_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """``warnings.showwarning`` of the command lines: ``warning: MESSAGE`` on one line of stderr."""
+    print(f"warning: {' '.join(str(message).split())}", file=sys.stderr)
+
+
+@contextlib.contextmanager
+def warnings_on_one_line() -> Iterator[None]:
+    """Within: each warning is printed as :func:`print_warning` does, not as Python's two lines with a source line."""
+    with warnings.catch_warnings():
+        warnings.showwarning = print_warning
+        yield

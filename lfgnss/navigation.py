@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Iterable
 import numpy as np
 
 from .errors import RinexError
-from .paths import cache_dir, replace_atomically
+from .paths import cache_file, load_cached, store_cached
 from .rinex import RinexWarning, _decode
 from .time import BDT_MINUS_GPST_S, SECONDS_PER_WEEK, datetime64_to_gps_s, utc_to_gps_s
 
@@ -169,19 +169,14 @@ def _load_cached(paths: list[Path]) -> Navigation:
             digest.update(path.read_bytes())
         except OSError:
             return _parse_nav(paths)  # the parser reports the unreadable file
-    target = cache_dir() / "nav" / f"{digest.hexdigest()[:24]}.pkl"
-    if target.exists():
-        try:
-            with open(target, "rb") as f:
-                cached = pickle.load(f)
-            sources = tuple(str(p) for p in paths)
-            return Navigation(cached.kepler, cached.glonass, cached.iono, sources,
-                              _rename(cached.warnings, cached.sources, sources))
-        except Exception:  # a damaged cache entry is rebuilt, never trusted
-            target.unlink(missing_ok=True)
+    target = cache_file("nav", f"{digest.hexdigest()[:24]}.pkl")
+    cached = load_cached(target, lambda entry: pickle.loads(entry.read_bytes()))
+    if cached is not None:
+        sources = tuple(str(p) for p in paths)
+        return Navigation(cached.kepler, cached.glonass, cached.iono, sources,
+                          _rename(cached.warnings, cached.sources, sources))
     nav = _parse_nav(paths)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    replace_atomically(target, lambda tmp: tmp.write_bytes(pickle.dumps(nav, protocol=pickle.HIGHEST_PROTOCOL)))
+    store_cached(target, lambda tmp: tmp.write_bytes(pickle.dumps(nav, protocol=pickle.HIGHEST_PROTOCOL)))
     return nav
 
 

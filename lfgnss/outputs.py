@@ -20,6 +20,7 @@ and every other Q to ``updated``, and keeps the raw codes in ``info["q"]``.
 from __future__ import annotations
 
 import csv
+import io
 import json
 import re
 from pathlib import Path
@@ -34,10 +35,12 @@ from estimators.base import (STATUS_COASTED, STATUS_NAMES, STATUS_NONE, STATUS_U
 from . import __version__
 from .frames import check_near_surface, ecef_to_lla, lla_to_ecef
 from .metrics import enu_errors, enu_rotations
+from .paths import replace_atomically
 from .time import GPS_EPOCH, SECONDS_PER_WEEK, gps_s_to_week_tow, utc_to_gps_s
 
 if TYPE_CHECKING:
     import pandas as pd
+    from matplotlib.figure import Figure
 
 #: RTKLIB solution quality codes (rtklib.h).
 Q_SINGLE = 5
@@ -60,6 +63,11 @@ def _check_args(writer: str, path: object, solution: object, where: str = "path"
                         f"got {type(solution).__name__}")
     if not isinstance(path, (str, Path)) and not hasattr(path, "__fspath__"):
         raise TypeError(f"{call}: {where} must be a str or Path, got {type(path).__name__}")
+
+
+def _write_text(path: Path, text: str) -> None:
+    """``text`` as ``path`` (UTF-8), written whole: a temporary file renamed, so an interrupted run leaves no half file."""
+    replace_atomically(path, lambda tmp: tmp.write_text(text, encoding="utf-8", newline=""))
 
 
 def _sqvar(c: np.ndarray) -> np.ndarray:
@@ -145,8 +153,7 @@ def write_pos(path: str | Path, solution: Solution, *, time_format: str = "calen
         lat, lon = np.degrees(llh[k, :2])
         lines.append(f"{tstr} {lat:14.9f} {lon:14.9f} {llh[k, 2]:10.4f} {q[k]:3d} {ns[k]:3d} "
                      + " ".join(f"{v:8.4f}" for v in sd[k]) + f" {0.0:6.2f} {0.0:6.1f}\r\n")
-    with open(path, "w", newline="") as fh:
-        fh.writelines(lines)
+    _write_text(path, "".join(lines))
     return path
 
 
@@ -295,10 +302,11 @@ def write_csv(path: str | Path, solution: Solution, truth_ecef_m: np.ndarray | N
             text[col] = [str(int(v)) if has or col == "week" else "" for v, has in zip(values, ok)]
         else:
             text[col] = [_fmt(v, digits.get(col, 4)) for v in values]
-    with open(path, "w", newline="") as fh:
-        writer = csv.writer(fh)
-        writer.writerow(frame.columns)
-        writer.writerows(zip(*text.values()))
+    buffer = io.StringIO(newline="")
+    writer = csv.writer(buffer)
+    writer.writerow(frame.columns)
+    writer.writerows(zip(*text.values()))
+    _write_text(path, buffer.getvalue())
     return path
 
 
@@ -368,8 +376,7 @@ def write_geojson(path: str | Path, solution: Solution, *, points: bool = False)
                                             "status": STATUS_NAMES.get(int(status[k]), str(int(status[k]))),
                                             "n_used": int(solution.n_used[k])}})
     doc = {"type": "FeatureCollection", "features": features}
-    with open(path, "w") as fh:
-        json.dump(doc, fh, allow_nan=False)
+    _write_text(path, json.dumps(doc, allow_nan=False))
     return path
 
 
@@ -399,8 +406,7 @@ def write_kml(path: str | Path, solution: Solution, *, points: bool = False) -> 
                          f"<description>{escape(st)}, {int(solution.n_used[k])} satellites</description>"
                          f"<Point><coordinates>{a:.9f},{b:.9f},{c:.4f}</coordinates></Point></Placemark>")
     parts += ["</Document>", "</kml>"]
-    with open(path, "w") as fh:
-        fh.write("\n".join(parts) + "\n")
+    _write_text(path, "\n".join(parts) + "\n")
     return path
 
 
@@ -495,22 +501,38 @@ def plot_solution(out_dir: str | Path, solution: Solution, truth_ecef_m: np.ndar
     -------
     list of Path
         The files written, in the order above.
+
+    Raises
+    ------
+    OSError
+        The first figure that could not be written (naming its file), after every other one is written.
     """
     _check_args("plot_solution", out_dir, solution, "out_dir")
-    figures = _solution_figures(solution, truth_ecef_m, extra_solutions, label)
+    figures = solution_figures(solution, truth_ecef_m, extra_solutions, label)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
+    failed: list[OSError] = []
     for name, fig in figures.items():
-        p = out_dir / f"{prefix}{name}"
-        fig.savefig(p, dpi=120)
-        written.append(p)
+        try:
+            written.append(save_figure(out_dir / f"{prefix}{name}", fig))
+        except OSError as err:
+            failed.append(err)
+    if failed:
+        raise failed[0]
     return written
 
 
-def _solution_figures(solution: Solution, truth_ecef_m: np.ndarray | None = None,
-                      extra_solutions: Mapping[str, Solution] | Sequence[Solution] | None = None,
-                      label: str | None = None) -> dict:
+def save_figure(path: str | Path, fig: "Figure", dpi: int = 120) -> Path:
+    """A matplotlib figure as the PNG ``path``, written whole (a temporary file renamed onto it)."""
+    path = Path(path)
+    replace_atomically(path, lambda tmp: fig.savefig(tmp, dpi=dpi, format="png"))
+    return path
+
+
+def solution_figures(solution: Solution, truth_ecef_m: np.ndarray | None = None,
+                     extra_solutions: Mapping[str, Solution] | Sequence[Solution] | None = None,
+                     label: str | None = None) -> dict[str, "Figure"]:
     """:func:`plot_solution`'s figures (matplotlib ``Figure`` on an Agg canvas) by file name, not yet saved."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure

@@ -4,8 +4,13 @@ from __future__ import annotations
 import contextlib
 import os
 import secrets
+import time
+import warnings
 from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
+
+T = TypeVar("T")
 
 PACKAGE_DIR = Path(__file__).resolve().parent
 REPO_DIR = PACKAGE_DIR.parent
@@ -70,7 +75,8 @@ def replace_atomically(path: Path, write: Callable[[Path], object]) -> None:
 
     A run killed mid-write keeps the previous file whole, and readers never see half a file. The temporary name is
     ``.STEM.PID-RANDOM.partial.SUFFIX``, its own for each write, so two processes filling one cache entry at once
-    (parallel tests, two solves of one file) each rename a whole file instead of writing into each other's.
+    (parallel tests, two solves of one file) each rename a whole file instead of writing into each other's. An
+    OSError names ``path``, not the temporary file the user never asked for.
     """
     tmp = path.with_name(f".{path.stem}.{os.getpid()}-{secrets.token_hex(4)}.partial{path.suffix}")
     try:
@@ -78,7 +84,73 @@ def replace_atomically(path: Path, write: Callable[[Path], object]) -> None:
         with open(tmp, "r+b") as fh:            # on the disk before the rename, so a power cut leaves one or the other
             os.fsync(fh.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as err:
         with contextlib.suppress(OSError):
             tmp.unlink()
+        if isinstance(err, OSError) and err.filename in (str(tmp), tmp):
+            err.filename, err.filename2 = str(path), None
         raise
+
+
+# ---------------------------------------------------------------- cache entries
+class CacheWarning(UserWarning):
+    """The cache cannot be used (a file in the folder's place, no space, no permission): lfgnss goes on without it."""
+
+
+_CACHE_WARNED: set[str] = set()
+_STALE_PARTIAL_S = 3600.0          # a temporary file this old was left by a killed process, not one still writing
+
+
+def _cache_unusable(err: OSError) -> None:
+    """One CacheWarning per cache folder and process, naming the file and the reason."""
+    root = os.environ.get("LFGNSS_CACHE") or str(Path.home() / ".cache" / "lfgnss")
+    if root in _CACHE_WARNED:
+        return
+    _CACHE_WARNED.add(root)
+    where = err.filename or root
+    warnings.warn(f"{where}: cannot use the cache ({err.strerror or err}); going on without it, so files are parsed "
+                  "again on every run (set $LFGNSS_CACHE to a writable folder)", CacheWarning, stacklevel=3)
+
+
+def cache_file(kind: str, name: str) -> Path | None:
+    """The cache entry ``KIND/NAME`` in :func:`cache_dir`, its folder made; None (and a CacheWarning) when it cannot be."""
+    try:
+        folder = cache_dir() / kind
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        _cache_unusable(err)
+        return None
+    return folder / name
+
+
+def load_cached(path: Path | None, read: Callable[[Path], T]) -> T | None:
+    """``read(path)`` of a cache entry; None when there is none (or something not a file is in its place).
+
+    An entry that cannot be read is removed and None returned: a damaged entry is rebuilt, never trusted.
+    """
+    try:
+        if path is None or not path.is_file():
+            return None
+        return read(path)
+    except Exception:
+        with contextlib.suppress(OSError):
+            path.unlink()
+        return None
+
+
+def store_cached(path: Path | None, write: Callable[[Path], object]) -> None:
+    """``write`` a cache entry whole (:func:`replace_atomically`); when it cannot be, a CacheWarning and no entry.
+
+    Temporary files that killed processes left in the entry's folder more than an hour ago are removed first.
+    """
+    if path is None:
+        return
+    cutoff = time.time() - _STALE_PARTIAL_S
+    for stale in path.parent.glob(".*.partial*"):
+        with contextlib.suppress(OSError):          # gone already: another process renamed or removed it
+            if stale.stat().st_mtime < cutoff:
+                stale.unlink()
+    try:
+        replace_atomically(path, write)
+    except OSError as err:
+        _cache_unusable(err)

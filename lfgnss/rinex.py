@@ -25,7 +25,7 @@ import numpy as np
 from .constants import SYSTEMS
 from .errors import RinexError
 from .observations import Observations
-from .paths import cache_dir, replace_atomically
+from .paths import cache_file, load_cached, store_cached
 from .time import utc_to_gps_s
 
 if TYPE_CHECKING:
@@ -95,18 +95,12 @@ def load_obs(path: str | Path, *, systems: tuple[str, ...] | None = None, cache:
     path = Path(path)
     raw = _read_bytes(path)
     key = hashlib.sha256(raw).hexdigest()[:24] + f"-v{_PARSER_VERSION}-{engine}"
-    cached = cache_dir() / "obs" / f"{key}.npz"
-    obs = None
-    if cache and cached.exists():
-        try:
-            obs = _from_npz(cached, path)
-        except Exception:  # a damaged cache entry is rebuilt, never trusted
-            cached.unlink(missing_ok=True)
+    cached = cache_file("obs", f"{key}.npz") if cache else None
+    obs = load_cached(cached, lambda entry: _from_npz(entry, path))
     if obs is None:
         text, notes = _decode(raw, path)
         obs = _parse(text, path, engine, notes)
-        if cache:
-            _to_npz(cached, obs)
+        store_cached(cached, lambda tmp: _to_npz(tmp, obs))
     if obs.warnings:  # also on a cache hit: the same file always gives the same warning
         warnings.warn(f"{path}: {len(obs.warnings)} problem(s) (damaged records or epochs skipped, constellations "
                       f"or codes not usable or substituted); first: {obs.warnings[0]}", RinexWarning, stacklevel=2)
@@ -673,12 +667,10 @@ def _parse_georinex(text, path, info, codes, problems) -> Observations:
 
 
 def _to_npz(target: Path, obs: Observations) -> None:
-    target.parent.mkdir(parents=True, exist_ok=True)
     meta = json.dumps({"version": obs.version, "codes": obs.codes, "warnings": list(obs.warnings),
                        "path": str(obs.path)})
-    replace_atomically(target, lambda tmp: np.savez(
-        tmp, time_gps_s=obs.time_gps_s, sv=obs.sv, pr_m=obs.pr_m, cn0_dbhz=obs.cn0_dbhz, doppler_hz=obs.doppler_hz,
-        approx_ecef_m=obs.approx_ecef_m, meta=np.array(meta)))
+    np.savez(target, time_gps_s=obs.time_gps_s, sv=obs.sv, pr_m=obs.pr_m, cn0_dbhz=obs.cn0_dbhz,
+             doppler_hz=obs.doppler_hz, approx_ecef_m=obs.approx_ecef_m, meta=np.array(meta))
 
 
 def _from_npz(source: Path, path: Path) -> Observations:

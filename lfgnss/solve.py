@@ -66,9 +66,13 @@ def build_parser() -> argparse.ArgumentParser:
     """The command-line interface of ``python -m lfgnss.solve``."""
     import estimators
 
+    from .datasets import TRUTH_COLUMNS, TRUTH_READERS
+
     p = argparse.ArgumentParser(prog="python -m lfgnss.solve", description=__doc__.split("\n\n")[0],
                                 formatter_class=_HelpFormatter)
-    p.add_argument("--backend", default="ekf", choices=estimators.available(), help="estimator plug-in")
+    backends = estimators.available()
+    p.add_argument("--backend", default="ekf", choices=backends, help="estimator plug-in, in any case",
+                   type=lambda text: next((name for name in backends if name.lower() == text.lower()), text))
     p.add_argument("--obs", type=Path, help="RINEX observation file (default: bundled Berlin sample)")
     p.add_argument("--nav", type=Path, nargs="+",
                    help="RINEX navigation file(s) (default: the bundled sample's, with no --obs)")
@@ -79,9 +83,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"constellations to use, letters of {''.join(SYSTEMS)}: GC, \"G C\" or G,C "
                         "(default: all present)")
     p.add_argument("--truth", type=Path, help="ground-truth file, for an accuracy table and error plots")
-    p.add_argument("--truth-format", type=str.lower, default=None, choices=_truth_formats(),
+    p.add_argument("--truth-format", type=str.lower, default=None, choices=tuple(TRUTH_READERS),
                    help="format of the --truth file, in any case (default: urbannav; with no --truth and no --obs, "
-                        "the bundled sample's smartloc truth)")
+                        "the bundled sample's smartloc truth). Rows of " + "; ".join(
+                            f"{name}: {columns}" for name, columns in TRUTH_COLUMNS.items()))
     p.add_argument("--truth-origin", type=_finite_float, default=None,
                    help="GPS seconds of t=0 for smartloc truth (default: first epoch)")
     p.add_argument("--start", type=_gps_time, default=None, metavar="TIME",
@@ -208,7 +213,7 @@ def _solve(args) -> _Solved:
     from . import datasets
     from .features import build_sequence
     from .measurements import load
-    from .outputs import plot_solution, write_csv, write_geojson, write_kml, write_pos
+    from .outputs import save_figure, solution_figures, write_csv, write_geojson, write_kml, write_pos
     from .spp import spp
 
     sample = args.obs is None
@@ -246,7 +251,9 @@ def _solve(args) -> _Solved:
         else:
             time_note = (datasets.static_time_note(truth_path, observations.time_gps_s)
                          if truth_format == "static" else None)
-            for note in (time_note, _truth_mismatch_note(truth_path, truth_format, truth, fix)):
+            mismatch = _truth_mismatch_note(truth_path, truth_format, truth, fix)
+            utc_note = None if mismatch else datasets.utc_stamp_note(spec, meas.time_gps_s, fix.pos_ecef_m)
+            for note in (time_note, mismatch, utc_note):
                 if note:
                     print(f"warning: {note}", file=sys.stderr)
     from .sequence import DEFAULT_FEATURES
@@ -293,8 +300,8 @@ def _solve(args) -> _Solved:
             (f"{stem}.geojson", lambda p: [write_geojson(p, solution)]),
             (f"{stem}.kml", lambda p: [write_kml(p, solution)])]
     if truth is not None and not args.no_plots:
-        jobs.append((f"{stem}_*.png", lambda _: plot_solution(args.out, solution, truth, prefix=f"{name}_",
-                                                             extra_solutions={"least squares": _coarse(seq)})))
+        figures = solution_figures(solution, truth, extra_solutions={"least squares": _coarse(seq)})
+        jobs += [(f"{stem}_{figure}", lambda p, fig=fig: [save_figure(p, fig)]) for figure, fig in figures.items()]
     written, failed = [], []
     for path, job in jobs:
         try:
@@ -388,13 +395,6 @@ def _systems(text: str) -> str:
     if not letters:
         raise argparse.ArgumentTypeError(f"needs constellation letters of {''.join(SYSTEMS)}, got {text!r}")
     return "".join(dict.fromkeys(letters))
-
-
-def _truth_formats() -> tuple[str, ...]:
-    """The names --truth-format takes: ``lfgnss.datasets``' truth readers."""
-    from .datasets import TRUTH_READERS
-
-    return tuple(TRUTH_READERS)
 
 
 def _elevation_mask(text: str) -> float:
@@ -534,7 +534,11 @@ def _coarse(seq):
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point: parse arguments, run, turn input errors into one line on stderr."""
-    args = build_parser().parse_args(argv)
+    try:
+        args = build_parser().parse_args(argv)      # imports the estimators: half a second to press Ctrl-C in
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
     warnings.simplefilter("ignore", FutureWarning)
     try:
         with warnings.catch_warnings(record=True) as caught:

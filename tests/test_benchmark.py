@@ -8,7 +8,7 @@ import pytest
 from lfgnss import datasets
 from lfgnss.benchmark import (DEFAULT_DATASETS, MODEL_DIR, PLAIN, PLAIN_OWN_FILTER, PLAIN_RTS, RTKLIB, _features_for,
                               _select, _trained_on, check_models, main, methods, resolve_datasets, target_rows)
-from lfgnss.errors import InputError
+from lfgnss.errors import InputError, print_warning
 from lfgnss.metrics import accuracy_table, format_markdown, markdown_table
 from lfgnss.sequence import DEFAULT_FEATURES
 from lfgnss.solve import SAMPLE_DIR
@@ -370,7 +370,7 @@ def test_warnings_during_a_run_are_one_line_each(monkeypatch, capsys):
     assert main(["--no-plots"]) == 0
     assert capsys.readouterr().err == ("warning: dataset x: constellation(s) J of its systems have no usable "
                                        "observation and are left out\n")
-    assert warnings.showwarning is not bench._print_warning                  # restored after the run
+    assert warnings.showwarning is not print_warning                         # restored after the run
 
 
 def test_the_results_file_names_the_code_and_the_model_files_it_was_made_with(tmp_path):

@@ -69,3 +69,73 @@ def test_processes_parsing_one_file_at_once_share_the_cache(tmp_path):
     entries = sorted(p.relative_to(cache).parts[0] for p in cache.rglob("*") if p.is_file())
     assert entries == ["nav", "obs"], entries
     assert _load_both(str(cache)) == results[0]     # and it reads back
+
+
+def test_an_error_names_the_file_asked_for_not_the_temporary(tmp_path):
+    (tmp_path / "out.csv").mkdir()                   # a folder where the file goes: the rename fails
+    with pytest.raises(OSError) as info:
+        replace_atomically(tmp_path / "out.csv", lambda tmp: tmp.write_text("x"))
+    assert info.value.filename == str(tmp_path / "out.csv") and ".partial" not in str(info.value)
+    with pytest.raises(OSError) as info:             # the temporary itself cannot be made: a folder that is not there
+        replace_atomically(tmp_path / "no-folder" / "out.csv", lambda tmp: tmp.write_text("x"))
+    assert info.value.filename == str(tmp_path / "no-folder" / "out.csv")
+
+
+def _parse_fresh(monkeypatch, cache) -> tuple:
+    """The bundled drive's obs and nav, parsed with ``$LFGNSS_CACHE`` = ``cache``, and the warnings raised."""
+    from lfgnss import paths
+    from lfgnss.navigation import load_nav
+    from lfgnss.rinex import load_obs
+
+    monkeypatch.setenv("LFGNSS_CACHE", str(cache))
+    monkeypatch.setattr(paths, "_CACHE_WARNED", set())
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        obs, nav = load_obs(SAMPLE_OBS), load_nav(SAMPLE_NAV)
+    return obs, nav, [str(w.message) for w in caught if issubclass(w.category, paths.CacheWarning)]
+
+
+def test_an_unusable_cache_folder_is_one_warning_and_the_files_are_still_read(tmp_path, monkeypatch):
+    (tmp_path / "a-file").write_text("x")
+    obs, nav, warned = _parse_fresh(monkeypatch, tmp_path / "a-file")
+    assert np.isfinite(obs.pr_m).sum() > 0 and len(nav.kepler) > 0
+    assert warned == [f"{tmp_path / 'a-file'}: cannot use the cache (File exists); going on without it, so files are "
+                      "parsed again on every run (set $LFGNSS_CACHE to a writable folder)"]
+
+
+def test_a_folder_in_a_cache_entrys_place_is_passed_over_with_a_warning(tmp_path, monkeypatch):
+    cache = tmp_path / "cache"
+    first, _, warned = _parse_fresh(monkeypatch, cache)
+    assert warned == []
+    (entry,) = (cache / "obs").iterdir()
+    entry.unlink()
+    (entry / "inside").mkdir(parents=True)           # a folder (not empty) where the entry goes
+    again, _, warned = _parse_fresh(monkeypatch, cache)
+    np.testing.assert_array_equal(again.pr_m, first.pr_m)
+    assert len(warned) == 1 and warned[0].startswith(f"{entry}: cannot use the cache (")
+
+
+def test_a_damaged_entry_is_rebuilt_and_stale_temporaries_are_cleared(tmp_path, monkeypatch):
+    cache = tmp_path / "cache"
+    first, _, _ = _parse_fresh(monkeypatch, cache)
+    (entry,) = (cache / "obs").iterdir()
+    entry.write_bytes(b"not an npz")
+    stale, fresh = cache / "obs" / ".x.1-ab.partial.npz", cache / "obs" / ".y.2-cd.partial.npz"
+    stale.write_bytes(b"left by a killed run")
+    fresh.write_bytes(b"another process still writing")
+    os.utime(stale, (0, 0))
+    again, _, warned = _parse_fresh(monkeypatch, cache)
+    np.testing.assert_array_equal(again.pr_m, first.pr_m)
+    assert warned == [] and sorted(p.name for p in (cache / "obs").iterdir()) == sorted([entry.name, fresh.name])
+    with np.load(entry) as z:                        # rebuilt whole
+        assert z["pr_m"].shape == first.pr_m.shape
+
+
+def test_cache_false_makes_no_cache_folder(tmp_path, monkeypatch):
+    from lfgnss.rinex import load_obs
+
+    monkeypatch.setenv("LFGNSS_CACHE", str(tmp_path / "cache"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        load_obs(SAMPLE_OBS, cache=False)
+    assert not (tmp_path / "cache").exists()

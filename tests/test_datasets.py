@@ -113,7 +113,8 @@ def test_truth_rows_off_the_earth_are_skipped_with_a_note(tmp_path, reader, rows
     ("smartloc", ["2051,46701,22.3,114.1,10", "2051,46702,22.3,114.1,10"], "urbannav"),
     ("urbannav", ["point3 0.0 3785185.7 899901.8 5037236.1"], "smartloc"),
     ("static", ["1.2e9, -2418000, 5386000, 2405000"], "ecef-csv"),
-], ids=["urbannav-as-smartloc", "smartloc-as-urbannav", "ecef-as-static"])
+    ("urbannav", ["345600.0 345600.0 22.3 114.1 10"], "static"),       # a time of week is no GPS week
+], ids=["urbannav-as-smartloc", "smartloc-as-urbannav", "ecef-as-static", "static-as-urbannav"])
 def test_a_wrong_truth_format_is_named_with_the_one_the_file_reads_as(tmp_path, given, rows, hint):
     path = tmp_path / "truth.txt"
     path.write_text("\n".join(rows) + "\n")
@@ -125,9 +126,26 @@ def test_a_wrong_truth_format_is_named_with_the_one_the_file_reads_as(tmp_path, 
     toml = tmp_path / "my.toml"                      # a dataset TOML's spec: the key to change, where
     with pytest.raises(InputError, match=re.escape(f'give format = "{hint}" in [truth] of {toml})') + "$"):
         datasets.align_truth(np.array([1.2e9]), dataclasses.replace(spec, source=toml))
-    path.write_text("nothing here\n")               # no format reads it: no hint
-    with pytest.raises(InputError, match="no readable ground-truth line; the first: [^(]*$"):
+    path.write_text("nothing here\n")               # no format reads it: no hint, the columns the format wants
+    first = "not a point3 record" if given == "smartloc" else "unreadable truth line"
+    with pytest.raises(InputError, match=re.escape(f"no readable ground-truth line; the first: {first} "
+                                                   f"(truth format {given!r} has rows of {datasets.TRUTH_COLUMNS[given]})")
+                       + "$"):
         datasets.align_truth(np.array([1.2e9]), spec)
+
+
+@pytest.mark.parametrize("row, reason", [
+    ("2051.5,46701,22.3,114.1,10", "GPS week 2051.5 is not a whole number in [0, 9999]"),
+    ("-1,46701,22.3,114.1,10", "GPS week -1 is not a whole number in [0, 9999]"),
+    ("2051,604801,22.3,114.1,10", "time of week 604801 s outside [0, 604800]"),
+])
+def test_urbannav_rows_need_a_gps_week_and_time_of_week(tmp_path, row, reason):
+    assert list(datasets.TRUTH_COLUMNS) == list(datasets.TRUTH_READERS)            # every format says its columns
+    path = tmp_path / "truth.csv"
+    path.write_text(f"2051,46700,22.3,114.1,10\n{row}\n")
+    spec = datasets.DatasetSpec(id="x", obs=(path,), nav=(path,), truth=path, truth_format="urbannav")
+    t, xyz, notes = datasets.read_urbannav(path, spec)
+    assert len(t) == 1 and notes == [f"{path}:2: {reason}, skipped"]
 
 
 def test_bad_toml_is_one_line_error(tmp_path):

@@ -9,7 +9,7 @@ pytest.importorskip("matplotlib")
 from estimators.base import STATUS_UPDATED, Solution  # noqa: E402
 from lfgnss.frames import lla_to_ecef  # noqa: E402
 from lfgnss.metrics import enu_rotations  # noqa: E402
-from lfgnss.outputs import _solution_figures, plot_solution, run_styles  # noqa: E402
+from lfgnss.outputs import plot_solution, run_styles, solution_figures  # noqa: E402
 
 
 def _run(east_error_m: np.ndarray, backend: str = "ekf") -> tuple[Solution, np.ndarray]:
@@ -50,7 +50,7 @@ def _check_labels(axis, must: set[str] = frozenset()) -> list[str]:
 
 def test_log_axes_label_centimetres_to_hundreds_of_metres():
     sol, truth = _run(np.logspace(-2, 2, 60))           # 0.01 m ... 100 m
-    figs = _solution_figures(sol, truth)
+    figs = solution_figures(sol, truth)
     for fig in figs.values():
         fig.canvas.draw()
     decades = {"0.01", "0.1", "1", "10", "100"}
@@ -63,7 +63,7 @@ def test_log_axes_label_centimetres_to_hundreds_of_metres():
 def test_log_axes_within_one_decade_still_labelled():
     """0.2-0.9 m holds no decade: the minor ticks carry the labels, as plain decimals."""
     sol, truth = _run(np.linspace(0.2, 0.9, 40))
-    figs = _solution_figures(sol, truth)
+    figs = solution_figures(sol, truth)
     figs["errors.png"].canvas.draw()
     texts = _check_labels(figs["errors.png"].axes[0].yaxis)
     assert all(t.startswith("0.") for t in texts), texts
@@ -83,7 +83,7 @@ def test_run_styles_distinct_and_deterministic(n):
 def test_sixteen_methods_get_distinct_lines_in_every_figure(tmp_path):
     sol, truth = _run(np.logspace(-1, 1, 30), backend="LF-GNSS EKF")
     extra = {f"method {k}": _run(np.logspace(-1, 1, 30) * (k + 2))[0] for k in range(15)}
-    figs = _solution_figures(sol, truth, extra_solutions=extra, label="LF-GNSS EKF")
+    figs = solution_figures(sol, truth, extra_solutions=extra, label="LF-GNSS EKF")
     names = ["LF-GNSS EKF", *extra]
     for fname, fig in figs.items():
         for ax in fig.axes:
@@ -99,9 +99,21 @@ def test_sixteen_methods_get_distinct_lines_in_every_figure(tmp_path):
 def test_track_title_names_no_single_method_when_it_shows_several():
     sol, truth = _run(np.full(10, 2.0), backend="LF-GNSS EKF")
     other, _ = _run(np.full(10, 5.0), backend="wls")
-    several = _solution_figures(sol, truth, extra_solutions=[other], label="LF-GNSS EKF")
+    several = solution_figures(sol, truth, extra_solutions=[other], label="LF-GNSS EKF")
     assert several["track.png"].axes[0].get_title() == "horizontal track"
-    alone = _solution_figures(sol, truth, label="LF-GNSS EKF")
+    alone = solution_figures(sol, truth, label="LF-GNSS EKF")
     assert alone["track.png"].axes[0].get_title() == "horizontal track (LF-GNSS EKF)"
     assert [several["track.png"].axes[0].get_xlabel(), several["track.png"].axes[0].get_ylabel()] == \
         ["east [m]", "north [m]"]
+
+
+def test_a_figure_that_cannot_be_written_costs_that_figure_only(tmp_path):
+    """A folder where errors.png goes: track.png and cdf.png are still written, then the error names errors.png."""
+    sol, truth = _run(np.linspace(1.0, 5.0, 20))
+    (tmp_path / "errors.png" / "inside").mkdir(parents=True)
+    with pytest.raises(OSError) as info:
+        plot_solution(tmp_path, sol, truth)
+    assert info.value.filename == str(tmp_path / "errors.png")
+    for name in ("track.png", "cdf.png"):
+        assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cdf.png", "errors.png", "track.png"]   # no temporary

@@ -256,6 +256,20 @@ def test_a_checkpoint_that_would_run_code_is_refused_not_run(tmp_path):
     assert np.array_equal(back["rng"]["numpy"][1], np.random.get_state()[1]) and back["w"].sum() == 2
 
 
+@pytest.mark.parametrize("content", [b"epoch,train_loss,val_rmse_3d_m\n0,1.5,20.0\n", bytes(range(256)) * 3],
+                         ids=["log.csv", "binary"])
+def test_exporting_a_text_or_foreign_file_is_one_line(content, tmp_path, capsys):
+    """``python -m learning.export runs/x/log.csv m.npz``: torch's old-format reader fails with IndexError there."""
+    source = tmp_path / "log.csv"
+    source.write_bytes(content)
+    with pytest.raises(SystemExit) as exit_info:
+        export_main([str(source), str(tmp_path / "m.npz")])
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+    assert f"error: {source}: not a usable training checkpoint (not a torch file (" in err
+    assert not (tmp_path / "m.npz").exists()
+
+
 def test_exporting_a_file_that_is_not_a_checkpoint_dict_is_one_error(tmp_path):
     import torch
 

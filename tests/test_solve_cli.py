@@ -76,6 +76,9 @@ def test_ctrl_c_is_one_line_not_a_traceback(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(solve, "run", interrupted)
     assert main(["--out", str(tmp_path)]) == 130
     assert capsys.readouterr().err == "interrupted\n"
+    monkeypatch.setattr(solve, "build_parser", lambda: interrupted(None))     # while the estimators are imported
+    assert main(["--out", str(tmp_path)]) == 130
+    assert capsys.readouterr().err == "interrupted\n"
 
 
 def test_an_output_that_cannot_be_written_costs_that_file_only(tmp_path, capsys):
@@ -89,6 +92,20 @@ def test_an_output_that_cannot_be_written_costs_that_file_only(tmp_path, capsys)
     for suffix in ("pos", "geojson", "kml"):
         assert (out / f"Berlin_Potsdamer_Platz_ekf.{suffix}").stat().st_size > 0
     assert "outputs: " in captured.out and ".csv" not in captured.out.split("outputs: ")[1].splitlines()[0]
+
+
+def test_a_figure_that_cannot_be_written_costs_that_figure_only(tmp_path, capsys):
+    """A folder where the track plot should go: the other figures and every file are written, exit 2."""
+    out = tmp_path / "out"
+    (out / "Berlin_Potsdamer_Platz_ekf_track.png" / "inside").mkdir(parents=True)
+    assert main(["--out", str(out)]) == 2
+    captured = capsys.readouterr()
+    assert captured.err.splitlines()[-1] == (f"error: {out / 'Berlin_Potsdamer_Platz_ekf_track.png'}: cannot write "
+                                             "(Is a directory)")
+    for name in ("errors.png", "cdf.png", "pos", "csv"):
+        stem = "Berlin_Potsdamer_Platz_ekf" + ("_" if name.endswith("png") else ".")
+        assert (out / f"{stem}{name}").stat().st_size > 0
+    assert not list(out.glob(".*partial*"))
 
 
 def test_truth_matching_no_epoch_warns_and_skips_the_table(tmp_path, capsys):

@@ -99,6 +99,30 @@ def test_the_mismatch_threshold_lies_between_a_nearby_and_a_far_truth(tmp_path, 
         assert f"warning: {moved}: the truth lies a median 2.0 km from the receiver's least-squares fixes" in err, err
 
 
+def test_a_truth_stamped_in_utc_is_warned_of_and_still_scored(tmp_path, capsys, berlin):
+    """The bundled drive's truth with UTC times (GPST - 17 s in 2016): 72 m from the fixes read as UTC, 121 m read as
+    GPST; the command and the dataset report say so. Its GPST file (above: the sample's own truth) says nothing."""
+    from lfgnss import datasets
+    from lfgnss.time import leap_seconds
+
+    t, truth = berlin
+    utc = _ecef_csv(tmp_path / "utc.csv", t - leap_seconds(t), truth)
+    assert main([*FAST, *SAMPLE, "--out", str(tmp_path / "o"), "--truth", str(utc), "--truth-format", "ecef-csv"]) == 0
+    captured = capsys.readouterr()
+    assert re.fullmatch(rf"warning: {re.escape(str(utc))}: the truth lies a median 7\d m from the receiver's "
+                        r"least-squares fixes with its times read as UTC, against 1[12]\d m read as GPST \(on 1[23]\d\d "
+                        r"epochs\): are its times UTC\? ecef-csv times are GPST \(GPST - UTC = 17 s here\); shift "
+                        r"them by that much, it is scored as GPST all the same\n", captured.err), captured.err
+    assert re.search(r"^wls +1[23]\d\d +1[23]\d\d +100\.0 ", captured.out, re.M), captured.out
+    toml = tmp_path / "utc-drive.toml"
+    toml.write_text(f'id = "utc-drive"\nobs = ["{SAMPLE_OBS}"]\nnav = {[str(n) for n in SAMPLE_NAV]!r}\n'.replace("'", '"')
+                    + f'[truth]\nfile = "{utc}"\nformat = "ecef-csv"\n')
+    assert datasets.main(["--register", str(toml)]) == 0
+    captured = capsys.readouterr()
+    assert f"warning: {utc}: the truth lies a median 7" in captured.err and "read as UTC" in captured.err, captured.err
+    assert captured.out.startswith("utc-drive: ")
+
+
 def test_the_bundled_sample_with_its_own_truth_gives_no_warning(tmp_path, capsys):
     assert main([*FAST, "--out", str(tmp_path)]) == 0
     assert capsys.readouterr().err == ""
@@ -216,11 +240,20 @@ def test_the_iono_note_of_a_mixed_nav_file_is_said_once(tmp_path, capsys, shared
 
 # -- 4. option polish ---------------------------------------------------------------------------------------
 
-def test_truth_format_is_case_blind(tmp_path, capsys):
+def test_truth_format_and_backend_are_case_blind(tmp_path, capsys):
     truth = ["--truth", str(SAMPLE_TRUTH), "--truth-format", "SMARTLOC"]
-    assert main([*FAST, *SAMPLE, "--out", str(tmp_path), *truth]) == 0
+    assert main(["--backend", "WLS", *FAST[2:], *SAMPLE, "--out", str(tmp_path), *truth]) == 0
     captured = capsys.readouterr()
     assert captured.err == "" and re.search(r"^wls +1372 ", captured.out, re.M), captured
+    assert (tmp_path / "Berlin_Potsdamer_Platz_wls.pos").is_file()
+
+
+def test_a_dataset_tomls_truth_format_is_case_blind(sample_toml):
+    from lfgnss import datasets
+
+    toml = sample_toml("case-drive")
+    toml.write_text(toml.read_text().replace('format = "smartloc"', 'format = "SmartLoc"'))
+    assert datasets.register_toml(toml).truth_format == "smartloc"
 
 
 def test_an_unknown_truth_format_is_refused_with_the_formats_before_any_file_is_read(tmp_path, capsys, monkeypatch):

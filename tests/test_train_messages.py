@@ -136,3 +136,26 @@ def test_an_empty_split_of_a_registered_dataset_names_its_axis_bounds_and_file(s
     assert err.count("\n") == 1, err
     assert (f"dataset 'my-off' split 'val' gave no sequence: [splits] axis = 'relative_s', val = [1000, 1010) in "
             f"{path}; check them against the drive (python -m lfgnss.datasets --register {path})") in err
+
+
+@pytest.mark.parametrize("command", ["train", "crossval"])
+def test_warnings_are_one_line_each(command, tmp_path, capsys, monkeypatch):
+    """A warning during training (an unusable cache, a dropped constellation) is ``warning: ...`` on one line, not
+    Python's two lines with the source line that raised it; the warning filters are as they were afterwards."""
+    import warnings
+
+    import learning.crossval as cv
+    import learning.train as tr
+
+    def warns(*args, **kwargs):
+        warnings.warn("dataset x: constellation(s) J of its systems have no usable observation\nand are left out")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(tr if command == "train" else cv, command, warns)
+    before = warnings.showwarning
+    with pytest.raises(SystemExit) as exit_info:
+        (train_main if command == "train" else crossval_main)(["--out", str(tmp_path / "run")] + sets(TINY))
+    assert exit_info.value.code == 130
+    assert capsys.readouterr().err.splitlines()[0] == ("warning: dataset x: constellation(s) J of its systems have no "
+                                                       "usable observation and are left out")
+    assert warnings.showwarning is before
