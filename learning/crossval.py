@@ -70,8 +70,9 @@ from lfgnss.sequence import Sequence
 from .network import COMBINE_RULES, check_combine
 from .normalise import Normaliser
 from .provenance import code_text, command_line, git_state
-from .train import (DEFAULT_CONFIG, _flat, _merge_free, adopt_init, ekf_config, exit_on_input_error, init_model,
-                    load_config, load_sequences, prepare, read_checkpoint, torch_threads, train, trained_datasets)
+from .train import (DEFAULT_CONFIG, _flat, _merge_free, adopt_init, config_path, ekf_config, exit_on_input_error,
+                    init_model, load_config, load_sequences, prepare, read_checkpoint, torch_threads, train,
+                    trained_datasets)
 
 COLUMNS = ["fold", "held_out_epochs", "plain_ekf_rmse_3d_m", "untrained_rmse_3d_m", "last_rmse_3d_m",
            "best_rmse_3d_m", "best_epoch", "plain_ekf_smoothed_rmse_3d_m", "last_smoothed_rmse_3d_m",
@@ -546,7 +547,8 @@ def main(argv: list[str] | None = None) -> int:
     Ctrl-C. A run that stops keeps its finished folds' rows in ``crossval.csv`` / ``crossval.md``.
     """
     p = argparse.ArgumentParser(prog="python -m learning.crossval", description=__doc__.split("\n")[0])
-    p.add_argument("--config", help="TOML configuration (default: built-in defaults)")
+    p.add_argument("--config", type=config_path, help="TOML configuration: a file, or the name of a shipped one "
+                   "(as learning.train's; default: built-in defaults)")
     p.add_argument("--folds", type=int, default=3, help="number of contiguous blocks (default 3)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override a configuration key (repeatable)")

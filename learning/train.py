@@ -62,7 +62,7 @@ import torch
 
 from lfgnss.datasets import load_split, register_toml, split_parts
 from lfgnss.errors import INPUT_ERRORS, one_line, shortened, warnings_on_one_line
-from lfgnss.paths import replace_atomically
+from lfgnss.paths import may_name_a_bundled_model, names_something, replace_atomically
 from lfgnss.sequence import DEFAULT_FEATURES, Sequence
 
 from . import provenance
@@ -166,6 +166,24 @@ def apply_overrides(config: dict, assignments: list[str]) -> dict:
         cursor[leaf] = _parse_value(text.strip())
         out = _merge(out, nested)
     return out
+
+
+#: The training configurations shipped with lfgnss (``--config NAME`` picks ``NAME.toml`` here).
+CONFIG_DIR = Path(__file__).resolve().parent / "configs"
+
+
+def shipped_configs() -> list[str]:
+    """The names of the shipped training configurations: ``default``, ``finetune``, ``berlin``, ..."""
+    return sorted(p.stem for p in CONFIG_DIR.glob("*.toml"))
+
+
+def config_path(config: str) -> str:
+    """``--config``: a path as given where it names a file or has a folder or suffix, else the shipped configuration
+    of that name (``finetune``: learning/configs/finetune.toml), else as given (its reader names what is missing)."""
+    if names_something(config) or not may_name_a_bundled_model(config):
+        return config
+    shipped = CONFIG_DIR / f"{config}.toml"
+    return str(shipped) if shipped.is_file() else config
 
 
 def load_config(path: str | Path | None = None, overrides: list[str] = ()) -> dict:
@@ -728,12 +746,14 @@ def dataset_balance(sequences: list[Sequence], dataset_ids: list[str], ekf_cfg) 
 
 
 def _write_log(path: Path, history: list[dict]) -> None:
+    """``log.csv``: one row per epoch; epoch 0 (the untrained or ``train.init`` network, validated before any step)
+    has no ``train_loss``, so that cell is empty (it used to read ``nan``, which looked like a diverged epoch)."""
     def write(tmp: Path) -> None:
         with open(tmp, "w", newline="") as fh:
             w = csv.DictWriter(fh, fieldnames=["epoch", "train_loss", "val_rmse_3d_m", "val_availability", "lr",
                                                "seconds"])
             w.writeheader()
-            w.writerows(history)
+            w.writerows({**h, "train_loss": "" if h["epoch"] == 0 else h["train_loss"]} for h in history)
 
     replace_atomically(path, write)
 
@@ -1129,9 +1149,11 @@ def main(argv: list[str] | None = None) -> int:
     (one line naming the epoch ``last.pt`` holds, and how to resume).
     """
     p = argparse.ArgumentParser(prog="python -m learning.train", description=__doc__.split("\n")[0])
-    p.add_argument("--config", help="TOML configuration (default: built-in defaults)")
+    p.add_argument("--config", type=config_path, help="TOML configuration: a file, or the name of a shipped one ("
+                   f"{', '.join(shipped_configs())}; default: built-in defaults)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                   help="override a configuration key, e.g. --set train.epochs=5 (repeatable)")
+                   help="override a configuration key, e.g. --set train.epochs=5, --set threads=4 (CPU threads), "
+                        "--set device=cuda (cpu, cuda, cuda:N or auto) (repeatable)")
     p.add_argument("--out", help="run folder (default: runs/<config name>)")
     p.add_argument("--resume", action="store_true",
                    help="continue from OUT/last.pt with the run's own configuration (only --set train.epochs=N, "

@@ -584,6 +584,14 @@ def provenance_text(models: list[Path], out: Path | None = None) -> str:
     return f"Code: lfgnss {__version__}, {code}. Model files (SHA-256, first 16 hex digits): {digests or 'none'}."
 
 
+def _no_rtklib_rows(all_rows: list[dict]) -> str:
+    """Why the table of RTKLIB's epochs is empty: RTKLIB did not run, or it solved no labelled test epoch."""
+    ran = [r["dataset"] for r in all_rows if r["method"] == RTKLIB]
+    if not ran:
+        return "RTKLIB not installed (or it failed on every dataset): no rows."
+    return f"RTKLIB solved no labelled test epoch of {', '.join(ran)} (its chi-square test rejected them all): no rows."
+
+
 def write_report(path: Path, all_rows: list[dict], rtk_rows: list[dict], command: str,
                  warm_up: str | None = None, figures: bool = True, failed: list[str] = (),
                  made_by: str = "", left_out: list[str] = ()) -> Path:
@@ -620,7 +628,7 @@ def write_report(path: Path, all_rows: list[dict], rtk_rows: list[dict], command
         "",
         "## Epochs that RTKLIB solved (its chi-square test rejects the rest)",
         "",
-        format_markdown(_select(rtk_rows)) if rtk_rows else "RTKLIB not installed: no rows.",
+        format_markdown(_select(rtk_rows)) if rtk_rows else _no_rtklib_rows(all_rows),
         "",
         "## Against the targets",
         "",

@@ -661,18 +661,22 @@ def split_index(seq: Sequence, spec: DatasetSpec, split: str) -> np.ndarray:
         where = f"; give {split} = [start, stop] under [splits] in {spec.source}" if spec.source else ""
         raise KeyError(f"dataset {spec.id} has no split {split!r}; it has {', '.join(spec.splits) or 'none'}{where}")
     start, stop = spec.splits[split]
-    labelled = seq.labelled
+    axis = split_axis_values(seq, spec)
+    return seq.labelled & (axis >= start) & (axis < stop)
+
+
+def split_axis_values(seq: Sequence, spec: DatasetSpec) -> np.ndarray:
+    """(T,) each epoch's place on ``spec``'s split axis: time of week [s], seconds since the truth origin [s] (both to
+    0.1 s), or the index among labelled epochs (-1 for an unlabelled one)."""
     if spec.split_axis == "tow":
-        axis = gps_s_to_week_tow(seq.time_gps_s)[1]
-        axis = np.round(axis, 1)
-    elif spec.split_axis == "relative_s":
+        return np.round(gps_s_to_week_tow(seq.time_gps_s)[1], 1)
+    if spec.split_axis == "relative_s":
         origin = seq.time_gps_s[0] if spec.time_origin_gps_s is None else spec.time_origin_gps_s
-        axis = np.round(seq.time_gps_s - origin, 1)
-    elif spec.split_axis == "epoch":
-        axis = np.where(labelled, np.cumsum(labelled) - 1, -1)
-    else:
-        raise ValueError(f"dataset {spec.id}: unknown split axis {spec.split_axis!r}")
-    return labelled & (axis >= start) & (axis < stop)
+        return np.round(seq.time_gps_s - origin, 1)
+    if spec.split_axis == "epoch":
+        labelled = seq.labelled
+        return np.where(labelled, np.cumsum(labelled) - 1, -1)
+    raise ValueError(f"dataset {spec.id}: unknown split axis {spec.split_axis!r}")
 
 
 def present(dataset_ids, report=print) -> list[str]:
@@ -718,15 +722,19 @@ def alignment_report(dataset_ids: list[str] | None = None) -> str:
         seq = build(dataset_id)
         labelled = seq.labelled
         lines.append(f"{dataset_id}: {len(seq)} epochs, {int(labelled.sum())} with truth; systems "
-                     f"{''.join(seq.systems)}; {spec.description}")
+                     f"{''.join(seq.systems)}" + (f"; {spec.description}" if spec.description else ""))
         note = utc_stamp_note(spec, seq.time_gps_s, seq.coarse_ecef_m)
         if note:
             warnings.warn(note, stacklevel=2)
         for split in spec.splits:
             idx = split_index(seq, spec, split)
             if not idx.any():
+                span = split_axis_values(seq, spec)[labelled]
+                where = (f": the labelled epochs span [{span.min():.10g}, {span.max():.10g}] on it" if span.size
+                         else ": no epoch has truth")
+                start, stop = spec.splits[split]
                 lines.append(f"  {split:5s}     0 matched epochs (check [splits] axis = {spec.split_axis!r} "
-                             f"and the bounds)")
+                             f"and the bounds [{start:.10g}, {stop:.10g}]{where})")
                 continue
             has_fix = np.all(np.isfinite(seq.coarse_ecef_m), axis=1)
             row = accuracy_table(seq.coarse_ecef_m[idx], seq.truth_ecef_m[idx], has_fix[idx])

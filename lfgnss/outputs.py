@@ -562,7 +562,11 @@ def solution_figures(solution: Solution, truth_ecef_m: np.ndarray | None = None,
         rot = enu_rotations(ref[None])[0]
         if truth is not None:
             enu = (truth - ref) @ rot.T
-            ax.plot(enu[:, 0], enu[:, 1], "k-", lw=2, label="truth")
+            known = enu[np.isfinite(enu).all(axis=1)]
+            if len(known) and np.ptp(known[:, :2], axis=0).max() < 0.5:     # one point (static truth): a line shows nothing
+                ax.plot(known[:1, 0], known[:1, 1], "k*", ms=14, zorder=5, label="truth")
+            else:
+                ax.plot(enu[:, 0], enu[:, 1], "k-", lw=2, label="truth")
         for name, p in runs:
             enu = (p[np.isfinite(p).all(axis=1)] - ref) @ rot.T  # join across epochs without position
             ax.plot(enu[:, 0], enu[:, 1], marker=".", ms=2, lw=0.8, color=style[name][0], ls=style[name][1],

@@ -284,6 +284,7 @@ def _solve(args) -> _Solved:
     if args.formal_sd:
         options["inflate_cov"] = False
     label += " (hand-set noise)" if args.no_model else ""
+    label += f" (model {_model_tag(Path(args.model))})" if _own_model(args) else ""   # the table names the model
     if args.backend in PROGRESS_BACKENDS:
         options["progress"] = not args.quiet
     estimator = estimators.create(args.backend, **options)
@@ -340,7 +341,7 @@ def _print_run(solved: _Solved, shown: list[str], n_notes: int) -> None:
     """The run's lines on stdout: file, systems and back end, coarse fix, input notes and outputs."""
     summary = solved.fix.summary()
     keep = solved.keep
-    shown_label = solved.label.removesuffix(" (hand-set noise)")    # noise_text says it
+    shown_label = re.sub(r" \((hand-set noise|model [^()]*)\)$", "", solved.label)    # noise_text says it
     of_file = f" of {keep.size} (--start/--end)" if not keep.all() else ""
     print(f"{solved.obs}: {summary['epochs']} epochs{of_file}, systems {''.join(solved.meas.systems)}, backend "
           f"{shown_label} ({solved.noise_text})")
@@ -496,8 +497,7 @@ def _run_tag(args: argparse.Namespace, options: dict) -> str:
 
     tag = smoothed_name(args.backend + ("-fixed-lag" if options.get("mode") == "fixed-lag" else ""), args.smooth,
                         math.inf if args.smooth_lag is None else args.smooth_lag)
-    own_model = args.model is not None and model_path(args.model).resolve() != DEFAULT_MODEL.resolve()
-    tag += f"-{_model_tag(Path(args.model))}" if own_model else ""     # --model default is the run without --model
+    tag += f"-{_model_tag(Path(args.model))}" if _own_model(args) else ""
     tag += "-hand-set" if args.no_model else ""
     tag += "-marginals" if args.marginals else ""
     tag += "-formal-sd" if args.formal_sd else ""
@@ -505,6 +505,11 @@ def _run_tag(args: argparse.Namespace, options: dict) -> str:
         tag += f"-{option}{_week_tow_text(t).replace(':', '_')}" if t is not None else ""
     tag += f"-mask{args.elevation_mask:g}" if args.elevation_mask != DEFAULT_ELEVATION_MASK_DEG else ""
     return tag + (f"-sys{args.systems}" if args.systems else "")
+
+
+def _own_model(args: argparse.Namespace) -> bool:
+    """Whether the run has a model other than the default one (``--model default`` is the run without --model)."""
+    return args.model is not None and model_path(args.model).resolve() != DEFAULT_MODEL.resolve()
 
 
 def _model_tag(path: Path) -> str:

@@ -416,3 +416,14 @@ def test_the_code_is_clean_when_only_the_runs_own_output_folder_changed(tmp_path
     assert not git_state(tmp_path, ignore=(tmp_path / "docs", "/somewhere/else"))["dirty"]   # outside: no matter
     (tmp_path / "code.py").write_text("x = 2\n")
     assert git_state(tmp_path, ignore=(tmp_path / "docs",))["dirty"]
+
+
+def test_an_empty_rtklib_table_says_why():
+    """RTKLIB ran but its chi-square test rejected every labelled test epoch (the bundled drive's last 20 s): the
+    report said "RTKLIB not installed"."""
+    from lfgnss.benchmark import _no_rtklib_rows
+
+    ran = [{"dataset": "my-drive", "method": RTKLIB}, {"dataset": "my-drive", "method": "LF-GNSS EKF"}]
+    assert _no_rtklib_rows(ran) == ("RTKLIB solved no labelled test epoch of my-drive (its chi-square test rejected "
+                                    "them all): no rows.")
+    assert _no_rtklib_rows(ran[1:]) == "RTKLIB not installed (or it failed on every dataset): no rows."

@@ -332,6 +332,22 @@ def test_datasets_cli_reports_a_dataset_named_twice_once(tmp_path, clean_registr
     assert out.count("my-berlin: 1375 epochs, 1372 with truth") == 1
 
 
+def test_a_split_that_misses_the_drive_shows_the_drives_span_on_its_axis(clean_registry, capsys, sample_toml):
+    """A TOML without a description and with splits on the wrong axis (times of week given on relative_s): the report
+    line ends with the systems (it used to end in a dangling '; '), and each empty split says where the drive lies."""
+    cfg = sample_toml("tow-drive", splits=((126641.7, 126800), (126800, 126850), (126850, 126930)))
+    assert datasets.main(["--register", str(cfg)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == "tow-drive: 1375 epochs, 1372 with truth; systems GR"
+    assert lines[1] == ("  train     0 matched epochs (check [splits] axis = 'relative_s' and the bounds [126641.7, 126800]: "
+                        "the labelled epochs span [0, 282.8] on it)")
+    cfg.write_text(cfg.read_text().replace('axis = "relative_s"', 'axis = "tow"'))
+    datasets.register_toml(cfg)
+    assert datasets.main(["--register", str(cfg)]) == 0
+    out = capsys.readouterr().out
+    assert "  train   765 matched epochs" in out and "(check [splits]" not in out, out
+
+
 @pytest.mark.parametrize("line", ['truth = "truth.csv"', "splits = [1, 2]"])
 def test_truth_or_splits_that_are_not_tables_are_one_line_errors(tmp_path, clean_registry, line):
     cfg = tmp_path / "flat.toml"

@@ -107,6 +107,16 @@ def test_track_title_names_no_single_method_when_it_shows_several():
         ["east [m]", "north [m]"]
 
 
+def test_a_static_truth_is_a_marker_on_the_track_and_a_moving_one_a_line():
+    """Static truth (one point at every epoch) was drawn as a line of no length: not to be seen on the track plot."""
+    sol, truth = _run(np.linspace(1.0, 5.0, 20))
+    still = np.broadcast_to(truth[0], truth.shape).copy()
+    for points, marker, linestyle, n in ((still, "*", "None", 1), (truth, "None", "-", 20)):
+        line = next(ln for ln in solution_figures(sol, points)["track.png"].axes[0].get_lines()
+                    if ln.get_label() == "truth")
+        assert (line.get_marker(), line.get_linestyle(), len(line.get_xdata())) == (marker, linestyle, n)
+
+
 def test_a_figure_that_cannot_be_written_costs_that_figure_only(tmp_path):
     """A folder where errors.png goes: track.png and cdf.png are still written, then the error names errors.png."""
     sol, truth = _run(np.linspace(1.0, 5.0, 20))

@@ -126,12 +126,15 @@ def test_table_label_names_hand_set_noise_and_fixed_lag(tmp_path, capsys):
     assert (tmp_path / "Berlin_Potsdamer_Platz_fgo-fixed-lag-hand-set.pos").exists()
 
 
-def test_a_model_of_ones_own_is_in_the_output_names(tmp_path):
+def test_a_model_of_ones_own_is_in_the_output_names_and_the_table(tmp_path, capsys):
     import shutil
 
     shutil.copy(DEFAULT_MODEL, tmp_path / "mine.npz")
     assert main(["--out", str(tmp_path / "o"), "--quiet", "--no-plots", "--model", str(tmp_path / "mine.npz")]) == 0
     assert (tmp_path / "o" / "Berlin_Potsdamer_Platz_ekf-mine.csv").exists()
+    assert any(line.startswith("ekf (model mine) ") for line in capsys.readouterr().out.splitlines())
+    assert main(["--out", str(tmp_path / "o"), "--quiet", "--no-plots", "--model", "default"]) == 0
+    assert any(line.startswith("ekf  ") for line in capsys.readouterr().out.splitlines())    # the run without --model
     for run in ("a", "b"):                   # training runs all export model.npz: named by their run folder
         (tmp_path / run).mkdir()
         shutil.copy(DEFAULT_MODEL, tmp_path / run / "model.npz")

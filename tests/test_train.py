@@ -44,6 +44,7 @@ def test_validation_error_drops(full_run):
     with open(out / "log.csv") as fh:
         rows = list(csv.DictReader(fh))
     assert len(rows) == EPOCHS + 1 and set(rows[0]) >= {"epoch", "train_loss", "val_rmse_3d_m", "seconds"}
+    assert rows[0]["train_loss"] == "" and all(np.isfinite(float(r["train_loss"])) for r in rows[1:])   # no step yet
     model = load_model(out / "model.npz")
     assert model.metadata["data_fingerprints"][0]["dataset"] == "synthetic"
 

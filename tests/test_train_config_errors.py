@@ -194,3 +194,20 @@ def test_training_on_train_plus_val_notes_that_its_validation_is_seen(tmp_path, 
     err = capsys.readouterr().err
     assert exit_info.value.code == 2 and "error: data.val_split 'val' is trained on" in err
     assert len(err.strip().splitlines()) == 1 and not (tmp_path / "cv").exists(), err
+
+
+def test_a_shipped_configuration_is_picked_by_name(tmp_path, monkeypatch):
+    """``--config finetune`` from any folder is learning/configs/finetune.toml; a file of that name here wins, and a
+    name that is neither is left as given, so its reader names what is missing."""
+    from learning.train import CONFIG_DIR, config_path, shipped_configs
+
+    monkeypatch.chdir(tmp_path)
+    assert {"default", "finetune", "berlin"} <= set(shipped_configs())
+    assert config_path("finetune") == str(CONFIG_DIR / "finetune.toml")
+    assert load_config(config_path("finetune"))["train"]["init"] == load_config(CONFIG_DIR / "finetune.toml")["train"]["init"]
+    (tmp_path / "finetune").write_text("")                     # a file of one's own by that name comes first
+    assert config_path("finetune") == "finetune"
+    assert config_path("nope") == "nope" and config_path("sub/finetune") == "sub/finetune"
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--config", "nope", "--out", str(tmp_path / "run")])
+    assert exit_info.value.code == 2 and not (tmp_path / "run").exists()
