@@ -62,7 +62,7 @@ import torch
 
 from lfgnss.datasets import load_split, register_toml, split_parts
 from lfgnss.errors import INPUT_ERRORS, one_line, shortened, warnings_on_one_line
-from lfgnss.paths import may_name_a_bundled_model, names_something, replace_atomically
+from lfgnss.paths import may_name_a_bundled_model, replace_atomically
 from lfgnss.sequence import DEFAULT_FEATURES, Sequence
 
 from . import provenance
@@ -180,7 +180,7 @@ def shipped_configs() -> list[str]:
 def config_path(config: str) -> str:
     """``--config``: a path as given where it names a file or has a folder or suffix, else the shipped configuration
     of that name (``finetune``: learning/configs/finetune.toml), else as given (its reader names what is missing)."""
-    if names_something(config) or not may_name_a_bundled_model(config):
+    if Path(config).is_file() or not may_name_a_bundled_model(config):     # a folder of that name hides nothing
         return config
     shipped = CONFIG_DIR / f"{config}.toml"
     return str(shipped) if shipped.is_file() else config
@@ -798,14 +798,18 @@ def read_checkpoint(path: str | Path) -> Any:
             return torch.load(path, map_location="cpu", weights_only=True)
         except pickle.UnpicklingError as exc:
             operand = re.search(r"Unsupported operand (\d+)", str(exc))
-            if operand:                     # the first byte is no pickle instruction: text, random bytes
-                raise ValueError(f"not a torch file (UnpicklingError: unknown pickle operand {operand[1]})") from None
+            if operand:     # an instruction torch's safe reader lacks: text, random bytes, or a newer pickle's FRAME
+                newer = " or one written with pickle protocol 4 or higher" if operand[1] == "149" else ""
+                raise ValueError(f"not a torch file{newer} (UnpicklingError: unknown pickle operand "
+                                 f"{operand[1]})") from None
             found = re.search(r"GLOBAL (\S+)|got <class '([^']+)'>", str(exc))
             what = f" ({found[1] or found[2]})" if found else ""
             raise ValueError(f"it holds an object other than tensors, plain containers and numpy arrays{what}, which "
                              f"is not read (it could run code)") from None
+        except EOFError:
+            raise ValueError("not a torch file (it ends before its first record: empty or cut short)") from None
         except Exception as exc:
-            if isinstance(exc, (OSError, RuntimeError, EOFError, ValueError)):
+            if isinstance(exc, (OSError, RuntimeError, ValueError)):
                 raise
             # torch's reader of old-style files fails with IndexError, struct.error, ... on text or other files
             raise ValueError(f"not a torch file ({type(exc).__name__}: {exc})") from None
@@ -1164,8 +1168,8 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     out = args.out or str(Path("runs") / (Path(args.config).stem if args.config else "default"))
     try:
-        config = load_config(args.config, args.overrides)
         with warnings_on_one_line():
+            config = load_config(args.config, args.overrides)
             history = train(config, out, resume=args.resume, overrides=args.overrides, progress=not args.no_progress,
                             epoch_lines=True, config_file=args.config,
                             command=provenance.command_line(p.prog, sys.argv[1:] if argv is None else list(argv)))

@@ -391,14 +391,22 @@ TRUTH_COLUMNS = {
 
 
 def _readable_as(path: Path, truth_format: str) -> str | None:
-    """Another truth format in which ``path`` has readable rows, or None (a hint for a wrong format setting)."""
+    """Another truth format in which ``path`` has readable rows, or None (a hint for a wrong format setting).
+
+    ``static`` is named only for rows of one point: a drive's urbannav file with a bad week column (TOW in ms, a
+    week of -1) reads as static too, and static truth would label every epoch with its first row.
+    """
     for other, layout in _ROW_LAYOUTS.items():
         if other != truth_format and _ROW_LAYOUTS[truth_format] != layout:
             try:
-                _numeric_rows(path, *layout)
-                return other
+                rows, _ = _numeric_rows(path, *layout)
             except InputError:
                 continue
+            if other == "static":
+                xyz = lla_to_ecef(np.radians(rows[:, 2]), np.radians(rows[:, 3]), rows[:, 4])
+                if np.max(np.linalg.norm(xyz - xyz[0], axis=1)) > STATIC_SPREAD_M:
+                    continue
+            return other
     return None
 
 

@@ -35,7 +35,7 @@ from estimators.base import (STATUS_COASTED, STATUS_NAMES, STATUS_NONE, STATUS_U
 from . import __version__
 from .frames import check_near_surface, ecef_to_lla, lla_to_ecef
 from .metrics import enu_errors, enu_rotations
-from .paths import replace_atomically
+from .paths import write_output
 from .time import GPS_EPOCH, SECONDS_PER_WEEK, gps_s_to_week_tow, utc_to_gps_s
 
 if TYPE_CHECKING:
@@ -66,8 +66,9 @@ def _check_args(writer: str, path: object, solution: object, where: str = "path"
 
 
 def _write_text(path: Path, text: str) -> None:
-    """``text`` as ``path`` (UTF-8), written whole: a temporary file renamed, so an interrupted run leaves no half file."""
-    replace_atomically(path, lambda tmp: tmp.write_text(text, encoding="utf-8", newline=""))
+    """``text`` as ``path`` (UTF-8), written whole where it can be (:func:`lfgnss.paths.write_output`): an
+    interrupted run leaves the previous file, never half a file."""
+    write_output(path, lambda target: target.write_text(text, encoding="utf-8", newline=""))
 
 
 def _sqvar(c: np.ndarray) -> np.ndarray:
@@ -524,10 +525,16 @@ def plot_solution(out_dir: str | Path, solution: Solution, truth_ecef_m: np.ndar
 
 
 def save_figure(path: str | Path, fig: "Figure", dpi: int = 120) -> Path:
-    """A matplotlib figure as the PNG ``path``, written whole (a temporary file renamed onto it)."""
+    """A matplotlib figure as ``path``, in the format its suffix names (``.png``, ``.pdf``, ``.svg``; PNG without
+    one), written whole where it can be (:func:`lfgnss.paths.write_output`)."""
     path = Path(path)
-    replace_atomically(path, lambda tmp: fig.savefig(tmp, dpi=dpi, format="png"))
+    kind = path.suffix.lstrip(".").lower() or "png"
+    write_output(path, lambda target: fig.savefig(target, dpi=dpi, format=kind))
     return path
+
+
+#: The figures of :func:`solution_figures` with a truth, by file name (without one: the track only).
+TRUTH_FIGURES = ("track.png", "errors.png", "cdf.png")
 
 
 def solution_figures(solution: Solution, truth_ecef_m: np.ndarray | None = None,

@@ -4,6 +4,8 @@ from __future__ import annotations
 import contextlib
 import os
 import secrets
+import shutil
+import stat
 import time
 import warnings
 from collections.abc import Callable
@@ -75,14 +77,18 @@ def replace_atomically(path: Path, write: Callable[[Path], object]) -> None:
 
     A run killed mid-write keeps the previous file whole, and readers never see half a file. The temporary name is
     ``.STEM.PID-RANDOM.partial.SUFFIX``, its own for each write, so two processes filling one cache entry at once
-    (parallel tests, two solves of one file) each rename a whole file instead of writing into each other's. An
-    OSError names ``path``, not the temporary file the user never asked for.
+    (parallel tests, two solves of one file) each rename a whole file instead of writing into each other's; its
+    stem is cut to 100 characters, so a name near the system's limit still has room for it. A file replaced keeps
+    its permissions. An OSError names ``path``, not the temporary file the user never asked for.
     """
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}-{secrets.token_hex(4)}.partial{path.suffix}")
+    tmp = path.with_name(f".{path.stem[:100]}.{os.getpid()}-{secrets.token_hex(4)}.partial{path.suffix}")
     try:
         write(tmp)
         with open(tmp, "r+b") as fh:            # on the disk before the rename, so a power cut leaves one or the other
             os.fsync(fh.fileno())
+        with contextlib.suppress(OSError):
+            if path.is_file():
+                shutil.copymode(path, tmp)
         os.replace(tmp, path)
     except BaseException as err:
         with contextlib.suppress(OSError):
@@ -90,6 +96,35 @@ def replace_atomically(path: Path, write: Callable[[Path], object]) -> None:
         if isinstance(err, OSError) and err.filename in (str(tmp), tmp):
             err.filename, err.filename2 = str(path), None
         raise
+
+
+def write_output(path: str | os.PathLike, write: Callable[[Path], object]) -> Path:
+    """``write`` an output file the user named, whole where it can be (:func:`replace_atomically`); the path written.
+
+    A symbolic link is written through (the file it names is replaced, the link kept). Where the path is no regular
+    file (``/dev/stdout``, a FIFO) or its folder takes no new file but the file itself may be written, ``write``
+    writes it in place: a rename would replace the device or fail.
+    """
+    target = Path(os.path.realpath(path))
+    try:
+        try:
+            mode = target.stat().st_mode
+        except OSError:                         # not there yet (or not to be looked at): the rename says why
+            mode = None
+        if mode is not None and not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+            write(target)
+            return target
+        try:
+            replace_atomically(target, write)
+        except PermissionError:
+            if not (target.is_file() and os.access(target, os.W_OK)):
+                raise
+            write(target)                       # a folder that takes no new file, a file one may write
+    except OSError as err:
+        if err.filename == str(target):        # the name the user gave, not the one its links resolve to
+            err.filename = str(path)
+        raise
+    return target
 
 
 # ---------------------------------------------------------------- cache entries
@@ -101,14 +136,15 @@ _CACHE_WARNED: set[str] = set()
 _STALE_PARTIAL_S = 3600.0          # a temporary file this old was left by a killed process, not one still writing
 
 
-def _cache_unusable(err: OSError) -> None:
+def _cache_unusable(err: OSError | RuntimeError) -> None:
     """One CacheWarning per cache folder and process, naming the file and the reason."""
-    root = os.environ.get("LFGNSS_CACHE") or str(Path.home() / ".cache" / "lfgnss")
+    root = os.environ.get("LFGNSS_CACHE") or "~/.cache/lfgnss"
     if root in _CACHE_WARNED:
         return
     _CACHE_WARNED.add(root)
-    where = err.filename or root
-    warnings.warn(f"{where}: cannot use the cache ({err.strerror or err}); going on without it, so files are parsed "
+    where = getattr(err, "filename", None) or root
+    reason = getattr(err, "strerror", None) or err
+    warnings.warn(f"{where}: cannot use the cache ({reason}); going on without it, so files are parsed "
                   "again on every run (set $LFGNSS_CACHE to a writable folder)", CacheWarning, stacklevel=3)
 
 
@@ -117,7 +153,7 @@ def cache_file(kind: str, name: str) -> Path | None:
     try:
         folder = cache_dir() / kind
         folder.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
+    except (OSError, RuntimeError) as err:     # RuntimeError: Path.home() of a user without a home folder
         _cache_unusable(err)
         return None
     return folder / name
@@ -151,6 +187,7 @@ def store_cached(path: Path | None, write: Callable[[Path], object]) -> None:
             if stale.stat().st_mtime < cutoff:
                 stale.unlink()
     try:
+        path.parent.mkdir(parents=True, exist_ok=True)      # removed while this run was going (a cache cleaned)
         replace_atomically(path, write)
     except OSError as err:
         _cache_unusable(err)

@@ -213,7 +213,8 @@ def _solve(args) -> _Solved:
     from . import datasets
     from .features import build_sequence
     from .measurements import load
-    from .outputs import save_figure, solution_figures, write_csv, write_geojson, write_kml, write_pos
+    from .outputs import (TRUTH_FIGURES, save_figure, solution_figures, write_csv, write_geojson, write_kml,
+                          write_pos)
     from .spp import spp
 
     sample = args.obs is None
@@ -301,8 +302,13 @@ def _solve(args) -> _Solved:
             (f"{stem}.geojson", lambda p: [write_geojson(p, solution)]),
             (f"{stem}.kml", lambda p: [write_kml(p, solution)])]
     if truth is not None and not args.no_plots:
-        figures = solution_figures(solution, truth, extra_solutions={"least squares": _coarse(seq)})
-        jobs += [(f"{stem}_{figure}", lambda p, fig=fig: [save_figure(p, fig)]) for figure, fig in figures.items()]
+        figures: dict = {}                  # drawn at the first figure's turn, after the files above are written
+
+        def save(path: str, name: str) -> list[Path]:
+            figures.update(figures or solution_figures(solution, truth, extra_solutions={"least squares": _coarse(seq)}))
+            return [save_figure(path, figures[name])]
+
+        jobs += [(f"{stem}_{name}", lambda p, name=name: save(p, name)) for name in TRUTH_FIGURES]
     written, failed = [], []
     for path, job in jobs:
         try:

@@ -139,3 +139,62 @@ def test_cache_false_makes_no_cache_folder(tmp_path, monkeypatch):
         warnings.simplefilter("ignore")
         load_obs(SAMPLE_OBS, cache=False)
     assert not (tmp_path / "cache").exists()
+
+
+def test_an_output_is_written_through_a_link_keeps_its_mode_and_may_have_a_long_name(tmp_path):
+    from lfgnss.paths import write_output
+
+    real = tmp_path / "real.pos"
+    real.write_text("old")
+    os.chmod(real, 0o600)
+    (tmp_path / "link.pos").symlink_to(real)
+    write_output(tmp_path / "link.pos", lambda p: p.write_text("new"))
+    assert (tmp_path / "link.pos").is_symlink() and real.read_text() == "new"
+    assert real.stat().st_mode & 0o777 == 0o600
+    long_name = tmp_path / ("x" * 240 + ".csv")                     # 244 characters: the system allows 255
+    write_output(long_name, lambda p: p.write_text("whole"))
+    assert long_name.read_text() == "whole" and len(list(tmp_path.iterdir())) == 3
+
+
+def test_an_output_that_is_a_fifo_is_written_in_place(tmp_path):
+    """A FIFO (or /dev/stdout) is written, not replaced by a regular file."""
+    import threading
+
+    from lfgnss.paths import write_output
+
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    got = []
+    reader = threading.Thread(target=lambda: got.append(fifo.read_text()))
+    reader.start()
+    write_output(fifo, lambda p: p.write_text("through the pipe"))
+    reader.join(timeout=10)
+    assert got == ["through the pipe"] and fifo.is_fifo()
+
+
+def test_an_error_names_the_output_as_given(tmp_path):
+    from lfgnss.paths import write_output
+
+    (tmp_path / "real").mkdir()
+    (tmp_path / "real" / "out.csv").mkdir()                        # a folder where the file goes
+    (tmp_path / "link").symlink_to(tmp_path / "real")
+    with pytest.raises(OSError) as info:
+        write_output(tmp_path / "link" / "out.csv", lambda p: p.write_text("x"))
+    assert info.value.filename == str(tmp_path / "link" / "out.csv")
+
+
+def test_a_cache_folder_removed_during_a_run_is_made_again(tmp_path, monkeypatch):
+    import shutil
+
+    cache = tmp_path / "cache"
+    _parse_fresh(monkeypatch, cache)
+    shutil.rmtree(cache / "obs")
+    from lfgnss import paths
+
+    monkeypatch.setattr(paths, "_CACHE_WARNED", set())
+    target = paths.cache_file("obs", "x.npz")
+    shutil.rmtree(cache / "obs")                                   # between the lookup and the store
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", paths.CacheWarning)
+        paths.store_cached(target, lambda p: np.savez(p, x=np.arange(2)))
+    assert target.is_file()

@@ -134,6 +134,16 @@ def test_a_wrong_truth_format_is_named_with_the_one_the_file_reads_as(tmp_path, 
         datasets.align_truth(np.array([1.2e9]), spec)
 
 
+def test_a_moving_urbannav_file_with_a_bad_week_is_not_told_to_be_static(tmp_path):
+    """TOW in milliseconds or a week of -1 fail urbannav's check and read as static rows, but a drive is no point:
+    following a 'static' hint would label every epoch with the first row."""
+    path = tmp_path / "truth.csv"
+    path.write_text("-1,46701000,22.3,114.1,10\n-1,46702000,22.301,114.1,10\n")
+    spec = datasets.DatasetSpec(id="x", obs=(path,), nav=(path,), truth=path, truth_format="urbannav")
+    with pytest.raises(InputError, match=re.escape("(truth format 'urbannav' has rows of GPS week, ") + ".*[)]$"):
+        datasets.align_truth(np.array([1.2e9]), spec)
+
+
 @pytest.mark.parametrize("row, reason", [
     ("2051.5,46701,22.3,114.1,10", "GPS week 2051.5 is not a whole number in [0, 9999]"),
     ("-1,46701,22.3,114.1,10", "GPS week -1 is not a whole number in [0, 9999]"),

@@ -127,3 +127,16 @@ def test_a_figure_that_cannot_be_written_costs_that_figure_only(tmp_path):
     for name in ("track.png", "cdf.png"):
         assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cdf.png", "errors.png", "track.png"]   # no temporary
+
+
+def test_save_figure_writes_the_format_its_suffix_names(tmp_path):
+    from lfgnss.outputs import save_figure
+
+    sol, truth = _run(np.linspace(1.0, 5.0, 20))
+    fig = solution_figures(sol, truth)["track.png"]
+    from lfgnss.outputs import TRUTH_FIGURES
+
+    assert tuple(solution_figures(sol, truth)) == TRUTH_FIGURES and tuple(solution_figures(sol)) == ("track.png",)
+    for name, magic in (("t.pdf", b"%PDF"), ("t.png", b"\x89PNG"), ("t", b"\x89PNG")):
+        save_figure(tmp_path / name, fig)
+        assert (tmp_path / name).read_bytes()[:4] == magic, name

@@ -256,9 +256,12 @@ def test_a_checkpoint_that_would_run_code_is_refused_not_run(tmp_path):
     assert np.array_equal(back["rng"]["numpy"][1], np.random.get_state()[1]) and back["w"].sum() == 2
 
 
-@pytest.mark.parametrize("content", [b"epoch,train_loss,val_rmse_3d_m\n0,1.5,20.0\n", bytes(range(256)) * 3],
-                         ids=["log.csv", "binary"])
-def test_exporting_a_text_or_foreign_file_is_one_line(content, tmp_path, capsys):
+@pytest.mark.parametrize("content, reason", [
+    (b"epoch,train_loss,val_rmse_3d_m\n0,1.5,20.0\n", "not a torch file (IndexError: "),
+    (bytes(range(256)) * 3, "not a torch file (UnpicklingError: unknown pickle operand 0)"),
+    (b"", "not a torch file (it ends before its first record: empty or cut short)"),
+], ids=["log.csv", "binary", "empty"])
+def test_exporting_a_text_or_foreign_file_is_one_line(content, reason, tmp_path, capsys):
     """``python -m learning.export runs/x/log.csv m.npz``: torch's old-format reader fails with IndexError there."""
     source = tmp_path / "log.csv"
     source.write_bytes(content)
@@ -266,7 +269,7 @@ def test_exporting_a_text_or_foreign_file_is_one_line(content, tmp_path, capsys)
         export_main([str(source), str(tmp_path / "m.npz")])
     err = capsys.readouterr().err
     assert exit_info.value.code == 2 and len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
-    assert f"error: {source}: not a usable training checkpoint (not a torch file (" in err
+    assert f"error: {source}: not a usable training checkpoint ({reason}" in err
     assert not (tmp_path / "m.npz").exists()
 
 

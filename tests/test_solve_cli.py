@@ -108,6 +108,21 @@ def test_a_figure_that_cannot_be_written_costs_that_figure_only(tmp_path, capsys
     assert not list(out.glob(".*partial*"))
 
 
+def test_a_plotting_bug_costs_no_text_output(tmp_path, capsys, monkeypatch):
+    """The figures are drawn after the .pos, CSV, GeoJSON and KML are written: a bug in the plotting is an internal
+    error (exit 3) that leaves them."""
+    import lfgnss.outputs
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("plotting broke")
+
+    monkeypatch.setattr(lfgnss.outputs, "solution_figures", broken)
+    assert main(["--out", str(tmp_path), "--backend", "wls"]) == 3
+    assert "internal error" in capsys.readouterr().err
+    for suffix in ("pos", "csv", "geojson", "kml"):
+        assert (tmp_path / f"Berlin_Potsdamer_Platz_wls.{suffix}").stat().st_size > 0
+
+
 def test_truth_matching_no_epoch_warns_and_skips_the_table(tmp_path, capsys):
     args = ["--obs", str(SAMPLE_OBS), "--nav", *map(str, SAMPLE_NAV), "--truth", str(SAMPLE_TRUTH),
             "--truth-format", "smartloc", "--truth-origin", "0", "--out", str(tmp_path)]

@@ -203,8 +203,10 @@ def test_a_shipped_configuration_is_picked_by_name(tmp_path, monkeypatch):
 
     monkeypatch.chdir(tmp_path)
     assert {"default", "finetune", "berlin"} <= set(shipped_configs())
+    (tmp_path / "finetune").mkdir()                            # a folder of that name hides nothing
     assert config_path("finetune") == str(CONFIG_DIR / "finetune.toml")
     assert load_config(config_path("finetune"))["train"]["init"] == load_config(CONFIG_DIR / "finetune.toml")["train"]["init"]
+    (tmp_path / "finetune").rmdir()
     (tmp_path / "finetune").write_text("")                     # a file of one's own by that name comes first
     assert config_path("finetune") == "finetune"
     assert config_path("nope") == "nope" and config_path("sub/finetune") == "sub/finetune"
