@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Callable, Iterable, Protocol, runtime_checkabl
 
 import numpy as np
 
+from lfgnss.errors import UnknownNameError, close_name
 from lfgnss.frames import check_near_surface, ecef_to_enu, ecef_to_lla
 from lfgnss.metrics import enu_rotations
 from lfgnss.sequence import Sequence, epochs_text, share_text, time_span_text
@@ -182,6 +183,10 @@ def check_sequence(sequence: object, owner: str) -> Sequence:
     """``sequence`` if it is a Sequence with finite epoch times; TypeError or ValueError naming ``owner`` otherwise."""
     if not isinstance(sequence, Sequence):
         what = type(sequence).__name__
+        if isinstance(sequence, (list, tuple)) and sequence and all(isinstance(s, Sequence) for s in sequence):
+            raise TypeError(f"{owner}.solve: expected an lfgnss.Sequence, got a {what} of {len(sequence)} (the parts "
+                            "lfgnss.datasets.load_split gives: a split may be cut in several); solve each part, e.g. "
+                            "[est.solve(s) for s in parts]")
         hint = ("lfgnss.build_sequence(meas, lfgnss.spp(meas)), lfgnss.process(obs, nav) or lfgnss.load_sequence(path)"
                 if what in ("Measurements", "CoarseFix", "str", "PosixPath", "WindowsPath", "Observations")
                 else "lfgnss.build_sequence or lfgnss.process")
@@ -189,6 +194,11 @@ def check_sequence(sequence: object, owner: str) -> Sequence:
     bad = ~np.isfinite(np.asarray(sequence.time_gps_s, float))
     if bad.any():
         raise ValueError(f"{owner}: epoch time of {sequence.name!r} is not finite at epoch {int(np.argmax(bad))}")
+    if len(sequence) and not np.isfinite(np.asarray(sequence.coarse_ecef_m, float)).all(axis=1).any():
+        warnings.warn(f"{owner}: {sequence.name!r} has no coarse least-squares fix at any epoch (coarse_ecef_m is NaN "
+                      "throughout), and the estimators start from one: no epoch gets a position (with "
+                      "lfgnss.build_sequence(meas, lfgnss.spp(meas)) an epoch with 4 satellites or more gets a fix)",
+                      stacklevel=3)
     return sequence
 
 
@@ -306,7 +316,8 @@ def backend_options(name: str) -> list[str] | None:
     if name not in _REGISTRY and name in _LAZY:
         importlib.import_module(_LAZY[name])
     if name not in _REGISTRY:
-        raise KeyError(f"unknown backend {name!r}; available: {', '.join(available())}")
+        raise UnknownNameError(f"unknown backend {name!r}{close_name(name, available())}; available: "
+                               f"{', '.join(available())}")
     params = inspect.signature(_REGISTRY[name]).parameters.values()
     if any(p.kind is p.VAR_KEYWORD for p in params):
         return None

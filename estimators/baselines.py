@@ -15,7 +15,20 @@ from .noise import HeuristicNoise, NoiseModel, checked_noise, noise_output, reso
 
 
 @dataclass
-class _LeastSquares:
+class LeastSquaresBaseline:
+    """Least squares of each epoch on its own: ``create("wls")`` (equal weight) and ``create("wls-weighted")``.
+
+    Per epoch, over position and one receiver clock per constellation (the inter-system biases):
+
+        x = (H^T W H)^-1 H^T W rho,   W = I (wls) or diag(1 / R) (wls-weighted),  by
+
+    Gauss-Newton from the coarse fix (the nearest epoch's where an epoch has none). Covariance [m^2]: wls scales
+    ``(H^T H)^-1`` by the a-posteriori unit variance of the residuals; wls-weighted gives ``(H^T R^-1 H)^-1``
+    unscaled. A noise model's R only weighs the satellites (R above ``estimators.noise.R_OFF_M2`` drops one); its
+    innovation compensation v^c is not used here (that is the filters'), so a learned model does less in this
+    baseline than in the EKF. An epoch with too few satellites for its unknowns has no position.
+    """
+
     name: str
     noise: NoiseModel | None
 
@@ -42,13 +55,13 @@ class _LeastSquares:
 
 
 @register("wls")
-def equal_weight_least_squares() -> _LeastSquares:
+def equal_weight_least_squares() -> LeastSquaresBaseline:
     """Equal-weight least squares per epoch (the coarse fix of LF-GNSS step 1); it takes no options."""
-    return _LeastSquares("wls", None)
+    return LeastSquaresBaseline("wls", None)
 
 
 @register("wls-weighted")
-def weighted_baseline(noise: NoiseModel | str | os.PathLike | None = None) -> _LeastSquares:
+def weighted_baseline(noise: NoiseModel | str | os.PathLike | None = None) -> LeastSquaresBaseline:
     """Least squares per epoch weighted by ``noise``'s R (a model, or a model file), default ``HeuristicNoise``."""
     noise = resolve_noise(noise, "wls-weighted")
-    return _LeastSquares("wls-weighted", HeuristicNoise() if noise is None else noise)
+    return LeastSquaresBaseline("wls-weighted", HeuristicNoise() if noise is None else noise)

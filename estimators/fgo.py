@@ -282,44 +282,44 @@ class LfgnssFgo:
             raise TypeError(f"{type(self).__name__}: name must be a string, got {type(name).__name__}")
         progress = check_flag(progress, "progress", type(self).__name__)
         if mode not in MODES:
-            raise ValueError(f"estimators/fgo.py: mode {mode!r} not in {MODES}")
+            raise ValueError(f"LfgnssFgo: mode {mode!r} not in {MODES}")
         for key, value in (("lag_s", lag_s), ("robust_k", robust_k), ("prior_pos_sigma_m", prior_pos_sigma_m),
                            ("prior_vel_sigma_m_s", prior_vel_sigma_m_s), ("max_iterations", max_iterations),
                            ("fixed_lag_iterations", fixed_lag_iterations), ("doppler_sigma_m_s", doppler_sigma_m_s)):
             if value is None and key == "robust_k":
                 continue
             if isinstance(value, bool) or not isinstance(value, numbers.Real) or not np.isfinite(value):
-                raise ValueError(f"estimators/fgo.py: {key} must be a finite number, got {value!r}")
+                raise ValueError(f"LfgnssFgo: {key} must be a finite number, got {value!r}")
         for key, value in (("prior_pos_sigma_m", prior_pos_sigma_m), ("prior_vel_sigma_m_s", prior_vel_sigma_m_s)):
             if not value > 0:
-                raise ValueError(f"estimators/fgo.py: {key} must be > 0, got {value}")
+                raise ValueError(f"LfgnssFgo: {key} must be > 0, got {value}")
         for key, value in (("max_iterations", max_iterations), ("fixed_lag_iterations", fixed_lag_iterations)):
             if not (value >= 1 and float(value).is_integer()):
-                raise ValueError(f"estimators/fgo.py: {key} must be a whole number >= 1, got {value}")
+                raise ValueError(f"LfgnssFgo: {key} must be a whole number >= 1, got {value}")
         if robust == "auto":
             robust, default_k = DEFAULT_KERNEL[mode]
             robust_k = default_k if robust_k is None else robust_k
         robust_k = 1.5 if robust_k is None else robust_k
         if robust is not None and robust not in ROBUST_KERNELS:
-            raise ValueError(f"estimators/fgo.py: robust {robust!r} not in {ROBUST_KERNELS} or None")
+            raise ValueError(f"LfgnssFgo: robust {robust!r} not in {('auto', *ROBUST_KERNELS)} or None")
         if not doppler_sigma_m_s >= 0:
-            raise ValueError(f"estimators/fgo.py: doppler_sigma_m_s must be >= 0, got {doppler_sigma_m_s}")
+            raise ValueError(f"LfgnssFgo: doppler_sigma_m_s must be >= 0, got {doppler_sigma_m_s}")
         if doppler_cn0_ref_dbhz is not None and not np.isfinite(doppler_cn0_ref_dbhz):
-            raise ValueError(f"estimators/fgo.py: doppler_cn0_ref_dbhz must be finite or None, "
+            raise ValueError(f"LfgnssFgo: doppler_cn0_ref_dbhz must be finite or None, "
                              f"got {doppler_cn0_ref_dbhz}")
         if not lag_s > 0:
-            raise ValueError(f"estimators/fgo.py: lag_s must be > 0, got {lag_s}")
+            raise ValueError(f"LfgnssFgo: lag_s must be > 0, got {lag_s}")
         if not robust_k > 0:
-            raise ValueError(f"estimators/fgo.py: robust_k must be > 0, got {robust_k}")
+            raise ValueError(f"LfgnssFgo: robust_k must be > 0, got {robust_k}")
         psd = np.asarray(accel_psd_enu_m2_s3, float)
         if psd.shape != (3,) or np.any(psd <= 0):
-            raise ValueError(f"estimators/fgo.py: accel_psd_enu_m2_s3 must be 3 positive numbers, got {psd}")
+            raise ValueError(f"LfgnssFgo: accel_psd_enu_m2_s3 must be 3 positive numbers, got {psd}")
         noise = resolve_noise(noise, type(self).__name__)
         self.noise = noise if noise is not None else HeuristicNoise()
         self.zupt_sigma_m_s, self.zupt_max_speed_m_s = self._zupt_settings(zupt_sigma_m_s, zupt_max_speed_m_s,
                                                                            doppler_sigma_m_s > 0)
         if self.zupt_sigma_m_s is not None and not doppler_sigma_m_s > 0:
-            raise ValueError("estimators/fgo.py: zupt_sigma_m_s needs Dopplers to detect a standstill; "
+            raise ValueError("LfgnssFgo: zupt_sigma_m_s needs Dopplers to detect a standstill; "
                              "doppler_sigma_m_s is 0")
         self.mode = mode
         self.name = (self.default_name + ("-fixed-lag" if mode == "fixed-lag" else "")) if name is None else name
@@ -364,7 +364,7 @@ class LfgnssFgo:
             if (isinstance(value, bool) or not isinstance(value, numbers.Real) or not np.isfinite(value)
                     or not value > 0):
                 extra = ', None or "model"' if key == "zupt_sigma_m_s" else ""
-                raise ValueError(f"estimators/fgo.py: {key} must be a positive number of m/s{extra}, got {value!r}")
+                raise ValueError(f"LfgnssFgo: {key} must be a positive number of m/s{extra}, got {value!r}")
         return (None if sigma is None else float(sigma)), float(max_speed)
 
     def __repr__(self) -> str:
@@ -432,7 +432,7 @@ class LfgnssFgo:
             return None
         used = seq.prr_mask & seq.mask
         law = EkfConfig(doppler_sigma_m_s=self.doppler_sigma_m_s, doppler_cn0_ref_dbhz=self.doppler_cn0_ref_dbhz)
-        sigma = np.sqrt(used_doppler_variance_m2_s2(seq.cn0_dbhz, used, law, "estimators/fgo.py", seq.name))
+        sigma = np.sqrt(used_doppler_variance_m2_s2(seq.cn0_dbhz, used, law, "LfgnssFgo", seq.name))
         return doppler_velocity(seq.prr_m_s, used, seq.sat_pos_ecef_m, seq.sat_vel_ecef_m_s,
                                 seq.coarse_ecef_m, sigma_m_s=sigma)
 
@@ -477,7 +477,7 @@ class LfgnssFgo:
         n_t = len(seq)
         if n_t > 1 and np.any(np.diff(t) <= 0):
             k = int(np.flatnonzero(np.diff(t) <= 0)[0])
-            raise ValueError(f"estimators/fgo.py: {seq.name!r}: time not increasing at epoch {k + 1}")
+            raise ValueError(f"LfgnssFgo: {seq.name!r}: time not increasing at epoch {k + 1}")
         r_m2, vc_m = checked_noise(type(self).__name__, seq.name, seq.mask,
                                    *noise_output(type(self).__name__, self.noise(seq)))
         seq = keep_slots(seq, switched_on(seq.mask, r_m2))
@@ -665,7 +665,8 @@ class LfgnssFgo:
 
     def _stand_in_covariance(self, seq: Sequence, k0: int, pos: np.ndarray, sigma_m: np.ndarray,
                              psd_ecef: np.ndarray) -> np.ndarray:
-        """Snapshot WLS covariance (H^T R^-1 H)^-1 position block; motion-propagated where rank deficient.
+        """Snapshot WLS covariance (H^T R^-1 H)^-1 position block; where rank deficient, the last full-rank one plus
+        q T^3 / 3 for the time T [s] since it (white-acceleration PSD q [m^2/s^3]).
 
         H rows ``[-los_i, e_j(i)]`` over position and one clock per constellation, weights 1/r_i.
         """
@@ -684,15 +685,17 @@ class LfgnssFgo:
         rank_ok &= np.linalg.cond(info_m) < 1e12
         snap = np.linalg.inv(np.where(rank_ok[:, None, None], info_m, np.eye(3 + n_sys)))[:, :3, :3]
         out = np.empty((n_t - k0, 3, 3))
-        prev = np.eye(3) * self.prior_pos_sigma_m ** 2
         t = seq.time_gps_s
+        # a gap grows from the last epoch that had a fix as one step of its whole length: q T^3 / 3 over the gap T,
+        # not the sum of q dt^3 / 3 over its epochs (which is T^2 / n^2 times smaller and depends on the rate)
+        last, t_last = np.eye(3) * self.prior_pos_sigma_m ** 2, float(t[k0])
         for i in range(n_t - k0):
             if rank_ok[i]:
-                cur = snap[i]
+                cur = last = snap[i]
+                t_last = float(t[k0 + i])
             else:
-                dt = float(t[k0 + i] - t[k0 + i - 1]) if i > 0 else 0.0
-                cur = prev + dt ** 3 / 3.0 * psd_ecef
-            out[i] = prev = 0.5 * (cur + cur.T)
+                cur = last + (float(t[k0 + i]) - t_last) ** 3 / 3.0 * psd_ecef
+            out[i] = 0.5 * (cur + cur.T)
         return out
 
 

@@ -159,11 +159,11 @@ class HeuristicNoise:
         for name in ("floor_m", "cn0_scale_m2", "elevation_power", "el_min_rad"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, numbers.Real) or not np.isfinite(value) or value < 0:
-                raise ValueError(f"estimators/noise.py: HeuristicNoise.{name} must be a finite number >= 0, got {value!r}")
+                raise ValueError(f"HeuristicNoise.{name} must be a finite number >= 0, got {value!r}")
         if not self.floor_m > 0 and not self.cn0_scale_m2 > 0:
-            raise ValueError("estimators/noise.py: HeuristicNoise needs floor_m > 0 or cn0_scale_m2 > 0 (else R = 0)")
+            raise ValueError("HeuristicNoise needs floor_m > 0 or cn0_scale_m2 > 0 (else R = 0)")
         if not 0 < self.el_min_rad <= np.pi / 2:
-            raise ValueError(f"estimators/noise.py: HeuristicNoise.el_min_rad must be in (0, pi/2] [rad], "
+            raise ValueError(f"HeuristicNoise.el_min_rad must be in (0, pi/2] [rad], "
                              f"got {self.el_min_rad!r}")
 
     def __call__(self, sequence: Sequence) -> tuple[np.ndarray, np.ndarray]:
@@ -197,7 +197,7 @@ class FixedNoise:
         """The stored (r_m2, vc_m) [m^2, m], after checking they are shaped like ``sequence``'s (T, N) slots."""
         shape = sequence.mask.shape
         if np.shape(self.r_m2) != shape or np.shape(self.vc_m) != shape:
-            raise ValueError(f"estimators/noise.py: FixedNoise arrays {np.shape(self.r_m2)}, {np.shape(self.vc_m)} "
+            raise ValueError(f"FixedNoise: arrays {np.shape(self.r_m2)}, {np.shape(self.vc_m)} "
                              f"do not fit sequence {sequence.name!r} of shape {shape}")
         return np.asarray(self.r_m2, float), np.asarray(self.vc_m, float)
 
@@ -224,7 +224,7 @@ class TruthNoise:
 
     def __post_init__(self) -> None:
         if isinstance(self.floor_m, bool) or not isinstance(self.floor_m, (int, float)) or not self.floor_m > 0:
-            raise ValueError(f"estimators/noise.py: TruthNoise.floor_m must be > 0 [m], got {self.floor_m!r}")
+            raise ValueError(f"TruthNoise.floor_m must be > 0 [m], got {self.floor_m!r}")
 
     def __call__(self, sequence: Sequence) -> tuple[np.ndarray, np.ndarray]:
         """(r_m2, vc_m), each (T, N): R [m^2] from the true pseudorange errors, v^c = 0 [m]."""

@@ -46,7 +46,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .constants import SYSTEMS, unknown_systems
-from .errors import InputError
+from .errors import InputError, UnknownNameError, close_name
 from .frames import NEAR_SURFACE_RADIUS_M, lla_to_ecef
 from .paths import cache_file, load_cached, names_something, shared_data_dir, store_cached
 from .sequence import DEFAULT_FEATURES, Sequence, load_sequence, save_sequence
@@ -285,8 +285,8 @@ def get(dataset_id: str, *, hint: str | None = None) -> DatasetSpec:
     specs = registered()
     if dataset_id not in specs:
         more = REGISTER_HINT if hint is None else hint
-        raise KeyError(f"unknown dataset {dataset_id!r}; known: {', '.join(sorted(specs))}"
-                       + (f" ({more})" if more else ""))
+        raise UnknownNameError(f"unknown dataset {dataset_id!r}{close_name(dataset_id, sorted(specs))}; known: "
+                               f"{', '.join(sorted(specs))}" + (f" ({more})" if more else ""))
     return specs[dataset_id]
 
 

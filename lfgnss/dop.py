@@ -74,6 +74,12 @@ def _check_inputs(el_rad, az_rad, system_index, mask, n_systems):
                          f"got range [{used.min()}, {used.max()}]")
     if not (np.isfinite(el[mask]).all() and np.isfinite(az[mask]).all()):
         raise ValueError("dop: elevation/azimuth of used satellites must be finite")
+    if el[mask].size and np.abs(el[mask]).max() > np.pi / 2 + 1e-9:
+        raise ValueError(f"dop: el_rad of used satellites must lie in [-pi/2, pi/2], got up to "
+                         f"{np.abs(el[mask]).max():g}: degrees? (np.radians converts them)")
+    if az[mask].size and np.abs(az[mask]).max() > 2 * np.pi + 1e-9:
+        raise ValueError(f"dop: az_rad of used satellites must lie in [-2 pi, 2 pi], got up to "
+                         f"{np.abs(az[mask]).max():g}: degrees? (np.radians converts them)")
     el = np.where(mask, el, 0.0)
     az = np.where(mask, az, 0.0)
     sys_idx = np.where(mask, sys_idx, 0)

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import contextlib
+import difflib
 import os
 import sys
 import warnings
@@ -29,6 +30,21 @@ class InputError(LfgnssError):
         self.path, self.reason, self.line = str(path), reason, line
         where = f"{self.path}:{line}" if line is not None else self.path
         super().__init__(f"{where}: {reason}")
+
+
+class UnknownNameError(KeyError):
+    """An unknown name (a back end, a dataset id): a KeyError whose message prints as written, without the quotes
+    ``str(KeyError)`` adds."""
+
+    def __str__(self) -> str:
+        return str(self.args[0]) if self.args else ""
+
+
+def close_name(name: str, known: list[str]) -> str:
+    """`` (did you mean 'x'?)`` for the known name closest to ``name`` (any case), or ""."""
+    same_case = [k for k in known if k.lower() == str(name).lower()]
+    close = same_case or difflib.get_close_matches(str(name).lower(), known, n=1)
+    return f" (did you mean {close[0]!r}?)" if close else ""
 
 
 #: What the command lines report as bad input (a file, a setting, a dataset id): one line, exit status 2.

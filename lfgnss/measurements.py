@@ -153,6 +153,7 @@ def load(obs: str | Path | Observations, nav: str | Path | Iterable[str | Path] 
     wanted = tuple(s for s in SYSTEMS if asked is None or s in asked)
     for system in sorted((asked or set()) - present):
         notes.append(f"{observations.path}: no {system} observations (requested)")
+        warnings.warn(notes[-1], RinexWarning, stacklevel=2)
     observations = observations.select_systems(wanted)
     if observations.sv.size == 0 and not present:
         raise RinexError(observations.path, "no pseudorange observations of any constellation")

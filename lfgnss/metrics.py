@@ -75,8 +75,9 @@ def accuracy_table(est_ecef_m: np.ndarray, truth_ecef_m: np.ndarray, available: 
 
     Parameters
     ----------
-    est_ecef_m : (T, 3) float
-        Estimated ECEF positions [m]; NaN where no solution.
+    est_ecef_m : (T, 3) float, or an estimator's Solution
+        Estimated ECEF positions [m]; NaN where no solution. A ``Solution`` gives its ``pos_ecef_m`` and, unless
+        ``available`` is given, its ``available``.
     truth_ecef_m : (T, 3) float
         Ground truth ECEF [m]; NaN where the epoch has no label.
     available : (T,) bool, optional
@@ -93,6 +94,9 @@ def accuracy_table(est_ecef_m: np.ndarray, truth_ecef_m: np.ndarray, available: 
         solved epochs; NaN when there are none. RMSE_2D = sqrt(mean(e^2 + n^2)),
         RMSE_3D = sqrt(mean(e^2 + n^2 + u^2)); percentiles by linear interpolation.
     """
+    if hasattr(est_ecef_m, "pos_ecef_m") and hasattr(est_ecef_m, "available"):      # a Solution
+        available = est_ecef_m.available if available is None else available
+        est_ecef_m = est_ecef_m.pos_ecef_m
     est = np.asarray(est_ecef_m, dtype=float)
     truth = np.asarray(truth_ecef_m, dtype=float)
     t = est.shape[0]

@@ -94,7 +94,7 @@ def replace_atomically(path: Path, write: Callable[[Path], object]) -> None:
         with contextlib.suppress(OSError):
             tmp.unlink()
         if isinstance(err, OSError) and err.filename in (str(tmp), tmp):
-            err.filename, err.filename2 = str(path), None
+            raise type(err)(err.errno, err.strerror, str(path)) from None      # no "-> TARGET" of os.replace's
         raise
 
 

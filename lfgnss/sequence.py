@@ -129,6 +129,14 @@ class Sequence:
             got = np.shape(getattr(self, key))
             if got != shape:
                 raise ValueError(f"Sequence {self.name!r}: {key} has shape {got}, expected {shape}")
+        for key in ("mask", "prr_mask"):            # used as indices and in logical ops: 0/1 ints would not do
+            dtype = np.asarray(getattr(self, key)).dtype
+            if dtype != bool:
+                raise ValueError(f"Sequence {self.name!r}: {key} must be a bool array, got dtype {dtype} "
+                                 f"(.astype(bool) makes one)")
+        if not np.issubdtype(np.asarray(self.system_index).dtype, np.integer):
+            raise ValueError(f"Sequence {self.name!r}: system_index must be an integer array, got dtype "
+                             f"{np.asarray(self.system_index).dtype}")
         check_near_surface(f"Sequence {self.name!r}", "truth_ecef_m", self.truth_ecef_m)
 
     def __len__(self) -> int:

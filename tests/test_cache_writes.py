@@ -79,6 +79,7 @@ def test_an_error_names_the_file_asked_for_not_the_temporary(tmp_path):
     with pytest.raises(OSError) as info:             # the temporary itself cannot be made: a folder that is not there
         replace_atomically(tmp_path / "no-folder" / "out.csv", lambda tmp: tmp.write_text("x"))
     assert info.value.filename == str(tmp_path / "no-folder" / "out.csv")
+    assert str(info.value) == f"[Errno 2] No such file or directory: '{tmp_path / 'no-folder' / 'out.csv'}'"  # no "-> None"
 
 
 def _parse_fresh(monkeypatch, cache) -> tuple:

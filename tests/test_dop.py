@@ -101,6 +101,19 @@ def test_bad_inputs_raise(bad):
             dop(el, el, sys, mask.astype(int), 1)
 
 
+def test_angles_in_degrees_are_refused():
+    """Degrees given for radians used to give a median PDOP of 0.96 on the bundled drive (1.36 in radians)."""
+    el = np.array([[10.0, 35.0, 60.0, 80.0]])
+    az = np.array([[0.0, 90.0, 180.0, 270.0]])
+    sys, mask = np.zeros((1, 4), int), np.ones((1, 4), bool)
+    with pytest.raises(ValueError, match=r"^dop: el_rad of used satellites must lie in \[-pi/2, pi/2\], got up to 80: "
+                                         r"degrees\?"):
+        dop(el, np.radians(az), sys, mask, 1)
+    with pytest.raises(ValueError, match=r"^dop: az_rad .* got up to 270: degrees\?"):
+        dop(np.radians(el), az, sys, mask, 1)
+    assert np.isfinite(dop(np.radians(el), np.radians(az), sys, mask, 1).pdop).all()
+
+
 # ---------------------------------------------------------------- analytic value
 @pytest.mark.parametrize("el_deg", [0.0, 30.0, 45.0], ids=["el0", "el30", "el45"])
 @pytest.mark.parametrize("n_ring", [3, 4, 6], ids=["ring3", "ring4", "ring6"])

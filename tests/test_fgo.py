@@ -185,6 +185,11 @@ def test_sixty_second_outage_and_recovery(mode):
     err = _err(sol, seq)
     assert np.all(err[100:160] < 50.0)                       # CV coasting (fixed-lag: 17.5 m max)
     assert np.sqrt(np.mean(err[170:] ** 2)) < 8.0            # recovered within 10 s
+    # the stand-in sds grow with the time since the last fix, q T^3 / 3 (they used to add q dt^3 / 3 per 1 s epoch:
+    # 60 times too little variance after 60 s) and cover the error; back to the snapshot's after the gap
+    sd = np.sqrt(np.trace(sol.cov_ecef_m2, axis1=1, axis2=2))
+    assert np.all(np.diff(sd[100:160]) > 0) and sd[159] > 30 * sd[99] and np.all(err[100:160] < 3 * sd[100:160])
+    assert sd[160] < 2 * sd[99]
 
 
 @pytest.mark.parametrize("left", ["none", "one per constellation"])
@@ -234,8 +239,10 @@ def test_epochs_before_first_coarse_fix_are_none():
         sol = LfgnssFgo(mode=mode).solve(seq)
         assert np.all(sol.status[:5] == STATUS_NONE) and np.isnan(sol.pos_ecef_m[:5]).all()
         assert np.all(sol.status[5:] == STATUS_UPDATED) and np.isfinite(sol.pos_ecef_m[5:]).all()
-    none = LfgnssFgo().solve(replace(seq, coarse_ecef_m=np.full_like(coarse, np.nan)))
-    assert np.all(none.status == STATUS_NONE)
+    for name in ("fgo", "ekf", "plain-ekf", "wls"):                # no fix anywhere: no position, and a warning says why
+        with pytest.warns(UserWarning, match="has no coarse least-squares fix at any epoch"):
+            none = create(name).solve(replace(seq, coarse_ecef_m=np.full_like(coarse, np.nan)))
+        assert np.all(none.status == STATUS_NONE), name
 
 
 # ---------------------------------------------------------------- interface

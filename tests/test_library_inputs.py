@@ -83,3 +83,33 @@ def test_the_packages_ship_their_type_hints():
     package_data = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]
     for package in ("lfgnss", "estimators", "learning"):
         assert (REPO / package / "py.typed").is_file() and "py.typed" in package_data[package]
+
+
+def test_solve_given_a_split_list_and_a_sequence_with_int_masks_say_so(meas):
+    """``load_split`` gives a list (a split may be cut in several parts), and a mask of 0/1 ints failed deep in the
+    solver (UFuncTypeError)."""
+    import estimators
+
+    seq = lfgnss.build_sequence(meas, lfgnss.spp(meas))
+    with pytest.raises(TypeError, match=r"got a list of 2 \(the parts lfgnss.datasets.load_split gives"):
+        estimators.create("ekf").solve([seq.subset(slice(0, 10)), seq.subset(slice(10, 20))])
+    for key in ("mask", "prr_mask"):
+        with pytest.raises(ValueError, match=f"{key} must be a bool array, got dtype int64"):
+            replace(seq, **{key: getattr(seq, key).astype(int)})
+    with pytest.raises(ValueError, match="system_index must be an integer array, got dtype float64"):
+        replace(seq, system_index=seq.system_index.astype(float))
+
+
+def test_accuracy_table_takes_a_solution(meas):
+    import estimators
+
+    seq = lfgnss.build_sequence(meas, lfgnss.spp(meas), truth_ecef_m=read_truth(SAMPLE_TRUTH, meas.time_gps_s,
+                                                                                "smartloc"))
+    sol = estimators.create("wls").solve(seq)
+    assert accuracy_table(sol, seq.truth_ecef_m) == accuracy_table(sol.pos_ecef_m, seq.truth_ecef_m, sol.available)
+
+
+def test_a_requested_constellation_the_file_lacks_is_warned_of():
+    with pytest.warns(lfgnss.rinex.RinexWarning, match=r"no C observations \(requested\)"):
+        meas = lfgnss.load(SAMPLE_OBS, SAMPLE_NAV, systems="GC")
+    assert meas.systems == ("G",)
