@@ -6,8 +6,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from lfgnss.dop import dop
 from lfgnss.features import fill_from_nearest_epoch
+from lfgnss.frames import ecef_to_lla
 from lfgnss.sequence import Sequence
+from lfgnss.spp import SppConfig
 from lfgnss.weighted_fix import weighted_least_squares
 
 from .base import STATUS_NONE, STATUS_UPDATED, Solution, check_sequence, keep_slots, register, usable_sequence
@@ -26,7 +29,8 @@ class LeastSquaresBaseline:
     ``(H^T H)^-1`` by the a-posteriori unit variance of the residuals; wls-weighted gives ``(H^T R^-1 H)^-1``
     unscaled. A noise model's R only weighs the satellites (R above ``estimators.noise.R_OFF_M2`` drops one); its
     innovation compensation v^c is not used here (that is the filters'), so a learned model does less in this
-    baseline than in the EKF. An epoch with too few satellites for its unknowns has no position.
+    baseline than in the EKF. An epoch with too few satellites for its unknowns, or whose fix the coarse fix would
+    reject (:func:`plausible_fix`: underground or in orbit, GDOP beyond 50), has no position.
     """
 
     name: str
@@ -46,12 +50,24 @@ class LeastSquaresBaseline:
                                      len(sequence.systems), fill_from_nearest_epoch(sequence.coarse_ecef_m), r,
                                      scale_by_residuals=self.noise is None)
         pos, cov, ok = fix.pos_ecef_m, fix.cov_ecef_m2, fix.ok
+        ok &= plausible_fix(pos, sequence)
         # the reference system's clock; NaN in an epoch without its satellites (WeightedFix holds 0 there)
         seen = np.any(sequence.mask & (sequence.system_index == 0), axis=1)
         clock = np.where(seen, fix.clock_m[:, 0], np.nan)
         return Solution(self.name, sequence.time_gps_s.copy(), np.where(ok[:, None], pos, np.nan),
                         np.where(ok[:, None, None], cov, np.nan), np.where(ok, clock, np.nan),
                         np.where(ok, sequence.mask.sum(1), 0), np.where(ok, STATUS_UPDATED, STATUS_NONE))
+
+
+def plausible_fix(pos_ecef_m: np.ndarray, sequence: Sequence, config: SppConfig = SppConfig()) -> np.ndarray:
+    """(T,) bool: fixes [m] the coarse fix would keep: ellipsoidal height within ``config.height_range_m`` and GDOP of
+    the used satellites in (0, ``config.max_gdop``]. An epoch without redundancy can land kilometres off (underground,
+    in orbit); ``lfgnss.spp`` marks such fixes "implausible height" and "bad geometry", and so do the baselines."""
+    height = ecef_to_lla(np.where(np.isfinite(pos_ecef_m), pos_ecef_m, 0.0))[:, 2]
+    low, high = config.height_range_m
+    gdop = dop(sequence.el_rad, sequence.az_rad, np.where(sequence.mask, sequence.system_index, 0), sequence.mask,
+               len(sequence.systems)).gdop
+    return (height >= low) & (height <= high) & (gdop > 0) & (gdop <= config.max_gdop)
 
 
 @register("wls")

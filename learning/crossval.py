@@ -64,7 +64,7 @@ from lfgnss.datasets import contiguous_runs, split_parts
 from lfgnss.errors import (INPUT_ERRORS, InputError, cannot_write, input_line, one_line, path_option, shortened,
                            stdout_gone, warnings_on_one_line)
 from lfgnss.metrics import accuracy_table, markdown_table
-from lfgnss.paths import model_path
+from lfgnss.paths import check_output_folder, make_output_folder, model_path
 from lfgnss.sequence import Sequence
 
 from .network import COMBINE_RULES, check_combine
@@ -331,9 +331,8 @@ def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = 
 
 def _refuse_used_out(out: Path) -> None:
     """InputError or ValueError if ``--out`` is a file or already holds a cross-validation (checked before any work)."""
+    check_output_folder(out)
     try:
-        if out.exists() and not out.is_dir():
-            raise InputError(out, "--out is a file, not a folder")
         if any((out / name).exists() for name in ("crossval.csv", "crossval.md", "fold0")):
             raise ValueError(f"{out}: already holds a cross-validation; choose another --out")
     except OSError as err:              # a name too long, a file in the path, a missing disk
@@ -342,10 +341,7 @@ def _refuse_used_out(out: Path) -> None:
 
 def _make_out(out: Path) -> None:
     """Create ``--out`` (and its parents); InputError naming it if that fails (a read-only or full disk)."""
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise InputError(out, f"cannot create the output folder ({err.strerror or err})") from None
+    make_output_folder(out)
 
 
 def pooled_rows(rows: list[dict], datasets: list[str]) -> list[dict]:

@@ -62,7 +62,7 @@ import torch
 
 from lfgnss.datasets import load_split, register_toml, split_parts
 from lfgnss.errors import INPUT_ERRORS, one_line, shortened, warnings_on_one_line
-from lfgnss.paths import may_name_a_bundled_model, replace_atomically
+from lfgnss.paths import check_output_folder, may_name_a_bundled_model, replace_atomically
 from lfgnss.sequence import DEFAULT_FEATURES, Sequence
 
 from . import provenance
@@ -1170,6 +1170,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         with warnings_on_one_line():
             config = load_config(args.config, args.overrides)
+            check_output_folder(out)            # before the data are built: a file or a read-only disk costs nothing
             history = train(config, out, resume=args.resume, overrides=args.overrides, progress=not args.no_progress,
                             epoch_lines=True, config_file=args.config,
                             command=provenance.command_line(p.prog, sys.argv[1:] if argv is None else list(argv)))

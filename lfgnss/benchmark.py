@@ -42,7 +42,6 @@ import shlex
 import sys
 import tempfile
 import time
-import warnings
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -52,10 +51,10 @@ from typing import Collection, Iterator
 import numpy as np
 
 from . import datasets
-from .errors import (INPUT_ERRORS, InputError, cannot_write, input_line, one_line, path_option, shortened,
-                     stdout_gone, warnings_on_one_line)
+from .errors import (INPUT_ERRORS, InputError, cannot_write, input_line, one_line, path_option, run_command,
+                     shortened, stdout_gone)
 from .metrics import METRIC_COLUMNS, accuracy_table, format_markdown, format_text, markdown_table
-from .paths import bundled_data_dir
+from .paths import bundled_data_dir, make_output_folder
 from .sequence import Sequence
 
 MODEL_DIR = bundled_data_dir() / "model"
@@ -652,10 +651,8 @@ def write_report(path: Path, all_rows: list[dict], rtk_rows: list[dict], command
 def _prepare_out(out: Path, plots: bool) -> Path:
     """Create ``--out`` before any work, so that a folder that cannot hold the results costs no run; its results.md."""
     report, figures = out / "results.md", out / "figures"
+    make_output_folder(out)
     try:
-        if out.exists() and not out.is_dir():
-            raise InputError(out, "--out is a file, not a folder")
-        out.mkdir(parents=True, exist_ok=True)
         if report.is_dir():
             raise InputError(report, "cannot write (a folder of that name is in the way)")
         if plots and figures.exists() and not figures.is_dir():
@@ -730,20 +727,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.out is None:            # never the repository's docs/ unless asked for (--out docs)
         root = Path(DEFAULT_OUT)
         args.out = root if args.warm_up is None else root / f"warm-up-{args.warm_up}"
-    try:
-        with warnings_on_one_line():
-            warnings.simplefilter("ignore", FutureWarning)
-            return _main(args, argv)
-    except (*INPUT_ERRORS, OSError) as err:
-        print(f"error: {input_line(err)}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return 130
-    except Exception as err:  # a bug, not bad input: still one line, no traceback, a distinct exit code
-        print(f"error: internal error in the benchmark ({type(err).__name__}: {one_line(err)}); please report it",
-              file=sys.stderr)
-        return 3
+    return run_command(lambda: _main(args, argv), "the benchmark")
 
 
 def _nothing_run(failed: list[str], report: Path) -> InputError:

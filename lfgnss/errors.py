@@ -6,7 +6,7 @@ import difflib
 import os
 import sys
 import warnings
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 
@@ -106,3 +106,22 @@ def warnings_on_one_line() -> Iterator[None]:
     with warnings.catch_warnings():
         warnings.showwarning = print_warning
         yield
+
+
+def run_command(work: Callable[[], int], what: str) -> int:
+    """``work()``'s exit status, as every command line ends: bad input is one line ``error: ...`` and 2, Ctrl-C
+    ``interrupted`` and 130, a bug one line ``error: internal error in WHAT (...)`` and 3; warnings one line each."""
+    try:
+        with warnings_on_one_line():
+            warnings.simplefilter("ignore", FutureWarning)
+            return work()
+    except (*INPUT_ERRORS, OSError) as err:
+        print(f"error: {input_line(err)}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+    except Exception as err:  # a bug, not bad input: still one line, no traceback, a distinct exit code
+        print(f"error: internal error in {what} ({type(err).__name__}: {one_line(err)}); please report it",
+              file=sys.stderr)
+        return 3

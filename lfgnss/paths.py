@@ -127,6 +127,46 @@ def write_output(path: str | os.PathLike, write: Callable[[Path], object]) -> Pa
     return target
 
 
+def check_output_folder(out: str | os.PathLike) -> None:
+    """InputError naming ``--out`` unless it is, or can be made, a folder that takes files; it makes nothing.
+
+    The first folder of ``out`` and its parents that exists is tried with a file of its own that is removed at once,
+    so a read-only disk or a folder without permission is said before any work rather than when the outputs are
+    written.
+    """
+    from .errors import InputError
+
+    out = Path(out)
+    try:
+        if out.exists() and not out.is_dir():
+            raise InputError(out, "--out is a file, not a folder")
+        there = next(p for p in (out, *out.parents) if p.exists())
+        if not there.is_dir():
+            raise InputError(out, "cannot create the output folder (Not a directory)")
+    except OSError as err:              # a name too long, a missing disk
+        raise InputError(out, f"cannot create the output folder ({err.strerror or err})") from None
+    probe = there / f".lfgnss-write-test.{os.getpid()}-{secrets.token_hex(4)}"
+    try:
+        probe.touch(exist_ok=False)
+        probe.unlink()
+    except OSError as err:
+        raise InputError(out, f"cannot write into {'the output folder' if there == out else there} "
+                              f"({err.strerror or err})") from None
+
+
+def make_output_folder(out: str | os.PathLike) -> Path:
+    """``--out`` made (with its parents) before any work, once :func:`check_output_folder` finds it usable."""
+    from .errors import InputError
+
+    out = Path(out)
+    check_output_folder(out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise InputError(out, f"cannot create the output folder ({err.strerror or err})") from None
+    return out
+
+
 # ---------------------------------------------------------------- cache entries
 class CacheWarning(UserWarning):
     """The cache cannot be used (a file in the folder's place, no space, no permission): lfgnss goes on without it."""

@@ -21,7 +21,7 @@ import numpy as np
 from .constants import SYSTEMS, unknown_systems
 from .errors import INPUT_ERRORS, InputError, LfgnssError, RinexError, cannot_write, one_line, stdout_gone
 from .observations import Observations
-from .paths import bundled_data_dir, bundled_models, default_model_path, model_path
+from .paths import bundled_data_dir, bundled_models, default_model_path, make_output_folder, model_path
 from .spp import SppConfig
 from .time import SECONDS_PER_WEEK, datetime64_to_gps_s, gps_s_to_week_tow, gpst_stamp, week_tow_to_gps_s
 
@@ -226,7 +226,7 @@ def _solve(args) -> _Solved:
         raise InputError(obs, "no navigation file given (--nav)")
     truth_path = SAMPLE_TRUTH if (sample and args.truth is None) else args.truth
     truth_format = "smartloc" if (sample and args.truth is None) else (args.truth_format or "urbannav")
-    _make_output_folder(args.out)
+    make_output_folder(args.out)           # before any work: a folder that takes no file costs no solve
 
     noise, noise_text = _noise(args)
     feature_names = tuple(noise.feature_names) if hasattr(noise, "feature_names") else None
@@ -523,16 +523,6 @@ def _model_tag(path: Path) -> str:
     if path.stem != "model":
         return path.stem
     return path.parent.resolve().name or path.stem
-
-
-def _make_output_folder(out: Path) -> None:
-    """Create ``--out`` before any work, so that a folder that cannot be made costs no solve."""
-    if out.exists() and not out.is_dir():
-        raise InputError(out, "--out is a file, not a folder")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise InputError(out, f"cannot create the output folder ({err.strerror})") from None
 
 
 def _coarse(seq):

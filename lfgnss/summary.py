@@ -6,12 +6,14 @@ dataset: a sky plot coloured by the coarse pseudorange residual, and C/N0 agains
 from __future__ import annotations
 
 import argparse
-import warnings
 from pathlib import Path
 
 import numpy as np
 
 from . import datasets
+from .errors import path_option, run_command
+from .outputs import save_figure
+from .paths import make_output_folder
 from .sequence import Sequence
 
 
@@ -54,8 +56,7 @@ def plot_features(seq: Sequence, out_dir: Path, prefix: str) -> list[Path]:
     ax.set_yticks([0, 30, 60, 90], labels=["90", "60", "30", "0"])
     fig.colorbar(sc, ax=ax, label="|coarse residual| [m] (clipped at 60)", shrink=0.8)
     ax.set_title(f"{seq.name}: sky plot")
-    written.append(out_dir / f"{prefix}skyplot.png")
-    fig.savefig(written[-1], dpi=110)
+    written.append(save_figure(out_dir / f"{prefix}skyplot.png", fig, dpi=110))
 
     fig = Figure(figsize=(6, 4))
     FigureCanvasAgg(fig)
@@ -69,24 +70,38 @@ def plot_features(seq: Sequence, out_dir: Path, prefix: str) -> list[Path]:
     ax.grid(True, alpha=0.3)
     ax.legend(markerscale=5)
     ax.set_title(f"{seq.name}: C/N0 vs residual")
-    written.append(out_dir / f"{prefix}cn0_residual.png")
-    fig.savefig(written[-1], dpi=110)
+    written.append(save_figure(out_dir / f"{prefix}cn0_residual.png", fig, dpi=110))
     return written
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Print feature statistics of datasets and write their plots."""
-    import pandas as pd
+    """Print feature statistics of datasets and write their plots.
 
+    Exit status 0; 2 for bad input (one line ``error: ...``: an unknown id, a bad TOML, an --out that takes no file,
+    a dataset asked for whose files are missing); 3 for an internal error; 130 for Ctrl-C.
+    """
     p = argparse.ArgumentParser(prog="python -m lfgnss.summary", description=__doc__.split("\n\n")[0])
     p.add_argument("ids", nargs="*", help="dataset ids (default: the registered TOML datasets, else the "
                                           "three benchmark datasets)")
     p.add_argument("--register", action="append", default=[], metavar="TOML", help="user dataset config")
-    p.add_argument("--out", type=Path, default=Path("lfgnss-summary"), help="folder for the PNGs")
+    p.add_argument("--out", type=path_option, default=Path("lfgnss-summary"), help="folder for the PNGs")
     args = p.parse_args(argv)
-    warnings.simplefilter("ignore", FutureWarning)
+    return run_command(lambda: _summarise(args), "the summary")
+
+
+def _summarise(args: argparse.Namespace) -> int:
+    """:func:`main`'s work: the ids checked and built, the table printed, the plots written."""
+    import pandas as pd
+
     registered = [datasets.register_toml(t).id for t in args.register]
-    ids = list(args.ids) + registered or ["hk-tst-2019", "berlin-pp", "hk-tst-static-2020"]
+    asked = list(dict.fromkeys([*args.ids, *registered]))       # a dataset named and registered too: once
+    ids = asked or ["hk-tst-2019", "berlin-pp", "hk-tst-static-2020"]
+    for dataset_id in ids:
+        datasets.get(dataset_id)                                # an unknown id before any work
+    missing = [f"{i}: {datasets.get(i).missing_note()}" for i in asked if datasets.get(i).missing()]
+    if missing:
+        raise FileNotFoundError(f"dataset not built: {'; '.join(missing)}")
+    make_output_folder(args.out)
     rows, written = [], []
     for dataset_id in datasets.present(ids):
         seq = datasets.build(dataset_id)
@@ -94,7 +109,8 @@ def main(argv: list[str] | None = None) -> int:
         written += plot_features(seq, args.out, f"{dataset_id}-")
     if rows:
         print(pd.DataFrame(rows).to_string(index=False, float_format=lambda v: f"{v:.1f}"))
-    print(f"plots: {', '.join(str(w) for w in written)}" if written else "no dataset found")
+    print(f"plots: {', '.join(str(w) for w in written)}" if written else "no dataset found (the benchmark data are "
+          "read from $LFGNSS_SHARED_DATA, else ../shared/data; --register FILE.toml adds one of your own)")
     return 0
 
 

@@ -300,3 +300,43 @@ def test_lfgnss_lists_the_commands_and_refuses_arguments(capsys):
     assert _one_line(capsys.readouterr().err).startswith(
         "python -m lfgnss: error: unknown argument 'nonsense' (this only lists the commands); the commands: "
         "python -m lfgnss.solve, ")
+
+
+@pytest.mark.parametrize("name, message", [
+    ("a-file", "{out}: --out is a file, not a folder"),
+    ("a-file/sub", "{out}: cannot create the output folder (Not a directory)"),
+], ids=["a-file", "under-a-file"])
+def test_train_refuses_an_unusable_out_before_any_data_are_built(tmp_path, capsys, name, message):
+    """It used to build the datasets and then end in FileExistsError's traceback."""
+    from learning.train import main as train_main
+
+    (tmp_path / "a-file").write_text("x")
+    out = tmp_path / name
+    with pytest.raises(SystemExit) as exit_info:
+        train_main(["--set", "train.epochs=1", "--out", str(out)])
+    assert exit_info.value.code == 2
+    assert _one_line(capsys.readouterr().err) == "python -m learning.train: error: " + message.format(out=out)
+
+
+def test_a_read_only_out_is_said_before_the_solve(tmp_path, capsys, monkeypatch):
+    """A folder that takes no file (a read-only disk) used to be found when the seven outputs were written."""
+    import errno
+    from pathlib import Path
+
+    from lfgnss.solve import main as solve_main
+
+    real_touch = Path.touch
+
+    def read_only(self, *args, **kwargs):
+        if self.name.startswith(".lfgnss-write-test."):
+            raise OSError(errno.EROFS, "Read-only file system", str(self))
+        return real_touch(self, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "touch", read_only)
+    (tmp_path / "ro").mkdir()
+    assert solve_main(["--out", str(tmp_path / "ro")]) == 2
+    captured = capsys.readouterr()
+    assert _one_line(captured.err) == f"error: {tmp_path / 'ro'}: cannot write into the output folder (Read-only file system)"
+    assert captured.out == "" and not list((tmp_path / "ro").iterdir())
+    assert solve_main(["--out", str(tmp_path / "ro" / "new")]) == 2          # a folder to be made in it
+    assert _one_line(capsys.readouterr().err).endswith(f"cannot write into {tmp_path / 'ro'} (Read-only file system)")
