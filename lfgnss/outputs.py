@@ -65,6 +65,10 @@ def _check_args(writer: str, path: object, solution: object, where: str = "path"
         raise TypeError(f"{call}: {where} must be a str or Path, got {type(path).__name__}")
 
 
+#: RTKLIB's names of the constellations in a .pos header's ``navi sys`` line.
+_RTKLIB_SYSTEM_NAMES = {"G": "gps", "R": "glonass", "E": "galileo", "C": "beidou", "J": "qzss", "S": "sbas"}
+
+
 def _write_text(path: Path, text: str) -> None:
     """``text`` as ``path`` (UTF-8), written whole where it can be (:func:`lfgnss.paths.write_output`): an
     interrupted run leaves the previous file, never half a file."""
@@ -101,7 +105,7 @@ def _fmt(value: float, digits: int) -> str:
 
 # ---------------------------------------------------------------- RTKLIB .pos
 def write_pos(path: str | Path, solution: Solution, *, time_format: str = "calendar",
-              coasted_q: int = Q_DR) -> Path:
+              coasted_q: int = Q_DR, inputs: Sequence[str | Path] = (), systems: str = "") -> Path:
     """Write a Solution as an RTKLIB ``.pos`` file in latitude/longitude/height (``rnx2rtkp -p 0``).
 
     Parameters
@@ -114,6 +118,11 @@ def write_pos(path: str | Path, solution: Solution, *, time_format: str = "calen
         ``yyyy/mm/dd hh:mm:ss.sss`` GPST (``rnx2rtkp -t``) or ``week tow`` (RTKLIB default).
     coasted_q : int
         Q code for coasted epochs (default 7, RTKLIB ``SOLQ_DR``); updated/reset epochs get 5.
+    inputs : sequence of paths
+        The observation and navigation files the solution comes from, one ``% inp file  :`` header line each (as
+        rnx2rtkp writes), so two runs of one observation file with other inputs can be told apart.
+    systems : str
+        The constellations the solution used (letters, ``"GR"``), as a ``% navi sys  : gps glonass`` line.
 
     Returns
     -------
@@ -142,6 +151,9 @@ def write_pos(path: str | Path, solution: Solution, *, time_format: str = "calen
         times = [f"{m // _MS_PER_WEEK:4d} {(m % _MS_PER_WEEK) / 1000.0:10.3f}" for m in ms]
         time_width = 8 + 3 + 1
     lines = [f"% program   : lfgnss ver.{__version__} backend {solution.backend}\n"]
+    lines += [f"% inp file  : {source}\n" for source in inputs]
+    if systems:
+        lines.append(f"% navi sys  : {' '.join(_RTKLIB_SYSTEM_NAMES.get(c, c) for c in systems)}\n")
     if len(ms_all):
         for label, m in (("obs start", ms_all.min()), ("obs end  ", ms_all.max())):
             week, tow = divmod(int(m), _MS_PER_WEEK)

@@ -297,7 +297,7 @@ def _solve(args) -> _Solved:
     # a file that cannot be written (a folder in its place, a full disk) costs that file only: the solution, the
     # other files and the accuracy table are kept, and the run ends with exit code 2
     recorded = replace(solution, backend=solution.backend + _settings_text(args))   # the .pos header's program line
-    jobs = [(f"{stem}.pos", lambda p: [write_pos(p, recorded)]),
+    jobs = [(f"{stem}.pos", lambda p: [write_pos(p, recorded, inputs=[obs, *nav], systems="".join(seq.systems))]),
             (f"{stem}.csv", lambda p: [write_csv(p, solution, truth)]),
             (f"{stem}.geojson", lambda p: [write_geojson(p, solution)]),
             (f"{stem}.kml", lambda p: [write_kml(p, solution)])]

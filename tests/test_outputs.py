@@ -110,6 +110,11 @@ def test_pos_layout_matches_rtklib(tmp_path):
     assert ours[4:] == theirs[6:]
     assert ours[0].startswith(b"% program   : lfgnss")
     assert ours[1] == b"% obs start : 2016/06/06 11:10:45.2 GPST (week1900 126645.2s)"
+    named = write_pos(tmp_path / "named.pos", sol, inputs=["rover.obs", "brdc.nav"], systems="GRCE")
+    header = named.read_bytes().split(b"\n")[1:4]
+    assert header == [b"% inp file  : rover.obs", b"% inp file  : brdc.nav",      # as rnx2rtkp's own header lines
+                      b"% navi sys  : gps glonass beidou galileo"]
+    assert named.read_bytes().split(b"\n")[7:] == ours[4:] and len(read_pos(named).time_gps_s) == 4
 
 
 def test_read_pos_ecef_and_week_tow(tmp_path):
