@@ -292,7 +292,7 @@ def _solve(args) -> _Solved:
     estimator.name = label
     solution = estimator.solve(seq)
 
-    name = f"{Path(obs).name.split('.')[0]}_{_run_tag(args, options)}"
+    name = f"{Path(obs).name.split('.')[0]}_{_run_tag(args, options, ''.join(seq.systems))}"
     stem = args.out / name
     # a file that cannot be written (a folder in its place, a full disk) costs that file only: the solution, the
     # other files and the accuracy table are kept, and the run ends with exit code 2
@@ -497,8 +497,12 @@ def _settings_text(args: argparse.Namespace) -> str:
     return text + (f" --systems {args.systems}" if args.systems else "")
 
 
-def _run_tag(args: argparse.Namespace, options: dict) -> str:
-    """What tells this run's output files from another back end's or variant's in the same ``--out``: ``ekf-rts``."""
+def _run_tag(args: argparse.Namespace, options: dict, systems: str = "") -> str:
+    """What tells this run's output files from another back end's or variant's in the same ``--out``: ``ekf-rts``.
+
+    With --systems, the constellations the run used (``systems``, in GCERJ order): ``--systems CG`` and ``GC`` are one
+    run, and ``--systems GC`` on a file of GPS and GLONASS is the ``--systems G`` run (``-sysG``).
+    """
     from estimators.ekf import smoothed_name
 
     tag = smoothed_name(args.backend + ("-fixed-lag" if options.get("mode") == "fixed-lag" else ""), args.smooth,
@@ -510,7 +514,7 @@ def _run_tag(args: argparse.Namespace, options: dict) -> str:
     for option, t in (("ts", args.start), ("te", args.end)):          # rnx2rtkp's names; GPS week and time of week [s]
         tag += f"-{option}{_week_tow_text(t).replace(':', '_')}" if t is not None else ""
     tag += f"-mask{args.elevation_mask:g}" if args.elevation_mask != DEFAULT_ELEVATION_MASK_DEG else ""
-    return tag + (f"-sys{args.systems}" if args.systems else "")
+    return tag + (f"-sys{systems or args.systems}" if args.systems else "")
 
 
 def _own_model(args: argparse.Namespace) -> bool:

@@ -58,12 +58,13 @@ def test_bad_systems_name_the_character_before_any_work(tmp_path, capsys, text, 
 
 def test_a_systems_run_keeps_the_all_systems_outputs_and_records_the_setting(tmp_path):
     """Defect: --systems G overwrote the all-systems _ekf.pos/.csv in the same --out; no file said it was GPS-only."""
-    for extra in ([], ["--systems", "g"], ["--systems", "R, G"], ["--systems", "G", "--elevation-mask", "15"]):
+    for extra in ([], ["--systems", "g"], ["--systems", "R, G"], ["--systems", "G", "--elevation-mask", "15"],
+                  ["--systems", "GC"]):                    # no BeiDou in the file: the --systems G run, named so
         assert main([*FAST, "--out", str(tmp_path), *extra]) == 0
     headers = {p.stem.removeprefix("Berlin_Potsdamer_Platz_"): p.read_text().splitlines()[0]
                for p in tmp_path.glob("*.pos")}
     assert {tag: line.split(" backend ")[1] for tag, line in headers.items()} == {
-        "wls": "wls", "wls-sysG": "wls --systems G", "wls-sysRG": "wls --systems RG",
+        "wls": "wls", "wls-sysG": "wls --systems GC", "wls-sysGR": "wls --systems RG",    # the files: the systems used
         "wls-mask15-sysG": "wls --elevation-mask 15 --systems G"}
     both, gps = (pd.read_csv(tmp_path / f"Berlin_Potsdamer_Platz_{tag}.csv")["n_used"].fillna(0)   # empty: no fix
                  for tag in ("wls", "wls-sysG"))
