@@ -14,7 +14,7 @@ from .base import (STATUS_COASTED, STATUS_NAMES, STATUS_NONE, STATUS_RESET, STAT
 from .models import EkfConfig
 from .noise import FixedNoise, HeuristicNoise, NoiseModel, TruthNoise
 from .ekf import LfgnssEkf, PlainEkf, config_of
-from . import baselines  # noqa: F401  (registers "wls" and "wls-weighted")
+from .baselines import LeastSquaresBaseline  # registers "wls" and "wls-weighted"
 
 
 def __getattr__(name: str):
@@ -32,4 +32,5 @@ def __dir__() -> list[str]:
 
 __all__ = ["Estimator", "Solution", "available", "backend_options", "create", "register", "STATUS_NONE",
            "STATUS_UPDATED", "STATUS_COASTED", "STATUS_RESET", "STATUS_NAMES", "EkfConfig", "NoiseModel",
-           "HeuristicNoise", "FixedNoise", "TruthNoise", "LfgnssEkf", "LfgnssFgo", "PlainEkf", "config_of"]
+           "HeuristicNoise", "FixedNoise", "TruthNoise", "LfgnssEkf", "LfgnssFgo", "PlainEkf", "LeastSquaresBaseline",
+           "config_of"]

@@ -6,9 +6,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lfgnss.dop import dop
 from lfgnss.features import fill_from_nearest_epoch
+from lfgnss.dop import dop
 from lfgnss.frames import ecef_to_lla
+from lfgnss.metrics import enu_rotations
 from lfgnss.sequence import Sequence
 from lfgnss.spp import SppConfig
 from lfgnss.weighted_fix import weighted_least_squares
@@ -62,12 +63,28 @@ class LeastSquaresBaseline:
 def plausible_fix(pos_ecef_m: np.ndarray, sequence: Sequence, config: SppConfig = SppConfig()) -> np.ndarray:
     """(T,) bool: fixes [m] the coarse fix would keep: ellipsoidal height within ``config.height_range_m`` and GDOP of
     the used satellites in (0, ``config.max_gdop``]. An epoch without redundancy can land kilometres off (underground,
-    in orbit); ``lfgnss.spp`` marks such fixes "implausible height" and "bad geometry", and so do the baselines."""
-    height = ecef_to_lla(np.where(np.isfinite(pos_ecef_m), pos_ecef_m, 0.0))[:, 2]
+    in orbit); ``lfgnss.spp`` marks such fixes "implausible height" and "bad geometry", and so do the baselines.
+
+    """
+    pos = np.where(np.isfinite(pos_ecef_m), pos_ecef_m, 0.0)
+    height = ecef_to_lla(pos)[:, 2]
     low, high = config.height_range_m
-    gdop = dop(sequence.el_rad, sequence.az_rad, np.where(sequence.mask, sequence.system_index, 0), sequence.mask,
-               len(sequence.systems)).gdop
+    gdop = fix_gdop(pos, sequence)
     return (height >= low) & (height <= high) & (gdop > 0) & (gdop <= config.max_gdop)
+
+
+def fix_gdop(pos_ecef_m: np.ndarray, sequence: Sequence) -> np.ndarray:
+    """(T,) GDOP (``lfgnss.dop``, as ``lfgnss.spp`` checks it) of the used satellites seen from positions (T, 3) [m].
+
+    Elevations and azimuths come from the positions' own lines of sight, not the sequence's stored ones.
+    """
+    pos = np.where(np.isfinite(pos_ecef_m), pos_ecef_m, 0.0)
+    los = np.nan_to_num(sequence.sat_pos_ecef_m) - pos[:, None, :]
+    enu = np.einsum("tij,tnj->tni", enu_rotations(pos), los)
+    el = np.arctan2(enu[..., 2], np.hypot(enu[..., 0], enu[..., 1]))
+    az = np.arctan2(enu[..., 0], enu[..., 1])
+    mask = sequence.mask
+    return dop(el, az, np.where(mask, sequence.system_index, 0), mask, len(sequence.systems)).gdop
 
 
 @register("wls")

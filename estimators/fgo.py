@@ -51,8 +51,8 @@ marginal of ``X``, ``V`` at the last epoch in the graph), times the EKF's inflat
 pseudorange residuals (``estimators.consistency``; ``inflate_cov=False``: the bare marginal). Otherwise ``cov_ecef_m2``
 holds a stand-in, mostly wider than the marginals: the weighted least-squares snapshot covariance of the epoch
 (``(H^T R^-1 H)^-1`` at the estimate, position block, ignoring the motion model), and at epochs
-whose snapshot is rank deficient the previous covariance propagated by the motion model
-(``P + dt^3/3 Qa``).
+whose snapshot is rank deficient the last full-rank one propagated by the motion model over the time T since it
+(``P + T^3/3 Qa``), so it grows through an outage.
 """
 from __future__ import annotations
 

@@ -642,7 +642,9 @@ def build(dataset_id: str, *, feature_names: tuple[str, ...] = DEFAULT_FEATURES,
         notes = align_truth(seq.time_gps_s, spec)[1]    # a cached build warns as the first one did
     else:
         obs = spec.obs[0] if len(spec.obs) == 1 else join_observations([load_obs(p) for p in spec.obs])
-        meas = load(obs, spec.nav, systems=spec.systems)
+        with warnings.catch_warnings():     # said below for cached builds too, in one warning
+            warnings.filterwarnings("ignore", r".*: no [A-Z] observations \(requested\)")
+            meas = load(obs, spec.nav, systems=spec.systems)
         fix = spp(meas)
         truth, notes = align_truth(meas.time_gps_s, spec)
         seq = build_sequence(meas, fix, feature_names=feature_names, name=dataset_id, truth_ecef_m=truth)
@@ -651,8 +653,8 @@ def build(dataset_id: str, *, feature_names: tuple[str, ...] = DEFAULT_FEATURES,
     dropped = [c for c in spec.systems or () if c not in seq.systems]
     if dropped:
         warnings.warn(f"dataset {dataset_id}: constellation(s) {''.join(dropped)} of its systems have no usable "
-                      f"observation and are left out (its navigation files may lack their ephemerides): the sequence "
-                      f"has {''.join(seq.systems)}", stacklevel=2)
+                      f"observation and are left out (its observation files hold none, or its navigation files lack "
+                      f"their ephemerides): the sequence has {''.join(seq.systems)}", stacklevel=2)
     return seq
 
 

@@ -131,8 +131,9 @@ def check_output_folder(out: str | os.PathLike) -> None:
     """InputError naming ``--out`` unless it is, or can be made, a folder that takes files; it makes nothing.
 
     The first folder of ``out`` and its parents that exists is tried with a file of its own that is removed at once,
-    so a read-only disk or a folder without permission is said before any work rather than when the outputs are
-    written.
+    so a read-only disk, or a folder to be made where one may not write, is said before any work rather than when
+    the outputs are written. An existing ``out`` without write permission passes: the files in it one may write are
+    rewritten in place (:func:`write_output`), and each other one is an error of its own after the run.
     """
     from .errors import InputError
 
@@ -149,6 +150,10 @@ def check_output_folder(out: str | os.PathLike) -> None:
     try:
         probe.touch(exist_ok=False)
         probe.unlink()
+    except PermissionError:
+        if there != out:
+            raise InputError(out, f"cannot create the output folder (no permission to write in {there})") from None
+        # a folder that takes no new file may still hold outputs one may rewrite in place (write_output): go on
     except OSError as err:
         raise InputError(out, f"cannot write into {'the output folder' if there == out else there} "
                               f"({err.strerror or err})") from None

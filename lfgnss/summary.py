@@ -13,7 +13,7 @@ import numpy as np
 from . import datasets
 from .errors import path_option, run_command
 from .outputs import save_figure
-from .paths import make_output_folder
+from .paths import check_output_folder
 from .sequence import Sequence
 
 
@@ -101,7 +101,7 @@ def _summarise(args: argparse.Namespace) -> int:
     missing = [f"{i}: {datasets.get(i).missing_note()}" for i in asked if datasets.get(i).missing()]
     if missing:
         raise FileNotFoundError(f"dataset not built: {'; '.join(missing)}")
-    make_output_folder(args.out)
+    check_output_folder(args.out)                            # made by the first plot: none without a dataset
     rows, written = [], []
     for dataset_id in datasets.present(ids):
         seq = datasets.build(dataset_id)

@@ -110,6 +110,9 @@ def doppler_velocity(prr_m_s: np.ndarray, prr_mask: np.ndarray, sat_pos_ecef_m: 
     for it in range(iterations + 1):
         normal = np.einsum("tn,tni,tnj->tij", weight, A, A)
         normal[~enough] = eye                     # keep the batch solvable; those epochs are discarded
+        # Dopplers of satellites in one spot of the sky: singular, so no fix (np.linalg.solve would raise)
+        enough &= np.isfinite(normal).all(axis=(1, 2)) & (np.linalg.cond(normal) < max_condition)
+        normal[~enough] = eye
         x = np.linalg.solve(normal, np.einsum("tn,tni,tn->ti", weight, A, y)[..., None])[..., 0]
         if it == iterations:
             break

@@ -44,6 +44,10 @@ class WeightedFix:
     ok: np.ndarray              # (T,) bool: a start position and at least 3 + C_present satellites
 
 
+#: Condition number of the normal matrix beyond which an epoch's geometry fixes nothing.
+MAX_CONDITION = 1e12
+
+
 def weighted_least_squares(pr_m: np.ndarray, sat_pos_ecef_m: np.ndarray, system_index: np.ndarray,
                            mask: np.ndarray, n_systems: int, start_ecef_m: np.ndarray, r_m2: np.ndarray, *,
                            iterations: int = 10, tolerance_m: float = 1e-4,
@@ -75,6 +79,9 @@ def weighted_least_squares(pr_m: np.ndarray, sat_pos_ecef_m: np.ndarray, system_
         res = residuals(x)
         h = np.concatenate([-los, onehot], axis=-1)
         normal = np.einsum("tsi,ts,tsj->tij", h, w, h) + unobserved
+        normal[~ok] = np.eye(3 + n_systems)
+        # satellites in one spot of the sky: no fix (np.linalg.solve would raise on the singular matrix)
+        ok &= np.isfinite(normal).all(axis=(1, 2)) & (np.linalg.cond(normal) < MAX_CONDITION)
         normal[~ok] = np.eye(3 + n_systems)
         dx = np.linalg.solve(normal, np.einsum("tsi,ts,ts->ti", h, w, res)[..., None])[..., 0]
         dx[~ok] = 0.0

@@ -340,3 +340,28 @@ def test_a_read_only_out_is_said_before_the_solve(tmp_path, capsys, monkeypatch)
     assert captured.out == "" and not list((tmp_path / "ro").iterdir())
     assert solve_main(["--out", str(tmp_path / "ro" / "new")]) == 2          # a folder to be made in it
     assert _one_line(capsys.readouterr().err).endswith(f"cannot write into {tmp_path / 'ro'} (Read-only file system)")
+
+
+def test_an_out_without_permission_for_new_files_still_rewrites_its_outputs(tmp_path, capsys, monkeypatch):
+    """A folder one may not add files to, holding outputs one may rewrite: they are rewritten in place (it is only a
+    folder to be made in such a place that is refused before the run)."""
+    import errno
+    from pathlib import Path
+
+    from lfgnss.solve import main as solve_main
+
+    out = tmp_path / "kept"
+    assert solve_main(["--out", str(out), "--backend", "wls", "--no-plots", "--quiet"]) == 0
+    real_touch = Path.touch
+
+    def no_new_files(self, *args, **kwargs):
+        if self.name.startswith(".lfgnss-write-test."):
+            raise PermissionError(errno.EACCES, "Permission denied", str(self))
+        return real_touch(self, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "touch", no_new_files)
+    capsys.readouterr()
+    assert solve_main(["--out", str(out), "--backend", "wls", "--no-plots", "--quiet"]) == 0
+    assert solve_main(["--out", str(out / "sub"), "--backend", "wls", "--no-plots", "--quiet"]) == 2
+    assert _one_line(capsys.readouterr().err) == (f"error: {out / 'sub'}: cannot create the output folder (no "
+                                                  f"permission to write in {out})")

@@ -114,3 +114,13 @@ def test_static_receiver_doppler_velocity_is_near_zero(shared_data):
     speed = np.linalg.norm(dv.vel_ecef_m_s[dv.ok], axis=1)
     assert dv.ok.mean() > 0.99
     assert np.median(speed) < 0.2 and np.percentile(speed, 99) < 1.0
+
+
+def test_dopplers_of_satellites_in_one_spot_give_no_fix_not_an_error():
+    """A singular normal matrix (every satellite within km of the first) ended in numpy's LinAlgError."""
+    seq = simulate_sequence(20, seed=1)
+    sat, vel = seq.sat_pos_ecef_m.copy(), seq.sat_vel_ecef_m_s.copy()
+    sat[5] = sat[5, :1] + 1000.0 * np.arange(seq.n_slots)[:, None]
+    vel[5] = vel[5, :1]
+    dv = doppler_velocity(seq.prr_m_s, seq.prr_mask, sat, vel, seq.truth_ecef_m)
+    assert not dv.ok[5] and dv.ok[np.arange(20) != 5].all()
