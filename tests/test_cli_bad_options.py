@@ -318,21 +318,27 @@ def test_train_refuses_an_unusable_out_before_any_data_are_built(tmp_path, capsy
     assert _one_line(capsys.readouterr().err) == "python -m learning.train: error: " + message.format(out=out)
 
 
-def test_a_read_only_out_is_said_before_the_solve(tmp_path, capsys, monkeypatch):
-    """A folder that takes no file (a read-only disk) used to be found when the seven outputs were written."""
-    import errno
+def _probe_fails(monkeypatch, code: int, reason: str) -> None:
+    """check_output_folder's probe file fails with ``code`` (a read-only disk, no permission: root passes both)."""
     from pathlib import Path
-
-    from lfgnss.solve import main as solve_main
 
     real_touch = Path.touch
 
-    def read_only(self, *args, **kwargs):
+    def touch(self, *args, **kwargs):
         if self.name.startswith(".lfgnss-write-test."):
-            raise OSError(errno.EROFS, "Read-only file system", str(self))
+            raise OSError(code, reason, str(self))
         return real_touch(self, *args, **kwargs)
 
-    monkeypatch.setattr(Path, "touch", read_only)
+    monkeypatch.setattr(Path, "touch", touch)
+
+
+def test_a_read_only_out_is_said_before_the_solve(tmp_path, capsys, monkeypatch):
+    """A folder that takes no file (a read-only disk) used to be found when the seven outputs were written."""
+    import errno
+
+    from lfgnss.solve import main as solve_main
+
+    _probe_fails(monkeypatch, errno.EROFS, "Read-only file system")
     (tmp_path / "ro").mkdir()
     assert solve_main(["--out", str(tmp_path / "ro")]) == 2
     captured = capsys.readouterr()
@@ -346,20 +352,12 @@ def test_an_out_without_permission_for_new_files_still_rewrites_its_outputs(tmp_
     """A folder one may not add files to, holding outputs one may rewrite: they are rewritten in place (it is only a
     folder to be made in such a place that is refused before the run)."""
     import errno
-    from pathlib import Path
 
     from lfgnss.solve import main as solve_main
 
     out = tmp_path / "kept"
     assert solve_main(["--out", str(out), "--backend", "wls", "--no-plots", "--quiet"]) == 0
-    real_touch = Path.touch
-
-    def no_new_files(self, *args, **kwargs):
-        if self.name.startswith(".lfgnss-write-test."):
-            raise PermissionError(errno.EACCES, "Permission denied", str(self))
-        return real_touch(self, *args, **kwargs)
-
-    monkeypatch.setattr(Path, "touch", no_new_files)
+    _probe_fails(monkeypatch, errno.EACCES, "Permission denied")
     capsys.readouterr()
     assert solve_main(["--out", str(out), "--backend", "wls", "--no-plots", "--quiet"]) == 0
     assert solve_main(["--out", str(out / "sub"), "--backend", "wls", "--no-plots", "--quiet"]) == 2
