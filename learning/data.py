@@ -37,6 +37,10 @@ def resolve_feature_names(names: Iterable[str] | None = None, drop: Iterable[str
     not silently train on every feature.
     """
     base = tuple(names) if names is not None else DEFAULT_FEATURES
+    for n in base:                      # checked here too, so a fine-tuning run (whose features are the model's) says so
+        if n not in AVAILABLE_FEATURES:
+            raise ValueError(f"data.features: unknown feature {n!r}{did_you_mean(n, list(AVAILABLE_FEATURES))}; "
+                             f"available: {', '.join(AVAILABLE_FEATURES)}")
     known = list(dict.fromkeys(("dpc", *base, *AVAILABLE_FEATURES)))
     for d in drop:
         if d not in known:

@@ -605,6 +605,9 @@ def load_model(path: str | Path, expected_features: Iterable[str] | None = None)
     if arrays is None:
         raise ModelFileError(path, "not an lfgnss model file (not an .npz archive)" if magic else "empty file")
     if "metadata" not in arrays:
+        if any(name.endswith("data.pkl") for name in arrays):       # torch.save's zip: a learning.train checkpoint
+            raise ModelFileError(path, "a training checkpoint, not a model file: export it first (python -m "
+                                       f"learning.export {path} model.npz)")
         raise ModelFileError(path, "not an lfgnss model file (no metadata)")
     try:
         meta = json.loads(str(arrays["metadata"]))

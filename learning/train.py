@@ -193,6 +193,7 @@ def load_config(path: str | Path | None = None, overrides: list[str] = ()) -> di
     """
     config = copy.deepcopy(DEFAULT_CONFIG)
     if path is not None:
+        path = config_path(str(path))                 # "finetune": the shipped configuration of that name
         data = _read_toml(Path(path))                 # its own errors name the file
         try:
             config = _merge(config, data)
@@ -389,7 +390,13 @@ def _read_toml(path: Path, depth: int = 0) -> dict:
         raise ValueError(f"{path}: base must be the path of a configuration file (a string), got {base!r}")
     if depth > 8:
         raise ValueError(f"{path}: 'base' chain too deep")
-    return _merge_free(_read_toml(path.parent / base, depth + 1), data)
+    beside = path.parent / base
+    if not beside.is_file() and may_name_a_bundled_model(base) and (CONFIG_DIR / f"{base}.toml").is_file():
+        beside = CONFIG_DIR / f"{base}.toml"        # base = "finetune": the shipped configuration of that name
+    elif not beside.is_file():
+        raise ValueError(f"{path}: base = {base!r}: no such configuration file beside it ({beside}), nor a shipped "
+                         f"one of that name ({', '.join(shipped_configs())})")
+    return _merge_free(_read_toml(beside, depth + 1), data)
 
 
 def _merge_free(base: dict, update: dict) -> dict:
@@ -866,6 +873,23 @@ def resumed_config(saved: dict, overrides: list[str], where: str | Path) -> dict
     return config
 
 
+def _warn_ignored_config(config: dict | None, checkpoint: dict, overrides: list[str], where: Path) -> None:
+    """A warning when ``train(config, resume=True)`` is given a configuration other than the checkpoint's: a resumed
+    run goes on with its own, so the differences would go unseen (the command line passes none)."""
+    if config is None:
+        return
+    given = {k.split("=", 1)[0].strip() for k in overrides}
+    was, now = _flat(_merge_free(DEFAULT_CONFIG, checkpoint["config"])), _flat(config)
+    differ = sorted(k for k in was.keys() & now.keys() if was[k] != now[k] and k not in given
+                    and not k.startswith(("model.", "data.features", "data.drop_features")))   # train.init's own
+    if differ:
+        k = differ[0]
+        warnings.warn(f"{where}: resuming goes on with the checkpoint's configuration, not the one given ({k} "
+                      f"{was[k]!r} there, {now[k]!r} given{f'; {len(differ) - 1} more' if len(differ) > 1 else ''}); "
+                      "only train.epochs, threads and device may change, as overrides "
+                      "(overrides=['train.epochs=N'])", stacklevel=3)
+
+
 def _config_file_record(config_file: str | Path) -> dict:
     """What a checkpoint keeps of the ``--config`` file its run was started from: the path, and the settings read."""
     return {"path": str(Path(config_file).resolve()), "settings": _read_toml(Path(config_file))}
@@ -887,7 +911,7 @@ def _check_config_file(config_file: str | Path, record: dict | None, where: Path
                          f"was started; {leave_out}")
 
 
-def train(config: dict, out_dir: str | Path, *, resume: bool = False, overrides: list[str] = (),
+def train(config: dict | None, out_dir: str | Path, *, resume: bool = False, overrides: list[str] = (),
           progress: bool = True, prepared: Prepared | None = None, export: bool = True,
           config_file: str | Path | None = None, command: str | None = None,
           epoch_lines: bool | None = None) -> list[dict]:
@@ -895,13 +919,14 @@ def train(config: dict, out_dir: str | Path, *, resume: bool = False, overrides:
 
     Parameters
     ----------
-    config : dict
-        Full configuration (``load_config``).
+    config : dict, or None with ``resume``
+        Full configuration (``load_config``). A resumed run goes on with its checkpoint's; one given that differs
+        from it is warned of.
     out_dir : path
         Run folder for ``last.pt``, ``best.pt``, ``log.csv``, ``curves.png``, ``model.npz``.
     resume : bool
         Continue from ``out_dir/last.pt`` exactly (same shuffles, optimiser and scheduler state). The
-        checkpoint's configuration is the run's (``config`` is ignored): ``overrides`` may change only
+        checkpoint's configuration is the run's (a ``config`` that differs is warned of): ``overrides`` may change only
         ``RESUME_FREE`` settings (e.g. ``["train.epochs=300"]``, to extend the schedule); any other that differs from
         the checkpoint's is refused (``resumed_config``).
     prepared : Prepared, optional
@@ -929,11 +954,19 @@ def train(config: dict, out_dir: str | Path, *, resume: bool = False, overrides:
         record = checkpoint.get("config_file")
         if config_file is not None:
             _check_config_file(config_file, record, last_path)
+        _warn_ignored_config(config, checkpoint, list(overrides), last_path)
         config = resumed_config(checkpoint, list(overrides), last_path)
         done, epochs = int(checkpoint["epoch"]), int(config["train"]["epochs"])
+        t_max, planned = int(config["train"]["t_max"]), int(checkpoint["config"]["train"]["epochs"])
+        if planned <= t_max < epochs:           # a schedule made to end annealed, taken past its turn
+            warnings.warn(f"{last_path}: train.epochs = {epochs} goes past train.t_max = {t_max}, where the cosine "
+                          "schedule turns: the learning rate climbs back towards train.lr (the run was planned for "
+                          f"{planned} epochs, annealed at the end)", stacklevel=2)
         if done >= epochs and epoch_lines:      # nothing to train (model.npz is written again, as it was)
             print(f"{out}: already at epoch {done} of {epochs}; extend with --set train.epochs=M (M > {done})",
                   flush=True)
+    elif config is None:
+        raise ValueError("train: config is None; give a configuration (learning.train.load_config) for a new run")
     elif last_path.exists():
         raise ValueError(f"{last_path}: a run already exists here; pass --resume or choose another --out")
     else:
@@ -1171,7 +1204,8 @@ def main(argv: list[str] | None = None) -> int:
         with warnings_on_one_line():
             config = load_config(args.config, args.overrides)
             check_output_folder(out)            # before the data are built: a file or a read-only disk costs nothing
-            history = train(config, out, resume=args.resume, overrides=args.overrides, progress=not args.no_progress,
+            history = train(None if args.resume else config, out, resume=args.resume, overrides=args.overrides,
+                            progress=not args.no_progress,
                             epoch_lines=True, config_file=args.config,
                             command=provenance.command_line(p.prog, sys.argv[1:] if argv is None else list(argv)))
     except INPUT_ERRORS as exc:

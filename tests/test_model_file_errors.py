@@ -133,8 +133,11 @@ def test_bad_arrays_are_one_line_naming_file_and_key(tmp_path, change, change_me
 @pytest.mark.parametrize("write, text", [(_random_bytes, "not an lfgnss model file"),
                                          (_npy, "not an lfgnss model file"),
                                          (_pickled, "not an lfgnss model file"),
-                                         (lambda p: p.write_bytes(b""), "empty file")],
-                         ids=["random-bytes", "npy", "pickled", "empty"])
+                                         (lambda p: p.write_bytes(b""), "empty file"),
+                                         (lambda p: __import__("torch").save({"epoch": 1}, p),
+                                          "a training checkpoint, not a model file: export it first (python -m "
+                                          "learning.export")],
+                         ids=["random-bytes", "npy", "pickled", "empty", "checkpoint"])
 def test_not_a_model_file_says_so(tmp_path, write, text):
     dst = tmp_path / "junk.npz"
     write(dst)

@@ -1,5 +1,7 @@
 """End-to-end training on simulated sequences: learning, resume, reproducibility, gradients."""
+import copy
 import csv
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -548,3 +550,24 @@ def test_compensation_term_pulls_vc_towards_the_true_pseudorange_errors(config, 
     cfg["loss"]["balance"] = "plain_ekf"
     runs.append(train(cfg, tmp_path / "balanced", progress=False, prepared=prepare(cfg)))
     assert runs[0][1]["train_loss"] == runs[1][1]["train_loss"]
+
+
+def test_resuming_from_python_says_what_it_ignores_and_a_schedule_taken_past_its_turn(config, prepared, tmp_path):
+    """train(config, resume=True) went on with the checkpoint's settings and said nothing of a config that differs;
+    extending a run planned to end annealed (epochs <= t_max) past t_max raised the learning rate again silently."""
+    cfg = copy.deepcopy(config)
+    cfg["train"]["epochs"], cfg["train"]["t_max"] = 1, 1
+    train(cfg, tmp_path, progress=False, prepared=prepared)
+    changed = copy.deepcopy(cfg)
+    changed["train"]["lr"] = 5e-2
+    with pytest.warns(UserWarning, match=r"resuming goes on with the checkpoint's configuration, not the one given "
+                                         r"\(train.lr 0.01 there, 0.05 given\)") as caught:
+        history = train(changed, tmp_path, resume=True, overrides=["train.epochs=2"], progress=False,
+                        prepared=prepared)
+    assert [h["epoch"] for h in history] == [0, 1, 2] and history[-1]["lr"] != 5e-2
+    assert any("goes past train.t_max = 1, where the cosine schedule turns" in str(w.message) for w in caught)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        train(None, tmp_path, resume=True, overrides=["train.epochs=2"], progress=False, prepared=prepared)
+    with pytest.raises(ValueError, match="config is None; give a configuration"):
+        train(None, tmp_path / "new", progress=False)

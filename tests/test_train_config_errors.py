@@ -213,3 +213,20 @@ def test_a_shipped_configuration_is_picked_by_name(tmp_path, monkeypatch):
     with pytest.raises(SystemExit) as exit_info:
         main(["--config", "nope", "--out", str(tmp_path / "run")])
     assert exit_info.value.code == 2 and not (tmp_path / "run").exists()
+
+
+def test_base_and_load_config_take_a_shipped_configurations_name(tmp_path, monkeypatch):
+    """``base = "finetune"`` in a configuration of one's own and ``load_config("finetune")`` from Python read the
+    shipped file (only ``--config finetune`` did); a base that is neither says where it looked."""
+    from learning.train import CONFIG_DIR
+
+    monkeypatch.chdir(tmp_path)
+    shipped = load_config(CONFIG_DIR / "finetune.toml")
+    assert load_config("finetune") == shipped
+    (tmp_path / "mine.toml").write_text('base = "finetune"\n[train]\nepochs = 3\n')
+    mine = load_config(tmp_path / "mine.toml")
+    assert mine["train"]["epochs"] == 3 and mine["train"]["init"] == shipped["train"]["init"]
+    (tmp_path / "bad.toml").write_text('base = "finetun"\n')
+    with pytest.raises(ValueError, match=rf"^{tmp_path / 'bad.toml'}: base = 'finetun': no such configuration file "
+                                         r"beside it \(.*\), nor a shipped one of that name \(berlin, "):
+        load_config(tmp_path / "bad.toml")

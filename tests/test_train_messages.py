@@ -84,6 +84,17 @@ def test_drop_features_takes_features_and_dpc():
     assert resolve_feature_names(["cn0"], ["track_age"]) == ("cn0",)      # a known feature not in the list: no-op
     with pytest.raises(ValueError, match="unknown feature 'cn00' \\(did you mean 'cn0'\\?\\)"):
         resolve_feature_names(None, ["cn00"])
+    with pytest.raises(ValueError, match="^data.features: unknown feature 'bogus'; available: cn0, "):
+        resolve_feature_names(["cn0", "bogus"])     # also with train.init, whose model's features replace the list
+
+
+def test_an_unknown_feature_is_refused_when_fine_tuning_too(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        train_main(["--config", "finetune", "--out", str(tmp_path / "run"),
+                    "--set", "data.features=['cn0', 'bogus']"])
+    assert exit_info.value.code == 2
+    assert "error: data.features: unknown feature 'bogus'" in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()
 
 
 def test_crossval_heads_each_fold_and_notes_the_starting_model(run, tmp_path, capsys):
