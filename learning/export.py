@@ -48,7 +48,7 @@ from typing import Iterable
 
 import numpy as np
 
-from lfgnss.errors import InputError
+from lfgnss.errors import InputError, close_name
 from lfgnss.features import AVAILABLE_FEATURES
 from lfgnss.paths import MODEL_PREFIX, bundled_models, may_name_a_bundled_model, model_path, replace_atomically
 from lfgnss.sequence import Sequence
@@ -594,7 +594,10 @@ def load_model(path: str | Path, expected_features: Iterable[str] | None = None)
             with np.load(path, allow_pickle=False) as z:
                 arrays = {k: np.asarray(z[k]) for k in z.files}
     except FileNotFoundError as exc:
-        hint = f" or bundled model ({', '.join(bundled_models())})" if may_name_a_bundled_model(path) else ""
+        names = list(bundled_models())
+        close = close_name(Path(path).name, names).removeprefix(" (").removesuffix(")")      # "did you mean 'x'?"
+        hint = f" or bundled model ({', '.join(names)}){'; ' + close if close else ''}" \
+            if may_name_a_bundled_model(path) else ""
         raise ModelFileError(path, f"no such model file{hint}") from exc
     except IsADirectoryError as exc:
         raise ModelFileError(path, "a folder, not a model file") from exc
@@ -988,7 +991,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--ekf", action="append", default=[], metavar="KEY=VALUE",
                    help="write the model to run in a filter with this EKF setting changed (estimators.EkfConfig; "
                         "repeatable); the source may then be a model file (.npz), and the change is recorded")
-    args = p.parse_args(argv)
+    args = p.parse_intermixed_args(argv)     # OUT may follow --ekf KEY=VALUE
     args.checkpoint, args.out, members = (args.paths[0], args.paths[-1], args.paths[:-1]) if len(args.paths) > 1 \
         else ((args.paths or [None])[0], None, [])
     members = [source_file(m) for m in members]                 # a bundled model's name: its file

@@ -105,7 +105,8 @@ def test_bundled_models_are_picked_by_name_everywhere_a_model_file_is(tmp_path, 
         load_model("default")
     assert model_path("models/hk-tst-2019") == Path("models/hk-tst-2019")
     assert model_path("hk-tst-2019.npz") == Path("hk-tst-2019.npz")
-    with pytest.raises(ModelFileError, match=r"^hk-tst: no such model file or bundled model \(berlin-pp, default, "):
+    with pytest.raises(ModelFileError, match=r"^hk-tst: no such model file or bundled model \(berlin-pp, default, "
+                                             r".*\); did you mean 'hk-tst-2019'\?$"):
         load_model("hk-tst")
     with pytest.raises(ModelFileError, match=r"^mine\.npz: no such model file$"):
         load_model("mine.npz")

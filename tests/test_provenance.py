@@ -125,7 +125,7 @@ def test_export_ekf_writes_the_same_network_in_another_filter(run, tmp_path, cap
     assert export_main([str(out / "best.pt"), str(from_ckpt), "--ekf", "zupt_sigma_m_s=0.05",
                         "--ekf", "gate_sigma=4"]) == 0
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.npz"]
-    assert export_main([str(from_ckpt), str(from_file), "--ekf", "zupt_sigma_m_s=none"]) == 0
+    assert export_main([str(from_ckpt), "--ekf", "zupt_sigma_m_s=none", str(from_file)]) == 0      # OUT after --ekf
     trained, a, b = load_model(out / "model.npz"), load_model(from_ckpt), load_model(from_file)
     assert all(np.array_equal(a.params[k], trained.params[k]) and np.array_equal(b.params[k], trained.params[k])
                for k in trained.params)
