@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Callable, Iterable, Protocol, runtime_checkabl
 
 import numpy as np
 
-from lfgnss.errors import UnknownNameError, close_name
+from lfgnss.errors import UnknownNameError, did_you_mean
 from lfgnss.frames import check_near_surface, ecef_to_enu, ecef_to_lla
 from lfgnss.metrics import enu_rotations
 from lfgnss.sequence import Sequence, epochs_text, share_text, time_span_text
@@ -316,7 +316,7 @@ def backend_options(name: str) -> list[str] | None:
     if name not in _REGISTRY and name in _LAZY:
         importlib.import_module(_LAZY[name])
     if name not in _REGISTRY:
-        raise UnknownNameError(f"unknown backend {name!r}{close_name(name, available())}; available: "
+        raise UnknownNameError(f"unknown backend {name!r}{did_you_mean(name, available())}; available: "
                                f"{', '.join(available())}")
     params = inspect.signature(_REGISTRY[name]).parameters.values()
     if any(p.kind is p.VAR_KEYWORD for p in params):

@@ -6,13 +6,13 @@ ablation such as "w/o DPC" is the default list minus the four ``dpc_*`` names - 
 """
 from __future__ import annotations
 
-import difflib
 from dataclasses import dataclass
 from typing import Iterable, Sequence as Seq
 
 import numpy as np
 import torch
 
+from lfgnss.errors import did_you_mean
 from lfgnss.features import AVAILABLE_FEATURES
 from lfgnss.sequence import DEFAULT_FEATURES, Sequence
 
@@ -21,12 +21,6 @@ from .types import WindowBatch
 
 #: The DOP-contribution features dropped by the "w/o DPC" ablation.
 DPC_FEATURES = ("dpc_gdop", "dpc_pdop", "dpc_hdop", "dpc_vdop")
-
-
-def did_you_mean(key: str, known: list[str]) -> str:
-    """`` (did you mean 'train.epochs'?)`` for the one of ``known`` closest to ``key``, or "" when none is close."""
-    close = difflib.get_close_matches(key, known, n=1) or [k for k in known if k.split(".")[-1] == key.split(".")[-1]]
-    return f" (did you mean {close[0]!r}?)" if close else ""
 
 
 def resolve_feature_names(names: Iterable[str] | None = None, drop: Iterable[str] = ()) -> tuple[str, ...]:

@@ -48,7 +48,7 @@ from typing import Iterable
 
 import numpy as np
 
-from lfgnss.errors import InputError, close_name
+from lfgnss.errors import InputError, closest_name
 from lfgnss.features import AVAILABLE_FEATURES
 from lfgnss.paths import MODEL_PREFIX, bundled_models, may_name_a_bundled_model, model_path, replace_atomically
 from lfgnss.sequence import Sequence
@@ -595,8 +595,8 @@ def load_model(path: str | Path, expected_features: Iterable[str] | None = None)
                 arrays = {k: np.asarray(z[k]) for k in z.files}
     except FileNotFoundError as exc:
         names = list(bundled_models())
-        close = close_name(Path(path).name, names).removeprefix(" (").removesuffix(")")      # "did you mean 'x'?"
-        hint = f" or bundled model ({', '.join(names)}){'; ' + close if close else ''}" \
+        close = closest_name(Path(path).name, names)
+        hint = f" or bundled model ({', '.join(names)}){f'; did you mean {close!r}?' if close else ''}" \
             if may_name_a_bundled_model(path) else ""
         raise ModelFileError(path, f"no such model file{hint}") from exc
     except IsADirectoryError as exc:

@@ -61,12 +61,12 @@ import numpy as np
 import torch
 
 from lfgnss.datasets import load_split, register_toml, split_parts
-from lfgnss.errors import INPUT_ERRORS, one_line, shortened, warnings_on_one_line
+from lfgnss.errors import INPUT_ERRORS, did_you_mean, one_line, shortened, warnings_on_one_line
 from lfgnss.paths import check_output_folder, may_name_a_bundled_model, replace_atomically
 from lfgnss.sequence import DEFAULT_FEATURES, Sequence
 
 from . import provenance
-from .data import Window, collate, did_you_mean, make_windows, resolve_feature_names, sequence_batch
+from .data import Window, collate, make_windows, resolve_feature_names, sequence_batch
 from .export import model_settings
 from .loss import compensation_loss, error_norm_m, labelled_errors_m, make_loss
 from .network import LfgnssNet
@@ -177,13 +177,18 @@ def shipped_configs() -> list[str]:
     return sorted(p.stem for p in CONFIG_DIR.glob("*.toml"))
 
 
+def shipped_config(name: str) -> Path | None:
+    """The shipped configuration called ``name`` (``finetune``: learning/configs/finetune.toml), or None where
+    ``name`` has a folder or suffix or no shipped file has that name."""
+    shipped = CONFIG_DIR / f"{name}.toml"
+    return shipped if may_name_a_bundled_model(name) and shipped.is_file() else None
+
+
 def config_path(config: str) -> str:
-    """``--config``: a path as given where it names a file or has a folder or suffix, else the shipped configuration
-    of that name (``finetune``: learning/configs/finetune.toml), else as given (its reader names what is missing)."""
-    if Path(config).is_file() or not may_name_a_bundled_model(config):     # a folder of that name hides nothing
-        return config
-    shipped = CONFIG_DIR / f"{config}.toml"
-    return str(shipped) if shipped.is_file() else config
+    """``--config``: a path as given where it names a file, else the shipped configuration of that name
+    (:func:`shipped_config`), else as given (its reader names what is missing)."""
+    shipped = None if Path(config).is_file() else shipped_config(config)   # a folder of that name hides nothing
+    return config if shipped is None else str(shipped)
 
 
 def load_config(path: str | Path | None = None, overrides: list[str] = ()) -> dict:
@@ -391,12 +396,11 @@ def _read_toml(path: Path, depth: int = 0) -> dict:
     if depth > 8:
         raise ValueError(f"{path}: 'base' chain too deep")
     beside = path.parent / base
-    if not beside.is_file() and may_name_a_bundled_model(base) and (CONFIG_DIR / f"{base}.toml").is_file():
-        beside = CONFIG_DIR / f"{base}.toml"        # base = "finetune": the shipped configuration of that name
-    elif not beside.is_file():
+    found = beside if beside.is_file() else shipped_config(base)      # base = "finetune": the shipped one of that name
+    if found is None:
         raise ValueError(f"{path}: base = {base!r}: no such configuration file beside it ({beside}), nor a shipped "
                          f"one of that name ({', '.join(shipped_configs())})")
-    return _merge_free(_read_toml(beside, depth + 1), data)
+    return _merge_free(_read_toml(found, depth + 1), data)
 
 
 def _merge_free(base: dict, update: dict) -> dict:

@@ -46,7 +46,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .constants import SYSTEMS, unknown_systems
-from .errors import InputError, UnknownNameError, close_name
+from .errors import InputError, UnknownNameError, did_you_mean
 from .frames import NEAR_SURFACE_RADIUS_M, lla_to_ecef
 from .paths import cache_file, load_cached, names_something, shared_data_dir, store_cached
 from .sequence import DEFAULT_FEATURES, Sequence, load_sequence, save_sequence
@@ -285,7 +285,7 @@ def get(dataset_id: str, *, hint: str | None = None) -> DatasetSpec:
     specs = registered()
     if dataset_id not in specs:
         more = REGISTER_HINT if hint is None else hint
-        raise UnknownNameError(f"unknown dataset {dataset_id!r}{close_name(dataset_id, sorted(specs))}; known: "
+        raise UnknownNameError(f"unknown dataset {dataset_id!r}{did_you_mean(dataset_id, sorted(specs))}; known: "
                                f"{', '.join(sorted(specs))}" + (f" ({more})" if more else ""))
     return specs[dataset_id]
 
@@ -402,10 +402,8 @@ def _readable_as(path: Path, truth_format: str) -> str | None:
                 rows, _ = _numeric_rows(path, *layout)
             except InputError:
                 continue
-            if other == "static":
-                xyz = lla_to_ecef(np.radians(rows[:, 2]), np.radians(rows[:, 3]), rows[:, 4])
-                if np.max(np.linalg.norm(xyz - xyz[0], axis=1)) > STATIC_SPREAD_M:
-                    continue
+            if other == "static" and _static_points(rows)[1] > STATIC_SPREAD_M:
+                continue
             return other
     return None
 
@@ -424,14 +422,20 @@ def read_smartloc(path: Path, spec: DatasetSpec) -> tuple[np.ndarray, np.ndarray
     return spec.time_origin_gps_s + rows[:, 0], rows[:, 1:4], bad
 
 
+def _static_points(rows: np.ndarray) -> tuple[np.ndarray, float]:
+    """ECEF points (R, 3) [m] of static truth rows (TOW, TOW, lat, lon [deg], h [m]) and how far [m] they lie from the
+    first."""
+    xyz = lla_to_ecef(np.radians(rows[:, 2]), np.radians(rows[:, 3]), rows[:, 4])
+    return xyz, float(np.max(np.linalg.norm(xyz - xyz[0], axis=1)))
+
+
 def read_static(path: Path, spec: DatasetSpec) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """One static point: rows of TOW, TOW, latitude, longitude [deg], height [m]; labels every epoch.
 
     The first row is the point; rows farther than ``STATIC_SPREAD_M`` from it give a warning (not one point).
     """
     rows, bad = _numeric_rows(path, *_ROW_LAYOUTS["static"])
-    xyz = lla_to_ecef(np.radians(rows[:, 2]), np.radians(rows[:, 3]), rows[:, 4])
-    spread_m = float(np.max(np.linalg.norm(xyz - xyz[0], axis=1)))
+    xyz, spread_m = _static_points(rows)
     if spread_m > STATIC_SPREAD_M:
         warnings.warn(f"{path}: static truth rows lie up to {spread_m:.0f} m from the first, not one point; that row "
                       f"labels every epoch (for a moving receiver use format urbannav or ecef-csv)", stacklevel=2)
@@ -472,8 +476,12 @@ UTC_STAMP_RATIO = 0.75
 UTC_STAMP_GAIN_M = 30.0
 
 
-def utc_stamp_note(spec: DatasetSpec, time_gps_s: np.ndarray, fix_ecef_m: np.ndarray) -> str | None:
+def utc_stamp_note(spec: DatasetSpec, time_gps_s: np.ndarray, truth_ecef_m: np.ndarray,
+                   fix_ecef_m: np.ndarray) -> str | None:
     """A note when ``spec``'s truth matches the coarse fixes (T, 3) [m] far better with its times read as UTC.
+
+    ``truth_ecef_m`` (T, 3) [m] is the truth as read (GPST, :func:`align_truth` at ``time_gps_s``); only the UTC
+    reading is made here.
 
     UrbanNav and ecef-csv truth times are GPST; a file stamped in UTC is off by the leap seconds (18 s since 2017),
     which costs a moving receiver 100 m and more of apparent error. Static and smartloc truth (times relative to an
@@ -485,7 +493,7 @@ def utc_stamp_note(spec: DatasetSpec, time_gps_s: np.ndarray, fix_ecef_m: np.nda
     if spec.truth_format not in ("urbannav", "ecef-csv") or time_gps_s.size == 0:
         return None
     leap = leap_seconds(time_gps_s)
-    as_gpst, as_utc = align_truth(time_gps_s, spec)[0], align_truth(time_gps_s - leap, spec)[0]
+    as_gpst, as_utc = np.asarray(truth_ecef_m, float), align_truth(time_gps_s - leap, spec)[0]
     both = np.isfinite(as_gpst).all(axis=1) & np.isfinite(as_utc).all(axis=1) & np.isfinite(fix_ecef_m).all(axis=1)
     if both.sum() < 10:
         return None
@@ -733,7 +741,7 @@ def alignment_report(dataset_ids: list[str] | None = None) -> str:
         labelled = seq.labelled
         lines.append(f"{dataset_id}: {len(seq)} epochs, {int(labelled.sum())} with truth; systems "
                      f"{''.join(seq.systems)}" + (f"; {spec.description}" if spec.description else ""))
-        note = utc_stamp_note(spec, seq.time_gps_s, seq.coarse_ecef_m)
+        note = utc_stamp_note(spec, seq.time_gps_s, seq.truth_ecef_m, seq.coarse_ecef_m)
         if note:
             warnings.warn(note, stacklevel=2)
         for split in spec.splits:

@@ -40,11 +40,20 @@ class UnknownNameError(KeyError):
         return str(self.args[0]) if self.args else ""
 
 
-def close_name(name: str, known: list[str]) -> str:
-    """`` (did you mean 'x'?)`` for the known name closest to ``name`` (any case), or ""."""
-    same_case = [k for k in known if k.lower() == str(name).lower()]
-    close = same_case or difflib.get_close_matches(str(name).lower(), known, n=1)
-    return f" (did you mean {close[0]!r}?)" if close else ""
+def closest_name(name: str, known: list[str]) -> str | None:
+    """The one of ``known`` a mistyped ``name`` most likely means: the same in another case, else the closest
+    (``difflib``, in the case given, then in lower case), else one with the same last dotted part; None if none is."""
+    name = str(name)
+    close = ([k for k in known if k.lower() == name.lower()] or difflib.get_close_matches(name, known, n=1)
+             or difflib.get_close_matches(name.lower(), known, n=1)
+             or [k for k in known if k.split(".")[-1] == name.split(".")[-1]])
+    return close[0] if close else None
+
+
+def did_you_mean(name: str, known: list[str]) -> str:
+    """`` (did you mean 'x'?)`` for :func:`closest_name`, or ""."""
+    close = closest_name(name, known)
+    return f" (did you mean {close!r}?)" if close is not None else ""
 
 
 #: What the command lines report as bad input (a file, a setting, a dataset id): one line, exit status 2.

@@ -253,7 +253,7 @@ def _solve(args) -> _Solved:
             time_note = (datasets.static_time_note(truth_path, observations.time_gps_s)
                          if truth_format == "static" else None)
             mismatch = _truth_mismatch_note(truth_path, truth_format, truth, fix)
-            utc_note = None if mismatch else datasets.utc_stamp_note(spec, meas.time_gps_s, fix.pos_ecef_m)
+            utc_note = None if mismatch else datasets.utc_stamp_note(spec, meas.time_gps_s, truth, fix.pos_ecef_m)
             for note in (time_note, mismatch, utc_note):
                 if note:
                     print(f"warning: {note}", file=sys.stderr)

@@ -118,7 +118,7 @@ def doppler_velocity(prr_m_s: np.ndarray, prr_mask: np.ndarray, sat_pos_ecef_m: 
             break
         u = np.abs(y - np.einsum("tni,ti->tn", A, x)) / sigma
         weight = inv_var * np.minimum(1.0, huber_k / np.maximum(u, 1e-12))
-    ok = enough & (np.linalg.cond(normal) < max_condition)
+    ok = enough                                   # the last normal matrix's condition was checked in the loop
     cov = np.linalg.inv(normal)[:, :3, :3]
     nan3 = np.full(3, np.nan)
     return DopplerVelocity(vel_ecef_m_s=np.where(ok[:, None], x[:, :3], nan3),
