@@ -12,6 +12,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TypeVar
 
+from .errors import InputError
+
 T = TypeVar("T")
 
 PACKAGE_DIR = Path(__file__).resolve().parent
@@ -135,8 +137,6 @@ def check_output_folder(out: str | os.PathLike) -> None:
     the outputs are written. An existing ``out`` without write permission passes: the files in it one may write are
     rewritten in place (:func:`write_output`), and each other one is an error of its own after the run.
     """
-    from .errors import InputError
-
     out = Path(out)
     try:
         if out.exists() and not out.is_dir():
@@ -161,8 +161,6 @@ def check_output_folder(out: str | os.PathLike) -> None:
 
 def make_output_folder(out: str | os.PathLike) -> Path:
     """``--out`` made (with its parents) before any work, once :func:`check_output_folder` finds it usable."""
-    from .errors import InputError
-
     out = Path(out)
     check_output_folder(out)
     try:
