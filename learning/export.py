@@ -5,10 +5,12 @@ Format (``FORMAT_NAME`` version ``FORMAT_VERSION``), arrays in one uncompressed 
     metadata            0-d unicode array: JSON with format, format_version, feature_names,
                         model (hyper-parameters), layer_norm_eps, parameters (names, shapes),
                         normaliser, training config, ekf_config, n_systems, data_fingerprints
-                        (per sequence: dataset, split, name, epochs, content sha256), source_files
+                        (per sequence: dataset, split, name, epochs, content sha256), data_spans (per
+                        sequence: dataset, split, name, first and last GPS time, median truth), source_files
                         (dataset -> file name -> sha256 of the input files), init_model (the
                         model file fine-tuning started from: path, sha256, datasets, its data
-                        fingerprints and its own init_model; null when trained from scratch),
+                        fingerprints, spans and source files and its own init_model; null when trained
+                        from scratch),
                         config_file (the --config file's path and settings), provenance (the command
                         line, working folder, git commit, dataset TOML texts; ``learning.provenance``),
                         epoch, val_rmse_3d_m, versions (lfgnss, torch, numpy) and created_utc of the export, and
@@ -132,6 +134,8 @@ def export_ensemble(sources: list[str | Path], out_path: str | Path, command: st
             if key is not None:
                 raise ModelFileError(path, f"{key} differs from {paths[0]}'s: an ensemble's members must be one "
                                            f"recipe on the same data, differing only in {', '.join(ENSEMBLE_FREE)}")
+            if not meta.get("data_spans") and other.get("data_spans"):   # the same data; older files lack spans
+                meta = {**meta, "data_spans": other["data_spans"]}
             if other.get("data_fingerprints") != meta.get("data_fingerprints"):   # another machine's rounding
                 record = {**record, "data_fingerprints": other.get("data_fingerprints")}
             networks.append(net)
@@ -268,6 +272,7 @@ def _checkpoint_contents(checkpoint_path: str | Path) -> tuple[dict[str, np.ndar
         "ekf_config": ckpt.get("ekf_config"),
         "n_systems": ckpt.get("n_systems"),
         "data_fingerprints": ckpt.get("data_fingerprints", []),
+        "data_spans": ckpt.get("data_spans", []),
         "source_files": ckpt.get("source_files", {}),
         "init_model": ckpt.get("init_model"),
         "config_file": ckpt.get("config_file"),
@@ -774,6 +779,43 @@ def trained_on(metadata: dict) -> str:
     trained += f", {members} seeds" if members else ""
     return trained if not init else (f"{trained}, fine-tuned from {'+'.join(init.get('datasets', []))} "
                                      f"({init.get('train_split', 'train')})")
+
+
+#: A training piece whose truth lies within this of a test split's and whose time span holds its epochs is the same
+#: drive [m]: a co-located receiver, or the same file under another name or compression.
+SAME_PLACE_M = 1000.0
+
+
+def seen_test_epochs(metadata: dict, dataset_id: str, test_time_gps_s: np.ndarray,
+                           test_place_ecef_m: np.ndarray, obs_hashes: Iterable[str] = ()) -> list[str]:
+    """Where a model (or a model it was fine-tuned from) was trained or selected on test epochs: one line each.
+
+    ``test_time_gps_s``: the test split's scored epochs [s]; ``test_place_ecef_m``: the median of their truth [m].
+    A training or validation piece (``data_spans``) counts when its time span holds test epochs and its truth lies
+    within ``SAME_PLACE_M`` of the test's. A model from before spans were recorded is named only when it was trained
+    on another dataset reading one of the test dataset's observation files (``obs_hashes``: their SHA-256, 16 hex
+    digits), since which epochs it used is not known.
+    """
+    times, place, hashes = np.asarray(test_time_gps_s, float), np.asarray(test_place_ecef_m, float), set(obs_hashes)
+    lines, record, via = [], metadata, ""
+    while record:
+        spans = record.get("data_spans") or []
+        for span in spans:
+            t, where = span.get("gps_s") or [], span.get("place_ecef_m") or []
+            n = int(np.sum((times >= t[0]) & (times <= t[1]))) if len(t) == 2 else 0
+            near = len(where) != 3 or np.linalg.norm(np.asarray(where, float) - place) <= SAME_PLACE_M
+            if n and near:
+                lines.append(f"{via}trained on {span.get('sequence')} ({span.get('dataset')} {span.get('split')}, GPS "
+                             f"{t[0]:.1f}-{t[1]:.1f} s), which holds {n} of {dataset_id}'s {times.size} test epochs")
+        files = record.get("source_files") or {}
+        for ds in [] if spans else sorted({p.get("dataset", "") for p in record.get("data_fingerprints") or []}):
+            if ds != dataset_id and hashes & set((files.get(ds) or {}).values()):
+                lines.append(f"{via}trained on dataset {ds}, which reads {dataset_id}'s observation file(s); the model "
+                             "does not record which epochs (it predates data_spans), so its training may hold test "
+                             "epochs")
+        record = record.get("init_model")
+        via = f"fine-tuned from {(record or {}).get('path')}, which was "
+    return lines
 
 
 #: Where the bundled models' commands are written down (their files predate ``provenance``).

@@ -494,7 +494,8 @@ def init_record(model) -> dict:
     meta = model.metadata
     return {"path": str(model.path), "sha256_16": h, "epoch": meta.get("epoch"), "datasets": trained_datasets(model),
             "train_split": (meta.get("config") or {}).get("data", {}).get("train_split", "train"),
-            "data_fingerprints": meta.get("data_fingerprints", []), "init_model": meta.get("init_model")}
+            "data_fingerprints": meta.get("data_fingerprints", []), "data_spans": meta.get("data_spans", []),
+            "source_files": meta.get("source_files", {}), "init_model": meta.get("init_model")}
 
 
 # --------------------------------------------------------------------------- data source
@@ -532,8 +533,23 @@ def source_file_hashes(dataset_id: str) -> dict[str, str]:
         return {}
     from lfgnss.datasets import get
 
+    return file_hashes(get(dataset_id).files())
+
+
+def data_span(dataset_id: str, split: str, sequence: Sequence) -> dict:
+    """Where a training or validation sequence lies: dataset, split, name, first and last GPS time [s] and the
+    median of its truth (ECEF [m], to the metre; empty without truth), so a test split of the same drive under any
+    name or file is recognised (``learning.export.test_epochs_trained_on``)."""
+    t, truth = sequence.time_gps_s, sequence.truth_ecef_m[sequence.labelled]
+    return {"dataset": dataset_id, "split": split, "sequence": sequence.name,
+            "gps_s": [float(t[0]), float(t[-1])] if len(t) else [],
+            "place_ecef_m": [round(float(v)) for v in np.median(truth, axis=0)] if len(truth) else []}
+
+
+def file_hashes(paths) -> dict[str, str]:
+    """sha256 (16 hex digits) of each file, by file name."""
     out = {}
-    for path in get(dataset_id).files():
+    for path in paths:
         h = hashlib.sha256()
         with open(path, "rb") as fh:
             for block in iter(lambda: fh.read(1 << 20), b""):
@@ -662,6 +678,7 @@ class Prepared:
     source_files: dict[str, dict[str, str]]
     init: Any = None                # the train.init LfgnssModel, or None
     window_scale: np.ndarray | None = None   # (windows,) factor on each window's errors in the loss (loss.balance)
+    spans: list[dict] = dataclasses.field(default_factory=list)   # data_span of every train and val sequence
 
 
 def _split_hint(dataset_id: str, split: str) -> str:
@@ -689,7 +706,7 @@ def prepare(config: dict, source=None) -> Prepared:
         if set(split_parts(data[key])) & set(_FORBIDDEN_SPLITS):
             raise ValueError(f"data.{key} = {data[key]!r}: the test split may not be used for training or selection")
     source = source or load_sequences
-    train_seqs, val_seqs, prints, train_ds = [], [], [], []
+    train_seqs, val_seqs, prints, spans, train_ds = [], [], [], [], []
     for ds in data["datasets"]:
         for split, bucket in ((data["train_split"], train_seqs), (data["val_split"], val_seqs)):
             seqs = source(ds, split, config)
@@ -700,6 +717,7 @@ def prepare(config: dict, source=None) -> Prepared:
                 train_ds.extend([ds] * len(seqs))
             prints.extend({"dataset": ds, "split": split, "sequence": s.name, "epochs": len(s),
                            "sha256_16": fingerprint(s)} for s in seqs)
+            spans.extend(data_span(ds, split, s) for s in seqs)
     names = resolve_feature_names(data["features"], data["drop_features"])
     init = init_model(config)
     if init is not None and tuple(names) != init.feature_names:
@@ -722,7 +740,7 @@ def prepare(config: dict, source=None) -> Prepared:
     if config["loss"].get("balance", "none") == "plain_ekf":
         per_dataset = dataset_balance(train_seqs, train_ds, ekf_config(config))
         scale = np.array([per_dataset[train_ds[w.seq_index]] for w in windows])
-    return Prepared(names, normaliser, windows, train_batch, val_batches, n_systems, prints, files, init, scale)
+    return Prepared(names, normaliser, windows, train_batch, val_batches, n_systems, prints, files, init, scale, spans)
 
 
 def dataset_balance(sequences: list[Sequence], dataset_ids: list[str], ekf_cfg) -> dict[str, float]:
@@ -1070,7 +1088,7 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
                  "history": history, "best_val_rmse_3d_m": best, "rng": _rng_state(),
                  "normaliser": prep.normaliser.to_dict(), "feature_names": list(prep.feature_names),
                  "n_systems": prep.n_systems, "config": config, "ekf_config": dataclasses.asdict(ekf_cfg),
-                 "data_fingerprints": prep.fingerprints, "source_files": prep.source_files,
+                 "data_fingerprints": prep.fingerprints, "data_spans": prep.spans, "source_files": prep.source_files,
                  "init_model": started_from, "config_file": config_record, "provenance": made}
         replace_atomically(path, lambda tmp: torch.save(state, tmp))
         if path == last_path and last_saved is not None:

@@ -42,6 +42,7 @@ import shlex
 import sys
 import tempfile
 import time
+import warnings
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -375,7 +376,7 @@ def scored_span(dataset_id: str, feature_names: tuple[str, ...], warm_up: str | 
 def run(dataset_ids: list[str], *, model_dir: Path = MODEL_DIR, out_dir: Path | None = None,
         plots: bool = True, unwritten: list[str] | None = None, warm_up: str | None = None,
         failed: list[str] | None = None, extra: list[Method] | tuple[Method, ...] = (),
-        left_out: list[str] | None = None) -> tuple[list[dict], list[dict]]:
+        left_out: list[str] | None = None, leaked: list[str] | None = None) -> tuple[list[dict], list[dict]]:
     """Rows over all test epochs and rows over RTKLIB's solved test epochs, for each dataset.
 
     ``unwritten``: a list that collects ``FILE: cannot write (reason)`` for figures that could not be written (the
@@ -384,7 +385,9 @@ def run(dataset_ids: list[str], *, model_dir: Path = MODEL_DIR, out_dir: Path | 
     dataset whose files turn out bad (the other datasets still run); without it that error is raised. ``extra``: rows
     of one's own (``Method``), after the built-in ones on every dataset; a name taken is a ValueError before any
     work. ``left_out``: a list that collects ``ID: row 'NAME' left out: ...`` where the estimator of such a row
-    raises (the other rows are kept); without it that error is raised.
+    raises (the other rows are kept); without it that error is raised. ``leaked``: a list that collects
+    ``ID: MODEL (rows ...) trained on ...`` for a model trained or selected on epochs of the test split
+    (``seen_test_epochs``); without it each is a UserWarning.
     """
     ids = datasets.present(dataset_ids)
     rows_of = {dataset_id: methods(model_dir, dataset_id, extra) for dataset_id in ids}    # names checked first
@@ -399,12 +402,42 @@ def run(dataset_ids: list[str], *, model_dir: Path = MODEL_DIR, out_dir: Path | 
                 raise
             failed.append(f"{dataset_id}: not run ({input_line(err)})")
             continue
+        for line in models_that_saw_test_epochs(dataset_id, plugins, span.subset(slice(k, None))):
+            if leaked is None:
+                warnings.warn(line, stacklevel=2)
+            else:
+                leaked.append(line)
         rows, rtk, solutions, truth = dataset_rows(dataset_id, plugins, span, k, own, left_out)
         all_rows += rows
         rtk_rows += rtk
         if plots and out_dir is not None and solutions:
             _plot(out_dir / "figures", dataset_id, solutions, truth, unwritten)
     return all_rows, rtk_rows
+
+
+def models_that_saw_test_epochs(dataset_id: str, plugins: list[tuple[str, object]], test: Sequence) -> list[str]:
+    """``ID: MODEL (rows ...) trained on ...`` for each learned row's model that saw epochs of the test split ``test``.
+
+    A model is named once however many rows use it; its training pieces are compared by time and place, so the same
+    drive registered under another id or file (or a co-located receiver's) is caught too (``seen_test_epochs``).
+    """
+    from learning.export import seen_test_epochs
+    from learning.train import file_hashes
+
+    rows_of: dict[str, list[str]] = {}
+    models = {}
+    for name, estimator in plugins:
+        noise = getattr(estimator, "noise", None)
+        meta, path = getattr(noise, "metadata", None), getattr(noise, "path", None)
+        if isinstance(meta, dict):
+            rows_of.setdefault(str(path), []).append(name)
+            models[str(path)] = meta
+    if not models:
+        return []
+    obs = file_hashes(datasets.get(dataset_id).obs).values()
+    scored, place = test.time_gps_s[test.labelled], np.median(test.truth_ecef_m[test.labelled], axis=0)
+    return [f"{dataset_id}: {Path(path).name} (rows {', '.join(repr(r) for r in rows_of[path])}) {line}"
+            for path, meta in models.items() for line in seen_test_epochs(meta, dataset_id, scored, place, obs)]
 
 
 def _plot(folder: Path, dataset_id: str, solutions: dict, truth: np.ndarray, unwritten: list[str] | None) -> None:
@@ -593,12 +626,12 @@ def _no_rtklib_rows(all_rows: list[dict]) -> str:
 
 def write_report(path: Path, all_rows: list[dict], rtk_rows: list[dict], command: str,
                  warm_up: str | None = None, figures: bool = True, failed: list[str] = (),
-                 made_by: str = "", left_out: list[str] = ()) -> Path:
+                 made_by: str = "", left_out: list[str] = (), leaked: list[str] = ()) -> Path:
     """Markdown results file with both tables and how they were made.
 
     ``warm_up``: the split the filters started at; ``failed``: ``ID: reason`` of datasets that could not be run;
     ``made_by``: the code and model files (``provenance_text``); ``left_out``: rows of one's own whose estimator
-    raised (``run``).
+    raised (``run``); ``leaked``: models trained or selected on test epochs (``run``).
     """
     targets = target_rows(all_rows, rtk_rows)
     start = "" if warm_up is None else (
@@ -621,6 +654,8 @@ def write_report(path: Path, all_rows: list[dict], rtk_rows: list[dict], command
           if failed else []),
         *([f"**Rows left out** (the estimator of one's own raised; the tables leave that row out on that dataset): "
            f"{'; '.join(left_out)}.", ""] if left_out else []),
+        *([f"**Trained on test epochs** (these rows' figures are not held-out results): {'; '.join(leaked)}.", ""]
+          if leaked else []),
         "## All labelled test epochs",
         "",
         format_markdown(_select(all_rows)),
@@ -767,16 +802,18 @@ def _main(args: argparse.Namespace, argv: list[str] | None) -> int:
     report = _prepare_out(args.out, plots=not args.no_plots)
     unwritten: list[str] = []      # figures and results.md that could not be written: the rest is kept, exit 2
     left_out: list[str] = []       # --backend rows whose estimator raised: the other rows are kept, exit 2
+    leaked: list[str] = []         # models trained on test epochs: said in results.md and as warnings
     # datasets whose files are missing or turn out bad (failed, above): the others are kept, exit 2
     all_rows, rtk_rows = run(ids, model_dir=args.models, out_dir=args.out, plots=not args.no_plots,
-                             unwritten=unwritten, warm_up=args.warm_up, failed=failed, extra=extra, left_out=left_out)
+                             unwritten=unwritten, warm_up=args.warm_up, failed=failed, extra=extra, left_out=left_out,
+                             leaked=leaked)
     if failed and not all_rows:    # an empty table never replaces a results file
         raise _nothing_run(failed, report)
     argv = sys.argv[1:] if argv is None else argv
     command = shlex.join(["python", "-m", "lfgnss.benchmark", *argv])
     try:                            # before the tables go to stdout, which may be a pipe closed early (| head)
         written = write_report(report, all_rows, rtk_rows, command, args.warm_up, not args.no_plots, failed, made_by,
-                               left_out)
+                               left_out, leaked)
     except OSError as err:
         written = None
         unwritten.append(f"{err.filename or report}: {cannot_write(err)}")
@@ -790,6 +827,8 @@ def _main(args: argparse.Namespace, argv: list[str] | None) -> int:
         sys.stdout.flush()
     except BrokenPipeError:         # the reader went away: results.md is written, nothing more to say on stdout
         stdout_gone()
+    for message in leaked:
+        print(f"warning: {message}", file=sys.stderr)
     for message in failed + left_out + unwritten:
         print(f"error: {message}", file=sys.stderr)
     return 2 if failed or left_out or unwritten else 0

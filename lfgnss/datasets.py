@@ -12,8 +12,10 @@ file (``register_toml``)::
     [truth]
     file = "truth.csv"
     format = "urbannav"               # urbannav | smartloc | static | ecef-csv
-    match_tolerance_s = 0.5           # optional: an epoch gets the nearest truth row this close [s];
-                                      # default 0.05 for smartloc, else 0.5 (as python -m lfgnss.solve)
+    match_tolerance_s = 0.5           # optional: an epoch is labelled when a truth row lies this close [s]
+                                      # (default 0.05 for smartloc, else 0.5, as python -m lfgnss.solve); its
+                                      # truth is interpolated between the rows around it when they are at
+                                      # most 2 s apart (TRUTH_INTERPOLATION_MAX_GAP_S), else the nearest row
     time_origin_gps_s = 1149246641.7  # optional, smartloc: GPS seconds of the truth's t = 0, also the 0 of
                                       # relative_s splits; default the first observation epoch (as --truth-origin)
     [splits]                          # [start, stop) on the split axis (a command needs the splits it uses)
@@ -55,11 +57,13 @@ from .time import SECONDS_PER_WEEK, gps_s_to_week_tow, week_tow_to_gps_s
 if TYPE_CHECKING:
     from .observations import Observations
 
-_BUILD_VERSION = 7                 # 7: spp restarts from a wrong header position; 6: several obs files joined
+_BUILD_VERSION = 8                 # 8: truth interpolated between rows; 7: spp restarts from a wrong header position; 6: several obs files joined
 SPLITS = ("train", "val", "test")
 SPLIT_AXES = ("tow", "relative_s", "epoch")
 #: Rows of a ``static`` truth file farther than this from its first row are not one point [m].
 STATIC_SPREAD_M = 5.0
+#: An epoch between two truth rows at most this far apart gets their linear interpolation, else the nearest row [s].
+TRUTH_INTERPOLATION_MAX_GAP_S = 2.0
 
 
 def default_match_tolerance_s(truth_format: str) -> float:
@@ -526,8 +530,9 @@ def read_truth(path: str | Path, time_gps_s: np.ndarray, truth_format: str = "ur
 
 
 def align_truth(time_gps_s: np.ndarray, spec: DatasetSpec) -> tuple[np.ndarray, list[str]]:
-    """(T, 3) ground truth for epoch times [s] (NaN where none within the tolerance) and reader notes.
+    """(T, 3) ground truth for epoch times [s] (NaN where no row within the tolerance) and reader notes.
 
+    The truth is interpolated between the rows around each epoch (:func:`interpolate_truth`).
     A spec without ``time_origin_gps_s`` counts smartloc truth times from the first epoch, ``time_gps_s[0]``.
     """
     time_gps_s = np.asarray(time_gps_s, dtype=float)
@@ -549,12 +554,13 @@ def align_truth(time_gps_s: np.ndarray, spec: DatasetSpec) -> tuple[np.ndarray, 
                                    f"{other!r}: give {give})", line=err.line) from None
     if spec.truth_format == "static":
         return np.broadcast_to(xyz[0], (time_gps_s.size, 3)).copy(), bad
-    order = np.argsort(t_truth)
+    order = np.argsort(t_truth, kind="stable")
     t_truth, xyz = t_truth[order], xyz[order]
     right = np.clip(np.searchsorted(t_truth, time_gps_s), 0, t_truth.size - 1)
     left = np.clip(right - 1, 0, t_truth.size - 1)
     nearest = np.where(np.abs(t_truth[left] - time_gps_s) <= np.abs(t_truth[right] - time_gps_s), left, right)
     ok = np.abs(t_truth[nearest] - time_gps_s) <= spec.match_tolerance_s
+    position = interpolate_truth(time_gps_s, t_truth, xyz, left, right, nearest)
     inside = (time_gps_s >= t_truth[0]) & (time_gps_s <= t_truth[-1])
     if guessed and inside.sum() >= 10 and ok[inside].mean() < 0.9:
         # smartloc truth is stamped at the receiver's epochs: a right origin matches nearly every epoch it spans
@@ -562,7 +568,23 @@ def align_truth(time_gps_s: np.ndarray, spec: DatasetSpec) -> tuple[np.ndarray, 
                       f"time span match a truth time when its t = 0 is taken as the first epoch given (GPS "
                       f"{spec.time_origin_gps_s:.1f} s); if these epochs do not start where the truth does, give the "
                       "GPS time of its t = 0 (time_origin_gps_s, --truth-origin)", stacklevel=3)
-    return np.where(ok[:, None], xyz[nearest], np.nan), bad
+    return np.where(ok[:, None], position, np.nan), bad
+
+
+def interpolate_truth(time_gps_s: np.ndarray, t_truth: np.ndarray, xyz: np.ndarray, left: np.ndarray,
+                      right: np.ndarray, nearest: np.ndarray) -> np.ndarray:
+    """(T, 3) truth [m] at epoch times [s]: linear in time between the rows bracketing each epoch, else the nearest row.
+
+    Rows are sorted by time; ``left``/``right`` index the rows before and after each epoch, ``nearest`` the closer.
+    An epoch is interpolated only when it lies between two rows at most ``TRUTH_INTERPOLATION_MAX_GAP_S`` apart, so
+    a gap in the truth is never bridged: a 1 Hz truth read on a 5 Hz drive is off by up to 0.5 s of motion (2.5 m at
+    5 m/s) as the nearest row, by a few centimetres interpolated.
+    """
+    t_left, t_right = t_truth[left], t_truth[right]
+    span = t_right - t_left
+    between = (t_left <= time_gps_s) & (time_gps_s <= t_right) & (span > 0) & (span <= TRUTH_INTERPOLATION_MAX_GAP_S)
+    weight = np.where(between, (time_gps_s - t_left) / np.where(between, span, 1.0), 0.0)[:, None]
+    return np.where(between[:, None], (1.0 - weight) * xyz[left] + weight * xyz[right], xyz[nearest])
 
 
 # -- building and splitting ---------------------------------------------------------------------------------

@@ -43,6 +43,17 @@ class Observations:
     approx_ecef_m: np.ndarray
     warnings: tuple[str, ...] = field(default=())
 
+    def __post_init__(self) -> None:
+        t, s = np.shape(self.time_gps_s), np.shape(self.sv)
+        shapes = {"pr_m": np.shape(self.pr_m), "cn0_dbhz": np.shape(self.cn0_dbhz),
+                  "doppler_hz": np.shape(self.doppler_hz)}
+        wrong = [f"{k} {v}" for k, v in shapes.items() if v != t + s]
+        if len(t) != 1 or len(s) != 1 or wrong or np.shape(self.approx_ecef_m) != (3,):
+            # a cache entry of another layout, or a caller's arrays: said here, not as an IndexError far away
+            raise ValueError(f"Observations of {self.path}: time_gps_s {t} and sv {s} need (T, S) arrays and a (3,) "
+                             f"approx_ecef_m; got {', '.join(wrong) or 'matching arrays'}, approx_ecef_m "
+                             f"{np.shape(self.approx_ecef_m)}")
+
     def __len__(self) -> int:
         return int(self.time_gps_s.size)
 

@@ -276,6 +276,24 @@ def test_urbannav_truth_half_a_second_off_matches_by_default(tmp_path):
     assert labelled.tolist() == [True, False]
 
 
+def test_truth_is_interpolated_between_rows_but_never_across_a_gap(tmp_path):
+    """Defect: a 1 Hz truth on a 5 Hz drive gave each epoch the nearest row, up to 0.5 s of motion off."""
+    t0, start = 1_300_000_000.0, np.array([-2_400_000.0, 5_380_000.0, 2_430_000.0])
+    rows_t = t0 + np.array([0.0, 1.0, 2.0, 5.0])              # a 3 s gap after t0 + 2
+    rows = start + 10.0 * (rows_t - t0)[:, None] * np.array([1.0, 0.0, 0.0])   # 10 m/s along X
+    truth = tmp_path / "truth.csv"
+    truth.write_text("".join(f"{t:.1f},{x:.3f},{y:.3f},{z:.3f}\n" for t, (x, y, z) in zip(rows_t, rows)))
+    spec = datasets.DatasetSpec("e", (tmp_path / "r.obs",), (tmp_path / "n",), truth, "ecef-csv")
+    epochs = t0 + np.array([-0.2, 0.0, 0.2, 0.4, 1.0, 1.6, 2.4, 4.8, 5.3, 5.8])
+    xyz = datasets.align_truth(epochs, spec)[0]
+    labelled = np.isfinite(xyz).all(axis=1)
+    assert labelled.tolist() == [True, True, True, True, True, True, True, True, True, False]   # tolerance as before
+    inside = np.array([1, 2, 3, 4, 5])                        # between rows 1 s apart: on the true track
+    assert np.allclose(xyz[inside, 0] - start[0], 10.0 * (epochs[inside] - t0), atol=1e-6)
+    # before the first row, across the 3 s gap and after the last row: the nearest row, as before
+    assert np.allclose(xyz[[0, 6, 7, 8]], rows[[0, 2, 3, 3]], atol=1e-6)
+
+
 def test_build_warns_of_unreadable_truth_lines(tmp_path, clean_registry, sample_toml):
     """Defect: build() threw the reader's notes away; the CLI prints them."""
     lines = (SAMPLE_DIR / "Berlin_Potsdamer_Platz_GT.txt").read_text().splitlines()

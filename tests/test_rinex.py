@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from lfgnss.errors import RinexError
+from lfgnss.observations import Observations
 from lfgnss.paths import shared_data_dir
 from lfgnss.rinex import RinexWarning, load_obs
 from lfgnss.solve import SAMPLE_OBS
@@ -92,6 +93,24 @@ def test_cache_round_trip_and_key_by_content(tmp_path):
     changed = tmp_path / "b.obs"
     changed.write_text(text.replace("49.000", "48.000", 1))
     assert load_obs(changed).cn0_dbhz[0, np.argmax(first.sv == "G12")] == 48.0
+
+
+def test_a_cache_entry_of_the_right_key_but_wrong_shapes_is_rebuilt(tmp_path):
+    """Defect: an entry whose arrays did not fit together was trusted, failing far away as an IndexError."""
+    src = tmp_path / "a.obs.gz"
+    shutil.copy(SAMPLE_OBS, src)
+    first = load_obs(src)
+    (entry,) = (tmp_path / "cache" / "obs").glob("*.npz")
+    with np.load(entry) as z:
+        arrays = dict(z)
+    arrays["pr_m"] = arrays["pr_m"][:, :-1]                    # one satellite short
+    with open(entry, "wb") as fh:
+        np.savez(fh, **arrays)
+    again = load_obs(src)
+    np.testing.assert_array_equal(again.pr_m, first.pr_m)
+    with pytest.raises(ValueError, match=r"Observations of x.obs: .* pr_m \(2, 2\)"):
+        Observations("x.obs", 3.0, np.zeros(2), np.array(["G01", "G02", "G03"]), np.zeros((2, 2)),
+                     np.zeros((2, 3)), np.zeros((2, 3)), {}, np.zeros(3))
 
 
 def _plain_sample(tmp_path):

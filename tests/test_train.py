@@ -49,6 +49,10 @@ def test_validation_error_drops(full_run):
     assert rows[0]["train_loss"] == "" and all(np.isfinite(float(r["train_loss"])) for r in rows[1:])   # no step yet
     model = load_model(out / "model.npz")
     assert model.metadata["data_fingerprints"][0]["dataset"] == "synthetic"
+    spans = model.metadata["data_spans"]          # where each train and val piece lies, for the benchmark's check
+    assert [(s["split"], s["sequence"]) for s in spans] == [(p["split"], p["sequence"])
+                                                            for p in model.metadata["data_fingerprints"]]
+    assert all(s["gps_s"][0] < s["gps_s"][1] and len(s["place_ecef_m"]) == 3 for s in spans)
 
 
 def test_resume_equals_uninterrupted_run_via_cli(full_run, tmp_path):
@@ -272,6 +276,7 @@ def test_fine_tuning_starts_from_a_model_file(config, full_run, tmp_path, capsys
     record = tuned.metadata["init_model"]
     assert record["sha256_16"] == hashlib.sha256((out / "model.npz").read_bytes()).hexdigest()[:16]
     assert record["datasets"] == ["synthetic"] and record["data_fingerprints"] == start.metadata["data_fingerprints"]
+    assert record["data_spans"] == start.metadata["data_spans"] and record["source_files"] == {"synthetic": {}}
     assert record["epoch"] == start.metadata["epoch"] and record["init_model"] is None
     assert _trained_on(tuned) == "synthetic (train), fine-tuned from synthetic (train)"
     assert load_model(out / "model.npz").metadata["init_model"] is None

@@ -1,0 +1,73 @@
+"""The benchmark names a model trained or selected on epochs of the test split it scores (time and place)."""
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from learning.export import SAME_PLACE_M, seen_test_epochs
+from lfgnss import datasets
+from lfgnss.benchmark import MODEL_DIR, main
+from lfgnss.solve import SAMPLE_TRUTH
+
+ORIGIN_GPS_S = 1900 * 604800 + 126641.7          # the bundled Berlin drive's t = 0 (its dataset TOML's origin)
+BERLIN = np.array([3783000.0, 899000.0, 5038000.0])
+
+
+def _span(dataset, split, t0, t1, place=BERLIN):
+    return {"dataset": dataset, "split": split, "sequence": f"{dataset}/{split}", "gps_s": [t0, t1],
+            "place_ecef_m": [round(v) for v in place]}
+
+
+def test_a_piece_holding_test_epochs_at_the_same_place_is_named():
+    test_t = 1000.0 + np.arange(10.0)
+    meta = {"data_spans": [_span("a", "train", 0.0, 999.0), _span("a", "val", 1005.0, 1100.0)]}
+    lines = seen_test_epochs(meta, "b", test_t, BERLIN)
+    assert lines == ["trained on a/val (a val, GPS 1005.0-1100.0 s), which holds 5 of b's 10 test epochs"]
+    far = BERLIN + [0.0, 0.0, 2 * SAME_PLACE_M]                 # another receiver elsewhere at the same time
+    assert seen_test_epochs(meta, "b", test_t, far) == []
+
+
+def test_the_model_fine_tuning_started_from_is_checked_too():
+    start = {"path": "base.npz", "data_spans": [_span("base", "train", 990.0, 1001.0)], "init_model": None}
+    meta = {"data_spans": [_span("a", "train", 0.0, 10.0)], "init_model": start}
+    assert seen_test_epochs(meta, "b", 1000.0 + np.arange(10.0), BERLIN) == [
+        "fine-tuned from base.npz, which was trained on base/train (base train, GPS 990.0-1001.0 s), which holds 2 "
+        "of b's 10 test epochs"]
+
+
+def test_a_model_without_spans_is_named_only_for_another_dataset_reading_the_test_obs_file():
+    meta = {"data_fingerprints": [{"dataset": "a", "split": "train"}, {"dataset": "b", "split": "train"}],
+            "source_files": {"a": {"drive.obs": "1111", "nav": "2222"}, "b": {"drive.obs": "1111"}}}
+    lines = seen_test_epochs(meta, "b", np.arange(3.0), BERLIN, obs_hashes=["1111"])
+    assert len(lines) == 1 and lines[0].startswith("trained on dataset a, which reads b's observation file(s)")
+    assert seen_test_epochs(meta, "b", np.arange(3.0), BERLIN, obs_hashes=["3333"]) == []
+
+
+def test_the_shipped_models_saw_no_test_epoch_of_the_benchmark_sets():
+    from lfgnss.benchmark import _features_for, _made, methods, models_that_saw_test_epochs, scored_span
+
+    for dataset_id in ("hk-tst-2019", "berlin-pp", "hk-tst-static-2020"):
+        if datasets.get(dataset_id).missing():
+            continue
+        plugins = _made(methods(MODEL_DIR, dataset_id), set(), dataset_id, None)
+        span, k = scored_span(dataset_id, _features_for(e for _, e in plugins))
+        assert models_that_saw_test_epochs(dataset_id, plugins, span.subset(slice(k, None))) == []
+
+
+def test_the_benchmark_says_so_in_its_results_and_on_stderr(tmp_path, monkeypatch, capsys, sample_toml):
+    monkeypatch.setattr(datasets, "_REGISTRY", {}, raising=False)
+    arrays = dict(np.load(MODEL_DIR / "lfgnss-default.npz"))
+    meta = json.loads(str(arrays["metadata"]))
+    truth = datasets.read_truth(SAMPLE_TRUTH, ORIGIN_GPS_S + np.array([0.0]), "smartloc")[0]
+    meta["data_spans"] = [_span("my-drive", "train", ORIGIN_GPS_S, ORIGIN_GPS_S + 190.0, truth)]  # into test's 180-200
+    arrays["metadata"] = np.array(json.dumps(meta))
+    np.savez(tmp_path / "model.npz", **arrays)
+    out = tmp_path / "out"
+    assert main(["my-drive", "--register", str(sample_toml("my-drive")), "--models", str(tmp_path / "model.npz"),
+                 "--out", str(out), "--no-plots"]) == 0
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and err[0].startswith("warning: my-drive: model.npz (rows 'LF-GNSS EKF (model.npz)', ")
+    assert "trained on my-drive/train (my-drive train, GPS" in err[0] and "of my-drive's 100 test epochs" in err[0]
+    text = (out / "results.md").read_text()
+    assert "**Trained on test epochs** (these rows' figures are not held-out results): my-drive: model.npz" in text
