@@ -781,40 +781,61 @@ def trained_on(metadata: dict) -> str:
                                      f"({init.get('train_split', 'train')})")
 
 
-#: A training piece whose truth lies within this of a test split's and whose time span holds its epochs is the same
-#: drive [m]: a co-located receiver, or the same file under another name or compression.
+#: A training piece whose time span holds test epochs is the same drive when their truths' extents come within this
+#: of each other [m]: the same file under another id, name or compression, or a co-located receiver.
 SAME_PLACE_M = 1000.0
 
 
-def seen_test_epochs(metadata: dict, dataset_id: str, test_time_gps_s: np.ndarray,
-                           test_place_ecef_m: np.ndarray, obs_hashes: Iterable[str] = ()) -> list[str]:
+def truth_extent(truth_ecef_m: np.ndarray) -> tuple[np.ndarray, float | None]:
+    """Median of (T, 3) truth positions [m] and the largest distance of one from it [m]; (NaNs, None) without truth."""
+    truth = np.asarray(truth_ecef_m, float).reshape(-1, 3)
+    truth = truth[np.all(np.isfinite(truth), axis=1)]
+    if not len(truth):
+        return np.full(3, np.nan), None
+    centre = np.median(truth, axis=0)
+    return centre, float(np.max(np.linalg.norm(truth - centre, axis=1)))
+
+
+def _numbers(value: object, n: int) -> list[float] | None:
+    """``value`` as a list of ``n`` finite numbers, or None (a record written by hand, or by an older lfgnss)."""
+    ok = isinstance(value, list) and len(value) == n and all(_is_number(v) for v in value)
+    return [float(v) for v in value] if ok else None
+
+
+def seen_test_epochs(metadata: dict, dataset_id: str, test_time_gps_s: np.ndarray, test_truth_ecef_m: np.ndarray,
+                     obs_hashes: Iterable[str] = ()) -> list[str]:
     """Where a model (or a model it was fine-tuned from) was trained or selected on test epochs: one line each.
 
-    ``test_time_gps_s``: the test split's scored epochs [s]; ``test_place_ecef_m``: the median of their truth [m].
-    A training or validation piece (``data_spans``) counts when its time span holds test epochs and its truth lies
-    within ``SAME_PLACE_M`` of the test's. A model from before spans were recorded is named only when it was trained
-    on another dataset reading one of the test dataset's observation files (``obs_hashes``: their SHA-256, 16 hex
-    digits), since which epochs it used is not known.
+    ``test_time_gps_s`` (T,) [s] and ``test_truth_ecef_m`` (T, 3) [m]: the test split's scored epochs. A training or
+    validation piece (``data_spans``) counts when its time span holds test epochs and its truth's extent
+    (``truth_extent``) comes within ``SAME_PLACE_M`` of theirs (a piece without truth counts by time alone). A record
+    without spans (a model file of before session 49, or one fine-tuning started from) is named only when another
+    of its datasets reads one of the test dataset's observation files (``obs_hashes``: SHA-256, 16 hex digits), and
+    only where the record lists its ``source_files``: which epochs it used is not known.
     """
-    times, place, hashes = np.asarray(test_time_gps_s, float), np.asarray(test_place_ecef_m, float), set(obs_hashes)
+    times, hashes = np.asarray(test_time_gps_s, float), set(obs_hashes)
+    centre, radius = truth_extent(test_truth_ecef_m)
     lines, record, via = [], metadata, ""
-    while record:
-        spans = record.get("data_spans") or []
+    while isinstance(record, dict):
+        spans = [s for s in record.get("data_spans") or [] if isinstance(s, dict)]
         for span in spans:
-            t, where = span.get("gps_s") or [], span.get("place_ecef_m") or []
-            n = int(np.sum((times >= t[0]) & (times <= t[1]))) if len(t) == 2 else 0
-            near = len(where) != 3 or np.linalg.norm(np.asarray(where, float) - place) <= SAME_PLACE_M
+            t, where = _numbers(span.get("gps_s"), 2), _numbers(span.get("place_ecef_m"), 3)
+            n = int(np.sum((times >= t[0]) & (times <= t[1]))) if t else 0
+            reach = SAME_PLACE_M + (radius or 0.0) + (span["radius_m"] if _is_number(span.get("radius_m")) else 0.0)
+            near = where is None or radius is None or np.linalg.norm(np.asarray(where) - centre) <= reach
             if n and near:
-                lines.append(f"{via}trained on {span.get('sequence')} ({span.get('dataset')} {span.get('split')}, GPS "
+                done = "selected on" if span.get("split") in ("val", "validation") else "trained on"
+                lines.append(f"{via}{done} {span.get('sequence')} ({span.get('dataset')} {span.get('split')}, GPS "
                              f"{t[0]:.1f}-{t[1]:.1f} s), which holds {n} of {dataset_id}'s {times.size} test epochs")
         files = record.get("source_files") or {}
-        for ds in [] if spans else sorted({p.get("dataset", "") for p in record.get("data_fingerprints") or []}):
+        for ds in [] if spans else sorted({str(p.get("dataset", "")) for p in record.get("data_fingerprints") or []
+                                           if isinstance(p, dict)}):
             if ds != dataset_id and hashes & set((files.get(ds) or {}).values()):
                 lines.append(f"{via}trained on dataset {ds}, which reads {dataset_id}'s observation file(s); the model "
                              "does not record which epochs (it predates data_spans), so its training may hold test "
                              "epochs")
         record = record.get("init_model")
-        via = f"fine-tuned from {(record or {}).get('path')}, which was "
+        via = f"{via}fine-tuned from {(record or {}).get('path')}, which was "
     return lines
 
 

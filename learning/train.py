@@ -62,12 +62,12 @@ import torch
 
 from lfgnss.datasets import load_split, register_toml, split_parts
 from lfgnss.errors import INPUT_ERRORS, did_you_mean, one_line, shortened, warnings_on_one_line
-from lfgnss.paths import check_output_folder, may_name_a_bundled_model, replace_atomically
+from lfgnss.paths import check_output_folder, file_hashes, may_name_a_bundled_model, replace_atomically
 from lfgnss.sequence import DEFAULT_FEATURES, Sequence
 
 from . import provenance
 from .data import Window, collate, make_windows, resolve_feature_names, sequence_batch
-from .export import model_settings
+from .export import model_settings, truth_extent
 from .loss import compensation_loss, error_norm_m, labelled_errors_m, make_loss
 from .network import LfgnssNet
 from .normalise import Normaliser
@@ -537,25 +537,13 @@ def source_file_hashes(dataset_id: str) -> dict[str, str]:
 
 
 def data_span(dataset_id: str, split: str, sequence: Sequence) -> dict:
-    """Where a training or validation sequence lies: dataset, split, name, first and last GPS time [s] and the
-    median of its truth (ECEF [m], to the metre; empty without truth), so a test split of the same drive under any
-    name or file is recognised (``learning.export.test_epochs_trained_on``)."""
-    t, truth = sequence.time_gps_s, sequence.truth_ecef_m[sequence.labelled]
+    """A sequence's dataset, split, name, first and last GPS time [s] and truth's extent (``truth_extent``) [m]."""
+    t = sequence.time_gps_s
+    centre, radius = truth_extent(sequence.truth_ecef_m[sequence.labelled])
     return {"dataset": dataset_id, "split": split, "sequence": sequence.name,
             "gps_s": [float(t[0]), float(t[-1])] if len(t) else [],
-            "place_ecef_m": [round(float(v)) for v in np.median(truth, axis=0)] if len(truth) else []}
-
-
-def file_hashes(paths) -> dict[str, str]:
-    """sha256 (16 hex digits) of each file, by file name."""
-    out = {}
-    for path in paths:
-        h = hashlib.sha256()
-        with open(path, "rb") as fh:
-            for block in iter(lambda: fh.read(1 << 20), b""):
-                h.update(block)
-        out[Path(path).name] = h.hexdigest()[:16]
-    return out
+            "place_ecef_m": [round(float(v)) for v in centre] if radius is not None else [],
+            "radius_m": math.ceil(radius) if radius is not None else None}
 
 
 def fingerprint(sequence: Sequence) -> str:

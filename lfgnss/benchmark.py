@@ -12,7 +12,8 @@ targets and yardstick of BENCHMARK.md), CDF and track PNGs per dataset, into ``-
 in the current folder; ``--out docs`` from the repository root regenerates its committed docs/results.md, and
 takes only the whole default run: a dataset subset, a dataset of one's own or other models are refused there).
 
-results.md records the command, the code (lfgnss version, git commit) and the SHA-256 of each model file read.
+results.md records the command, the code (lfgnss version, git commit) and the SHA-256 of each model file read, and
+names a model trained or selected on epochs of a test split it scores (``models_that_saw_test_epochs``; a warning too).
 An ``rnx2rtkp`` that fails, hangs or writes an unreadable solution costs the RTKLIB row only (a warning says why).
 
 ``--models`` names another folder of such files, matched to the rows by name as the bundled ones are
@@ -55,7 +56,7 @@ from . import datasets
 from .errors import (INPUT_ERRORS, InputError, cannot_write, input_line, one_line, path_option, run_command,
                      shortened, stdout_gone)
 from .metrics import METRIC_COLUMNS, accuracy_table, format_markdown, format_text, markdown_table
-from .paths import bundled_data_dir, make_output_folder
+from .paths import bundled_data_dir, file_hashes, make_output_folder
 from .sequence import Sequence
 
 MODEL_DIR = bundled_data_dir() / "model"
@@ -404,7 +405,7 @@ def run(dataset_ids: list[str], *, model_dir: Path = MODEL_DIR, out_dir: Path | 
             continue
         for line in models_that_saw_test_epochs(dataset_id, plugins, span.subset(slice(k, None))):
             if leaked is None:
-                warnings.warn(line, stacklevel=2)
+                warnings.warn(line, SeenTestEpochsWarning, stacklevel=2)
             else:
                 leaked.append(line)
         rows, rtk, solutions, truth = dataset_rows(dataset_id, plugins, span, k, own, left_out)
@@ -415,6 +416,10 @@ def run(dataset_ids: list[str], *, model_dir: Path = MODEL_DIR, out_dir: Path | 
     return all_rows, rtk_rows
 
 
+class SeenTestEpochsWarning(UserWarning):
+    """A model was trained or selected on epochs of the test split it is scored on (``run`` without ``leaked``)."""
+
+
 def models_that_saw_test_epochs(dataset_id: str, plugins: list[tuple[str, object]], test: Sequence) -> list[str]:
     """``ID: MODEL (rows ...) trained on ...`` for each learned row's model that saw epochs of the test split ``test``.
 
@@ -422,7 +427,6 @@ def models_that_saw_test_epochs(dataset_id: str, plugins: list[tuple[str, object
     drive registered under another id or file (or a co-located receiver's) is caught too (``seen_test_epochs``).
     """
     from learning.export import seen_test_epochs
-    from learning.train import file_hashes
 
     rows_of: dict[str, list[str]] = {}
     models = {}
@@ -435,9 +439,10 @@ def models_that_saw_test_epochs(dataset_id: str, plugins: list[tuple[str, object
     if not models:
         return []
     obs = file_hashes(datasets.get(dataset_id).obs).values()
-    scored, place = test.time_gps_s[test.labelled], np.median(test.truth_ecef_m[test.labelled], axis=0)
+    scored = test.labelled
     return [f"{dataset_id}: {Path(path).name} (rows {', '.join(repr(r) for r in rows_of[path])}) {line}"
-            for path, meta in models.items() for line in seen_test_epochs(meta, dataset_id, scored, place, obs)]
+            for path, meta in models.items()
+            for line in seen_test_epochs(meta, dataset_id, test.time_gps_s[scored], test.truth_ecef_m[scored], obs)]
 
 
 def _plot(folder: Path, dataset_id: str, solutions: dict, truth: np.ndarray, unwritten: list[str] | None) -> None:

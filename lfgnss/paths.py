@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import os
 import secrets
 import shutil
@@ -64,6 +65,18 @@ def model_path(model: str | os.PathLike) -> Path:
     if names_something(path) or not may_name_a_bundled_model(path):
         return path
     return bundled_models().get(path.name, path)
+
+
+def file_hashes(paths) -> dict[str, str]:
+    """SHA-256 (16 hex digits) of each file's bytes, by file name."""
+    out = {}
+    for path in paths:
+        h = hashlib.sha256()
+        with open(path, "rb") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                h.update(block)
+        out[Path(path).name] = h.hexdigest()[:16]
+    return out
 
 
 def cache_dir() -> Path:

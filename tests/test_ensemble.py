@@ -315,3 +315,14 @@ def test_a_bundled_model_is_a_source_by_name_and_members_from_elsewhere_keep_the
     records = load_model(export_ensemble([here, there], tmp_path / "e.npz")).metadata["ensemble"]["members"]
     assert "data_fingerprints" not in records[0] and records[1]["data_fingerprints"] == [{"sequence": "s",
                                                                                          "sha256_16": "bb"}]
+
+
+def test_an_ensemble_grown_from_a_file_without_spans_takes_a_newer_members(members, tmp_path):
+    """A shipped file of before data_spans grown by a new seed's checkpoint: the ensemble records the spans."""
+    _, _, norm, _ = members
+    spans = [{"dataset": "synthetic", "split": "train", "sequence": "s", "gps_s": [0.0, 9.0], "place_ecef_m": [],
+              "radius_m": None}]
+    old = _checkpoint(tmp_path / "old.pt", 0, norm)[0]
+    new = _checkpoint(tmp_path / "new.pt", 1, norm, data_spans=spans)[0]
+    assert "data_spans" not in torch.load(old, weights_only=False)
+    assert load_model(export_ensemble([old, new], tmp_path / "e.npz")).metadata["data_spans"] == spans
