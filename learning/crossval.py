@@ -306,6 +306,9 @@ def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = 
         print(f"warning: train.init {init.path} was trained on {', '.join(seen)}: the held-out blocks are not "
               "unseen data, so this cross-validation is optimistic", file=sys.stderr)
     whole = cv_sequences(config)
+    for line in [] if init is None or seen else _init_saw_blocks(init, whole):
+        print(f"warning: train.init {init.path} {line}: the held-out blocks are not unseen data, so this "
+              "cross-validation is optimistic", file=sys.stderr)
     rows, started = [], None if init is None else str(init.path)
     try:
         # scoring too on ``threads`` CPU threads, as training: folds run side by side with threads = 1 would
@@ -327,6 +330,25 @@ def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = 
         rows.extend(pooled_rows(rows, list(whole) if len(whole) > 1 else []))
     _write_results(out, rows, command, started)
     return rows
+
+
+def _init_saw_blocks(init, whole: dict[str, list[Sequence]]) -> list[str]:
+    """Where the model fine-tuning starts from was trained on epochs of the blocks (the same drive under another
+    dataset id or file; ``learning.export.seen_test_epochs``): the first such line per dataset."""
+    from lfgnss.datasets import get
+    from lfgnss.paths import file_hashes
+
+    from .export import seen_test_epochs
+
+    lines = []
+    for dataset_id, sequences in whole.items():
+        if dataset_id == "synthetic":
+            continue
+        times = np.concatenate([s.time_gps_s[s.labelled] for s in sequences])
+        truth = np.concatenate([s.truth_ecef_m[s.labelled] for s in sequences])
+        seen = seen_test_epochs(init.metadata, dataset_id, times, truth, file_hashes(get(dataset_id).obs).values())
+        lines += [seen[0].replace(" test epochs", " epochs to cross-validate on")] if seen else []
+    return lines
 
 
 def _refuse_used_out(out: Path) -> None:

@@ -809,10 +809,13 @@ def seen_test_epochs(metadata: dict, dataset_id: str, test_time_gps_s: np.ndarra
     ``test_time_gps_s`` (T,) [s] and ``test_truth_ecef_m`` (T, 3) [m]: the test split's scored epochs. A training or
     validation piece (``data_spans``) counts when its time span holds test epochs and its truth's extent
     (``truth_extent``) comes within ``SAME_PLACE_M`` of theirs (a piece without truth counts by time alone). A record
-    without spans (a model file of before session 49, or one fine-tuning started from) is named only when another
-    of its datasets reads one of the test dataset's observation files (``obs_hashes``: SHA-256, 16 hex digits), and
-    only where the record lists its ``source_files``: which epochs it used is not known.
+    without spans (a model file of before session 49, or one fine-tuning started from) is checked only where another
+    of its datasets reads one of the test dataset's observation files (``obs_hashes``: content SHA-256, 16 hex
+    digits, ``lfgnss.paths.file_hashes``) and the record lists its ``source_files``: by that dataset's split bounds as
+    registered now (``lfgnss.datasets.epochs_in_split``), else named as one that may hold test epochs.
     """
+    from lfgnss.datasets import epochs_in_split
+
     times, hashes = np.asarray(test_time_gps_s, float), set(obs_hashes)
     centre, radius = truth_extent(test_truth_ecef_m)
     lines, record, via = [], metadata, ""
@@ -828,12 +831,19 @@ def seen_test_epochs(metadata: dict, dataset_id: str, test_time_gps_s: np.ndarra
                 lines.append(f"{via}{done} {span.get('sequence')} ({span.get('dataset')} {span.get('split')}, GPS "
                              f"{t[0]:.1f}-{t[1]:.1f} s), which holds {n} of {dataset_id}'s {times.size} test epochs")
         files = record.get("source_files") or {}
-        for ds in [] if spans else sorted({str(p.get("dataset", "")) for p in record.get("data_fingerprints") or []
-                                           if isinstance(p, dict)}):
-            if ds != dataset_id and hashes & set((files.get(ds) or {}).values()):
+        pieces = [] if spans else [p for p in record.get("data_fingerprints") or [] if isinstance(p, dict)]
+        for ds in sorted({str(p.get("dataset", "")) for p in pieces}):
+            if ds == dataset_id or not hashes & set((files.get(ds) or {}).values()):
+                continue
+            splits = sorted({str(p.get("split", "")) for p in pieces if p.get("dataset") == ds})
+            hits = [epochs_in_split(ds, split, times) for split in splits]
+            if None in hits:
                 lines.append(f"{via}trained on dataset {ds}, which reads {dataset_id}'s observation file(s); the model "
                              "does not record which epochs (it predates data_spans), so its training may hold test "
                              "epochs")
+            lines += [f"{via}{'selected on' if split == 'val' else 'trained on'} {ds} {split} (as its splits are "
+                      f"registered now; the model predates data_spans), which holds {n} of {dataset_id}'s "
+                      f"{times.size} test epochs" for split, n in zip(splits, hits) if n]
         record = record.get("init_model")
         via = f"{via}fine-tuned from {(record or {}).get('path')}, which was "
     return lines

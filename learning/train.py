@@ -62,7 +62,7 @@ import torch
 
 from lfgnss.datasets import load_split, register_toml, split_parts
 from lfgnss.errors import INPUT_ERRORS, did_you_mean, one_line, shortened, warnings_on_one_line
-from lfgnss.paths import check_output_folder, file_hashes, may_name_a_bundled_model, replace_atomically
+from lfgnss.paths import check_output_folder, file_hashes, may_name_a_bundled_model, names_something, replace_atomically
 from lfgnss.sequence import DEFAULT_FEATURES, Sequence
 
 from . import provenance
@@ -349,10 +349,20 @@ def check_config(config: dict) -> dict:
     return config
 
 
+def _files_absolute(config: dict) -> dict:
+    """``config`` with its files (``data.register``, a ``train.init`` path) absolute where they name one from the
+    current folder, so that the run's checkpoints and model file (``--resume``, ``learning.export --show --config``)
+    reproduce it from any folder; a bundled model's name stays one."""
+    def absolute(path: str) -> str:
+        return str(Path(path).absolute()) if path and names_something(path) else path
+
+    init = config["train"]["init"]
+    return {**config, "data": {**config["data"], "register": [absolute(p) for p in config["data"]["register"]]},
+            "train": {**config["train"], "init": init if may_name_a_bundled_model(init) else absolute(init)}}
+
+
 def _beside(path: Path, name: object) -> object:
     """``name`` read next to the configuration file ``path`` when it is a relative path found there, else as given."""
-    from lfgnss.paths import names_something
-
     if isinstance(name, str) and name and not Path(name).is_absolute() and names_something(path.parent / name):
         return str(path.parent / name)
     return name
@@ -376,6 +386,12 @@ def _read_toml(path: Path, depth: int = 0) -> dict:
     try:
         with open(path, "rb") as fh:
             data = tomllib.load(fh)
+    except FileNotFoundError:
+        if not may_name_a_bundled_model(path):
+            raise ValueError(f"{path}: cannot read configuration: no such file") from None
+        hint = did_you_mean(str(path), shipped_configs()) or f" (shipped: {', '.join(shipped_configs())})"
+        raise ValueError(f"{path}: cannot read configuration: no such file, nor a shipped configuration of that name"
+                         f"{hint}") from None
     except (OSError, ValueError, RecursionError) as exc:   # ValueError: TOMLDecodeError, or bytes that are not UTF-8
         raise ValueError(f"{path}: cannot read configuration: {one_line(exc)}") from None
     for key, value in data.items():
@@ -983,7 +999,7 @@ def train(config: dict | None, out_dir: str | Path, *, resume: bool = False, ove
         record = None if config_file is None else _config_file_record(config_file)
     check_config(config)
     if checkpoint is None:
-        config = adopt_init(config)     # a resumed run's checkpoint config has adopted it already
+        config = adopt_init(_files_absolute(config))     # a resumed run's checkpoint config has both already
     made = provenance.run_record(command, config)
     if checkpoint is not None:          # the run's own record, with this resumption added
         started = checkpoint.get("provenance") or {}

@@ -360,15 +360,17 @@ def scored_span(dataset_id: str, feature_names: tuple[str, ...], warm_up: str | 
     spec = datasets.get(dataset_id)
     seq = datasets.build(dataset_id, feature_names=feature_names)
     idx = np.flatnonzero(datasets.split_index(seq, spec, "test"))
+    where = spec.source or spec.truth            # a TOML's [splits], else the truth that labels no epoch there
     if idx.size == 0:
-        raise InputError(spec.truth, f"dataset {dataset_id}: no labelled epoch in its test split {spec.splits['test']} "
-                                     f"(axis {spec.split_axis})")
+        raise InputError(where, datasets.empty_split_words(seq, spec, "test"))
     start = idx[0]
     if warm_up is not None:
         warm = np.flatnonzero(datasets.split_index(seq, spec, warm_up))
-        if warm.size == 0 or warm[0] >= idx[0]:
-            raise InputError(spec.truth, f"dataset {dataset_id}: --warm-up {warm_up} needs labelled epochs of that "
-                                         f"split before the test split (splits {spec.splits})")
+        if warm.size == 0:
+            raise InputError(where, f"--warm-up {warm_up}: {datasets.empty_split_words(seq, spec, warm_up)}")
+        if warm[0] >= idx[0]:
+            raise InputError(where, f"dataset {dataset_id}: --warm-up {warm_up} needs labelled epochs of that "
+                                    f"split before the test split (splits {spec.splits})")
         start = warm[0]
     name = f"{dataset_id}/test" if warm_up is None else f"{dataset_id}/{warm_up}+test"
     return seq.subset(slice(start, idx[-1] + 1), name=name), int(idx[0] - start)

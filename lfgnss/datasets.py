@@ -155,7 +155,11 @@ def registered() -> dict[str, DatasetSpec]:
 
 
 def register(spec: DatasetSpec) -> DatasetSpec:
-    """Make a dataset available by its id."""
+    """Make a dataset available by its id; InputError when another TOML file has registered that id already."""
+    other = _REGISTRY.get(spec.id)
+    if other is not None and spec.source and other.source and Path(other.source).resolve() != Path(spec.source).resolve():
+        raise InputError(spec.source, f"id {spec.id!r} is registered already, by {other.source}; give each dataset "
+                                      "its own id")
     _REGISTRY[spec.id] = spec
     return spec
 
@@ -255,7 +259,9 @@ def register_toml(path: str | Path, *, need_splits: tuple[str, ...] = ()) -> Dat
     systems = cfg.get("systems")
     if systems is not None:
         if isinstance(systems, str):
-            systems = list(systems)                    # "GR": the letters
+            systems = [c for c in systems if c not in " ,"]     # "GR", "G R", "G,R": the letters, as --systems
+        if isinstance(systems, list) and all(isinstance(s, str) for s in systems):
+            systems = [s.strip().upper() for s in systems]     # any case, as --systems
         if not isinstance(systems, list) or not systems or not all(isinstance(s, str) for s in systems):
             raise InputError(path, f"systems must be a list of constellation letters of {''.join(SYSTEMS)} "
                                    f"(e.g. [\"G\", \"C\"]), got {cfg['systems']!r}")
@@ -267,9 +273,14 @@ def register_toml(path: str | Path, *, need_splits: tuple[str, ...] = ()) -> Dat
             cfg[key] = [cfg[key]]                      # one file may be given without a list
         if not cfg[key]:
             raise InputError(path, f"dataset config lists no {key} file")
+    tolerance = cfg["truth"].get("match_tolerance_s")
+    if tolerance is not None and not (isinstance(tolerance, (int, float)) and not isinstance(tolerance, bool)
+                                      and 0 < tolerance < math.inf):
+        raise InputError(path, f"match_tolerance_s in [truth] must be a number of seconds > 0 (how far an epoch may "
+                               f"lie from a truth row), got {tolerance!r}")
     try:
         truth = cfg["truth"]
-        tolerance, origin = truth.get("match_tolerance_s"), truth.get("time_origin_gps_s")
+        origin = truth.get("time_origin_gps_s")
         spec = DatasetSpec(
             id=str(cfg["id"]), obs=tuple(base / p for p in cfg["obs"]), nav=tuple(base / p for p in cfg["nav"]),
             truth=base / truth["file"], truth_format=str(truth.get("format", "urbannav")).lower(), splits=splits,
@@ -473,43 +484,101 @@ def read_ecef_csv(path: Path, spec: DatasetSpec) -> tuple[np.ndarray, np.ndarray
 TRUTH_READERS = {"urbannav": read_urbannav, "smartloc": read_smartloc, "static": read_static, "ecef-csv": read_ecef_csv}
 
 
-#: A truth whose times read as UTC sit at most this fraction of the distance [m] from the coarse fixes that they do
-#: read as GPST, and this much closer, is taken for a truth stamped in UTC: GPST - UTC (17-18 s) at driving speed is
-#: 100-300 m, against the coarse fixes' median error of 40-90 m in a city (the bundled Berlin drive at 6 m/s, its
-#: truth stamped in UTC: a median 72 m read as UTC against 121 m read as GPST).
-UTC_STAMP_RATIO = 0.75
-UTC_STAMP_GAIN_M = 30.0
+#: A truth lying a median farther than this from the coarse least-squares fixes is likely of another drive or place
+#: [m]: the median least-squares error is 40 to 90 m on the three benchmark datasets (200 m at worst on an epoch).
+TRUTH_MISMATCH_M = 1000.0
+#: Time shifts of a moving truth tried against the coarse fixes [s]: a wrong smartloc origin, UTC stamps (17-18 s).
+TRUTH_SHIFTS_S = np.arange(-60.0, 60.0 + 1e-9, 0.5)
+#: A shift is taken for the truth's when it brings the truth's median horizontal distance from the coarse fixes to at
+#: most this fraction of the unshifted one, and at least this much [m] closer. On the benchmark drives the unshifted
+#: truth lies a median 12 m (hk-tst-2019) and 29 m (berlin-pp) from the fixes horizontally and no shift comes closer
+#: than 0.93 of that; shifted by 5 s their truths lie 35 and 33-46 m off, by 10 s 47-53 and 52-70 m, by 18-20 s 62-120 m
+#: (session 49): a shift of 5 s or more is found, one of a second or two is not.
+TRUTH_SHIFT_RATIO = 0.6
+TRUTH_SHIFT_GAIN_M = 15.0
 
 
-def utc_stamp_note(spec: DatasetSpec, time_gps_s: np.ndarray, truth_ecef_m: np.ndarray,
-                   fix_ecef_m: np.ndarray) -> str | None:
-    """A note when ``spec``'s truth matches the coarse fixes (T, 3) [m] far better with its times read as UTC.
+def truth_fit_notes(spec: DatasetSpec, time_gps_s: np.ndarray, truth_ecef_m: np.ndarray,
+                    fix_ecef_m: np.ndarray) -> list[str]:
+    """Why a truth file may be wrong for these epochs, from the coarse fixes (T, 3) [m]: one line each, or none.
 
-    ``truth_ecef_m`` (T, 3) [m] is the truth as read (GPST, :func:`align_truth` at ``time_gps_s``); only the UTC
-    reading is made here.
-
-    UrbanNav and ecef-csv truth times are GPST; a file stamped in UTC is off by the leap seconds (18 s since 2017),
-    which costs a moving receiver 100 m and more of apparent error. Static and smartloc truth (times relative to an
-    origin the user gives) are not checked.
+    ``truth_ecef_m`` (T, 3) [m] is :func:`align_truth`'s at ``time_gps_s`` [GPS s]. A truth lying a median over
+    ``TRUTH_MISMATCH_M`` from the fixes is of another drive or place; a static truth whose times of week miss the
+    epochs of another session (``static_time_note``); a moving truth that fits the fixes far better shifted in time
+    has its times off: stamped in UTC (GPST - UTC) or a wrong smartloc origin (``truth_shift_note``).
     """
+    truth, fix = np.asarray(truth_ecef_m, float), np.asarray(fix_ecef_m, float)
+    both = np.isfinite(truth).all(axis=1) & np.isfinite(fix).all(axis=1)
+    notes = [static_time_note(spec.truth, time_gps_s)] if spec.truth_format == "static" else []
+    if both.any():
+        median_m = float(np.median(np.linalg.norm(truth[both] - fix[both], axis=1)))
+        if median_m > TRUTH_MISMATCH_M:
+            distance = f"{median_m / 1000:.0f} km" if median_m >= 10_000 else f"{median_m / 1000:.1f} km"
+            origin = f", or a wrong {_origin_words(spec)}" if spec.truth_format == "smartloc" else ""
+            notes.append(f"{spec.truth}: the truth lies a median {distance} from the receiver's least-squares fixes "
+                         f"(on {int(both.sum())} epochs): a truth file of another drive or place{origin}? It is scored "
+                         "all the same")
+        elif spec.truth_format != "static":
+            notes.append(truth_shift_note(spec, time_gps_s, truth, fix))
+    return [n for n in notes if n]
+
+
+def _origin_words(spec: DatasetSpec) -> str:
+    """Where a smartloc truth's t = 0 is given: ``--truth-origin``, or the key in the dataset's TOML file."""
+    return f"time_origin_gps_s in [truth] of {spec.source}" if spec.source else "--truth-origin"
+
+
+def truth_shift_note(spec: DatasetSpec, time_gps_s: np.ndarray, truth_ecef_m: np.ndarray,
+                     fix_ecef_m: np.ndarray) -> str | None:
+    """A note when a moving truth fits the coarse fixes (T, 3) [m] far better read some seconds off, or None.
+
+    Each shift of ``TRUTH_SHIFTS_S`` reads the truth at the epochs' times plus the shift; the one with the smallest
+    median horizontal distance from the fixes, on at least 80 % of the epochs that have both unshifted, is named when
+    it passes ``TRUTH_SHIFT_RATIO`` and ``TRUTH_SHIFT_GAIN_M``. An urbannav or ecef-csv truth that passes them read
+    GPST - UTC later is named as stamped in UTC first.
+    """
+    from .frames import ecef_to_enu
     from .time import leap_seconds
 
     time_gps_s = np.asarray(time_gps_s, dtype=float)
-    if spec.truth_format not in ("urbannav", "ecef-csv") or time_gps_s.size == 0:
-        return None
-    leap = leap_seconds(time_gps_s)
-    as_gpst, as_utc = np.asarray(truth_ecef_m, float), align_truth(time_gps_s - leap, spec)[0]
-    both = np.isfinite(as_gpst).all(axis=1) & np.isfinite(as_utc).all(axis=1) & np.isfinite(fix_ecef_m).all(axis=1)
+    both = np.isfinite(truth_ecef_m).all(axis=1) & np.isfinite(fix_ecef_m).all(axis=1)
     if both.sum() < 10:
         return None
-    gpst_m = float(np.median(np.linalg.norm(as_gpst[both] - fix_ecef_m[both], axis=1)))
-    utc_m = float(np.median(np.linalg.norm(as_utc[both] - fix_ecef_m[both], axis=1)))
-    if utc_m > UTC_STAMP_RATIO * gpst_m or gpst_m - utc_m < UTC_STAMP_GAIN_M:
+    origin = time_gps_s[0] if spec.time_origin_gps_s is None else spec.time_origin_gps_s
+    t_truth, xyz, _ = TRUTH_READERS[spec.truth_format](spec.truth, replace(spec, time_origin_gps_s=float(origin)))
+    order = np.argsort(t_truth, kind="stable")
+    t_truth, xyz = t_truth[order], xyz[order]
+    ref = np.median(truth_ecef_m[both], axis=0)
+    fix_en = ecef_to_enu(fix_ecef_m, ref)[:, :2]
+
+    def median_m(shift_s: float) -> tuple[float, int]:
+        at = _truth_at(time_gps_s + shift_s, t_truth, xyz, spec.match_tolerance_s)
+        ok = np.isfinite(at).all(axis=1) & np.isfinite(fix_en).all(axis=1)
+        d = np.linalg.norm(ecef_to_enu(at[ok], ref)[:, :2] - fix_en[ok], axis=1)
+        return (float(np.median(d)) if ok.any() else math.inf), int(ok.sum())
+
+    def fits(shifted_m: float, shift_s: float) -> bool:
+        return shifted_m <= TRUTH_SHIFT_RATIO * unshifted and unshifted - shifted_m >= TRUTH_SHIFT_GAIN_M
+
+    def words(shifted_m: float, shift_s: float) -> str:
+        change = f"{abs(shift_s):.1f} s {'added to' if shift_s < 0 else 'taken from'} its times"
+        return (f"{spec.truth}: the truth lies a median {shifted_m:.0f} m horizontally from the receiver's "
+                f"least-squares fixes with {change}, against {unshifted:.0f} m as stamped (on {n} epochs)")
+
+    unshifted, n = median_m(0.0)
+    leap = float(np.median(leap_seconds(time_gps_s)))
+    if spec.truth_format in ("urbannav", "ecef-csv"):       # UTC stamps: GPST - UTC too few seconds
+        as_utc = median_m(-leap)
+        if as_utc[1] >= 0.8 * n and fits(as_utc[0], -leap):
+            return (f"{words(as_utc[0], -leap)}: are its times UTC? {spec.truth_format} times are GPST (GPST - UTC = "
+                    f"{leap:g} s here); shift them by that much, it is scored as GPST all the same")
+    best_m, shift = min((m, s) for s in TRUTH_SHIFTS_S for m, k in [median_m(float(s))] if k >= 0.8 * n)
+    if not fits(best_m, shift):
         return None
-    return (f"{spec.truth}: the truth lies a median {utc_m:.0f} m from the receiver's least-squares fixes with its "
-            f"times read as UTC, against {gpst_m:.0f} m read as GPST (on {int(both.sum())} epochs): are its times UTC? "
-            f"{spec.truth_format} times are GPST (GPST - UTC = {float(np.median(leap)):g} s here); shift them by that "
-            "much, it is scored as GPST all the same")
+    if spec.truth_format == "smartloc":
+        return (f"{words(best_m, shift)}: a wrong {_origin_words(spec)}? About GPS {origin - shift:.1f} s fits; it is "
+                "scored as stamped all the same")
+    return f"{words(best_m, shift)}: are its times off? It is scored as stamped all the same"
 
 
 def read_truth(path: str | Path, time_gps_s: np.ndarray, truth_format: str = "urbannav", *,
@@ -557,11 +626,8 @@ def align_truth(time_gps_s: np.ndarray, spec: DatasetSpec) -> tuple[np.ndarray, 
         return np.broadcast_to(xyz[0], (time_gps_s.size, 3)).copy(), bad
     order = np.argsort(t_truth, kind="stable")
     t_truth, xyz = t_truth[order], xyz[order]
-    right = np.clip(np.searchsorted(t_truth, time_gps_s), 0, t_truth.size - 1)
-    left = np.clip(right - 1, 0, t_truth.size - 1)
-    nearest = np.where(np.abs(t_truth[left] - time_gps_s) <= np.abs(t_truth[right] - time_gps_s), left, right)
-    ok = np.abs(t_truth[nearest] - time_gps_s) <= spec.match_tolerance_s
-    position = interpolate_truth(time_gps_s, t_truth, xyz, left, right, nearest)
+    truth = _truth_at(time_gps_s, t_truth, xyz, spec.match_tolerance_s)
+    ok = np.isfinite(truth).all(axis=1)
     inside = (time_gps_s >= t_truth[0]) & (time_gps_s <= t_truth[-1])
     if guessed and inside.sum() >= 10 and ok[inside].mean() < 0.9:
         # smartloc truth is stamped at the receiver's epochs: a right origin matches nearly every epoch it spans
@@ -569,7 +635,17 @@ def align_truth(time_gps_s: np.ndarray, spec: DatasetSpec) -> tuple[np.ndarray, 
                       f"time span match a truth time when its t = 0 is taken as the first epoch given (GPS "
                       f"{spec.time_origin_gps_s:.1f} s); if these epochs do not start where the truth does, give the "
                       "GPS time of its t = 0 (time_origin_gps_s, --truth-origin)", stacklevel=3)
-    return np.where(ok[:, None], position, np.nan), bad
+    return truth, bad
+
+
+def _truth_at(time_gps_s: np.ndarray, t_truth: np.ndarray, xyz: np.ndarray, tolerance_s: float) -> np.ndarray:
+    """(T, 3) truth [m] at epoch times [s] from rows sorted by time (``interpolate_truth``); NaN where no row lies
+    within ``tolerance_s``."""
+    right = np.clip(np.searchsorted(t_truth, time_gps_s), 0, t_truth.size - 1)
+    left = np.clip(right - 1, 0, t_truth.size - 1)
+    nearest = np.where(np.abs(t_truth[left] - time_gps_s) <= np.abs(t_truth[right] - time_gps_s), left, right)
+    ok = np.abs(t_truth[nearest] - time_gps_s) <= tolerance_s
+    return np.where(ok[:, None], interpolate_truth(time_gps_s, t_truth, xyz, left, right, nearest), np.nan)
 
 
 def interpolate_truth(time_gps_s: np.ndarray, t_truth: np.ndarray, xyz: np.ndarray, left: np.ndarray,
@@ -640,9 +716,11 @@ def truth_note_summary(truth_path: str | Path, notes: list[str]) -> list[str]:
 
 
 def _warn_truth(spec: DatasetSpec, seq: Sequence, notes: list[str]) -> None:
-    """Warn of skipped truth lines (``truth_note_summary``) and of a truth that labels no epoch."""
-    for note in truth_note_summary(spec.truth, notes):
-        warnings.warn(note, stacklevel=3)
+    """Warn of skipped truth lines (``truth_note_summary``), of a truth that does not fit the coarse fixes
+    (``truth_fit_notes``) and of a truth that labels no epoch."""
+    for note in truth_note_summary(spec.truth, notes) + truth_fit_notes(spec, seq.time_gps_s, seq.truth_ecef_m,
+                                                                         seq.coarse_ecef_m):
+        warnings.warn(f"dataset {spec.id}: {note}", stacklevel=3)
     if not seq.labelled.any():
         origin = " and [truth] time_origin_gps_s (GPS seconds of its t = 0)" if spec.truth_format == "smartloc" else ""
         warnings.warn(f"dataset {spec.id}: no truth time in {spec.truth} lies within {spec.match_tolerance_s:g} s of "
@@ -706,6 +784,34 @@ def split_index(seq: Sequence, spec: DatasetSpec, split: str) -> np.ndarray:
     return seq.labelled & (axis >= start) & (axis < stop)
 
 
+def epochs_in_split(dataset_id: str, split: str, time_gps_s: np.ndarray) -> int | None:
+    """How many of the epoch times [GPS s] lie in a split of the dataset registered as ``dataset_id`` now, read from its
+    bounds alone; None when that needs its data (an ``epoch`` axis, a ``relative_s`` one without a time origin) or
+    no such dataset or split is registered. For epochs of that dataset's own files (a model file's record)."""
+    spec = registered().get(dataset_id)
+    bounds = [spec.splits.get(part) for part in split_parts(split)] if spec else [None]
+    if None in bounds or spec.split_axis not in ("tow", "relative_s"):
+        return None
+    t = np.asarray(time_gps_s, float)
+    if spec.split_axis == "tow":
+        axis = np.round(gps_s_to_week_tow(t)[1], 1)
+    elif spec.time_origin_gps_s is None:
+        return None
+    else:
+        axis = np.round(t - spec.time_origin_gps_s, 1)
+    return int(sum(np.sum((axis >= start) & (axis < stop)) for start, stop in bounds))
+
+
+def empty_split_words(seq: Sequence, spec: DatasetSpec, split: str) -> str:
+    """Why ``split`` of ``seq`` has no labelled epoch, in words: its bounds and where the labelled epochs lie on the axis."""
+    span = split_axis_values(seq, spec)[seq.labelled]
+    bounds = ", ".join(f"{part} = [{spec.splits[part][0]:.10g}, {spec.splits[part][1]:.10g})"
+                       for part in split_parts(split) if part in spec.splits)
+    where = (f"the labelled epochs span [{span.min():.10g}, {span.max():.10g}] on it" if span.size
+             else "no epoch has truth")
+    return f"[splits] axis = {spec.split_axis!r}, {bounds} holds no labelled epoch of dataset {spec.id} ({where})"
+
+
 def split_axis_values(seq: Sequence, spec: DatasetSpec) -> np.ndarray:
     """(T,) each epoch's place on ``spec``'s split axis: time of week [s], seconds since the truth origin [s] (both to
     0.1 s), or the index among labelled epochs (-1 for an unlabelled one)."""
@@ -764,18 +870,10 @@ def alignment_report(dataset_ids: list[str] | None = None) -> str:
         labelled = seq.labelled
         lines.append(f"{dataset_id}: {len(seq)} epochs, {int(labelled.sum())} with truth; systems "
                      f"{''.join(seq.systems)}" + (f"; {spec.description}" if spec.description else ""))
-        note = utc_stamp_note(spec, seq.time_gps_s, seq.truth_ecef_m, seq.coarse_ecef_m)
-        if note:
-            warnings.warn(note, stacklevel=2)
         for split in spec.splits:
             idx = split_index(seq, spec, split)
             if not idx.any():
-                span = split_axis_values(seq, spec)[labelled]
-                where = (f": the labelled epochs span [{span.min():.10g}, {span.max():.10g}] on it" if span.size
-                         else ": no epoch has truth")
-                start, stop = spec.splits[split]
-                lines.append(f"  {split:5s}     0 matched epochs (check [splits] axis = {spec.split_axis!r} "
-                             f"and the bounds [{start:.10g}, {stop:.10g}]{where})")
+                lines.append(f"  {split:5s}     0 matched epochs ({empty_split_words(seq, spec, split)})")
                 continue
             has_fix = np.all(np.isfinite(seq.coarse_ecef_m), axis=1)
             row = accuracy_table(seq.coarse_ecef_m[idx], seq.truth_ecef_m[idx], has_fix[idx])

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import contextlib
+import gzip
 import hashlib
 import os
 import secrets
@@ -9,7 +10,8 @@ import shutil
 import stat
 import time
 import warnings
-from collections.abc import Callable
+import zlib
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import TypeVar
 
@@ -67,14 +69,20 @@ def model_path(model: str | os.PathLike) -> Path:
     return bundled_models().get(path.name, path)
 
 
-def file_hashes(paths) -> dict[str, str]:
-    """SHA-256 (16 hex digits) of each file's bytes, by file name."""
+def file_hashes(paths: Iterable[str | os.PathLike]) -> dict[str, str]:
+    """SHA-256 (16 hex digits) of each file's content, by file name: a gzip file's decompressed, so that a file and
+    its compressed copy are one (the bundled drive's ``.obs.gz`` is berlin-pp's ``.obs``)."""
     out = {}
     for path in paths:
         h = hashlib.sha256()
-        with open(path, "rb") as fh:
-            for block in iter(lambda: fh.read(1 << 20), b""):
-                h.update(block)
+        with open(path, "rb") as raw:
+            packed = raw.read(2) == b"\x1f\x8b"
+        with (gzip.open if packed else open)(path, "rb") as fh:
+            try:
+                for block in iter(lambda: fh.read(1 << 20), b""):
+                    h.update(block)
+            except (OSError, EOFError, zlib.error):      # damaged gzip data: its bytes as they are
+                h = hashlib.sha256(Path(path).read_bytes())
         out[Path(path).name] = h.hexdigest()[:16]
     return out
 

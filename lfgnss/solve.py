@@ -43,9 +43,6 @@ PROGRESS_BACKENDS = ("ekf", "plain-ekf", "fgo")   # a tqdm bar over the epochs o
 DEFAULT_ELEVATION_MASK_DEG = SppConfig().elevation_mask_deg
 #: --start/--end take epochs this close outside the window [s] (RTKLIB's DTTOL: receivers tag epochs ms early).
 WINDOW_TOLERANCE_S = 0.025
-#: A truth lying a median farther than this from the coarse least-squares fixes is likely of another drive or place
-#: [m]: the median least-squares error is 40 to 90 m on the three benchmark datasets (200 m at worst on an epoch).
-TRUTH_MISMATCH_M = 1000.0
 #: Input notes shown before the accuracy table (then a count of them all).
 NOTES_SHOWN = 5
 _SYSTEM_SEPARATORS = re.compile(r"[\s,]+")
@@ -250,13 +247,9 @@ def _solve(args) -> _Solved:
                   f"table or plots (check --truth-format {truth_format}{hint})", file=sys.stderr)
             truth = None
         else:
-            time_note = (datasets.static_time_note(truth_path, observations.time_gps_s)
-                         if truth_format == "static" else None)
-            mismatch = _truth_mismatch_note(truth_path, truth_format, truth, fix)
-            utc_note = None if mismatch else datasets.utc_stamp_note(spec, meas.time_gps_s, truth, fix.pos_ecef_m)
-            for note in (time_note, mismatch, utc_note):
-                if note:
-                    print(f"warning: {note}", file=sys.stderr)
+            fixed = np.where(fix.ok[:, None], fix.pos_ecef_m, np.nan)
+            for note in datasets.truth_fit_notes(spec, meas.time_gps_s, truth, fixed):
+                print(f"warning: {note}", file=sys.stderr)
     from .sequence import DEFAULT_FEATURES
 
     try:
@@ -472,20 +465,6 @@ def _mask_cause(mask_deg: float, fix: CoarseFix) -> str:
         return ""
     return (f" (with --elevation-mask {mask_deg:g}: too few satellites above {mask_deg:g} degrees for a fix; the "
             f"default is {DEFAULT_ELEVATION_MASK_DEG:g})")
-
-
-def _truth_mismatch_note(truth_path: Path, truth_format: str, truth: np.ndarray, fix: CoarseFix) -> str | None:
-    """Why ``truth`` (T, 3) [m] may be of another drive: its median distance from the coarse fixes, or None."""
-    both = np.isfinite(truth).all(axis=1) & fix.ok & np.isfinite(fix.pos_ecef_m).all(axis=1)
-    if not both.any():
-        return None
-    median_m = float(np.median(np.linalg.norm(truth[both] - fix.pos_ecef_m[both], axis=1)))
-    if median_m <= TRUTH_MISMATCH_M:
-        return None
-    distance = f"{median_m / 1000:.0f} km" if median_m >= 10_000 else f"{median_m / 1000:.1f} km"
-    origin = ", or a wrong --truth-origin" if truth_format == "smartloc" else ""
-    return (f"{truth_path}: the truth lies a median {distance} from the receiver's least-squares fixes (on "
-            f"{int(both.sum())} epochs): a truth file of another drive or place{origin}? It is scored all the same")
 
 
 def _settings_text(args: argparse.Namespace) -> str:

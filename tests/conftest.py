@@ -65,3 +65,12 @@ test = {test}
         return path
 
     return write
+
+
+@pytest.fixture(autouse=True)
+def _own_dataset_registry(monkeypatch):
+    """Each test registers its datasets in a copy of the registry: a dataset id registered by another test's TOML
+    file would otherwise be refused (``lfgnss.datasets.register``: one file per id)."""
+    from lfgnss import datasets
+
+    monkeypatch.setattr(datasets, "_REGISTRY", dict(datasets._REGISTRY))

@@ -122,8 +122,10 @@ def test_unknown_constellation_letters_name_the_toml(sample_toml, clean_registry
 
 
 def test_lower_case_and_string_systems_are_still_letters(sample_toml, clean_registry):
-    assert datasets.register_toml(_edited(sample_toml, "lower", '["G", "R"]', '["g", "r"]')).systems == ("g", "r")
+    """Review: lower case was kept ("constellation(s) gr ... left out: the sequence has GR"); "G R" was refused."""
+    assert datasets.register_toml(_edited(sample_toml, "lower", '["G", "R"]', '["g", "r"]')).systems == ("G", "R")
     assert datasets.register_toml(_edited(sample_toml, "string", '["G", "R"]', '"GR"')).systems == ("G", "R")
+    assert datasets.register_toml(_edited(sample_toml, "spaced", '["G", "R"]', '"g, r"')).systems == ("G", "R")
 
 
 def test_a_missing_obs_file_is_one_line_naming_the_toml_and_the_file(tmp_path, sample_toml, clean_registry, capsys):
@@ -209,3 +211,23 @@ def test_a_listed_constellation_without_ephemerides_is_warned_of_when_built(samp
                                              r"observation .* the sequence has GR"):
             seq = datasets.build("my-gre")
         assert seq.systems == ("G", "R")
+
+
+def test_an_id_registered_by_another_toml_file_is_refused(tmp_path, sample_toml, clean_registry):
+    """Review: two TOML files of one id, the last silently won."""
+    first = datasets.register_toml(sample_toml("my-drive"))
+    assert datasets.register_toml(sample_toml("my-drive")) == first                 # the same file again: fine
+    other = tmp_path / "elsewhere" / "my-drive.toml"
+    other.parent.mkdir()
+    other.write_text(sample_toml("my-drive").read_text().replace('systems = ["G", "R"]', 'systems = ["G"]'))
+    with pytest.raises(InputError, match=rf"{re.escape(str(other))}: id 'my-drive' is registered already, by "
+                                         rf"{re.escape(str(sample_toml('my-drive')))}; give each dataset its own id"):
+        datasets.register_toml(other)
+    assert datasets.get("my-drive").systems == ("G", "R")
+
+
+@pytest.mark.parametrize("value", ["-1", "0", "inf", "nan", '"0.5"', "true"])
+def test_a_match_tolerance_that_is_no_positive_number_is_refused(sample_toml, clean_registry, value):
+    path = _edited(sample_toml, "tol", 'format = "smartloc"', f'format = "smartloc"\nmatch_tolerance_s = {value}')
+    with pytest.raises(InputError, match=r"match_tolerance_s in \[truth\] must be a number of seconds > 0"):
+        datasets.register_toml(path)

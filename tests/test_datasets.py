@@ -367,8 +367,8 @@ def test_a_split_that_misses_the_drive_shows_the_drives_span_on_its_axis(clean_r
     assert datasets.main(["--register", str(cfg)]) == 0
     lines = capsys.readouterr().out.splitlines()
     assert lines[0] == "tow-drive: 1375 epochs, 1372 with truth; systems GR"
-    assert lines[1] == ("  train     0 matched epochs (check [splits] axis = 'relative_s' and the bounds [126641.7, 126800]: "
-                        "the labelled epochs span [0, 282.8] on it)")
+    assert lines[1] == ("  train     0 matched epochs ([splits] axis = 'relative_s', train = [126641.7, 126800) holds no "
+                        "labelled epoch of dataset tow-drive (the labelled epochs span [0, 282.8] on it))")
     cfg.write_text(cfg.read_text().replace('axis = "relative_s"', 'axis = "tow"'))
     datasets.register_toml(cfg)
     assert datasets.main(["--register", str(cfg)]) == 0

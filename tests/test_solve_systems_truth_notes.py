@@ -9,10 +9,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from lfgnss.datasets import read_truth, static_time_note
+from lfgnss.datasets import TRUTH_MISMATCH_M, read_truth, static_time_note
 from lfgnss.frames import ecef_to_lla, lla_to_ecef
 from lfgnss.rinex import load_obs
-from lfgnss.solve import SAMPLE_NAV, SAMPLE_OBS, SAMPLE_TRUTH, TRUTH_MISMATCH_M, _systems, main
+from lfgnss.solve import SAMPLE_NAV, SAMPLE_OBS, SAMPLE_TRUTH, _systems, main
 from lfgnss.time import SECONDS_PER_WEEK
 
 FAST = ["--backend", "wls", "--no-plots", "--quiet"]            # least squares: the inputs, not the filter
@@ -101,8 +101,8 @@ def test_the_mismatch_threshold_lies_between_a_nearby_and_a_far_truth(tmp_path, 
 
 
 def test_a_truth_stamped_in_utc_is_warned_of_and_still_scored(tmp_path, capsys, berlin):
-    """The bundled drive's truth with UTC times (GPST - 17 s in 2016): 72 m from the fixes read as UTC, 121 m read as
-    GPST; the command and the dataset report say so. Its GPST file (above: the sample's own truth) says nothing."""
+    """The bundled drive's truth with UTC times (GPST - 17 s in 2016): 29 m from the fixes horizontally read as UTC,
+    105 m read as GPST; the command and the dataset report say so. Its GPST file (the sample's own truth) says nothing."""
     from lfgnss import datasets
     from lfgnss.time import leap_seconds
 
@@ -110,18 +110,45 @@ def test_a_truth_stamped_in_utc_is_warned_of_and_still_scored(tmp_path, capsys, 
     utc = _ecef_csv(tmp_path / "utc.csv", t - leap_seconds(t), truth)
     assert main([*FAST, *SAMPLE, "--out", str(tmp_path / "o"), "--truth", str(utc), "--truth-format", "ecef-csv"]) == 0
     captured = capsys.readouterr()
-    assert re.fullmatch(rf"warning: {re.escape(str(utc))}: the truth lies a median 7\d m from the receiver's "
-                        r"least-squares fixes with its times read as UTC, against 1[12]\d m read as GPST \(on 1[23]\d\d "
-                        r"epochs\): are its times UTC\? ecef-csv times are GPST \(GPST - UTC = 17 s here\); shift "
-                        r"them by that much, it is scored as GPST all the same\n", captured.err), captured.err
+    said = (rf"{re.escape(str(utc))}: the truth lies a median [23]\d m horizontally from the receiver's least-squares "
+            r"fixes with 17\.0 s added to its times, against 1\d\d m as stamped \(on 1[23]\d\d epochs\): are its times "
+            r"UTC\? ecef-csv times are GPST \(GPST - UTC = 17 s here\); shift them by that much, it is scored as GPST "
+            r"all the same")
+    assert re.fullmatch(rf"warning: {said}\n", captured.err), captured.err
     assert re.search(r"^wls +1[23]\d\d +1[23]\d\d +100\.0 ", captured.out, re.M), captured.out
     toml = tmp_path / "utc-drive.toml"
     toml.write_text(f'id = "utc-drive"\nobs = ["{SAMPLE_OBS}"]\nnav = {[str(n) for n in SAMPLE_NAV]!r}\n'.replace("'", '"')
                     + f'[truth]\nfile = "{utc}"\nformat = "ecef-csv"\n')
     assert datasets.main(["--register", str(toml)]) == 0
     captured = capsys.readouterr()
-    assert f"warning: {utc}: the truth lies a median 7" in captured.err and "read as UTC" in captured.err, captured.err
+    assert re.fullmatch(rf"warning: dataset utc-drive: {said}\n", captured.err), captured.err    # once
     assert captured.out.startswith("utc-drive: ")
+
+
+@pytest.mark.parametrize("shift_s", [-10.0, 41.7])
+def test_a_smartloc_truth_of_a_wrong_origin_is_warned_of_with_the_origin_that_fits(tmp_path, capsys, shift_s):
+    """Review: a --truth-origin 10 or 41.7 s off labelled 600-1100 epochs at errors of 100-200 m, silently."""
+    origin = 1900 * SECONDS_PER_WEEK + 126641.7
+    truth = ["--truth", str(SAMPLE_TRUTH), "--truth-format", "smartloc", "--truth-origin", f"{origin + shift_s:.1f}"]
+    assert main([*FAST, *SAMPLE, "--out", str(tmp_path), *truth]) == 0
+    err = capsys.readouterr().err
+    found = re.fullmatch(rf"warning: {re.escape(str(SAMPLE_TRUTH))}: the truth lies a median \d+ m horizontally from "
+                         r"the receiver's least-squares fixes with (\d+\.\d) s (added to|taken from) its times, against "
+                         r"\d+ m as stamped \(on \d+ epochs\): a wrong --truth-origin\? About GPS (\d+\.\d) s fits; it is "
+                         r"scored as stamped all the same\n", err)
+    assert found, err
+    fitted = float(found.group(3))
+    assert abs(fitted - origin) <= 3.0, (fitted, origin)         # the shift found is the one made, to the drive's noise
+
+
+def test_an_ecef_csv_truth_seconds_off_is_warned_of(tmp_path, capsys, berlin):
+    t, truth = berlin
+    late = _ecef_csv(tmp_path / "late.csv", t + 15.0, truth)
+    assert main([*FAST, *SAMPLE, "--out", str(tmp_path / "o"), "--truth", str(late), "--truth-format", "ecef-csv"]) == 0
+    err = capsys.readouterr().err
+    assert re.fullmatch(rf"warning: {re.escape(str(late))}: the truth lies a median \d+ m horizontally from the "
+                        r"receiver's least-squares fixes with 1[2-8]\.\d s taken from its times, against \d+ m as stamped "
+                        r"\(on \d+ epochs\): are its times off\? It is scored as stamped all the same\n", err), err
 
 
 def test_the_bundled_sample_with_its_own_truth_gives_no_warning(tmp_path, capsys):

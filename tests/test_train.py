@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from learning.export import load_model
-from learning.train import (_index_batch, build_model, ekf_config, evaluate, jitter_features, load_config,
+from learning.train import (_files_absolute, _index_batch, build_model, ekf_config, evaluate, jitter_features, load_config,
                             load_sequences, main, prepare, run_filter, train)
 from learning.loss import make_loss
 from lfgnss.paths import model_path
@@ -505,6 +505,11 @@ def test_config_file_paths_are_read_next_to_it_then_from_the_current_folder(tmp_
     monkeypatch.chdir(repo)
     assert load_config("learning/configs/hk_finetune.toml")["train"]["init"] == "transfer-base"   # a bundled name
     assert load_config(None, ["data.register=my.toml"])["data"]["register"] == ["my.toml"]   # one file, not letters
+    recorded = _files_absolute(load_config(None, ["train.init=lfgnss/data/model/lfgnss-default.npz",
+                                                  "data.register=learning/configs/../../README.md"]))
+    assert recorded["train"]["init"] == str(repo / "lfgnss/data/model/lfgnss-default.npz")   # as runs record them
+    assert recorded["data"]["register"] == [str(repo / "learning/configs/../../README.md")]
+    assert _files_absolute(load_config(None, ["train.init=transfer-base"]))["train"]["init"] == "transfer-base"
     with pytest.raises(ValueError, match="data.register"):
         load_config(None, ["data.register=[1, 2]"])
 

@@ -230,3 +230,15 @@ def test_base_and_load_config_take_a_shipped_configurations_name(tmp_path, monke
     with pytest.raises(ValueError, match=rf"^{tmp_path / 'bad.toml'}: base = 'finetun': no such configuration file "
                                          r"beside it \(.*\), nor a shipped one of that name \(berlin, "):
         load_config(tmp_path / "bad.toml")
+
+
+@pytest.mark.parametrize("given, said", [
+    ("finetun", "no such file, nor a shipped configuration of that name (did you mean 'finetune'?)"),
+    ("qqqqqq", "no such file, nor a shipped configuration of that name (shipped: berlin, "),
+    ("nothere/x.toml", "no such file"),
+])
+def test_a_config_that_is_no_file_says_which_shipped_one_was_meant(given, said):
+    """Review: `--config finetun` was a raw "[Errno 2] No such file or directory: 'finetun'"."""
+    with pytest.raises(ValueError) as err:
+        load_config(given)
+    assert str(err.value).startswith(f"{given}: cannot read configuration: {said}"), str(err.value)

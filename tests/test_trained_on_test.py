@@ -111,3 +111,35 @@ def test_a_validation_split_before_the_test_split_is_no_leak_when_warming_up(tmp
                  "--out", str(tmp_path / "out"), "--no-plots", "--warm-up", "val"]) == 0
     assert capsys.readouterr().err == ""
     assert "Trained on test epochs" not in (tmp_path / "out" / "results.md").read_text()
+
+
+def test_the_bundled_models_are_named_on_the_bundled_drive_where_they_trained_on_it(monkeypatch, sample_toml):
+    """Review: the bundled .obs.gz is berlin-pp's .obs compressed; a test split inside berlin-pp's train split was
+    scored with the bundled models silently (they predate data_spans)."""
+    from lfgnss.benchmark import _features_for, _made, methods, models_that_saw_test_epochs, scored_span
+
+    monkeypatch.setattr(datasets, "_REGISTRY", {}, raising=False)
+    lines = {}
+    for name, test in (("early", (60, 100)), ("late", (180, 200))):       # in berlin-pp's train split; in its test
+        datasets.register_toml(sample_toml(name, splits=((0, 50), (50, 60), test)))
+        plugins = _made([m for m in methods(MODEL_DIR, name) if m.name.startswith("LF-GNSS EKF")], set(), name, None)
+        span, k = scored_span(name, _features_for(e for _, e in plugins))
+        lines[name] = models_that_saw_test_epochs(name, plugins, span.subset(slice(k, None)))
+    assert lines["late"] == []
+    assert lines["early"] and all(
+        "trained on berlin-pp train (as its splits are registered now; the model predates data_spans), which holds "
+        "197 of early's 197 test epochs" in line for line in lines["early"]), lines["early"]   # 0.3 s gaps
+
+
+def test_crossval_names_a_starting_model_trained_on_the_blocks(monkeypatch, sample_toml):
+    """Review: fine-tuning the shipped model on the bundled drive cross-validated on epochs it was trained on, silently
+    (the dataset ids differ: its berlin-pp, the user's my-drive)."""
+    from learning.crossval import _init_saw_blocks
+    from learning.export import load_model
+
+    monkeypatch.setattr(datasets, "_REGISTRY", {}, raising=False)
+    datasets.register_toml(sample_toml("my-drive", splits=((0, 150), (150, 180), (180, 200))))
+    whole = {"my-drive": datasets.load_split("my-drive", "train+val")}
+    lines = _init_saw_blocks(load_model("default"), whole)
+    assert len(lines) == 1 and lines[0].startswith("trained on berlin-pp train (as its splits are registered now")
+    assert lines[0].endswith("which holds 724 of my-drive's 872 epochs to cross-validate on"), lines[0]
