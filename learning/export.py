@@ -1102,15 +1102,15 @@ def main(argv: list[str] | None = None) -> int:
                     raise ValueError(f"{key} given twice")
                 changes[key] = value
         except ValueError as exc:
-            p.error(f"--ekf: {exc}")
+            p.error(f"--ekf: {str(exc).removeprefix('estimators/models.py: ')}")
         if changes:
             try:
                 written = refilter_model(args.checkpoint, args.out, changes,
                                          command_line("python -m learning.export", list(argv or sys.argv[1:])))
             except ModelFileError:
                 raise
-            except (TypeError, ValueError) as exc:
-                p.error(f"--ekf: {exc}")
+            except (TypeError, ValueError) as exc:      # the filter's own check names its source file: not the user's
+                p.error(f"--ekf: {str(exc).removeprefix('estimators/models.py: ')}")
         else:
             written = export_ensemble(members, args.out,
                                       command_line("python -m learning.export", list(argv or sys.argv[1:])))

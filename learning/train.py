@@ -1249,7 +1249,8 @@ def main(argv: list[str] | None = None) -> int:
     model = shlex.quote(str(Path(out) / "model.npz"))
     print(f"{out}: best validation 3D RMSE {best['val_rmse_3d_m']:.3f} m at epoch {best['epoch']}; model "
           f"{Path(out) / 'model.npz'} is epoch {exported['epoch']} (validation {exported['val_rmse_3d_m']:.3f} m)")
-    print(f"use it: python -m lfgnss.solve --model {model} (python -m learning.export --show {model} describes it)")
+    print(f"use it: python -m lfgnss.solve --model {model} --obs OBS --nav NAV ... (without --obs: the bundled Berlin "
+          f"drive; python -m learning.export --show {model} describes the model)")
     if exported["epoch"] == 0:
         print(f"warning: no training epoch beat the untrained network on validation, so {Path(out) / 'model.npz'} "
               "holds no training (a network that starts from train.init is that model); train longer, change the "

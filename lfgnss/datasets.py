@@ -378,7 +378,8 @@ def _numeric_rows(path: Path, n_cols: int, record_word: str | None = None,
             if len(values) < n_cols or not np.all(np.isfinite(values)):
                 raise ValueError
         except ValueError:
-            skipped.append((i, "unreadable truth line"))
+            header = not rows and not skipped and any(c.isalpha() for c in line)
+            skipped.append((i, "unreadable truth line" + " (a header?)" * header))
             continue
         why = problem(values) if problem is not None else None
         if why is not None:
@@ -386,8 +387,9 @@ def _numeric_rows(path: Path, n_cols: int, record_word: str | None = None,
             continue
         rows.append(values)
     if not rows:
-        if skipped:             # say why at the first line
-            raise InputError(path, f"no readable ground-truth line; the first: {skipped[0][1]}", line=skipped[0][0])
+        if skipped:             # say why at the first line (words above no row are no header)
+            why = skipped[0][1].removesuffix(" (a header?)")
+            raise InputError(path, f"no readable ground-truth line; the first: {why}", line=skipped[0][0])
         raise InputError(path, "no readable ground-truth line")
     return np.array(rows), [f"{path}:{i}: {why}, skipped" for i, why in skipped]
 

@@ -401,3 +401,11 @@ def test_a_split_union_joins_its_parts_and_a_split_named_with_a_plus_stays_itsel
     assert np.flatnonzero(datasets.split_index(seq, spec, "b+a")).tolist() == [0, 1, 6]
     named = dataclasses.replace(spec, splits={**spec.splits, "a+b": (2, 4)})
     assert np.flatnonzero(datasets.split_index(seq, named, "a+b")).tolist() == [2, 4]
+
+
+def test_a_header_line_is_named_as_one(tmp_path):
+    truth = tmp_path / "truth.csv"
+    truth.write_text("gps_s,x,y,z\n1300000000.0,-2400000.0,5380000.0,2430000.0\nrubbish\n")
+    spec = datasets.DatasetSpec("e", (tmp_path / "r.obs",), (tmp_path / "n",), truth, "ecef-csv")
+    notes = datasets.align_truth(np.array([1300000000.0]), spec)[1]
+    assert notes == [f"{truth}:1: unreadable truth line (a header?), skipped", f"{truth}:3: unreadable truth line, skipped"]

@@ -180,11 +180,11 @@ def test_export_to_an_unwritable_place_is_one_line_naming_it(where, tmp_path, ca
 
 @pytest.mark.parametrize("ekf, message", [
     (["--ekf", "bogus=1"], "--ekf: no EKF setting bogus (EkfConfig has"),
-    (["--ekf", "zupt_sigma_m_s=-1"], "--ekf: estimators/models.py: EkfConfig.zupt_sigma_m_s must be a positive"),
+    (["--ekf", "zupt_sigma_m_s=-1"], "--ekf: EkfConfig.zupt_sigma_m_s must be a positive"),
     (["--ekf", "zupt_sigma_m_s"], "--ekf: expects KEY=VALUE, got 'zupt_sigma_m_s'"),
     (["--ekf", "gate_sigma=4", "--ekf", "gate_sigma=5"], "--ekf: gate_sigma given twice"),
     (["--ekf", "huber_k=2"], "--ekf: huber_k is already 2.0 in this model's filter"),
-    (["--ekf", "gate_sigma=.5x"], "--ekf: estimators/models.py: EkfConfig.gate_sigma must be"),
+    (["--ekf", "gate_sigma=.5x"], "--ekf: EkfConfig.gate_sigma must be"),
     (["--ekf", "=4"], "--ekf: expects KEY=VALUE, got '=4'"),
     ([], "lfgnss-berlin-pp.npz: a model file, not a training checkpoint: give --ekf KEY=VALUE to write it"),
 ])

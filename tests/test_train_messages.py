@@ -40,8 +40,8 @@ def test_epoch_lines_the_next_step_and_no_bar_debris_off_a_terminal(run):
     assert lines[1].startswith("epoch 1: train loss ") and ", val 3D RMSE " in lines[1]
     assert lines[2].startswith(f"{out}: best validation 3D RMSE ")
     model = out / "model.npz"
-    assert lines[3] == (f"use it: python -m lfgnss.solve --model {model} "
-                        f"(python -m learning.export --show {model} describes it)")
+    assert lines[3] == (f"use it: python -m lfgnss.solve --model {model} --obs OBS --nav NAV ... (without --obs: the "
+                        f"bundled Berlin drive; python -m learning.export --show {model} describes the model)")
     assert "\r" not in stderr and "batch" not in stderr and "epoch 1/1" not in stderr, stderr   # no tqdm bar
 
 
