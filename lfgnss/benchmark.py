@@ -390,7 +390,7 @@ def run(dataset_ids: list[str], *, model_dir: Path = MODEL_DIR, out_dir: Path | 
     work. ``left_out``: a list that collects ``ID: row 'NAME' left out: ...`` where the estimator of such a row
     raises (the other rows are kept); without it that error is raised. ``leaked``: a list that collects
     ``ID: MODEL (rows ...) trained on ...`` for a model trained or selected on epochs of the test split
-    (``seen_test_epochs``); without it each is a UserWarning.
+    (``seen_test_epochs``); without it each is a ``SeenTestEpochsWarning``.
     """
     ids = datasets.present(dataset_ids)
     rows_of = {dataset_id: methods(model_dir, dataset_id, extra) for dataset_id in ids}    # names checked first

@@ -157,7 +157,8 @@ def registered() -> dict[str, DatasetSpec]:
 def register(spec: DatasetSpec) -> DatasetSpec:
     """Make a dataset available by its id; InputError when another TOML file has registered that id already."""
     other = _REGISTRY.get(spec.id)
-    if other is not None and spec.source and other.source and Path(other.source).resolve() != Path(spec.source).resolve():
+    if other is not None and spec.source and other.source and Path(other.source).resolve() != Path(
+            spec.source).resolve():
         raise InputError(spec.source, f"id {spec.id!r} is registered already, by {other.source}; give each dataset "
                                       "its own id")
     _REGISTRY[spec.id] = spec
@@ -559,7 +560,7 @@ def truth_shift_note(spec: DatasetSpec, time_gps_s: np.ndarray, truth_ecef_m: np
         d = np.linalg.norm(ecef_to_enu(at[ok], ref)[:, :2] - fix_en[ok], axis=1)
         return (float(np.median(d)) if ok.any() else math.inf), int(ok.sum())
 
-    def fits(shifted_m: float, shift_s: float) -> bool:
+    def fits(shifted_m: float) -> bool:
         return shifted_m <= TRUTH_SHIFT_RATIO * unshifted and unshifted - shifted_m >= TRUTH_SHIFT_GAIN_M
 
     def words(shifted_m: float, shift_s: float) -> str:
@@ -571,11 +572,11 @@ def truth_shift_note(spec: DatasetSpec, time_gps_s: np.ndarray, truth_ecef_m: np
     leap = float(np.median(leap_seconds(time_gps_s)))
     if spec.truth_format in ("urbannav", "ecef-csv"):       # UTC stamps: GPST - UTC too few seconds
         as_utc = median_m(-leap)
-        if as_utc[1] >= 0.8 * n and fits(as_utc[0], -leap):
+        if as_utc[1] >= 0.8 * n and fits(as_utc[0]):
             return (f"{words(as_utc[0], -leap)}: are its times UTC? {spec.truth_format} times are GPST (GPST - UTC = "
                     f"{leap:g} s here); shift them by that much, it is scored as GPST all the same")
     best_m, shift = min((m, s) for s in TRUTH_SHIFTS_S for m, k in [median_m(float(s))] if k >= 0.8 * n)
-    if not fits(best_m, shift):
+    if not fits(best_m):
         return None
     if spec.truth_format == "smartloc":
         return (f"{words(best_m, shift)}: a wrong {_origin_words(spec)}? About GPS {origin - shift:.1f} s fits; it is "
