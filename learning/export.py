@@ -314,7 +314,9 @@ def _write_model_file(out_path: str | Path, params: dict[str, np.ndarray], norma
         out.parent.mkdir(parents=True, exist_ok=True)
         replace_atomically(out, write)
     except OSError as exc:                          # name the file asked for, not the temporary one beside it
-        raise OSError(exc.errno, f"cannot write the model file ({exc.strerror or exc})", str(out)) from exc
+        blocked = next((p for p in out.parents if p.is_file()), None)     # mkdir's "File exists" says too little
+        why = f"{blocked} is a file, not a folder" if blocked is not None else exc.strerror or exc
+        raise OSError(exc.errno, f"cannot write the model file ({why})", str(out)) from exc
     return out
 
 

@@ -526,6 +526,26 @@ def truth_fit_notes(spec: DatasetSpec, time_gps_s: np.ndarray, truth_ecef_m: np.
     return [n for n in notes if n]
 
 
+def unmatched_time_words(spec: DatasetSpec, time_gps_s: np.ndarray) -> str:
+    """Where a truth that labels no epoch has its times, against the epochs' [GPS s], when that tells what is wrong:
+    ``; its times (a to b s) look like times of week ...``, or ''."""
+    if spec.truth_format not in ("ecef-csv", "urbannav") or not np.size(time_gps_s):
+        return ""
+    try:
+        t_truth = TRUTH_READERS[spec.truth_format](spec.truth, spec)[0]
+    except InputError:
+        return ""
+    first, last = float(np.min(t_truth)), float(np.max(t_truth))
+    epochs = f"the epochs' are GPS {float(np.min(time_gps_s)):.1f} to {float(np.max(time_gps_s)):.1f} s"
+    span = f"its times ({first:.10g} to {last:.10g} s)"
+    if spec.truth_format == "ecef-csv" and 0 <= first and last < SECONDS_PER_WEEK:
+        return (f"; {span} look like times of week: ecef-csv times are GPS seconds since 1980-01-06 (week * 604800 + "
+                f"time of week), and {epochs}")
+    if spec.truth_format == "ecef-csv" and np.min(time_gps_s) - 86400 <= first / 1000 <= np.max(time_gps_s) + 86400:
+        return f"; {span} look like milliseconds: ecef-csv times are seconds, and {epochs}"
+    return f"; {span.replace('its times', 'its GPS times')} miss them: {epochs}"
+
+
 def _origin_words(spec: DatasetSpec) -> str:
     """Where a smartloc truth's t = 0 is given: ``--truth-origin``, or the key in the dataset's TOML file."""
     return f"time_origin_gps_s in [truth] of {spec.source}" if spec.source else "--truth-origin"
@@ -728,7 +748,7 @@ def _warn_truth(spec: DatasetSpec, seq: Sequence, notes: list[str]) -> None:
         origin = " and [truth] time_origin_gps_s (GPS seconds of its t = 0)" if spec.truth_format == "smartloc" else ""
         warnings.warn(f"dataset {spec.id}: no truth time in {spec.truth} lies within {spec.match_tolerance_s:g} s of "
                       f"an epoch of {', '.join(map(str, spec.obs))}; check [truth] format = {spec.truth_format!r}, "
-                      f"match_tolerance_s{origin}", stacklevel=3)
+                      f"match_tolerance_s{origin}{unmatched_time_words(spec, seq.time_gps_s)}", stacklevel=3)
 
 
 def build(dataset_id: str, *, feature_names: tuple[str, ...] = DEFAULT_FEATURES, cache: bool = True) -> Sequence:

@@ -244,7 +244,8 @@ def _solve(args) -> _Solved:
         if not np.isfinite(truth).all(axis=1).any():
             hint = " and --truth-origin (GPS seconds of its t = 0)" if truth_format == "smartloc" else ""
             print(f"warning: {truth_path}: no truth epoch matches an epoch of {obs}{_window_words(args)}; no accuracy "
-                  f"table or plots (check --truth-format {truth_format}{hint})", file=sys.stderr)
+                  f"table or plots (check --truth-format {truth_format}{hint})"
+                  f"{datasets.unmatched_time_words(spec, meas.time_gps_s)}", file=sys.stderr)
             truth = None
         else:
             fixed = np.where(fix.ok[:, None], fix.pos_ecef_m, np.nan)

@@ -282,3 +282,14 @@ def test_exporting_a_file_that_is_not_a_checkpoint_dict_is_one_error(tmp_path):
         torch.save(content, tmp_path / f"odd{i}.pt")
         with pytest.raises(ModelFileError, match="not a usable training checkpoint"):
             export_model(tmp_path / f"odd{i}.pt", tmp_path / "m.npz")
+
+
+def test_a_model_file_under_a_file_says_which_file_is_in_the_way(tmp_path, capsys):
+    """Review: `learning.export M afile/x.npz` said only "(File exists)"."""
+    (tmp_path / "afile").write_text("")
+    with pytest.raises(SystemExit) as exit_info:
+        export_main(["lfgnss/data/model/lfgnss-berlin-pp.npz", str(tmp_path / "afile" / "x.npz"), "--ekf",
+                     "gate_sigma=4"])
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and err.rstrip().endswith(
+        f"{tmp_path / 'afile' / 'x.npz'}: cannot write the model file ({tmp_path / 'afile'} is a file, not a folder)"), err

@@ -303,3 +303,16 @@ def test_a_mask_that_leaves_no_fix_is_named_as_the_cause(tmp_path, capsys):
     assert err.count("\n") == 1 and err.rstrip("\n").endswith(
         "no epoch has a coarse fix and the file has no approximate position; nothing to build features from (with "
         "--elevation-mask 89: too few satellites above 89 degrees for a fix; the default is 10)"), err
+
+
+@pytest.mark.parametrize("unit, said", [("tow", "look like times of week: ecef-csv times are GPS seconds since "
+                                                "1980-01-06 (week * 604800 + time of week)"),
+                                        ("ms", "look like milliseconds: ecef-csv times are seconds")])
+def test_an_ecef_csv_truth_in_other_units_says_so(tmp_path, capsys, berlin, unit, said):
+    """Review: times of week or milliseconds in an ecef-csv truth only got 'check --truth-format ecef-csv'."""
+    t, truth = berlin
+    stamps = t - SECONDS_PER_WEEK * np.floor(t / SECONDS_PER_WEEK) if unit == "tow" else t * 1000.0
+    path = _ecef_csv(tmp_path / f"{unit}.csv", stamps, truth)
+    assert main([*FAST, *SAMPLE, "--out", str(tmp_path / "o"), "--truth", str(path), "--truth-format", "ecef-csv"]) == 0
+    err = capsys.readouterr().err
+    assert "no truth epoch matches" in err and said in err and "the epochs' are GPS 1149246641.7 to " in err, err
