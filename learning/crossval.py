@@ -335,8 +335,7 @@ def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = 
 def _init_saw_blocks(init, whole: dict[str, list[Sequence]]) -> list[str]:
     """Where the model fine-tuning starts from was trained on epochs of the blocks (the same drive under another
     dataset id or file; ``learning.export.seen_test_epochs``): the first such line per dataset."""
-    from lfgnss.datasets import get
-    from lfgnss.paths import file_hashes
+    from lfgnss.datasets import obs_hashes
 
     from .export import seen_test_epochs
 
@@ -346,7 +345,7 @@ def _init_saw_blocks(init, whole: dict[str, list[Sequence]]) -> list[str]:
             continue
         times = np.concatenate([s.time_gps_s[s.labelled] for s in sequences])
         truth = np.concatenate([s.truth_ecef_m[s.labelled] for s in sequences])
-        seen = seen_test_epochs(init.metadata, dataset_id, times, truth, file_hashes(get(dataset_id).obs).values())
+        seen = seen_test_epochs(init.metadata, dataset_id, times, truth, obs_hashes(dataset_id))
         lines += [seen[0].replace(" test epochs", " epochs to cross-validate on")] if seen else []
     return lines
 

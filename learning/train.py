@@ -905,7 +905,11 @@ def _warn_ignored_config(config: dict | None, checkpoint: dict, overrides: list[
     if config is None:
         return
     given = {k.split("=", 1)[0].strip() for k in overrides}
-    was, now = _flat(_merge_free(DEFAULT_CONFIG, checkpoint["config"])), _flat(config)
+    was = _flat(_merge_free(DEFAULT_CONFIG, checkpoint["config"]))
+    try:                                            # files as the run recorded them (absolute), where they exist
+        now = _flat(_files_absolute(config))
+    except (KeyError, TypeError):                   # a configuration without those tables: compared as given
+        now = _flat(config)
     differ = sorted(k for k in was.keys() & now.keys() if was[k] != now[k] and k not in given
                     and not k.startswith(("model.", "data.features", "data.drop_features")))   # train.init's own
     if differ:

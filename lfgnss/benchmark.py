@@ -56,7 +56,7 @@ from . import datasets
 from .errors import (INPUT_ERRORS, InputError, cannot_write, input_line, one_line, path_option, run_command,
                      shortened, stdout_gone)
 from .metrics import METRIC_COLUMNS, accuracy_table, format_markdown, format_text, markdown_table
-from .paths import bundled_data_dir, file_hashes, make_output_folder
+from .paths import bundled_data_dir, make_output_folder
 from .sequence import Sequence
 
 MODEL_DIR = bundled_data_dir() / "model"
@@ -440,8 +440,7 @@ def models_that_saw_test_epochs(dataset_id: str, plugins: list[tuple[str, object
             models[str(path)] = meta
     if not models:
         return []
-    obs = file_hashes(datasets.get(dataset_id).obs).values()
-    scored = test.labelled
+    obs, scored = datasets.obs_hashes(dataset_id), test.labelled
     return [f"{dataset_id}: {Path(path).name} (rows {', '.join(repr(r) for r in rows_of[path])}) {line}"
             for path, meta in models.items()
             for line in seen_test_epochs(meta, dataset_id, test.time_gps_s[scored], test.truth_ecef_m[scored], obs)]

@@ -69,21 +69,27 @@ def model_path(model: str | os.PathLike) -> Path:
     return bundled_models().get(path.name, path)
 
 
-def file_hashes(paths: Iterable[str | os.PathLike]) -> dict[str, str]:
-    """SHA-256 (16 hex digits) of each file's content, by file name: a gzip file's decompressed, so that a file and
-    its compressed copy are one (the bundled drive's ``.obs.gz`` is berlin-pp's ``.obs``)."""
+def file_hashes(paths: Iterable[str | os.PathLike], *, content: bool = True) -> dict[str, str]:
+    """SHA-256 (16 hex digits) of each file, by file name: of its content, a gzip file's decompressed, so that a file
+    and its compressed copy are one (the bundled drive's ``.obs.gz`` is berlin-pp's ``.obs``); ``content=False``:
+    of its bytes as they are (gzip data that do not decompress whole count so too)."""
+    def digest(opener, path) -> str:
+        h = hashlib.sha256()
+        with opener(path, "rb") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                h.update(block)
+        return h.hexdigest()[:16]
+
     out = {}
     for path in paths:
-        h = hashlib.sha256()
         with open(path, "rb") as raw:
-            packed = raw.read(2) == b"\x1f\x8b"
-        with (gzip.open if packed else open)(path, "rb") as fh:
-            try:
-                for block in iter(lambda: fh.read(1 << 20), b""):
-                    h.update(block)
-            except (OSError, EOFError, zlib.error):      # damaged gzip data: its bytes as they are
-                h = hashlib.sha256(Path(path).read_bytes())
-        out[Path(path).name] = h.hexdigest()[:16]
+            packed = content and raw.read(2) == b"\x1f\x8b"
+        try:
+            out[Path(path).name] = digest(gzip.open if packed else open, path)
+        except (OSError, EOFError, zlib.error):
+            if not packed:
+                raise
+            out[Path(path).name] = digest(open, path)
     return out
 
 

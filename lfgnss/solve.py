@@ -249,7 +249,9 @@ def _solve(args) -> _Solved:
             truth = None
         else:
             fixed = np.where(fix.ok[:, None], fix.pos_ecef_m, np.nan)
-            for note in datasets.truth_fit_notes(spec, meas.time_gps_s, truth, fixed):
+            read_with = spec if args.truth_origin is not None else replace(      # the origin align_truth took: the
+                spec, time_origin_gps_s=float(observations.time_gps_s[0]))       # file's first epoch, not --start's
+            for note in datasets.truth_fit_notes(read_with, meas.time_gps_s, truth, fixed):
                 print(f"warning: {note}", file=sys.stderr)
     from .sequence import DEFAULT_FEATURES
 

@@ -217,13 +217,18 @@ def test_an_id_registered_by_another_toml_file_is_refused(tmp_path, sample_toml,
     """Review: two TOML files of one id, the last silently won."""
     first = datasets.register_toml(sample_toml("my-drive"))
     assert datasets.register_toml(sample_toml("my-drive")) == first                 # the same file again: fine
-    other = tmp_path / "elsewhere" / "my-drive.toml"
-    other.parent.mkdir()
-    other.write_text(sample_toml("my-drive").read_text().replace('systems = ["G", "R"]', 'systems = ["G"]'))
+    text = sample_toml("my-drive").read_text()
+    copy, other = tmp_path / "copy" / "my-drive.toml", tmp_path / "other" / "my-drive.toml"
+    for path, content in ((copy, text), (other, text.replace('systems = ["G", "R"]', 'systems = ["G"]'))):
+        path.parent.mkdir()
+        path.write_text(content)
+    assert datasets.register_toml(copy).source == copy  # the same dataset from another file (a notebook cell again)
     with pytest.raises(InputError, match=rf"{re.escape(str(other))}: id 'my-drive' is registered already, by "
-                                         rf"{re.escape(str(sample_toml('my-drive')))}; give each dataset its own id"):
+                                         rf"{re.escape(str(copy))}, for another dataset; give each dataset its own id"):
         datasets.register_toml(other)
     assert datasets.get("my-drive").systems == ("G", "R")
+    copy.write_text(text.replace('systems = ["G", "R"]', 'systems = ["G"]'))       # its own file edited: replaced
+    assert datasets.register_toml(copy).systems == ("G",)
 
 
 @pytest.mark.parametrize("value", ["-1", "0", "inf", "nan", '"0.5"', "true"])

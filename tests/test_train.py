@@ -581,3 +581,19 @@ def test_resuming_from_python_says_what_it_ignores_and_a_schedule_taken_past_its
         train(None, tmp_path, resume=True, overrides=["train.epochs=2"], progress=False, prepared=prepared)
     with pytest.raises(ValueError, match="config is None; give a configuration"):
         train(None, tmp_path / "new", progress=False)
+
+
+def test_a_run_records_its_files_absolute_and_resumes_from_python_with_them_as_given(config, prepared, tmp_path,
+                                                                                     monkeypatch):
+    """Review: recorded absolute, data.register given relative again on resume warned of a config other than the
+    checkpoint's."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "mine.toml").write_text('id = "mine"\n')             # not read: the data are synthetic
+    cfg = copy.deepcopy(config)
+    cfg["train"]["epochs"], cfg["data"]["register"] = 1, ["mine.toml"]
+    train(cfg, tmp_path / "run", progress=False, prepared=prepared)
+    saved = torch.load(tmp_path / "run" / "last.pt", weights_only=False)
+    assert saved["config"]["data"]["register"] == [str(tmp_path / "mine.toml")]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        train(cfg, tmp_path / "run", resume=True, overrides=["train.epochs=2"], progress=False, prepared=prepared)
