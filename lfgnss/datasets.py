@@ -159,8 +159,9 @@ def register(spec: DatasetSpec) -> DatasetSpec:
     files, truth, splits or settings) under that id already. The same file again (edited, say), or the same dataset
     from another file, replaces it."""
     other = _REGISTRY.get(spec.id)
-    if (other is not None and spec.source and other.source and Path(other.source).resolve() != Path(spec.source).resolve()
-            and replace(other, source=spec.source) != spec):
+    another_file = other is not None and spec.source and other.source and Path(other.source).resolve() != Path(
+        spec.source).resolve()
+    if another_file and replace(other, source=spec.source) != spec:
         raise InputError(spec.source, f"id {spec.id!r} is registered already, by {other.source}, for another dataset; "
                                       "give each dataset its own id")
     _REGISTRY[spec.id] = spec
@@ -847,7 +848,8 @@ def epochs_in_split(dataset_id: str, split: str, time_gps_s: np.ndarray) -> int 
 
 
 def empty_split_words(seq: Sequence, spec: DatasetSpec, split: str) -> str:
-    """Why ``split`` of ``seq`` has no labelled epoch, in words: its bounds and where the labelled epochs lie on the axis."""
+    """Why ``split`` of ``seq`` has no labelled epoch, in words: its bounds, and where the labelled epochs lie on its
+    axis."""
     span = split_axis_values(seq, spec)[seq.labelled]
     bounds = ", ".join(f"{part} = [{spec.splits[part][0]:.10g}, {spec.splits[part][1]:.10g})"
                        for part in split_parts(split) if part in spec.splits)
