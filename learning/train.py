@@ -354,7 +354,7 @@ def _files_absolute(config: dict) -> dict:
     current folder, so that the run's checkpoints and model file (``--resume``, ``learning.export --show --config``)
     reproduce it from any folder; a bundled model's name stays one."""
     def absolute(path: str) -> str:
-        return str(Path(path).absolute()) if path and names_something(path) else path
+        return str(Path(path).resolve()) if path and names_something(path) else path
 
     init = config["train"]["init"]
     return {**config, "data": {**config["data"], "register": [absolute(p) for p in config["data"]["register"]]},

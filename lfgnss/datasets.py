@@ -161,11 +161,18 @@ def register(spec: DatasetSpec) -> DatasetSpec:
     other = _REGISTRY.get(spec.id)
     another_file = other is not None and spec.source and other.source and Path(other.source).resolve() != Path(
         spec.source).resolve()
-    if another_file and replace(other, source=spec.source) != spec:
+    if another_file and _dataset_key(other) != _dataset_key(spec):
         raise InputError(spec.source, f"id {spec.id!r} is registered already, by {other.source}, for another dataset; "
                                       "give each dataset its own id")
     _REGISTRY[spec.id] = spec
     return spec
+
+
+def _dataset_key(spec: DatasetSpec) -> DatasetSpec:
+    """What tells datasets apart: files resolved (``..``, links), without the TOML it came from or its description."""
+    files = lambda paths: tuple(Path(p).resolve() for p in paths)     # noqa: E731
+    return replace(spec, obs=files(spec.obs), nav=files(spec.nav), truth=Path(spec.truth).resolve(), source=None,
+                   description="")
 
 
 #: The keys a dataset TOML may hold, at the top and in its tables (see the module docstring).
@@ -493,6 +500,8 @@ TRUTH_READERS = {"urbannav": read_urbannav, "smartloc": read_smartloc, "static":
 #: A truth lying a median farther than this from the coarse least-squares fixes is likely of another drive or place
 #: [m]: the median least-squares error is 40 to 90 m on the three benchmark datasets (200 m at worst on an epoch).
 TRUTH_MISMATCH_M = 1000.0
+#: Unix time of the GPS epoch 1980-01-06 [s] (leap seconds aside).
+UNIX_TO_GPS_S = 315964800.0
 #: Time shifts of a moving truth tried against the coarse fixes [s]: a wrong smartloc origin, UTC stamps (17-18 s).
 TRUTH_SHIFTS_S = np.arange(-60.0, 60.0 + 1e-9, 0.5)
 #: A shift is taken for the truth's when it brings the truth's median horizontal distance from the coarse fixes to at
@@ -503,13 +512,17 @@ TRUTH_SHIFTS_S = np.arange(-60.0, 60.0 + 1e-9, 0.5)
 #: 5 s early or 9 s late; a second or two never.
 TRUTH_SHIFT_RATIO = 0.6
 TRUTH_SHIFT_GAIN_M = 15.0
-#: Shorter stretches of epochs with truth and a fix are not checked [s]: over 20-30 s the fixes' slowly varying
-#: error fits a shifted truth better on 3-8 % of the benchmark drives' windows with right truth (none from 45 s).
+#: Shorter stretches of epochs with truth and a fix are not checked [s], nor ones holding less than half this of
+#: epochs: over 20-30 s the fixes' slowly varying error fits a shifted truth better on 3-8 % of the benchmark drives'
+#: windows with right truth (none from 45 s), and two 5-10 s pieces far apart on 1-4 % of such pairs.
 TRUTH_SHIFT_MIN_SPAN_S = 120.0
-#: The scan reads at most this many epochs, evenly spread (a 10 h drive at 10 Hz costs what a 5-minute one does).
+#: The scan reads at most this many epochs, evenly spread (the truth file is read again all the same).
 TRUTH_SHIFT_EPOCHS = 3000
-#: A best shift this close to -(GPST - UTC) [s], whose UTC reading fits too, is named as UTC stamps.
+#: A best shift this close to -(GPST - UTC) [s], whose UTC reading fits too and lies at most this factor from the
+#: best shift's median, is named as UTC stamps (the bundled drive stamped in UTC: 1.19; hk-tst-2019's truth 16 or
+#: 20 s early read as UTC: 1.6-1.7).
 TRUTH_SHIFT_UTC_S = 2.5
+TRUTH_SHIFT_UTC_RATIO = 1.25
 
 
 def truth_fit_notes(spec: DatasetSpec, time_gps_s: np.ndarray, truth_ecef_m: np.ndarray,
@@ -554,6 +567,9 @@ def unmatched_time_words(spec: DatasetSpec, time_gps_s: np.ndarray) -> str:
                 f"time of week), and {epochs}")
     if spec.truth_format == "ecef-csv" and np.min(time_gps_s) - 86400 <= first / 1000 <= np.max(time_gps_s) + 86400:
         return f"; {span} look like milliseconds: ecef-csv times are seconds, and {epochs}"
+    if spec.truth_format == "ecef-csv" and abs(first - UNIX_TO_GPS_S - np.min(time_gps_s)) <= 86400:
+        return (f"; {span} look like Unix times (seconds since 1970, UTC): ecef-csv times are GPS seconds since "
+                f"1980-01-06, {UNIX_TO_GPS_S:.0f} s fewer (and GPST - UTC more), and {epochs}")
     return f"; {span.replace('its times', 'its GPS times')} miss them: {epochs}"
 
 
@@ -577,12 +593,14 @@ def truth_shift_note(spec: DatasetSpec, time_gps_s: np.ndarray, truth_ecef_m: np
     from .time import leap_seconds
 
     time_gps_s = np.asarray(time_gps_s, dtype=float)
+    origin = time_gps_s[0] if spec.time_origin_gps_s is None else spec.time_origin_gps_s    # as align_truth read it
     both = np.flatnonzero(np.isfinite(truth_ecef_m).all(axis=1) & np.isfinite(fix_ecef_m).all(axis=1))
-    if both.size < 10 or np.ptp(time_gps_s[both]) < TRUTH_SHIFT_MIN_SPAN_S:
+    step = float(np.median(np.diff(time_gps_s))) if time_gps_s.size > 1 else 0.0
+    if (both.size < 10 or np.ptp(time_gps_s[both]) + step < TRUTH_SHIFT_MIN_SPAN_S
+            or both.size * step < TRUTH_SHIFT_MIN_SPAN_S / 2):
         return None         # a short stretch: the fixes' slowly varying error can fit a shift better by chance
     both = both[np.unique(np.linspace(0, both.size - 1, min(both.size, TRUTH_SHIFT_EPOCHS)).astype(int))]
     time_gps_s, fix_ecef_m = time_gps_s[both], np.asarray(fix_ecef_m, float)[both]
-    origin = time_gps_s[0] if spec.time_origin_gps_s is None else spec.time_origin_gps_s
     t_truth, xyz, _ = TRUTH_READERS[spec.truth_format](spec.truth, replace(spec, time_origin_gps_s=float(origin)))
     order = np.argsort(t_truth, kind="stable")
     t_truth, xyz = t_truth[order], xyz[order]
@@ -601,7 +619,7 @@ def truth_shift_note(spec: DatasetSpec, time_gps_s: np.ndarray, truth_ecef_m: np
     def words(shifted_m: float, shift_s: float, about: str = "") -> str:
         change = f"{about}{abs(shift_s):g} s {'added to' if shift_s < 0 else 'taken from'} its times"
         return (f"{spec.truth}: the truth lies a median {shifted_m:.0f} m horizontally from the receiver's "
-                f"least-squares fixes with {change}, against {unshifted:.0f} m as stamped (on {n} epochs)")
+                f"least-squares fixes with {change}, against {unshifted:.0f} m as stamped (on {n} epochs checked)")
 
     unshifted, n = median_m(0.0)
     best_m, shift = min((m, s) for s in TRUTH_SHIFTS_S for m, k in [median_m(float(s))] if k >= 0.8 * n)
@@ -610,7 +628,7 @@ def truth_shift_note(spec: DatasetSpec, time_gps_s: np.ndarray, truth_ecef_m: np
     leap = float(np.median(leap_seconds(time_gps_s)))
     if spec.truth_format in ("urbannav", "ecef-csv") and abs(shift + leap) <= TRUTH_SHIFT_UTC_S:
         as_utc = median_m(-leap)        # UTC stamps: GPST - UTC too few seconds
-        if as_utc[1] >= 0.8 * n and fits(as_utc[0]):
+        if as_utc[1] >= 0.8 * n and fits(as_utc[0]) and as_utc[0] <= TRUTH_SHIFT_UTC_RATIO * best_m:
             return (f"{words(as_utc[0], -leap)}: are its times UTC? {spec.truth_format} times are GPST (GPST - UTC = "
                     f"{leap:g} s here); shift them by that much, it is scored as GPST all the same")
     if spec.truth_format == "smartloc":

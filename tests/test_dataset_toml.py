@@ -3,6 +3,7 @@ line naming the TOML file (and the key), never silently ignored, never a traceba
 from __future__ import annotations
 
 import re
+import warnings
 
 import pytest
 
@@ -236,3 +237,32 @@ def test_a_match_tolerance_that_is_no_positive_number_is_refused(sample_toml, cl
     path = _edited(sample_toml, "tol", 'format = "smartloc"', f'format = "smartloc"\nmatch_tolerance_s = {value}')
     with pytest.raises(InputError, match=r"match_tolerance_s in \[truth\] must be a number of seconds > 0"):
         datasets.register_toml(path)
+
+
+def test_a_truth_starting_late_without_an_origin_gets_no_time_warning(tmp_path, sample_toml, clean_registry):
+    """Review: the check took t = 0 at the first epoch with truth and a fix, not at the first epoch (as the truth was
+    read), and warned of a wrong origin for a truth that starts 20 s into the drive."""
+    from lfgnss.solve import SAMPLE_TRUTH
+
+    rows = [line for line in SAMPLE_TRUTH.read_text().splitlines() if float(line.split()[1]) >= 20.0]
+    (tmp_path / "late.txt").write_text("\n".join(rows) + "\n")
+    path = sample_toml("late-truth", truth=tmp_path / "late.txt")
+    path.write_text("\n".join(line for line in path.read_text().splitlines() if "time_origin_gps_s" not in line))
+    datasets.register_toml(path)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        seq = datasets.build("late-truth")
+    assert 1200 < seq.labelled.sum() < 1372
+
+
+def test_the_same_dataset_spelled_otherwise_from_another_file_is_accepted(tmp_path, sample_toml, clean_registry):
+    """Review: two TOMLs naming one truth file as ../data/gt.txt from sibling folders were refused as different."""
+    from lfgnss.solve import SAMPLE_TRUTH
+
+    (tmp_path / "data").mkdir()
+    (tmp_path / "data" / "gt.txt").write_text(SAMPLE_TRUTH.read_text())
+    text = sample_toml("same").read_text().replace(str(SAMPLE_TRUTH), "../data/gt.txt")
+    for folder, description in (("a", ""), ("b", 'description = "my notes"\n')):
+        (tmp_path / folder).mkdir()
+        (tmp_path / folder / "same.toml").write_text(description + text)
+        assert datasets.register_toml(tmp_path / folder / "same.toml").source == tmp_path / folder / "same.toml"

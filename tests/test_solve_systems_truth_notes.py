@@ -111,7 +111,7 @@ def test_a_truth_stamped_in_utc_is_warned_of_and_still_scored(tmp_path, capsys, 
     assert main([*FAST, *SAMPLE, "--out", str(tmp_path / "o"), "--truth", str(utc), "--truth-format", "ecef-csv"]) == 0
     captured = capsys.readouterr()
     said = (rf"{re.escape(str(utc))}: the truth lies a median [23]\d m horizontally from the receiver's least-squares "
-            r"fixes with 17 s added to its times, against 1\d\d m as stamped \(on 1[23]\d\d epochs\): are its times "
+            r"fixes with 17 s added to its times, against 1\d\d m as stamped \(on 1[23]\d\d epochs checked\): are its times "
             r"UTC\? ecef-csv times are GPST \(GPST - UTC = 17 s here\); shift them by that much, it is scored as GPST "
             r"all the same")
     assert re.fullmatch(rf"warning: {said}\n", captured.err), captured.err
@@ -134,7 +134,7 @@ def test_a_smartloc_truth_of_a_wrong_origin_is_warned_of_with_the_origin_that_fi
     err = capsys.readouterr().err
     found = re.fullmatch(rf"warning: {re.escape(str(SAMPLE_TRUTH))}: the truth lies a median \d+ m horizontally from "
                          r"the receiver's least-squares fixes with about (\d+(?:\.\d)?) s (added to|taken from) its times, against "
-                         r"\d+ m as stamped \(on \d+ epochs\): a wrong --truth-origin\? About GPS (\d+\.\d) s fits; it is "
+                         r"\d+ m as stamped \(on \d+ epochs checked\): a wrong --truth-origin\? About GPS (\d+\.\d) s fits; it is "
                          r"scored as stamped all the same\n", err)
     assert found, err
     fitted = float(found.group(3))
@@ -148,7 +148,7 @@ def test_an_ecef_csv_truth_seconds_off_is_warned_of(tmp_path, capsys, berlin):
     err = capsys.readouterr().err
     assert re.fullmatch(rf"warning: {re.escape(str(late))}: the truth lies a median \d+ m horizontally from the "
                         r"receiver's least-squares fixes with about 1[2-8](?:\.\d)? s taken from its times, against \d+ m as stamped "
-                        r"\(on \d+ epochs\): are its times off\? It is scored as stamped all the same\n", err), err
+                        r"\(on \d+ epochs checked\): are its times off\? It is scored as stamped all the same\n", err), err
 
 
 def test_the_bundled_sample_with_its_own_truth_gives_no_warning(tmp_path, capsys):
