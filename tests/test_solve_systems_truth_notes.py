@@ -307,11 +307,14 @@ def test_a_mask_that_leaves_no_fix_is_named_as_the_cause(tmp_path, capsys):
 
 @pytest.mark.parametrize("unit, said", [("tow", "look like times of week: ecef-csv times are GPS seconds since "
                                                 "1980-01-06 (week * 604800 + time of week)"),
-                                        ("ms", "look like milliseconds: ecef-csv times are seconds")])
+                                        ("ms", "look like milliseconds: ecef-csv times are seconds"),
+                                        ("unix", "look like Unix times (seconds since 1970, UTC): ecef-csv times are GPS "
+                                                 "seconds since 1980-01-06, 315964800 s fewer")])
 def test_an_ecef_csv_truth_in_other_units_says_so(tmp_path, capsys, berlin, unit, said):
     """Review: times of week or milliseconds in an ecef-csv truth only got 'check --truth-format ecef-csv'."""
     t, truth = berlin
-    stamps = t - SECONDS_PER_WEEK * np.floor(t / SECONDS_PER_WEEK) if unit == "tow" else t * 1000.0
+    stamps = {"tow": t - SECONDS_PER_WEEK * np.floor(t / SECONDS_PER_WEEK), "ms": t * 1000.0,
+              "unix": t + 315964800.0 - 17.0}[unit]
     path = _ecef_csv(tmp_path / f"{unit}.csv", stamps, truth)
     assert main([*FAST, *SAMPLE, "--out", str(tmp_path / "o"), "--truth", str(path), "--truth-format", "ecef-csv"]) == 0
     err = capsys.readouterr().err
