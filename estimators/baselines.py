@@ -63,9 +63,7 @@ class LeastSquaresBaseline:
 def plausible_fix(pos_ecef_m: np.ndarray, sequence: Sequence, config: SppConfig = SppConfig()) -> np.ndarray:
     """(T,) bool: fixes [m] the coarse fix would keep: ellipsoidal height within ``config.height_range_m`` and GDOP of
     the used satellites in (0, ``config.max_gdop``]. An epoch without redundancy can land kilometres off (underground,
-    in orbit); ``lfgnss.spp`` marks such fixes "implausible height" and "bad geometry", and so do the baselines.
-
-    """
+    in orbit); ``lfgnss.spp`` marks such fixes "implausible height" and "bad geometry", and so do the baselines."""
     pos = np.where(np.isfinite(pos_ecef_m), pos_ecef_m, 0.0)
     height = ecef_to_lla(pos)[:, 2]
     low, high = config.height_range_m

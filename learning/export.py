@@ -804,6 +804,11 @@ def _numbers(value: object, n: int) -> list[float] | None:
     return [float(v) for v in value] if ok else None
 
 
+def _used_as(split: object) -> str:
+    """How a model used a piece of the split named ``split``: validation selects the model, the rest trains it."""
+    return "selected on" if split in ("val", "validation") else "trained on"
+
+
 def seen_test_epochs(metadata: dict, dataset_id: str, test_time_gps_s: np.ndarray, test_truth_ecef_m: np.ndarray,
                      obs_hashes: Iterable[str] = ()) -> list[str]:
     """Where a model (or a model it was fine-tuned from) was trained or selected on test epochs: one line each.
@@ -829,8 +834,7 @@ def seen_test_epochs(metadata: dict, dataset_id: str, test_time_gps_s: np.ndarra
             reach = SAME_PLACE_M + (radius or 0.0) + (span["radius_m"] if _is_number(span.get("radius_m")) else 0.0)
             near = where is None or radius is None or np.linalg.norm(np.asarray(where) - centre) <= reach
             if n and near:
-                done = "selected on" if span.get("split") in ("val", "validation") else "trained on"
-                lines.append(f"{via}{done} {span.get('sequence')} ({span.get('dataset')} {span.get('split')}, GPS "
+                lines.append(f"{via}{_used_as(span.get('split'))} {span.get('sequence')} ({span.get('dataset')} {span.get('split')}, GPS "
                              f"{t[0]:.1f}-{t[1]:.1f} s), which holds {n} of {dataset_id}'s {times.size} test epochs")
         files = record.get("source_files") or {}
         pieces = [] if spans else [p for p in record.get("data_fingerprints") or [] if isinstance(p, dict)]
@@ -843,7 +847,7 @@ def seen_test_epochs(metadata: dict, dataset_id: str, test_time_gps_s: np.ndarra
                 lines.append(f"{via}trained on dataset {ds}, which reads {dataset_id}'s observation file(s); the model "
                              "does not record which epochs (it predates data_spans), so its training may hold test "
                              "epochs")
-            lines += [f"{via}{'selected on' if split == 'val' else 'trained on'} {ds} {split} (as its splits are "
+            lines += [f"{via}{_used_as(split)} {ds} {split} (as its splits are "
                       f"registered now; the model predates data_spans), which holds {n} of {dataset_id}'s "
                       f"{times.size} test epochs" for split, n in zip(splits, hits) if n]
         record = record.get("init_model")

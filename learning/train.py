@@ -692,8 +692,7 @@ def _split_hint(dataset_id: str, split: str) -> str:
     spec = datasets.registered().get(dataset_id)
     if spec is None:
         return ""
-    bounds = ", ".join(f"{part} = [{spec.splits[part][0]:g}, {spec.splits[part][1]:g})"
-                       for part in datasets.split_parts(split) if part in spec.splits)
+    bounds = datasets.split_bounds_words(spec, split)
     where = f" in {spec.source}" if spec.source else ""
     return (f": [splits] axis = {spec.split_axis!r}, {bounds or 'no such split'}{where}; check them against the drive "
             f"(python -m lfgnss.datasets{' --register ' + str(spec.source) if spec.source else ''})")

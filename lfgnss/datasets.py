@@ -601,9 +601,7 @@ def truth_shift_note(spec: DatasetSpec, time_gps_s: np.ndarray, truth_ecef_m: np
         return None         # a short stretch: the fixes' slowly varying error can fit a shift better by chance
     both = both[np.unique(np.linspace(0, both.size - 1, min(both.size, TRUTH_SHIFT_EPOCHS)).astype(int))]
     time_gps_s, fix_ecef_m = time_gps_s[both], np.asarray(fix_ecef_m, float)[both]
-    t_truth, xyz, _ = TRUTH_READERS[spec.truth_format](spec.truth, replace(spec, time_origin_gps_s=float(origin)))
-    order = np.argsort(t_truth, kind="stable")
-    t_truth, xyz = t_truth[order], xyz[order]
+    t_truth, xyz, _ = _sorted_truth_rows(spec, origin)
     ref = np.median(np.asarray(truth_ecef_m, float)[both], axis=0)
     fix_en = ecef_to_enu(fix_ecef_m, ref)[:, :2]
 
@@ -666,7 +664,7 @@ def align_truth(time_gps_s: np.ndarray, spec: DatasetSpec) -> tuple[np.ndarray, 
     if spec.time_origin_gps_s is None:
         spec = replace(spec, time_origin_gps_s=float(time_gps_s[0]) if time_gps_s.size else 0.0)
     try:
-        t_truth, xyz, bad = TRUTH_READERS[spec.truth_format](spec.truth, spec)
+        t_truth, xyz, bad = _sorted_truth_rows(spec, spec.time_origin_gps_s)
     except InputError as err:
         other = _readable_as(spec.truth, spec.truth_format) if spec.truth_format in _ROW_LAYOUTS else None
         if other is None:
@@ -680,8 +678,6 @@ def align_truth(time_gps_s: np.ndarray, spec: DatasetSpec) -> tuple[np.ndarray, 
                                    f"{other!r}: give {give})", line=err.line) from None
     if spec.truth_format == "static":
         return np.broadcast_to(xyz[0], (time_gps_s.size, 3)).copy(), bad
-    order = np.argsort(t_truth, kind="stable")
-    t_truth, xyz = t_truth[order], xyz[order]
     truth = _truth_at(time_gps_s, t_truth, xyz, spec.match_tolerance_s)
     ok = np.isfinite(truth).all(axis=1)
     inside = (time_gps_s >= t_truth[0]) & (time_gps_s <= t_truth[-1])
@@ -692,6 +688,15 @@ def align_truth(time_gps_s: np.ndarray, spec: DatasetSpec) -> tuple[np.ndarray, 
                       f"{spec.time_origin_gps_s:.1f} s); if these epochs do not start where the truth does, give the "
                       "GPS time of its t = 0 (time_origin_gps_s, --truth-origin)", stacklevel=3)
     return truth, bad
+
+
+def _sorted_truth_rows(spec: DatasetSpec, first_epoch_gps_s: float) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """A truth file's rows in time order: times [GPS s] (a smartloc file's counted from ``spec.time_origin_gps_s``,
+    else from ``first_epoch_gps_s``), ECEF [m], and the reader's notes."""
+    origin = first_epoch_gps_s if spec.time_origin_gps_s is None else spec.time_origin_gps_s
+    t_truth, xyz, bad = TRUTH_READERS[spec.truth_format](spec.truth, replace(spec, time_origin_gps_s=float(origin)))
+    order = np.argsort(t_truth, kind="stable")
+    return t_truth[order], xyz[order], bad
 
 
 def _truth_at(time_gps_s: np.ndarray, t_truth: np.ndarray, xyz: np.ndarray, tolerance_s: float) -> np.ndarray:
@@ -855,22 +860,23 @@ def epochs_in_split(dataset_id: str, split: str, time_gps_s: np.ndarray) -> int 
     bounds = [spec.splits.get(part) for part in split_parts(split)] if spec else [None]
     if None in bounds or spec.split_axis not in ("tow", "relative_s"):
         return None
-    t = np.asarray(time_gps_s, float)
-    if spec.split_axis == "tow":
-        axis = np.round(gps_s_to_week_tow(t)[1], 1)
-    elif spec.time_origin_gps_s is None:
-        return None
-    else:
-        axis = np.round(t - spec.time_origin_gps_s, 1)
+    if spec.split_axis == "relative_s" and spec.time_origin_gps_s is None:
+        return None                                 # counted from the dataset's first epoch, which needs its data
+    axis = _time_axis_values(np.asarray(time_gps_s, float), spec, spec.time_origin_gps_s)
     return int(sum(np.sum((axis >= start) & (axis < stop)) for start, stop in bounds))
+
+
+def split_bounds_words(spec: DatasetSpec, split: str) -> str:
+    """``val = [150, 180)`` for each part of ``split`` that ``spec`` has (bounds on its axis), joined by commas."""
+    return ", ".join(f"{part} = [{spec.splits[part][0]:.10g}, {spec.splits[part][1]:.10g})"
+                     for part in split_parts(split) if part in spec.splits)
 
 
 def empty_split_words(seq: Sequence, spec: DatasetSpec, split: str) -> str:
     """Why ``split`` of ``seq`` has no labelled epoch, in words: its bounds, and where the labelled epochs lie on its
     axis."""
     span = split_axis_values(seq, spec)[seq.labelled]
-    bounds = ", ".join(f"{part} = [{spec.splits[part][0]:.10g}, {spec.splits[part][1]:.10g})"
-                       for part in split_parts(split) if part in spec.splits)
+    bounds = split_bounds_words(spec, split)
     where = (f"the labelled epochs span [{span.min():.10g}, {span.max():.10g}] on it" if span.size
              else "no epoch has truth")
     return f"[splits] axis = {spec.split_axis!r}, {bounds} holds no labelled epoch of dataset {spec.id} ({where})"
@@ -879,15 +885,21 @@ def empty_split_words(seq: Sequence, spec: DatasetSpec, split: str) -> str:
 def split_axis_values(seq: Sequence, spec: DatasetSpec) -> np.ndarray:
     """(T,) each epoch's place on ``spec``'s split axis: time of week [s], seconds since the truth origin [s] (both to
     0.1 s), or the index among labelled epochs (-1 for an unlabelled one)."""
-    if spec.split_axis == "tow":
-        return np.round(gps_s_to_week_tow(seq.time_gps_s)[1], 1)
-    if spec.split_axis == "relative_s":
-        origin = seq.time_gps_s[0] if spec.time_origin_gps_s is None else spec.time_origin_gps_s
-        return np.round(seq.time_gps_s - origin, 1)
+    if spec.split_axis in ("tow", "relative_s"):
+        return _time_axis_values(seq.time_gps_s, spec, seq.time_gps_s[0] if len(seq) else 0.0)
     if spec.split_axis == "epoch":
         labelled = seq.labelled
         return np.where(labelled, np.cumsum(labelled) - 1, -1)
     raise ValueError(f"dataset {spec.id}: unknown split axis {spec.split_axis!r}")
+
+
+def _time_axis_values(time_gps_s: np.ndarray, spec: DatasetSpec, first_epoch_gps_s: float) -> np.ndarray:
+    """Epoch times [GPS s] on a ``tow`` or ``relative_s`` split axis, to 0.1 s: the time of week [s], or the seconds
+    since ``spec.time_origin_gps_s`` (else since ``first_epoch_gps_s``)."""
+    if spec.split_axis == "tow":
+        return np.round(gps_s_to_week_tow(time_gps_s)[1], 1)
+    origin = first_epoch_gps_s if spec.time_origin_gps_s is None else spec.time_origin_gps_s
+    return np.round(time_gps_s - origin, 1)
 
 
 def present(dataset_ids, report=print) -> list[str]:
