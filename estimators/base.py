@@ -130,9 +130,13 @@ class Solution:
         return np.where(known[:, None], sd, np.nan)
 
     def subset(self, index: slice | np.ndarray | int) -> "Solution":
-        """Epochs selected by a slice, boolean mask, index array or one index, as a new Solution (and info's arrays)."""
+        """Epochs selected by a slice, boolean mask, index array or one index, as a new Solution (and info's arrays).
+
+        A mask of another length or an index out of range is an IndexError naming Solution.subset and the lengths.
+        """
         t = len(self)
-        index = np.array([index]) if isinstance(index, (int, np.integer)) else index
+        index = np.array([index]) if isinstance(index, (int, np.integer)) and not isinstance(index, bool) else index
+        check_epoch_index(index, t, "Solution.subset")
         per_epoch = {k: np.asarray(v)[index] for k, v in self.info.items()
                      if isinstance(v, np.ndarray) and v.ndim and v.shape[0] == t}
         arrays = {k: getattr(self, k)[index] for k in ("time_gps_s", "pos_ecef_m", "cov_ecef_m2", "clock_m",
@@ -145,6 +149,22 @@ class Solution:
         from lfgnss.outputs import solution_frame
 
         return solution_frame(self, truth_ecef_m)
+
+
+def check_epoch_index(index: object, n_epochs: int, owner: str) -> None:
+    """IndexError naming ``owner`` when ``index`` (a mask or integer indices; a slice always fits) does not fit
+    ``n_epochs`` epochs: a boolean mask of another length, or an index out of range."""
+    if isinstance(index, slice):
+        return
+    arr = np.asarray(index)
+    if arr.dtype == bool:
+        if arr.shape != (n_epochs,):
+            raise IndexError(f"{owner}: a boolean mask of shape {arr.shape} for {n_epochs} epochs; give one of "
+                             f"length {n_epochs}")
+    elif np.issubdtype(arr.dtype, np.integer):
+        bad = arr[(arr >= n_epochs) | (arr < -n_epochs)]
+        if bad.size:
+            raise IndexError(f"{owner}: epoch index {int(bad.flat[0])} is out of range for {n_epochs} epochs")
 
 
 @runtime_checkable

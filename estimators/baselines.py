@@ -45,7 +45,7 @@ class LeastSquaresBaseline:
             r = np.ones(sequence.mask.shape)
         else:
             r, _ = checked_noise(self.name, sequence.name, sequence.mask,
-                                 *noise_output(self.name, self.noise(sequence)))
+                                 *noise_output(self.name, self.noise(sequence), self.noise), self.noise)
             sequence = keep_slots(sequence, switched_on(sequence.mask, r))      # R > R_OFF_M2: satellite off
         fix = weighted_least_squares(sequence.pr_m, sequence.sat_pos_ecef_m, sequence.system_index, sequence.mask,
                                      len(sequence.systems), fill_from_nearest_epoch(sequence.coarse_ecef_m), r,

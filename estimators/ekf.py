@@ -15,7 +15,8 @@ Per epoch ``k`` (models in ``estimators.models``)::
 so ``x = x^- + K (pr - h + vc)`` as in the paper. The Solution reports ``P_pos max(1, f)``, f a running mean of
 the pseudorange residuals' variance factor (``estimators.consistency``; ``inflate_cov=False``: ``P_pos``).
 Initialisation and resets take the coarse fix
-(``Sequence.coarse_ecef_m`` / ``coarse_clock_m``) with covariance P0 and then update with the
+(``Sequence.coarse_ecef_m`` / ``coarse_clock_m``; where only the clock is NaN, the epoch's pseudoranges give it,
+``coarse_clocks``) with covariance P0 and then update with the
 epoch's satellites, twice if a satellite's post-fit residual exceeds ``gate_sigma sqrt(r)`` (the
 second time without those satellites). Resets happen when the filter has no state yet, after a gap
 longer than ``max_gap_s``, when most usable satellites fail the gate (``reset_gated_fraction``; not in the epoch
@@ -60,14 +61,45 @@ def compensated_pseudorange(pr_m: np.ndarray, vc_m: np.ndarray) -> np.ndarray:
     return pr_m + vc_m
 
 
-def coarse_available(sequence: Sequence) -> np.ndarray:
-    """(T,) bool: epochs whose coarse fix can (re-)initialise the filter (position and clock finite)."""
-    return np.isfinite(sequence.coarse_ecef_m).all(-1) & np.isfinite(sequence.coarse_clock_m[:, 0])
+def coarse_available(sequence: Sequence, coarse_clock_m: np.ndarray | None = None) -> np.ndarray:
+    """(T,) bool: epochs whose coarse fix can (re-)initialise the filter (position and clock finite); the clock
+    from ``coarse_clock_m`` (T, C) [m] where given (``coarse_clocks``), else the sequence's."""
+    clock = sequence.coarse_clock_m if coarse_clock_m is None else coarse_clock_m
+    return np.isfinite(sequence.coarse_ecef_m).all(-1) & np.isfinite(clock[:, 0])
 
 
-def config_of(noise: NoiseModel) -> EkfConfig:
+def coarse_clocks(sequence: Sequence, usable: np.ndarray, owner: str) -> np.ndarray:
+    """(T, C) coarse receiver clock and ISBs [m]: ``coarse_clock_m``, and at an epoch with a coarse position but no
+    coarse clock, the one its ``usable`` (T, N) pseudoranges give at that position (``models.pseudorange_clock_m``).
+
+    Where no usable satellite gives one, a warning naming ``owner`` and ``coarse_clock_m`` says the epoch cannot
+    (re)start the filter. Finite coarse clocks are kept as they are.
+    """
+    clock = np.array(sequence.coarse_clock_m, float)
+    missing = np.isfinite(sequence.coarse_ecef_m).all(-1) & ~np.isfinite(clock[:, 0])
+    n_sys = len(sequence.systems)
+    for k in np.flatnonzero(missing):
+        clock[k] = models.pseudorange_clock_m(sequence.pr_m[k], sequence.sat_pos_ecef_m[k], sequence.system_index[k],
+                                              usable[k], sequence.coarse_ecef_m[k], n_sys)
+    left = missing & ~np.isfinite(clock[:, 0])
+    if left.any():
+        warnings.warn(f"{owner}: coarse_clock_m of {sequence.name!r} is NaN at {int(left.sum())} epochs with a coarse "
+                      f"position and no usable pseudorange to take a clock from (first at epoch "
+                      f"{int(np.argmax(left))}): they cannot (re)start the filter; give finite coarse clocks "
+                      f"(lfgnss.build_sequence does)", UserWarning, stacklevel=caller_stacklevel())
+    return clock
+
+
+def config_of(noise: NoiseModel | str | os.PathLike | None) -> EkfConfig:
     """The EkfConfig a learned model was trained with (its file's ``ekf_config``), else the defaults
-    (``models.stored_ekf_config``); a warning names the settings this version does not know."""
+    (``models.stored_ekf_config``); a warning names the settings this version does not know.
+
+    ``noise`` may be a model file's path or a bundled model's name (``"hk-tst-2019"``), read as ``noise=`` is
+    (``estimators.noise.resolve_noise``); anything else without a model file's metadata (None, a function, a
+    hand-set noise model) gets the defaults, ``EkfConfig()``.
+    """
+    if isinstance(noise, (str, os.PathLike)):
+        noise = resolve_noise(noise, "estimators.config_of")
     stored = (getattr(noise, "metadata", None) or {}).get("ekf_config")
     unknown = sorted(set(stored or {}) - {f.name for f in fields(EkfConfig)})
     if unknown:
@@ -112,7 +144,9 @@ class LfgnssEkf:
         was trained with (``config_of``), else ``EkfConfig()``.
     name : str, optional
         Backend label written into the Solution; default the backend's name, with ``smooth`` as the command line
-        names the run's files (``smoothed_name``: ``ekf-rts``, ``ekf-rts-lag2s``).
+        names the run's files (``smoothed_name``: ``ekf-rts``, ``ekf-rts-lag2s``). The default is ``ekf`` with
+        ``noise=None`` too, where the hand-set ``HeuristicNoise`` runs: ``PlainEkf()`` (or ``name="plain-ekf"``)
+        labels that run as the plain EKF.
     use_compensation : bool
         Add ``v^c`` to the innovation (False: ignore the model's ``v^c``).
     smooth : bool
@@ -182,13 +216,13 @@ class LfgnssEkf:
 
     def noise_arrays(self, sequence: Sequence, usable: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(r_m2, vc_m), each (T, N), from the noise model, checked on the usable slots."""
-        return self._checked(sequence, usable, *noise_output(type(self).__name__, self.noise(sequence)))
+        return self._checked(sequence, usable, *noise_output(type(self).__name__, self.noise(sequence), self.noise))
 
     def _checked(self, sequence: Sequence, usable: np.ndarray, r: object, vc: object
                  ) -> tuple[np.ndarray, np.ndarray]:
         """``(r, vc)`` with positive finite R and finite v^c on the usable slots (v^c 0 without compensation)."""
         r, vc = checked_noise(type(self).__name__, sequence.name, usable, r,
-                              vc if self.use_compensation else np.zeros(np.shape(r)))
+                              vc if self.use_compensation else np.zeros(np.shape(r)), self.noise)
         return r, vc
 
     def solve(self, sequence: Sequence) -> Solution:
@@ -224,7 +258,8 @@ class LfgnssEkf:
                                                            sequence.name)
         sat_all = sequence.sat_pos_ecef_m
         sys_all = sequence.system_index
-        coarse_ok = coarse_available(sequence)
+        coarse_clock = coarse_clocks(sequence, usable, type(self).__name__)
+        coarse_ok = coarse_available(sequence, coarse_clock)
         coarse_judges = coarse_ok & models.fix_can_judge(usable, sys_all, n_sys, cfg)
         p0 = models.initial_covariance(n_sys, cfg)
         q1, q2, q3 = models.process_noise_coefficients(n_sys, cfg)
@@ -297,7 +332,7 @@ class LfgnssEkf:
             if prior_x is not None:
                 innovation[idx] = models.prior_innovation_m(prior_x, sat_all[k, idx], sys_all[k, idx], pr_all[k, idx])
             r, vc = self._checked(sequence, usable[k], *noise_output(type(self).__name__, self.noise.predict(
-                features[k], sequence.mask[k], innovation_feature(innovation))))
+                features[k], sequence.mask[k], innovation_feature(innovation)), self.noise))
             on = switched_on(usable[k], r)
             if not np.array_equal(on, usable[k]):       # as if masked out: redo what the epoch's slots decided
                 usable[k], doppler_ok[k] = on, doppler_ok[k] & on
@@ -314,7 +349,7 @@ class LfgnssEkf:
             return idx.size - int(gated[0][-1].sum()) > cfg.reset_gated_fraction * idx.size
 
         def reset(k: int, idx: np.ndarray, jdx: np.ndarray) -> None:
-            x0 = models.initial_state(sequence.coarse_ecef_m[k], sequence.coarse_clock_m[k])
+            x0 = models.initial_state(sequence.coarse_ecef_m[k], coarse_clock[k])
             ekf.x, ekf.P = x0, p0.copy()
             update(k, gate(k, idx, jdx))
             if gate_sigma > 0:
@@ -415,4 +450,4 @@ class PlainEkf(LfgnssEkf):
 
 
 __all__ = ["config_of", "config_changes", "smoothed_name", "LfgnssEkf", "create_lfgnss_ekf", "PlainEkf",
-           "compensated_pseudorange", "usable_measurements", "coarse_available"]
+           "compensated_pseudorange", "usable_measurements", "coarse_available", "coarse_clocks"]

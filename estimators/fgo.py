@@ -59,6 +59,7 @@ from __future__ import annotations
 import inspect
 import numbers
 import os
+import re
 import time
 
 import gtsam
@@ -90,6 +91,52 @@ CAUCHY_WARM_START_HUBER_K = 1.5
 DOPPLER_HUBER_K = 1.5
 #: The standstill test's default speed bound [m/s], the EKF's.
 DEFAULT_ZUPT_MAX_SPEED_M_S = EkfConfig().zupt_max_speed_m_s
+#: Default fixed-lag window [s] (``lag_s``).
+DEFAULT_LAG_S = 10.0
+#: Bounds beyond which ``likely_cause`` blames an input for an ill-conditioned graph: a pseudorange sigma under 1 cm
+#: or over 1 km [m^2], an acceleration density under 1e-6 m^2/s^3 (on the bundled drive R = 1e-12 or >= 1e8 m^2 and
+#: a density of 1e-9 made the fixed-lag solve fail; 1e-8 to 1e6 m^2 and 1e-7 did not).
+R_TINY_M2, R_HUGE_M2, PSD_TINY_M2_S3 = 1e-4, 1e6, 1e-6
+
+_GTSAM_SYMBOL = re.compile(r"\(Symbol: ([a-zA-Z])(\d+)\)")
+
+
+def symbol_epoch(message: str, n_systems: int) -> tuple[str, int] | None:
+    """(symbol, epoch) of the variable a gtsam error names, ``(Symbol: x24)``: ("x24", 24); a clock ``B(k C + j)``
+    gives epoch k. None when the message names none."""
+    found = _GTSAM_SYMBOL.search(message)
+    if found is None:
+        return None
+    index = int(found.group(2))
+    return found.group(1) + found.group(2), index // n_systems if found.group(1) == "b" else index
+
+
+def likely_cause(r_m2: np.ndarray, accel_psd_enu_m2_s3: np.ndarray) -> str | None:
+    """The input most likely behind an ill-conditioned graph, in words: R [m^2] (an epoch's, (n,)) near 0 or huge,
+    or an acceleration density [m^2/s^3] near 0; None when neither is out of the ordinary."""
+    r = np.asarray(r_m2, float)
+    psd = ", ".join(f"{v:g}" for v in accel_psd_enu_m2_s3)
+    if r.size and r.min() < R_TINY_M2:
+        return f"its smallest R is {r.min():.3g} m^2: R must be a pseudorange variance in m^2, not near 0"
+    if r.size and r.max() > R_HUGE_M2:
+        return (f"its largest R is {r.max():.3g} m^2: R must be a pseudorange variance in m^2 (a sigma of kilometres "
+                f"says nothing; an R above estimators.noise.R_OFF_M2, 1e12 m^2, leaves a satellite out)")
+    if min(accel_psd_enu_m2_s3) < PSD_TINY_M2_S3:
+        return (f"accel_psd_enu_m2_s3 is ({psd}) m^2/s^3: near 0 the motion factors outweigh every pseudorange; "
+                f"a car's is about 0.1 to 10")
+    return None
+
+
+def checked_accel_psd(value: object) -> np.ndarray:
+    """``accel_psd_enu_m2_s3`` as a (3,) float array [m^2/s^3]; ValueError naming LfgnssFgo unless it is 3 finite
+    positive numbers (east, north, up)."""
+    items = value.tolist() if isinstance(value, np.ndarray) else value
+    if (not isinstance(items, (tuple, list)) or len(items) != 3
+            or any(isinstance(v, (bool, np.bool_)) or not isinstance(v, numbers.Real) or not 0 < v < np.inf
+                   for v in items)):
+        raise ValueError(f"LfgnssFgo: accel_psd_enu_m2_s3 must be 3 finite positive numbers [m^2/s^3] (east, north, "
+                         f"up), got {value!r}")
+    return np.array(items, float)
 
 
 def clock_key(k: int, j: int, n_systems: int) -> int:
@@ -199,7 +246,7 @@ class LfgnssFgo:
     mode : {"batch", "fixed-lag"}
         Whole-trajectory smoothing, or causal fixed-lag estimation (filtered estimate per epoch).
     lag_s : float
-        Fixed-lag window [s].
+        Fixed-lag window [s]; only with ``mode="fixed-lag"`` (another value in batch mode is a ValueError).
     robust : {"auto", "huber", "cauchy"} or None
         M-estimator on each pseudorange factor; ``robust_k`` is its threshold in sigmas. "auto" takes
         ``DEFAULT_KERNEL[mode]``. Batch: Cauchy 1.0, started from a Huber 1.5 solve (``_solve_batch``),
@@ -210,9 +257,12 @@ class LfgnssFgo:
         from a predicted start cannot escape the local minima of the non-convex Cauchy kernel (errors
         of 80 m after gaps).
     robust_k : float, optional
-        Kernel threshold (whitened units); default from ``DEFAULT_KERNEL`` (1.5 for an explicit kernel).
+        Kernel threshold (whitened units); default from ``DEFAULT_KERNEL`` (1.5 for an explicit kernel). Given with
+        ``robust=None`` it is a ValueError (no kernel to take it).
     accel_psd_enu_m2_s3 : (3,) float
-        White-noise acceleration spectral density per east/north/up axis [m^2/s^3].
+        White-noise acceleration spectral density per east/north/up axis [m^2/s^3], finite and > 0. A graph gtsam
+        cannot solve (an indeterminate linear system, or Levenberg-Marquardt giving up at its largest damping where
+        an input is extreme: ``likely_cause``) is a one-line ValueError naming the epoch and that input.
     prior_pos_sigma_m, prior_vel_sigma_m_s : float
         Priors on the first epoch (from the coarse fix).
     covariances : bool
@@ -255,7 +305,8 @@ class LfgnssFgo:
         Show a tqdm bar over the epochs on a terminal (``python -m lfgnss.solve`` does, unless ``--quiet``).
     name : str, optional
         Backend label written into the Solution; default ``fgo``, or ``fgo-fixed-lag`` in fixed-lag mode (as the
-        command line names the run's files).
+        command line names the run's files), with ``noise=None`` too, where the hand-set ``HeuristicNoise`` runs
+        (``name="plain-fgo"`` says so).
 
     The Solution's ``info`` holds ``n_velocity_priors`` (epochs with a Doppler velocity prior), ``stationary`` ((T,)
     bool: epochs given the zero-velocity prior), ``residual_factor`` and ``cov_inflation`` (see ``inflate_cov``)
@@ -267,7 +318,8 @@ class LfgnssFgo:
     #: The backend's name, the start of ``name``.
     default_name = "fgo"
 
-    def __init__(self, *, noise: NoiseModel | str | os.PathLike | None = None, mode: str = "batch", lag_s: float = 10.0,
+    def __init__(self, *, noise: NoiseModel | str | os.PathLike | None = None, mode: str = "batch",
+                 lag_s: float = DEFAULT_LAG_S,
                  robust: str | None = "auto", robust_k: float | None = None,
                  accel_psd_enu_m2_s3: tuple[float, float, float] = (1.0, 1.0, 0.1),
                  prior_pos_sigma_m: float = 100.0, prior_vel_sigma_m_s: float = 10.0,
@@ -296,6 +348,19 @@ class LfgnssFgo:
         for key, value in (("max_iterations", max_iterations), ("fixed_lag_iterations", fixed_lag_iterations)):
             if not (value >= 1 and float(value).is_integer()):
                 raise ValueError(f"LfgnssFgo: {key} must be a whole number >= 1, got {value}")
+        if doppler_cn0_ref_dbhz is not None and (isinstance(doppler_cn0_ref_dbhz, bool)
+                                                 or not isinstance(doppler_cn0_ref_dbhz, numbers.Real)
+                                                 or not np.isfinite(doppler_cn0_ref_dbhz)):
+            raise ValueError(f"LfgnssFgo: doppler_cn0_ref_dbhz must be finite: a number of dB-Hz or None, "
+                             f"got {doppler_cn0_ref_dbhz!r}")
+        if not lag_s > 0:
+            raise ValueError(f"LfgnssFgo: lag_s must be > 0, got {lag_s}")
+        if mode == "batch" and lag_s != DEFAULT_LAG_S:
+            raise ValueError(f"LfgnssFgo: lag_s={float(lag_s):g} needs mode='fixed-lag' (the batch mode uses every "
+                             f"epoch, with no window)")
+        if robust is None and robust_k is not None:
+            raise ValueError(f"LfgnssFgo: robust_k={float(robust_k):g} needs a robust kernel (robust='auto', 'huber' "
+                             f"or 'cauchy'); robust=None uses none")
         if robust == "auto":
             robust, default_k = DEFAULT_KERNEL[mode]
             robust_k = default_k if robust_k is None else robust_k
@@ -304,16 +369,9 @@ class LfgnssFgo:
             raise ValueError(f"LfgnssFgo: robust {robust!r} not in {('auto', *ROBUST_KERNELS)} or None")
         if not doppler_sigma_m_s >= 0:
             raise ValueError(f"LfgnssFgo: doppler_sigma_m_s must be >= 0, got {doppler_sigma_m_s}")
-        if doppler_cn0_ref_dbhz is not None and not np.isfinite(doppler_cn0_ref_dbhz):
-            raise ValueError(f"LfgnssFgo: doppler_cn0_ref_dbhz must be finite or None, "
-                             f"got {doppler_cn0_ref_dbhz}")
-        if not lag_s > 0:
-            raise ValueError(f"LfgnssFgo: lag_s must be > 0, got {lag_s}")
         if not robust_k > 0:
             raise ValueError(f"LfgnssFgo: robust_k must be > 0, got {robust_k}")
-        psd = np.asarray(accel_psd_enu_m2_s3, float)
-        if psd.shape != (3,) or np.any(psd <= 0):
-            raise ValueError(f"LfgnssFgo: accel_psd_enu_m2_s3 must be 3 positive numbers, got {psd}")
+        psd = checked_accel_psd(accel_psd_enu_m2_s3)
         noise = resolve_noise(noise, type(self).__name__)
         self.noise = noise if noise is not None else HeuristicNoise()
         self.zupt_sigma_m_s, self.zupt_max_speed_m_s = self._zupt_settings(zupt_sigma_m_s, zupt_max_speed_m_s,
@@ -479,7 +537,7 @@ class LfgnssFgo:
             k = int(np.flatnonzero(np.diff(t) <= 0)[0])
             raise ValueError(f"LfgnssFgo: {seq.name!r}: time not increasing at epoch {k + 1}")
         r_m2, vc_m = checked_noise(type(self).__name__, seq.name, seq.mask,
-                                   *noise_output(type(self).__name__, self.noise(seq)))
+                                   *noise_output(type(self).__name__, self.noise(seq), self.noise), self.noise)
         seq = keep_slots(seq, switched_on(seq.mask, r_m2))
         z_m = np.where(seq.mask, seq.pr_m + vc_m, 0.0)
         sigma_m = np.sqrt(np.where(seq.mask, r_m2, 1.0))
@@ -502,10 +560,17 @@ class LfgnssFgo:
         dv = self._doppler_velocity(seq)
         info["n_velocity_priors"] = 0 if dv is None else int(np.count_nonzero(dv.ok[k0:]))
         still = self._still(dv)
-        if self.mode == "batch":
-            est = self._solve_batch(seq, k0, z_m, sigma_m, psd_ecef, dv, still, info, ranges)
-        else:
-            est = self._solve_fixed_lag(seq, k0, z_m, sigma_m, psd_ecef, dv, still, info, ranges)
+        solve = self._solve_batch if self.mode == "batch" else self._solve_fixed_lag
+        try:
+            est = solve(seq, k0, z_m, sigma_m, psd_ecef, dv, still, info, ranges)
+        except RuntimeError as err:
+            found = symbol_epoch(str(err), len(seq.systems))
+            if found is None or "linear system" not in str(err):
+                raise
+            where = (f"fixed-lag update at epoch {found[1]} of {seq.name!r}" if self.mode == "fixed-lag"
+                     else f"batch graph of {seq.name!r} at epoch {found[1]}")
+            raise self._failure(seq, r_m2, found[1], f"the {where} is numerically singular (gtsam: an indeterminate "
+                                                     f"linear system near variable {found[0]})", always=True) from None
         info["solve_time_s"] = time.perf_counter() - start
         pos[k0:], vel[k0:], clock[k0:], n_used[k0:], cov_m = est
         # a position-blind epoch spends its satellites on clocks: its position is the motion model's (coasted)
@@ -525,6 +590,29 @@ class LfgnssFgo:
         info["cov_inflation"] = inflation
         cov[k0:] = cov_m * inflation[k0:, None, None]
         return Solution(self.name, t.copy(), pos, cov, clock, n_used, status, vel, info)
+
+    def _failure(self, seq: Sequence, r_m2: np.ndarray, k: int, what: str, always: bool = False) -> ValueError | None:
+        """ValueError saying ``what`` went wrong at epoch ``k`` of ``seq``, with the input most likely behind it
+        (``likely_cause`` of the epoch's R [m^2] and the acceleration density); None, unless ``always``, when no input
+        is out of the ordinary."""
+        k = min(max(int(k), 0), len(seq) - 1)
+        cause = likely_cause(r_m2[k][seq.mask[k]], self.accel_psd_enu_m2_s3)
+        if cause is None and not always:
+            return None
+        r = r_m2[seq.mask]
+        psd = ", ".join(f"{v:g}" for v in self.accel_psd_enu_m2_s3)
+        cause = cause or (f"R spans {r.min():.3g} to {r.max():.3g} m^2 and accel_psd_enu_m2_s3 is ({psd}) m^2/s^3: "
+                          f"R must be a pseudorange variance in m^2 and the density a car's, about 0.1 to 10 m^2/s^3"
+                          if r.size else "no satellite is used")
+        return ValueError(f"{type(self).__name__}: {what}; {cause}")
+
+    @staticmethod
+    def _worst_epoch(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, n_systems: int) -> int:
+        """Epoch of the variable of the factor with the largest error at ``values`` (a clock ``B(k C + j)``: k)."""
+        errors = [graph.at(i).error(values) if graph.exists(i) else -np.inf for i in range(graph.size())]
+        symbol = gtsam.Symbol(graph.at(int(np.argmax(errors))).keys()[0])
+        index = int(symbol.index())
+        return index // n_systems if chr(symbol.chr()) == "b" else index
 
     @staticmethod
     def _initial_trajectory(seq: Sequence, k0: int, dv: DopplerVelocity | None = None
@@ -572,6 +660,14 @@ class LfgnssFgo:
             optimizer = gtsam.LevenbergMarquardtOptimizer(graph, start, params)
             values = optimizer.optimize()
             info["iterations"] += int(optimizer.iterations())
+            if optimizer.lambda_() >= params.getlambdaUpperBound():
+                # Levenberg-Marquardt gave up: no step lowered the error even at its largest damping
+                worst = self._worst_epoch(graph, values, n_sys)
+                failure = self._failure(seq, sigma_m ** 2, worst, f"the batch solve of {seq.name!r} failed: Levenberg-"
+                                        f"Marquardt could not lower the error at its largest damping (worst fit at "
+                                        f"epoch {worst})")
+                if failure is not None:
+                    raise failure
         result = values                             # the last stage's optimum
         info["final_error"] = float(graph.error(result))
         pos = np.array([result.atPoint3(X(k)) for k in range(k0, n_t)])

@@ -229,8 +229,9 @@ class EkfConfig:
             if not getattr(self, name) >= 0:
                 raise ValueError(f"estimators/models.py: EkfConfig.{name} must be >= 0, got {getattr(self, name)}")
         up = self.q_vel_up_m2_s3
-        if up is not None and (isinstance(up, bool) or not isinstance(up, (int, float)) or not up >= 0):
-            raise ValueError(f"estimators/models.py: EkfConfig.q_vel_up_m2_s3 must be >= 0 or None, got {up!r}")
+        if up is not None and (isinstance(up, bool) or not isinstance(up, numbers.Real) or not 0 <= up < np.inf):
+            raise ValueError(f"estimators/models.py: EkfConfig.q_vel_up_m2_s3 must be a finite number >= 0 "
+                             f"[(m/s)^2/s] or None, got {up!r}")
         ref = self.doppler_cn0_ref_dbhz
         if ref is not None and (isinstance(ref, bool) or not isinstance(ref, (int, float)) or not np.isfinite(ref)):
             raise ValueError(f"estimators/models.py: EkfConfig.doppler_cn0_ref_dbhz must be a number of dB-Hz or None, "
@@ -338,6 +339,29 @@ def initial_state(coarse_ecef_m: np.ndarray, coarse_clock_m: np.ndarray) -> np.n
     x[CLOCK] = c[0]
     x[ISB0:] = np.nan_to_num(c[1:], nan=0.0)
     return x
+
+
+def pseudorange_clock_m(pr_m: np.ndarray, sat_pos_ecef_m: np.ndarray, system_index: np.ndarray,
+                        usable: np.ndarray, rcv_ecef_m: np.ndarray, n_systems: int) -> np.ndarray:
+    """(C,) receiver clock of systems[0] and ISBs of systems[1:] [m] from one epoch's pseudoranges at ``rcv_ecef_m``.
+
+    Each constellation's median of ``pr - rho(sat, rcv)`` over its ``usable`` satellites (``pr_m``,
+    ``system_index``, ``usable``: (N,); ``sat_pos_ecef_m``: (N, 3) [m]); where systems[0] has none, the first
+    constellation present takes the clock (its ISB 0), as ``lfgnss.spp`` does. NaN for a constellation without a
+    usable satellite, and all NaN where there is none.
+    """
+    sys = np.asarray(system_index)
+    ok = np.asarray(usable, bool) & (sys >= 0) & (sys < n_systems)
+    out = np.full(n_systems, np.nan)
+    if not ok.any():
+        return out
+    raw = np.asarray(pr_m, float)[ok] - geometric_range_m(np.asarray(sat_pos_ecef_m, float)[ok],
+                                                          np.asarray(rcv_ecef_m, float))
+    median = np.array([np.median(raw[sys[ok] == j]) if np.any(sys[ok] == j) else np.nan for j in range(n_systems)])
+    clock = median[np.flatnonzero(np.isfinite(median))[0]]
+    out[1:] = median[1:] - clock
+    out[0] = clock
+    return out
 
 
 def transition_generator(n_systems: int) -> np.ndarray:
@@ -511,7 +535,8 @@ def doppler_measurement(x: np.ndarray, sat_pos_ecef_m: np.ndarray, sat_vel_ecef_
     return g, G
 
 
-__all__ = ["EkfConfig", "n_states", "clock_column", "initial_covariance", "initial_state", "transition_generator",
+__all__ = ["EkfConfig", "n_states", "clock_column", "initial_covariance", "initial_state", "pseudorange_clock_m",
+           "transition_generator",
            "transition", "process_noise_coefficients", "process_noise", "vertical_noise_increment", "measurement",
            "doppler_measurement", "doppler_variance_m2_s2", "used_doppler_variance_m2_s2", "prior_innovation_m",
            "lower_median", "realign_clock", "stationary_epochs", "still_fixes", "zero_velocity_measurement",

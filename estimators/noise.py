@@ -8,6 +8,7 @@ from __future__ import annotations
 import numbers
 import os
 import warnings
+from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import Protocol, runtime_checkable
@@ -76,13 +77,14 @@ def describe_noise(noise: object) -> str:
 
 
 def resolve_noise(noise: object, owner: str) -> NoiseModel | None:
-    """``noise`` as a NoiseModel: a model file path (str or Path) is read as ``--model`` is; None stays None."""
+    """``noise`` as a NoiseModel: a model file path (str or Path, ``~`` expanded) or a bundled model's name is read
+    as ``--model`` is; None stays None."""
     if noise is None:
         return None
     if isinstance(noise, (str, os.PathLike)):
         from learning.export import load_model   # numpy only, as default_noise; raises ModelFileError naming the file
 
-        return load_model(noise)
+        return load_model(os.path.expanduser(noise))
     if isinstance(noise, type) or not callable(noise):
         what = f"the class {noise.__name__} (pass an instance)" if isinstance(noise, type) else type(noise).__name__
         raise TypeError(f"{owner}: noise must be a noise model (sequence -> (r_m2, vc_m)) or a model file path, "
@@ -90,16 +92,54 @@ def resolve_noise(noise: object, owner: str) -> NoiseModel | None:
     return noise
 
 
-def noise_output(owner: str, out: object) -> tuple[object, object]:
-    """A noise model's return value as its two parts ``(r_m2, vc_m)``; TypeError naming ``owner`` otherwise."""
+def _must_return(owner: str, noise: object) -> str:
+    """``"<owner>: the noise model <it> must return (r_m2, vc_m), ..."``, the start of every message on its output."""
+    which = "a noise model" if noise is None else f"the noise model {describe_noise(noise)}"
+    return f"{owner}: {which} must return (r_m2, vc_m), each a (T, N) float array [m^2, m]"
+
+
+def noise_output(owner: str, out: object, noise: object = None) -> tuple[object, object]:
+    """A noise model's return value as its two parts ``(r_m2, vc_m)``; TypeError naming ``owner`` and ``noise`` (the
+    model, for its description) otherwise."""
+    if isinstance(out, Mapping):
+        keys = ", ".join(repr(k) for k in list(out)[:4])
+        raise TypeError(f"{_must_return(owner, noise)}; got a {type(out).__name__} (keys {keys}): return the tuple")
     try:
         if len(out) == 2:
             return out[0], out[1]
-    except TypeError:
+    except (TypeError, KeyError, IndexError):
         pass
     got = (f"{len(out)} values" if isinstance(out, (tuple, list))
            else f"an array of shape {out.shape}" if isinstance(out, np.ndarray) else type(out).__name__)
-    raise TypeError(f"{owner}: a noise model must return (r_m2, vc_m), two (T, N) arrays [m^2, m]; got {got}")
+    raise TypeError(f"{_must_return(owner, noise)}; got {got}")
+
+
+def _value_text(value: object) -> str:
+    """What a noise model gave where a float array belongs, in a few words (``float_array``'s messages)."""
+    if type(value).__module__.split(".")[0] == "torch":
+        grad = " that requires grad" if getattr(value, "requires_grad", False) else ""
+        return f"a torch tensor{grad} (return tensor.detach().cpu().numpy())"
+    dtype = getattr(value, "dtype", None)
+    if dtype is not None:
+        return f"an array of dtype {dtype}"
+    return f"a {type(value).__name__} that does not convert to float"
+
+
+def _as_float(value: object) -> np.ndarray | None:
+    """``value`` as a float array, None where it does not convert (strings, a torch tensor that requires grad)."""
+    try:
+        return np.asarray(value, float)
+    except (TypeError, ValueError, RuntimeError):
+        return None
+
+
+def float_array(owner: str, key: str, value: object, noise: object = None) -> np.ndarray:
+    """``value`` (a noise model's ``key``, r_m2 or vc_m) as a float array; TypeError naming ``owner`` and ``noise``
+    when it does not convert (``_as_float``)."""
+    out = _as_float(value)
+    if out is None:
+        raise TypeError(f"{_must_return(owner, noise)}; its {key} is {_value_text(value)}")
+    return out
 
 
 #: Pseudorange variance [m^2] above which a noise model switches a satellite off (sigma 1000 km, beyond any
@@ -118,15 +158,16 @@ def switched_on(usable: np.ndarray, r_m2: np.ndarray) -> np.ndarray:
     return usable & (r_m2 <= R_OFF_M2)
 
 
-def checked_noise(owner: str, sequence_name: str, usable: np.ndarray, r_m2: object, vc_m: object
-                  ) -> tuple[np.ndarray, np.ndarray]:
+def checked_noise(owner: str, sequence_name: str, usable: np.ndarray, r_m2: object, vc_m: object,
+                  noise: object = None) -> tuple[np.ndarray, np.ndarray]:
     """A noise model's ``(r_m2, vc_m)`` as float arrays shaped like ``usable``; ValueError naming the first bad epoch.
 
     R must be finite and > 0 [m^2] and v^c finite [m] on the usable slots; other slots may hold anything. An R above
     ``R_OFF_M2`` (1e30, say) switches the satellite off (``switched_on``): the estimators leave it out as if masked.
+    Values that are not numbers are a TypeError naming ``owner`` and the model ``noise`` (``float_array``).
     """
-    r = np.asarray(r_m2, float)
-    vc = np.asarray(vc_m, float)
+    r = float_array(owner, "r_m2", r_m2, noise)
+    vc = float_array(owner, "vc_m", vc_m, noise)
     if r.shape != usable.shape or vc.shape != usable.shape:
         raise ValueError(f"{owner}: noise model gave shapes {r.shape}, {vc.shape} for sequence {sequence_name!r}, "
                          f"expected {usable.shape}")
@@ -189,6 +230,13 @@ class FixedNoise:
     r_m2: np.ndarray
     vc_m: np.ndarray
 
+    def __post_init__(self) -> None:
+        """TypeError naming FixedNoise and the array whose values are not numbers (as ``float_array``)."""
+        for key, unit in (("r_m2", "m^2"), ("vc_m", "m")):
+            if _as_float(getattr(self, key)) is None:
+                raise TypeError(f"FixedNoise: {key} must be a (T, N) float array [{unit}], "
+                                f"got {_value_text(getattr(self, key))}")
+
     def __repr__(self) -> str:
         """The arrays' shapes, not their values: ``FixedNoise(r_m2 (T, N), vc_m (T, N))``."""
         return f"FixedNoise(r_m2 {np.shape(self.r_m2)}, vc_m {np.shape(self.vc_m)})"
@@ -225,6 +273,10 @@ class TruthNoise:
     def __post_init__(self) -> None:
         if isinstance(self.floor_m, bool) or not isinstance(self.floor_m, (int, float)) or not self.floor_m > 0:
             raise ValueError(f"TruthNoise.floor_m must be > 0 [m], got {self.floor_m!r}")
+        if isinstance(self.fallback, type) or not callable(self.fallback):
+            what = (f"the class {self.fallback.__name__} (pass an instance)" if isinstance(self.fallback, type)
+                    else type(self.fallback).__name__)
+            raise TypeError(f"TruthNoise: fallback must be a noise model (sequence -> (r_m2, vc_m)), got {what}")
 
     def __call__(self, sequence: Sequence) -> tuple[np.ndarray, np.ndarray]:
         """(r_m2, vc_m), each (T, N): R [m^2] from the true pseudorange errors, v^c = 0 [m]."""
@@ -235,6 +287,11 @@ class TruthNoise:
                           stacklevel=caller_stacklevel())
         ok = sequence.mask & labelled[:, None]
         error = constellation_residual_m(sequence, sequence.truth_ecef_m, ok)
-        r_fallback, _ = self.fallback(sequence)
+        owner = "TruthNoise.fallback"
+        r_fallback = float_array(owner, "r_m2", noise_output(owner, self.fallback(sequence), self.fallback)[0],
+                                 self.fallback)
+        if r_fallback.shape != ok.shape:
+            raise ValueError(f"TruthNoise: its fallback {describe_noise(self.fallback)} gave R of shape "
+                             f"{r_fallback.shape} for sequence {sequence.name!r}, expected {ok.shape}")
         r = np.where(ok, np.nan_to_num(error) ** 2 + self.floor_m ** 2, r_fallback)
         return r, np.zeros_like(r)

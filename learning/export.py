@@ -50,7 +50,7 @@ from typing import Iterable
 
 import numpy as np
 
-from lfgnss.errors import InputError, closest_name
+from lfgnss.errors import InputError, closest_name, shortened
 from lfgnss.features import AVAILABLE_FEATURES
 from lfgnss.paths import MODEL_PREFIX, bundled_models, may_name_a_bundled_model, model_path, replace_atomically
 from lfgnss.sequence import Sequence
@@ -104,9 +104,10 @@ def export_ensemble(sources: list[str | Path], out_path: str | Path, command: st
     ``ensemble.grown_from``, so seeds trained later grow a shipped ensemble without its members' checkpoints;
     ``out_path`` may be that file (it is replaced only by a file that reads back).
     The networks must share features, normaliser, network, filter and training data; their training
-    configurations may differ only in ``ENSEMBLE_FREE``, their seeds must differ (ModelFileError naming the source
-    and the setting). ``command``, the working folder and the git state are recorded as how the file was put
-    together (``ensemble.exported``). A single checkpoint is written as ``export_model`` writes it.
+    configurations may differ only in ``ENSEMBLE_FREE`` (and ``train.select`` between ``last.pt`` checkpoints, which
+    it does not choose), their seeds must differ (ModelFileError naming the source, the setting and both values; the
+    recipe is checked before the seed). ``command``, the working folder and the git state are recorded as how the
+    file was put together (``ensemble.exported``). A single checkpoint is written as ``export_model`` writes it.
     """
     paths = [source_file(p) for p in sources]
     if not paths:
@@ -123,17 +124,20 @@ def export_ensemble(sources: list[str | Path], out_path: str | Path, command: st
         grown_from += [grown] if grown else []
         for net, norm, other, record in source_networks:
             if meta is None:
-                params, normaliser, meta = net, norm, other
+                params, normaliser, meta, first = net, norm, other, record
+            # the recipe first: two runs of other recipes share a seed more often than not (seed 0)
+            free = ("train.select",) if _is_last_pt(first) and _is_last_pt(record) else ()
+            difference = _member_difference(meta, normaliser, other, norm, free)
+            if difference is not None:
+                raise ModelFileError(path, f"{difference[0]} differs from {paths[0]}'s ({difference[1]}): an "
+                                           "ensemble's members must be one recipe on the same data, differing only "
+                                           f"in {', '.join(ENSEMBLE_FREE)}")
             seed = record.get("seed")
             if not isinstance(seed, int) or isinstance(seed, bool) or seed in seeds:
                 why = f"has the seed of {seeds[seed]}" if seed in seeds else "records no seed"
                 raise ModelFileError(path, f"{why}: an ensemble's members are runs of one recipe with different "
                                            "seeds (learning.train --set seed=S)")
             seeds[seed] = path
-            key = _member_difference(meta, normaliser, other, norm)
-            if key is not None:
-                raise ModelFileError(path, f"{key} differs from {paths[0]}'s: an ensemble's members must be one "
-                                           f"recipe on the same data, differing only in {', '.join(ENSEMBLE_FREE)}")
             if not meta.get("data_spans") and other.get("data_spans"):   # the same data; older files lack spans
                 meta = {**meta, "data_spans": other["data_spans"]}
             if other.get("data_fingerprints") != meta.get("data_fingerprints"):   # another machine's rounding
@@ -195,30 +199,62 @@ def _source_networks(path: Path) -> tuple[list[tuple[dict[str, np.ndarray], Norm
 _MEMBER_PATH_KEYS = ("train.init", "data.register")
 
 
-def _member_difference(meta: dict, normaliser: Normaliser, other: dict, other_normaliser: Normaliser) -> str | None:
-    """The first setting in which a would-be ensemble member (``other``) differs from the first one, or None."""
-    if list(normaliser.feature_names) != list(other_normaliser.feature_names):
-        return "feature_names"
+def _is_last_pt(record: dict) -> bool:
+    """Whether an ensemble member's network is a ``last.pt``: its run's latest epoch, which ``train.select`` (the
+    choice between ``best.pt`` and ``last.pt`` for ``model.npz``) does not choose, unlike a ``best.pt``'s."""
+    return Path(str(record.get("checkpoint") or "")).name == "last.pt"
+
+
+def _values_text(here: object, there: object) -> str:
+    """Two differing settings for a one-line message: ``here: VALUE; there: VALUE`` (a list as its items)."""
+    def text(value: object) -> str:
+        return shortened(", ".join(map(str, value)) if isinstance(value, list) else repr(value), 200)
+
+    return f"here: {text(here)}; there: {text(there)}"
+
+
+def _member_difference(meta: dict, normaliser: Normaliser, other: dict, other_normaliser: Normaliser,
+                       free: tuple[str, ...] = ()) -> tuple[str, str] | None:
+    """The first setting in which a would-be ensemble member (``other``) differs from the first one, and its values
+    in words (``_values_text``, the member's first), or None; training settings in ``free`` may differ too."""
+    from .train import DEFAULT_CONFIG, _flat, _merge_free
+
+    mine, theirs = list(other_normaliser.feature_names), list(normaliser.feature_names)
+    if mine != theirs:
+        return "feature_names", _values_text(mine, theirs)
     if not normaliser.same_as(other_normaliser):
-        return "the normaliser (the training data's feature statistics)"
+        return "the normaliser (the training data's feature statistics)", "the feature means or stds"
 
     def same(a: object, b: object) -> bool:
         return json.dumps(a, default=_json_default, sort_keys=True) == json.dumps(b, default=_json_default,
                                                                                   sort_keys=True)
 
+    def first_change(a: object, b: object) -> str:
+        """``KEY: VALUES`` of the first key two tables differ in (the values alone for others than tables)."""
+        if not (isinstance(a, dict) and isinstance(b, dict)):
+            return _values_text(b, a)
+        flat_a, flat_b = _flat(a), _flat(b)
+        keys = sorted(k for k in flat_a.keys() | flat_b.keys() if not same(flat_a.get(k), flat_b.get(k)))
+        if not keys:                                    # an empty table against none
+            return _values_text(b, a)
+        return f"{keys[0]}: {_values_text(flat_b.get(keys[0], 'unset'), flat_a.get(keys[0], 'unset'))}"
+
     for key in ("model", "ekf_config", "n_systems"):
         if not same(meta.get(key), other.get(key)):
-            return key
+            return key, first_change(meta.get(key), other.get(key))
     if not _same_data(meta, other):
-        return "data_fingerprints"
-    if (meta.get("init_model") or {}).get("sha256_16") != (other.get("init_model") or {}).get("sha256_16"):
-        return "init_model (the model fine-tuning started from)"
-    from .train import DEFAULT_CONFIG, _flat, _merge_free
-
+        prints, others = meta.get("data_fingerprints") or [], other.get("data_fingerprints") or []
+        return "data_fingerprints", f"other training or validation data: {len(others)} sequence(s) here, " \
+                                    f"{len(prints)} there"
+    init, other_init = meta.get("init_model") or {}, other.get("init_model") or {}
+    if init.get("sha256_16") != other_init.get("sha256_16"):
+        return "init_model (the model fine-tuning started from)", _values_text(other_init.get("path"),
+                                                                               init.get("path"))
     a, b = (_flat(_merge_free(DEFAULT_CONFIG, m.get("config") or {})) for m in (meta, other))
     changed = sorted(k for k in a.keys() | b.keys()
-                     if k not in ENSEMBLE_FREE + _MEMBER_PATH_KEYS and not same(a.get(k), b.get(k)))
-    return f"config {changed[0]}" if changed else None
+                     if k not in ENSEMBLE_FREE + _MEMBER_PATH_KEYS + free and not same(a.get(k), b.get(k)))
+    return (f"config {changed[0]}", _values_text(b.get(changed[0], "unset"), a.get(changed[0], "unset"))) \
+        if changed else None
 
 
 def _same_data(meta: dict, other: dict) -> bool:
@@ -405,6 +441,8 @@ class LfgnssModel:
                              f"slot {slot} ({int(bad.any(-1).sum())} satellite slot(s) in all); give finite features "
                              "on every masked-in slot (or mask the slot out)")
         lead, n = mask.shape[:-1], mask.shape[-1]
+        if n == 0:                  # no satellite slot: nothing to run the network on (reshape(-1, 0) is ambiguous)
+            return np.full(mask.shape, PAD_R_M2), np.zeros(mask.shape)
         x = self.normaliser.apply(features, mask)
         if self.online:
             x = np.concatenate([x, np.where(mask, innovation, 0.0)[..., None]], -1)
@@ -1120,7 +1158,8 @@ def main(argv: list[str] | None = None) -> int:
         else:
             written = export_ensemble(members, args.out,
                                       command_line("python -m learning.export", list(argv or sys.argv[1:])))
-        epochs = member_epochs(load_model(written).metadata)
+        model = load_model(written)
+        epochs = member_epochs(model.metadata)
         if len(members) > 1:
             print(f"{written}: ensemble of {len(epochs)} networks: {', '.join(map(str, members))} (epochs "
                   f"{', '.join(map(str, epochs))})")
@@ -1128,6 +1167,9 @@ def main(argv: list[str] | None = None) -> int:
             what = f"ensemble of {len(epochs)} networks" if len(epochs) > 1 else f"epoch {epochs[0]}"
             print(f"{written}: model of {args.checkpoint} ({what})" + (f", filter changed: {', '.join(args.ekf)}"
                                                                         if changes else ""))
+        untrained = untrained_reason(model)
+        if untrained is not None:           # as lfgnss.solve warns of it when the file is used
+            print(f"warning: {written}: {untrained}", file=sys.stderr)
     except (*INPUT_ERRORS, OSError) as exc:
         p.exit(2, f"{p.prog}: error: {input_line(exc)}\n")
     return 0

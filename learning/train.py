@@ -60,7 +60,7 @@ from typing import Any, Iterator
 import numpy as np
 import torch
 
-from lfgnss.datasets import load_split, register_toml, split_parts
+from lfgnss.datasets import get, load_split, register_toml, split_parts
 from lfgnss.errors import INPUT_ERRORS, did_you_mean, one_line, shortened, warnings_on_one_line
 from lfgnss.paths import check_output_folder, file_hashes, may_name_a_bundled_model, names_something, replace_atomically
 from lfgnss.sequence import DEFAULT_FEATURES, Sequence
@@ -102,6 +102,11 @@ DEFAULT_CONFIG: dict[str, Any] = {
 }
 
 _FORBIDDEN_SPLITS = ("test",)
+
+#: What an unknown dataset id's error adds here: training and cross-validation take a dataset of one's own as a
+#: setting (recorded in the run and checked on --resume), not as a --register option.
+REGISTER_HINT = ("register a dataset of your own first: --set 'data.register=[\"FILE.toml\"]' --set "
+                 "'data.datasets=[\"ID\"]', or data.register = [\"FILE.toml\"] in the training config")
 
 #: The network's parts by name (``learning.network.LfgnssNet``), for ``train.freeze``: these keep their initial
 #: (``train.init``) weights while the rest is trained.
@@ -540,6 +545,7 @@ def load_sequences(dataset_id: str, split: str, config: dict) -> list[Sequence]:
 
     for path in config["data"].get("register", []):        # the user's own datasets, by TOML file
         register_toml(path)
+    get(dataset_id, hint=REGISTER_HINT)                     # unknown: how these commands register one
     return list(load_split(dataset_id, split, feature_names=tuple(config["data"]["features"])))
 
 
@@ -940,6 +946,55 @@ def _check_config_file(config_file: str | Path, record: dict | None, where: Path
                          f"was started; {leave_out}")
 
 
+_UNSET = object()
+
+
+def _shown(value: object) -> str:
+    """A setting's value in a message: its repr, or ``unset``."""
+    return "unset" if value is _UNSET else repr(value)
+
+
+def _check_dataset_tomls(checkpoint: dict, where: Path) -> None:
+    """ValueError naming a dataset TOML (``data.register``) of the run of the checkpoint ``where`` that is missing or
+    reads otherwise than when the run was started (its text is in the run's ``provenance``): a resumed run goes on
+    with the data it was started with, or its log.csv would mix two validation splits and best.pt compare them."""
+    recorded = (checkpoint.get("provenance") or {}).get("dataset_tomls") or {}
+    model = where.parent / "model.npz"
+    kept = (f"its text is recorded in the run: python -m learning.export --show {model} names it"
+            if model.is_file() else f"its text is recorded in {where}")
+    for path, was in recorded.items():
+        if not isinstance(was, str) or was.startswith("(not readable:"):   # not read when the run started
+            continue
+        try:
+            now = Path(path).read_text()
+        except FileNotFoundError:
+            raise ValueError(f"{path}: the run in {where.parent} was registered from this dataset TOML, which is "
+                             f"missing now; put it back as it was to --resume ({kept}), or start a new --out") from None
+        except (OSError, UnicodeDecodeError):
+            continue                                    # register_toml says what is wrong with it, as for a new run
+        change = _toml_change(was, now)
+        if change is not None:
+            raise ValueError(f"{path}: {change} when {where} was started; a resumed run goes on with the data it was "
+                             "started with (log.csv and the best epoch would compare two splits): put the file back "
+                             f"as it was ({kept}), or start a new --out")
+
+
+def _toml_change(was: str, now: str) -> str | None:
+    """The first key in which two texts of a dataset TOML differ, ``splits.val is [0, 9] now, [0, 8]``; that the text
+    differs where either does not parse; None where they hold the same settings (comments and layout aside)."""
+    if was == now:
+        return None
+    try:
+        before, after = _flat(tomllib.loads(was)), _flat(tomllib.loads(now))
+    except tomllib.TOMLDecodeError:
+        return "its text differs from the text it had"
+    changed = sorted(k for k in before.keys() | after.keys() if before.get(k, _UNSET) != after.get(k, _UNSET))
+    if not changed:
+        return None
+    k = changed[0]
+    return f"{k} is {_shown(after.get(k, _UNSET))} now, {_shown(before.get(k, _UNSET))}"
+
+
 def train(config: dict | None, out_dir: str | Path, *, resume: bool = False, overrides: list[str] = (),
           progress: bool = True, prepared: Prepared | None = None, export: bool = True,
           config_file: str | Path | None = None, command: str | None = None,
@@ -985,6 +1040,7 @@ def train(config: dict | None, out_dir: str | Path, *, resume: bool = False, ove
             _check_config_file(config_file, record, last_path)
         _warn_ignored_config(config, checkpoint, list(overrides), last_path)
         config = resumed_config(checkpoint, list(overrides), last_path)
+        _check_dataset_tomls(checkpoint, last_path)
         done, epochs = int(checkpoint["epoch"]), int(config["train"]["epochs"])
         t_max, planned = int(config["train"]["t_max"]), int(checkpoint["config"]["train"]["epochs"])
         if planned <= t_max < epochs:           # a schedule made to end annealed, taken past its turn

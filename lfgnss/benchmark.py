@@ -18,10 +18,12 @@ An ``rnx2rtkp`` that fails, hangs or writes an unreadable solution costs the RTK
 
 ``--models`` names another folder of such files, matched to the rows by name as the bundled ones are
 (``lfgnss-default.npz``, the ablations' ``lfgnss-no_*.npz``, ``lfgnss-<dataset id>.npz``), or one model file (a
-training run's ``model.npz``), which then takes the shipped model's rows on every dataset, named after the file so
-that they are told apart from the shipped model's: ``LF-GNSS EKF (model.npz)``, ``LF-GNSS EKF + RTS smoother
-(model.npz)``, ``LF-GNSS FGO (model.npz)`` and, where it was trained in a filter of its own, ``plain EKF in the
-LF-GNSS EKF's filter (model.npz)`` (``file_label``); they keep their targets row and bars. ``--register
+training run's ``model.npz``), which then takes the shipped model's rows on every dataset, named after the file as
+``lfgnss.solve`` names its outputs (a run's ``runs/a/model.npz`` by its folder) so that they are told apart from the
+shipped model's: ``LF-GNSS EKF (a)``, ``LF-GNSS EKF + RTS smoother (a)``, ``LF-GNSS FGO (a)`` and, where it was
+trained in a filter of its own, ``plain EKF in the LF-GNSS EKF's filter (a)`` (``file_label``); they keep their
+targets row and bars. ``--models`` is given once (twice is an option error). A model that holds no training (epoch 0
+of a run from scratch) is named in a warning and in results.md, and its rows' ``trained_on`` says so. ``--register
 my-drive.toml`` adds a user's dataset (``lfgnss.datasets.register_toml``) to the run.
 
 An estimator of one's own runs as rows too: ``--plugin my_filter.py`` (a ``.py`` file, or a module's dotted name)
@@ -113,12 +115,16 @@ class Method:
 
 
 def file_label(model_dir: Path) -> str:
-    """What the shipped model's row names get from ``--models``: `` (FILE NAME)`` for one model file, else nothing."""
-    return f" ({Path(model_dir).name})" if Path(model_dir).is_file() else ""
+    """What the shipped model's row names get from ``--models``: `` (NAME)`` for one model file, named as
+    ``lfgnss.solve`` names its outputs (``mine.npz``: ``mine``; a training run's ``runs/a/model.npz``: ``a``), else
+    nothing."""
+    from .solve import model_tag
+
+    return f" ({model_tag(Path(model_dir))})" if Path(model_dir).is_file() else ""
 
 
 def split_label(name: str) -> tuple[str, str]:
-    """A row name as (built-in name, ``file_label``): ``LF-GNSS FGO (m.npz)`` -> (``LF-GNSS FGO``, `` (m.npz)``)."""
+    """A row name as (built-in name, ``file_label``): ``LF-GNSS FGO (m)`` -> (``LF-GNSS FGO``, `` (m)``)."""
     for base in (MAIN_EKF, MAIN_EKF + RTS, MAIN_FGO, PLAIN_MAIN_FILTER):
         if name.startswith(base + " (") and name.endswith(")"):
             return base, name[len(base):]
@@ -379,7 +385,8 @@ def scored_span(dataset_id: str, feature_names: tuple[str, ...], warm_up: str | 
 def run(dataset_ids: list[str], *, model_dir: Path = MODEL_DIR, out_dir: Path | None = None,
         plots: bool = True, unwritten: list[str] | None = None, warm_up: str | None = None,
         failed: list[str] | None = None, extra: list[Method] | tuple[Method, ...] = (),
-        left_out: list[str] | None = None, leaked: list[str] | None = None) -> tuple[list[dict], list[dict]]:
+        left_out: list[str] | None = None, leaked: list[str] | None = None,
+        untrained: list[str] | None = None) -> tuple[list[dict], list[dict]]:
     """Rows over all test epochs and rows over RTKLIB's solved test epochs, for each dataset.
 
     ``unwritten``: a list that collects ``FILE: cannot write (reason)`` for figures that could not be written (the
@@ -390,12 +397,14 @@ def run(dataset_ids: list[str], *, model_dir: Path = MODEL_DIR, out_dir: Path | 
     work. ``left_out``: a list that collects ``ID: row 'NAME' left out: ...`` where the estimator of such a row
     raises (the other rows are kept); without it that error is raised. ``leaked``: a list that collects
     ``ID: MODEL (rows ...) trained on ...`` for a model trained or selected on epochs of the test split
-    (``seen_test_epochs``); without it each is a ``SeenTestEpochsWarning``.
+    (``seen_test_epochs``); without it each is a ``SeenTestEpochsWarning``. ``untrained``: a list that collects
+    ``MODEL (rows ...) holds no training: ...`` once for each model that is epoch 0 of a run from scratch
+    (``models_without_training``); without it each is an ``UntrainedModelWarning``.
     """
     ids = datasets.present(dataset_ids)
     rows_of = {dataset_id: methods(model_dir, dataset_id, extra) for dataset_id in ids}    # names checked first
     own = {m.name for m in extra}
-    all_rows, rtk_rows = [], []
+    all_rows, rtk_rows, said = [], [], set()
     for dataset_id in ids:
         plugins = _made(rows_of[dataset_id], own, dataset_id, left_out)
         try:                        # reading the dataset: bad files cost this dataset only (estimator bugs do not)
@@ -410,6 +419,14 @@ def run(dataset_ids: list[str], *, model_dir: Path = MODEL_DIR, out_dir: Path | 
                 warnings.warn(line, SeenTestEpochsWarning, stacklevel=2)
             else:
                 leaked.append(line)
+        for line in models_without_training(plugins):
+            if line in said:                    # a model file is untrained on every dataset: said once
+                continue
+            said.add(line)
+            if untrained is None:
+                warnings.warn(line, UntrainedModelWarning, stacklevel=2)
+            else:
+                untrained.append(line)
         rows, rtk, solutions, truth = dataset_rows(dataset_id, plugins, span, k, own, left_out)
         all_rows += rows
         rtk_rows += rtk
@@ -422,6 +439,25 @@ class SeenTestEpochsWarning(UserWarning):
     """A model was trained or selected on epochs of the test split it is scored on (``run`` without ``leaked``)."""
 
 
+class UntrainedModelWarning(UserWarning):
+    """A row's model holds no training: epoch 0 of a run from scratch (``run`` without ``untrained``)."""
+
+
+def _learned_models(plugins: list[tuple[str, object]]) -> dict[str, tuple[object, list[str]]]:
+    """The model files of the learned rows among (row name, estimator) ``plugins``: path -> (model, its row names)."""
+    models: dict[str, tuple[object, list[str]]] = {}
+    for name, estimator in plugins:
+        noise = getattr(estimator, "noise", None)
+        if isinstance(getattr(noise, "metadata", None), dict):
+            models.setdefault(str(getattr(noise, "path", None)), (noise, []))[1].append(name)
+    return models
+
+
+def _rows_text(names: list[str]) -> str:
+    """``rows 'A', 'B'``: the rows a model file is used in."""
+    return f"rows {', '.join(repr(r) for r in names)}"
+
+
 def models_that_saw_test_epochs(dataset_id: str, plugins: list[tuple[str, object]], test: Sequence) -> list[str]:
     """``ID: MODEL (rows ...) trained on ...`` for each learned row's model that saw epochs of the test split ``test``.
 
@@ -430,20 +466,27 @@ def models_that_saw_test_epochs(dataset_id: str, plugins: list[tuple[str, object
     """
     from learning.export import seen_test_epochs
 
-    rows_of: dict[str, list[str]] = {}
-    models = {}
-    for name, estimator in plugins:
-        noise = getattr(estimator, "noise", None)
-        meta, path = getattr(noise, "metadata", None), getattr(noise, "path", None)
-        if isinstance(meta, dict):
-            rows_of.setdefault(str(path), []).append(name)
-            models[str(path)] = meta
+    models = _learned_models(plugins)
     if not models:
         return []
     obs, scored = datasets.obs_hashes(dataset_id), test.labelled
-    return [f"{dataset_id}: {Path(path).name} (rows {', '.join(repr(r) for r in rows_of[path])}) {line}"
-            for path, meta in models.items()
-            for line in seen_test_epochs(meta, dataset_id, test.time_gps_s[scored], test.truth_ecef_m[scored], obs)]
+    return [f"{dataset_id}: {Path(path).name} ({_rows_text(rows)}) {line}"
+            for path, (noise, rows) in models.items()
+            for line in seen_test_epochs(noise.metadata, dataset_id, test.time_gps_s[scored],
+                                         test.truth_ecef_m[scored], obs)]
+
+
+def models_without_training(plugins: list[tuple[str, object]]) -> list[str]:
+    """``MODEL (rows ...) holds no training: ...`` for each learned row's model that is epoch 0 of a run from scratch,
+    the random network (``learning.export.untrained_reason``, as ``lfgnss.solve`` warns of it)."""
+    from learning.export import untrained_reason
+
+    lines = []
+    for path, (noise, rows) in _learned_models(plugins).items():
+        reason = untrained_reason(noise)
+        if reason is not None:
+            lines.append(f"{path} ({_rows_text(rows)}) {reason}")
+    return lines
 
 
 def _plot(folder: Path, dataset_id: str, solutions: dict, truth: np.ndarray, unwritten: list[str] | None) -> None:
@@ -546,11 +589,18 @@ def _checked_solution(sol: object, epochs: int):
 
 
 def _trained_on(noise) -> str:
-    """Datasets and split a learned noise model was trained on ('-' for hand-set noise)."""
-    from learning.export import trained_on
+    """Datasets and split a learned noise model was trained on ('-' for hand-set noise); ``, untrained (epoch 0)``
+    added for a model that holds no training (``learning.export.untrained_reason``)."""
+    from learning.export import trained_on, untrained_reason
 
     meta = getattr(noise, "metadata", None)
-    return "-" if meta is None else trained_on(meta)
+    if meta is None:
+        return "-"
+    reason = untrained_reason(noise)
+    if reason is None:
+        return trained_on(meta)
+    member = f"{reason.split(' of ')[0]} " if reason.startswith("member") else ""     # "member 1 " of an ensemble
+    return f"{trained_on(meta)}, {member}untrained (epoch 0)"
 
 
 _COLUMNS = ("dataset", "method", "trained_on", *METRIC_COLUMNS, "epochs_per_s")
@@ -583,7 +633,7 @@ def target_rows(all_rows: list[dict], rtk_rows: list[dict]) -> list[dict]:
         if not m.startswith("LF-GNSS") or " w/o " in m:
             continue
         t3, t2 = TARGETS.get(d, (float("nan"), float("nan")))
-        base, label = split_label(m)        # "LF-GNSS FGO (model.npz)": a file name never makes it a smoother
+        base, label = split_label(m)        # "LF-GNSS EKF (FGO)": a file name never makes it a smoother
         smoother = "FGO" in base or RTS in base     # uses later epochs too: against the yardstick's batch graph
         y3, y2 = (YARDSTICK_GRAPH if smoother else YARDSTICK_EKF).get(d, (float("nan"), float("nan")))
         plain = PLAIN_RTS if RTS in base else PLAIN
@@ -632,12 +682,14 @@ def _no_rtklib_rows(all_rows: list[dict]) -> str:
 
 def write_report(path: Path, all_rows: list[dict], rtk_rows: list[dict], command: str,
                  warm_up: str | None = None, figures: bool = True, failed: list[str] = (),
-                 made_by: str = "", left_out: list[str] = (), leaked: list[str] = ()) -> Path:
+                 made_by: str = "", left_out: list[str] = (), leaked: list[str] = (),
+                 untrained: list[str] = ()) -> Path:
     """Markdown results file with both tables and how they were made.
 
     ``warm_up``: the split the filters started at; ``failed``: ``ID: reason`` of datasets that could not be run;
     ``made_by``: the code and model files (``provenance_text``); ``left_out``: rows of one's own whose estimator
-    raised (``run``); ``leaked``: models trained or selected on test epochs (``run``).
+    raised (``run``); ``leaked``: models trained or selected on test epochs (``run``); ``untrained``: models that hold
+    no training (``run``).
     """
     targets = target_rows(all_rows, rtk_rows)
     start = "" if warm_up is None else (
@@ -662,6 +714,8 @@ def write_report(path: Path, all_rows: list[dict], rtk_rows: list[dict], command
            f"{'; '.join(left_out)}.", ""] if left_out else []),
         *([f"**Trained on test epochs** (these rows' figures are not held-out results): {'; '.join(leaked)}.", ""]
           if leaked else []),
+        *([f"**Untrained models** (epoch 0 of a run from scratch, the random network: these rows' figures are no "
+           f"learned noise's): {'; '.join(untrained)}.", ""] if untrained else []),
         "## All labelled test epochs",
         "",
         format_markdown(_select(all_rows)),
@@ -724,6 +778,18 @@ def _refuse_partial_docs(args: argparse.Namespace, ids: list[str]) -> None:
                                    "would replace them with a part: give another --out")
 
 
+class _GivenOnce(argparse.Action):
+    """An option that takes one value: given again, an option error (argparse would keep the last one silently)."""
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: object,
+                 option_string: str | None = None) -> None:
+        before = getattr(namespace, self.dest)
+        if before is not self.default:
+            parser.error(f"argument {option_string}: given twice ({before}, then {values}); it takes one model file "
+                         "or folder: to compare two model files, run the benchmark once for each, with its own --out")
+        setattr(namespace, self.dest, values)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the benchmark and write the results file.
 
@@ -738,14 +804,15 @@ def main(argv: list[str] | None = None) -> int:
                         "or the id of a --register'ed file (default: all three, or only the --register'ed ones)")
     p.add_argument("--register", action="append", default=[], metavar="FILE.toml",
                    help="a dataset of your own (lfgnss.datasets TOML), run too; repeatable")
-    p.add_argument("--models", type=path_option, default=MODEL_DIR,
+    p.add_argument("--models", type=path_option, default=MODEL_DIR, action=_GivenOnce,
                    help=f"folder of model files matched to the rows by name: {DEFAULT_MODEL} gives the shipped "
                         f"model's rows (LF-GNSS EKF, + RTS smoother, FGO) and {', '.join(ABLATIONS.values())} the "
                         "ablation rows, on every dataset; lfgnss-<dataset id>.npz gives the per-dataset model's rows "
                         "on that dataset only; other files are not used. Or one model file, which takes the shipped "
-                        "model's rows on every dataset, named after the file: LF-GNSS EKF (model.npz), LF-GNSS EKF + "
-                        "RTS smoother (model.npz), LF-GNSS FGO (model.npz) for runs/x/model.npz (default: the bundled "
-                        "models, lfgnss/data/model)")
+                        "model's rows on every dataset, named after the file as lfgnss.solve names its outputs: "
+                        "LF-GNSS EKF (mine), ... for mine.npz; LF-GNSS EKF (x), LF-GNSS EKF + RTS smoother (x), "
+                        "LF-GNSS FGO (x) for a run's runs/x/model.npz (default: the bundled models, "
+                        "lfgnss/data/model); given once")
     p.add_argument("--out", type=path_option, default=None,
                    help="folder for results.md and figures/ (default: lfgnss-benchmark in the current folder, "
                         "lfgnss-benchmark/warm-up-SPLIT with --warm-up; --out docs, and --out docs/warm-up-val "
@@ -809,17 +876,18 @@ def _main(args: argparse.Namespace, argv: list[str] | None) -> int:
     unwritten: list[str] = []      # figures and results.md that could not be written: the rest is kept, exit 2
     left_out: list[str] = []       # --backend rows whose estimator raised: the other rows are kept, exit 2
     leaked: list[str] = []         # models trained on test epochs: said in results.md and as warnings
+    untrained: list[str] = []      # models that hold no training: said in results.md and as warnings
     # datasets whose files are missing or turn out bad (failed, above): the others are kept, exit 2
     all_rows, rtk_rows = run(ids, model_dir=args.models, out_dir=args.out, plots=not args.no_plots,
                              unwritten=unwritten, warm_up=args.warm_up, failed=failed, extra=extra, left_out=left_out,
-                             leaked=leaked)
+                             leaked=leaked, untrained=untrained)
     if failed and not all_rows:    # an empty table never replaces a results file
         raise _nothing_run(failed, report)
     argv = sys.argv[1:] if argv is None else argv
     command = shlex.join(["python", "-m", "lfgnss.benchmark", *argv])
     try:                            # before the tables go to stdout, which may be a pipe closed early (| head)
         written = write_report(report, all_rows, rtk_rows, command, args.warm_up, not args.no_plots, failed, made_by,
-                               left_out, leaked)
+                               left_out, leaked, untrained)
     except OSError as err:
         written = None
         unwritten.append(f"{err.filename or report}: {cannot_write(err)}")
@@ -833,7 +901,7 @@ def _main(args: argparse.Namespace, argv: list[str] | None) -> int:
         sys.stdout.flush()
     except BrokenPipeError:         # the reader went away: results.md is written, nothing more to say on stdout
         stdout_gone()
-    for message in leaked:
+    for message in leaked + untrained:
         print(f"warning: {message}", file=sys.stderr)
     for message in failed + left_out + unwritten:
         print(f"error: {message}", file=sys.stderr)

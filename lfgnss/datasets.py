@@ -11,7 +11,7 @@ file (``register_toml``)::
     description = "my first drive"    # optional
     [truth]
     file = "truth.csv"
-    format = "urbannav"               # urbannav | smartloc | static | ecef-csv
+    format = "urbannav"               # urbannav | smartloc | static | ecef-csv | pos
     match_tolerance_s = 0.5           # optional: an epoch is labelled when a truth row lies this close [s]
                                       # (default 0.05 for smartloc, else 0.5, as python -m lfgnss.solve); its
                                       # truth is interpolated between the rows around it when they are at
@@ -31,7 +31,10 @@ Truth rows (numbers separated by commas or spaces; ``TRUTH_COLUMNS``):
 - ``urbannav``: GPS week, TOW [s], latitude, longitude [deg], ellipsoidal height [m];
 - ``smartloc``: ``point3``, t [s since ``time_origin_gps_s``], ECEF X, Y, Z [m] (libRSF; ``#`` lines are comments);
 - ``static``: TOW [s], TOW [s], latitude, longitude [deg], ellipsoidal height [m]; the first row labels every epoch;
-- ``ecef-csv``: GPS seconds since 1980-01-06, ECEF X, Y, Z [m].
+- ``ecef-csv``: GPS seconds since 1980-01-06, ECEF X, Y, Z [m];
+- ``pos``: an RTKLIB ``.pos`` solution (``lfgnss.outputs.read_pos``: rnx2rtkp's or ``lfgnss.solve``'s).
+
+Lines starting with ``%`` (RTKLIB's header) are comments in every format.
 """
 from __future__ import annotations
 
@@ -39,6 +42,7 @@ import difflib
 import hashlib
 import json
 import math
+import re
 import tomllib
 import warnings
 from dataclasses import dataclass, field, replace
@@ -251,6 +255,7 @@ def register_toml(path: str | Path, *, need_splits: tuple[str, ...] = ()) -> Dat
     if "file" not in cfg["truth"]:
         raise InputError(path, "dataset config lacks file in [truth] (the ground-truth file)")
     axis = cfg.get("splits", {}).get("axis", "tow")
+    axis = axis.lower() if isinstance(axis, str) else axis          # any case, as the truth format
     if axis not in SPLIT_AXES:
         raise InputError(path, f"unknown split axis {axis!r} in [splits]; use one of {', '.join(SPLIT_AXES)}")
     splits = {k: _split_bounds(path, k, v, axis) for k, v in cfg.get("splits", {}).items() if k in SPLITS}
@@ -289,12 +294,22 @@ def register_toml(path: str | Path, *, need_splits: tuple[str, ...] = ()) -> Dat
                                       and 0 < tolerance < math.inf):
         raise InputError(path, f"match_tolerance_s in [truth] must be a number of seconds > 0 (how far an epoch may "
                                f"lie from a truth row), got {tolerance!r}")
+    truth_format = str(cfg["truth"].get("format", "urbannav")).lower()
+    if "time_origin_gps_s" in cfg["truth"] and truth_format != "smartloc" and axis != "relative_s":
+        raise InputError(path, f"time_origin_gps_s in [truth] is the t = 0 of a smartloc truth and of relative_s "
+                               f"splits, and this dataset has neither (format = {truth_format!r}, axis = {axis!r}): "
+                               f"it would change nothing; remove it (a {truth_format} truth is stamped in GPS time: "
+                               "times off by a constant are to be shifted in the file)")
+
+    def file(name: str) -> Path:
+        return base / Path(name).expanduser()       # relative to the TOML's folder; ~ is the home folder
+
     try:
         truth = cfg["truth"]
         origin = truth.get("time_origin_gps_s")
         spec = DatasetSpec(
-            id=str(cfg["id"]), obs=tuple(base / p for p in cfg["obs"]), nav=tuple(base / p for p in cfg["nav"]),
-            truth=base / truth["file"], truth_format=str(truth.get("format", "urbannav")).lower(), splits=splits,
+            id=str(cfg["id"]), obs=tuple(file(p) for p in cfg["obs"]), nav=tuple(file(p) for p in cfg["nav"]),
+            truth=file(truth["file"]), truth_format=truth_format, splits=splits,
             split_axis=str(axis), systems=None if systems is None else tuple(systems),
             match_tolerance_s=None if tolerance is None else float(tolerance),
             time_origin_gps_s=None if origin is None else float(origin), description=str(cfg.get("description", "")),
@@ -366,15 +381,16 @@ def _numeric_rows(path: Path, n_cols: int, record_word: str | None = None,
     """Rows of at least n_cols numbers; bad lines are reported as 'PATH:LINE: reason' and skipped.
 
     With ``record_word`` only lines starting with that word are rows; others are reported, '#' comments aside.
-    ``problem(values) -> reason or None`` rejects rows of readable but impossible values.
+    Lines starting with '%' (RTKLIB's .pos header) are comments in every format; a UTF-8 byte order mark is read
+    past. ``problem(values) -> reason or None`` rejects rows of readable but impossible values.
     """
     rows, skipped = [], []          # skipped: (line number, reason)
     try:
-        lines = path.read_text(errors="replace").splitlines()
+        lines = path.read_text(encoding="utf-8-sig", errors="replace").splitlines()
     except OSError as err:
         raise InputError(path, f"cannot read truth file ({err.strerror})") from None
     for i, line in enumerate(lines, 1):
-        if not line.strip():
+        if not line.strip() or line.lstrip().startswith("%"):
             continue
         parts = line.replace(",", " ").split()
         if record_word is not None:
@@ -389,8 +405,7 @@ def _numeric_rows(path: Path, n_cols: int, record_word: str | None = None,
             if len(values) < n_cols or not np.all(np.isfinite(values)):
                 raise ValueError
         except ValueError:
-            header = not rows and not skipped and any(c.isalpha() for c in line)
-            skipped.append((i, "unreadable truth line" + " (a header?)" * header))
+            skipped.append((i, "unreadable truth line" + _unreadable_why(line, first=not rows and not skipped)))
             continue
         why = problem(values) if problem is not None else None
         if why is not None:
@@ -405,6 +420,17 @@ def _numeric_rows(path: Path, n_cols: int, record_word: str | None = None,
     return np.array(rows), [f"{path}:{i}: {why}, skipped" for i, why in skipped]
 
 
+def _unreadable_why(line: str, first: bool) -> str:
+    """Words after "unreadable truth line" when ``line`` shows why: a calendar date, semicolons, words on the
+    first line (a header), else ''."""
+    if re.match(r"\s*\d{4}[/-]\d{1,2}[/-]\d{1,2}", line):
+        return (" (a calendar date: truth times are numbers of GPS time, see the format's columns; an RTKLIB .pos "
+                "file reads as format pos)")
+    if ";" in line:
+        return " (semicolon-separated: separate numbers by commas or spaces, with decimal points)"
+    return " (a header?)" if first and any(c.isalpha() for c in line) else ""
+
+
 #: Each truth format's rows, as _numeric_rows' (numbers per row, record word, plausibility check).
 _ROW_LAYOUTS = {"urbannav": (5, None, _week_tow_problem), "smartloc": (4, "point3", _ecef_problem),
                 "static": (5, None, _lla_problem), "ecef-csv": (4, None, _ecef_problem)}
@@ -416,6 +442,8 @@ TRUTH_COLUMNS = {
                 "first epoch], ECEF X, Y, Z [m]",
     "static": "TOW [s], TOW [s], latitude, longitude [deg], ellipsoidal height [m]; the first row labels every epoch",
     "ecef-csv": "GPS seconds since 1980-01-06, ECEF X, Y, Z [m]",
+    "pos": "an RTKLIB .pos solution (rnx2rtkp's or lfgnss.solve's): GPST or UTC, week/TOW or calendar time, "
+           "latitude/longitude/height or ECEF",
 }
 
 
@@ -494,7 +522,27 @@ def read_ecef_csv(path: Path, spec: DatasetSpec) -> tuple[np.ndarray, np.ndarray
     return rows[:, 0], rows[:, 1:4], bad
 
 
-TRUTH_READERS = {"urbannav": read_urbannav, "smartloc": read_smartloc, "static": read_static, "ecef-csv": read_ecef_csv}
+def read_pos_truth(path: Path, spec: DatasetSpec) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """An RTKLIB ``.pos`` file (rnx2rtkp's or ``python -m lfgnss.solve``'s): every solution line's time [GPS s] and
+    ECEF position [m] (``lfgnss.outputs.read_pos``: week/TOW or calendar time, GPST or UTC, lat/lon/height or ECEF;
+    the solution quality Q is not filtered)."""
+    from .outputs import read_pos
+
+    try:
+        sol = read_pos(path)
+    except OSError as err:
+        raise InputError(path, f"cannot read truth file ({err.strerror})") from None
+    except ValueError as err:
+        where = re.match(r"read_pos .*?:(\d+): (.*)", str(err))
+        raise InputError(path, where.group(2) if where else str(err),
+                         line=int(where.group(1)) if where else None) from None
+    if not sol.time_gps_s.size:
+        raise InputError(path, "no readable ground-truth line (no solution line in this .pos file)")
+    return sol.time_gps_s, sol.pos_ecef_m, []
+
+
+TRUTH_READERS = {"urbannav": read_urbannav, "smartloc": read_smartloc, "static": read_static, "ecef-csv": read_ecef_csv,
+                 "pos": read_pos_truth}
 
 
 #: A truth lying a median farther than this from the coarse least-squares fixes is likely of another drive or place
@@ -570,7 +618,29 @@ def unmatched_time_words(spec: DatasetSpec, time_gps_s: np.ndarray) -> str:
     if spec.truth_format == "ecef-csv" and abs(first - UNIX_TO_GPS_S - np.min(time_gps_s)) <= 86400:
         return (f"; {span} look like Unix times (seconds since 1970, UTC): ecef-csv times are GPS seconds since "
                 f"1980-01-06, {UNIX_TO_GPS_S:.0f} s fewer (and GPST - UTC more), and {epochs}")
+    zone_h = _zone_offset_h(t_truth, np.asarray(time_gps_s, float), spec.match_tolerance_s)
+    if zone_h is not None:
+        from .time import leap_seconds
+
+        leap = float(np.median(leap_seconds(np.asarray(time_gps_s, float))))
+        return (f"; {span} would fit the epochs as local time, about UTC{zone_h:+g} h: {spec.truth_format} times are "
+                f"GPST, so {'subtract' if zone_h > 0 else 'add'} {abs(zone_h):g} h and add GPST - UTC ({leap:g} s "
+                f"here), and {epochs}")
     return f"; {span.replace('its times', 'its GPS times')} miss them: {epochs}"
+
+
+def _zone_offset_h(t_truth: np.ndarray, time_gps_s: np.ndarray, tolerance_s: float) -> float | None:
+    """The time zone [h from UTC, to a quarter hour, 0.5 to 14 h either way] in which truth times [s] stamped in local
+    time would overlap the epochs [GPS s] (from the middles of the two spans), else None."""
+    from .time import leap_seconds
+
+    if not t_truth.size or not time_gps_s.size:
+        return None
+    utc = time_gps_s - float(np.median(leap_seconds(time_gps_s)))
+    zone_h = round((np.ptp(t_truth) / 2 + t_truth.min() - np.ptp(utc) / 2 - utc.min()) / 900.0) / 4.0
+    local = utc + zone_h * 3600.0
+    overlap = t_truth.min() <= local.max() + tolerance_s and t_truth.max() >= local.min() - tolerance_s
+    return zone_h if 0.5 <= abs(zone_h) <= 14 and overlap else None
 
 
 def _origin_words(spec: DatasetSpec) -> str:
@@ -837,12 +907,19 @@ def split_index(seq: Sequence, spec: DatasetSpec, split: str) -> np.ndarray:
     """(T,) bool: epochs of ``seq`` in the split (only labelled epochs count for 'epoch' axes); "a+b": in a or b."""
     if "+" in split and split not in spec.splits:
         return np.logical_or.reduce([split_index(seq, spec, part) for part in split_parts(split)])
-    if split not in spec.splits:
-        where = f"; give {split} = [start, stop] under [splits] in {spec.source}" if spec.source else ""
-        raise KeyError(f"dataset {spec.id} has no split {split!r}; it has {', '.join(spec.splits) or 'none'}{where}")
+    check_split(spec, split)
     start, stop = spec.splits[split]
     axis = split_axis_values(seq, spec)
     return seq.labelled & (axis >= start) & (axis < stop)
+
+
+def check_split(spec: DatasetSpec, split: str) -> None:
+    """UnknownNameError (a KeyError of one line) unless ``spec`` has each split named in ``split`` ("a+b": a and b)."""
+    for part in [split] if split in spec.splits else split_parts(split):
+        if part not in spec.splits:
+            where = f"; give {part} = [start, stop] under [splits] in {spec.source}" if spec.source else ""
+            raise UnknownNameError(f"dataset {spec.id} has no split {part!r}{did_you_mean(part, list(spec.splits))}; "
+                                   f"it has {', '.join(spec.splits) or 'none'}{where}")
 
 
 def obs_hashes(dataset_id: str) -> set[str]:
@@ -924,6 +1001,7 @@ def load_split(dataset_id: str, split: str, *, feature_names: tuple[str, ...] = 
                cache: bool = True) -> list[Sequence]:
     """The split's contiguous epochs as Sequences (one per unbroken run of epochs); "train+val": the two splits'."""
     spec = get(dataset_id)
+    check_split(spec, split)                # before the build, which can take minutes
     seq = build(dataset_id, feature_names=feature_names, cache=cache)
     runs = contiguous_runs(np.flatnonzero(split_index(seq, spec, split)))
     return [seq.subset(slice(r[0], r[-1] + 1), name=f"{dataset_id}/{split}" + (f"#{k}" if len(runs) > 1 else ""))
@@ -935,21 +1013,26 @@ __all__ = ["DatasetSpec", "SPLITS", "align_truth", "build", "contiguous_runs", "
            "static_time_note", "truth_note_summary"]
 
 
-def alignment_report(dataset_ids: list[str] | None = None) -> str:
-    """Matched epochs per split and the coarse-fix error distribution, as plain text."""
+def alignment_report(dataset_ids: list[str] | None = None, problems: list[str] | None = None) -> str:
+    """Matched epochs per split and the coarse-fix error distribution, as plain text; ``problems`` (a list) gets one
+    line per dataset without truth and per empty split."""
     from .metrics import accuracy_table
 
-    lines = []
+    lines, problems = [], [] if problems is None else problems
     for dataset_id in present(dataset_ids or sorted(_builtin()), lines.append):
         spec = get(dataset_id)
         seq = build(dataset_id)
         labelled = seq.labelled
         lines.append(f"{dataset_id}: {len(seq)} epochs, {int(labelled.sum())} with truth; systems "
                      f"{''.join(seq.systems)}" + (f"; {spec.description}" if spec.description else ""))
+        if not labelled.any():
+            problems.append(f"{dataset_id}: no epoch has truth")
         for split in spec.splits:
             idx = split_index(seq, spec, split)
             if not idx.any():
                 lines.append(f"  {split:5s}     0 matched epochs ({empty_split_words(seq, spec, split)})")
+                if labelled.any():
+                    problems.append(f"{dataset_id}: its {split} split has no epoch with truth")
                 continue
             has_fix = np.all(np.isfinite(seq.coarse_ecef_m), axis=1)
             row = accuracy_table(seq.coarse_ecef_m[idx], seq.truth_ecef_m[idx], has_fix[idx])
@@ -964,7 +1047,8 @@ def main(argv: list[str] | None = None) -> int:
 
     Bad input (a config, an id, a file) ends in one line ``error: ...`` and exit code 2, as does a dataset
     asked for by id or ``--register`` whose files are missing (a registered one is left out of the report: the
-    error line names its TOML file); the default benchmark sets are skipped quietly.
+    error line names its TOML file), and one reported without truth or with a split of no labelled epoch (after the
+    report); the default benchmark sets are skipped quietly.
     """
     import argparse
     import sys
@@ -982,15 +1066,17 @@ def main(argv: list[str] | None = None) -> int:
             ids = list(dict.fromkeys([*args.ids, *(register_toml(path).id for path in args.register)]))
             unbuilt = [f"{i}: {get(i).missing_note()}" for i in ids if get(i).missing()]
             shown = [i for i in ids if get(i).source is None or not get(i).missing()]
-            report = alignment_report(shown or None) if shown or not ids else ""
+            problems: list[str] = []
+            report = alignment_report(shown or None, problems) if shown or not ids else ""
         for message in dict.fromkeys(str(w.message) for w in caught):
             print(f"warning: {message}", file=sys.stderr)
         if report:
             print(report)
         if unbuilt:
             print(f"error: dataset not built: {'; '.join(unbuilt)}", file=sys.stderr)
-            return 2
-        return 0
+        if problems:                # what the training and benchmark commands would refuse
+            print(f"error: {'; '.join(problems)} (see above)", file=sys.stderr)
+        return 2 if unbuilt or problems else 0
     except INPUT_ERRORS as err:
         print(f"error: {one_line(err)}", file=sys.stderr)
         return 2

@@ -66,19 +66,34 @@ def azimuth_elevation(rcv_ecef_m: np.ndarray, sat_ecef_m: np.ndarray) -> tuple[n
 
 #: Distance from the Earth's centre [m] a ground or airborne receiver's ECEF position lies within.
 NEAR_SURFACE_RADIUS_M = (6.0e6, 6.6e6)
+#: Distance from the Earth's centre [m] a navigation satellite lies within (MEO ~2.6e7 m, GEO / QZSS ~4.2e7 m).
+ORBIT_RADIUS_M = (1.5e7, 5.0e7)
+
+
+def _check_radius(owner: str, name: str, xyz: np.ndarray, bounds: tuple[float, float], hint: str) -> None:
+    """ValueError naming ``owner`` and ``name`` unless every finite row of ``xyz`` (R, 3) [m] lies ``bounds`` [m]
+    from the Earth's centre."""
+    r = np.linalg.norm(xyz[np.isfinite(xyz).all(axis=1)], axis=1)
+    low, high = bounds
+    far = (r < low) | (r > high)
+    if far.any():
+        raise ValueError(f"{owner}: {name} has {int(far.sum())} row(s) {r[far][0]:.6g} m (first) from the Earth's "
+                         f"centre, outside [{low:g}, {high:g}]: {hint}")
 
 
 def check_near_surface(owner: str, name: str, ecef_m: np.ndarray) -> None:
     """ValueError unless every finite row of ``ecef_m`` (..., 3) [m] lies near the Earth's surface (ECEF metres).
 
-    Catches positions given in other units, e.g. latitude/longitude/height or kilometres, before they give RMSEs of
-    thousands of kilometres; NaN rows (no position) pass.
+    Catches positions given in other units, e.g. latitude/longitude/height or kilometres, or zeros for "no fix",
+    before they give RMSEs of thousands of kilometres; NaN rows (no position) pass.
     """
-    xyz = np.asarray(ecef_m, dtype=float).reshape(-1, 3)
-    r = np.linalg.norm(xyz[np.isfinite(xyz).all(axis=1)], axis=1)
-    low, high = NEAR_SURFACE_RADIUS_M
-    far = (r < low) | (r > high)
-    if far.any():
-        raise ValueError(f"{owner}: {name} has {int(far.sum())} row(s) {r[far][0]:.6g} m (first) from the Earth's "
-                         f"centre, outside [{low:g}, {high:g}]: it must be ECEF metres (convert latitude/longitude/"
-                         "height (radians, metres) with lfgnss.frames.lla_to_ecef)")
+    _check_radius(owner, name, np.asarray(ecef_m, dtype=float).reshape(-1, 3), NEAR_SURFACE_RADIUS_M,
+                  "it must be ECEF metres (convert latitude/longitude/height (radians, metres) with "
+                  "lfgnss.frames.lla_to_ecef), NaN where there is no position")
+
+
+def check_in_orbit(owner: str, name: str, ecef_m: np.ndarray) -> None:
+    """ValueError unless every finite row of ``ecef_m`` (..., 3) [m] lies at a navigation satellite's distance from
+    the Earth's centre (``ORBIT_RADIUS_M``): satellite positions in kilometres (as SP3 files give them) or zeros."""
+    _check_radius(owner, name, np.asarray(ecef_m, dtype=float).reshape(-1, 3), ORBIT_RADIUS_M,
+                  "satellite positions must be ECEF metres (kilometres, as SP3 files give them, times 1000)")

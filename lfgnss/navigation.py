@@ -139,7 +139,8 @@ def load_nav(paths: str | Path | Iterable[str | Path], *, cache: bool = True) ->
     RinexWarning
         Once per file with damaged records (an unreadable value, non-ASCII bytes, a wrong number of
         lines, an impossible epoch): those records are skipped, every other one is kept. The notes,
-        ``PATH:LINE: reason``, are in ``Navigation.warnings``.
+        ``PATH:LINE: reason``, are in ``Navigation.warnings``. Also once per file of several that is a RINEX
+        file of another kind (meteorological, observation: a glob over a station's folder), left out.
 
     Raises
     ------
@@ -155,10 +156,17 @@ def load_nav(paths: str | Path | Iterable[str | Path], *, cache: bool = True) ->
     nav = _load_cached(paths) if cache else _parse_nav(paths)
     for source in dict.fromkeys(nav.sources):  # also on a cache hit: the same file always gives the same warning
         notes = [w for w in nav.warnings if w.startswith(source + ":")]
-        if notes:
+        if notes and notes[0].endswith(LEFT_OUT):
+            warnings.warn(notes[0], RinexWarning, stacklevel=2)
+        elif notes:
             warnings.warn(f"{source}: {len(notes)} problem(s), damaged navigation records skipped; first: {notes[0]}",
                           RinexWarning, stacklevel=2)
     return nav
+
+
+#: Why a file among several navigation files is left out, and the note saying so.
+NOT_NAVIGATION = "not a RINEX 2/3 navigation file"
+LEFT_OUT = "left out of the navigation files"
 
 
 def _load_cached(paths: list[Path]) -> Navigation:
@@ -195,7 +203,13 @@ def _parse_nav(paths: list[Path]) -> Navigation:
 
     kep_frames, glo_frames, iono, notes = [], [], {}, []
     for path in paths:
-        datasets, skipped = _read(path)
+        try:
+            datasets, skipped = _read(path)
+        except RinexError as err:       # a met or obs file among several (a glob over a station's folder)
+            if len(paths) == 1 or not err.reason.startswith(NOT_NAVIGATION):
+                raise
+            notes.append(f"{path}: {err.reason}: {LEFT_OUT}")
+            continue
         notes += skipped
         raw = pd.concat([_flat(ds) for ds in datasets], ignore_index=True)
         kep, kep_notes = _plausible(_kepler_frame(raw), KEPLER_LIMITS)
@@ -211,6 +225,8 @@ def _parse_nav(paths: list[Path]) -> Navigation:
             coef = np.asarray(datasets[0].attrs.get(name, []), dtype=float).ravel()
             if key not in iono and coef.size == 8 and np.all(np.isfinite(coef)):
                 iono[key] = coef
+    if not kep_frames:
+        raise RinexError(paths[0], f"{NOT_NAVIGATION}, nor is any other of the {len(paths)} files given")
     kepler = _kepler_records(pd.concat(kep_frames, ignore_index=True))
     glonass = _glonass_records(pd.concat(glo_frames, ignore_index=True))
     return Navigation(kepler=kepler, glonass=glonass, iono=iono, sources=tuple(str(p) for p in paths),
@@ -389,7 +405,7 @@ def _clean_layers(text: str, path: Path) -> tuple[list[str], list[str]]:
     if version == 3 and full_version >= 3.05 - 1e-6:
         record_lines["R"] = _GLONASS_LINES_V305
     if version not in (2, 3) or not (lines[0][20:21] in ("N", "G", "E") or "NAV" in lines[0][20:40]):
-        raise RinexError(path, f"not a RINEX 2/3 navigation file ({lines[0][:60].strip()!r})", line=1)
+        raise RinexError(path, f"{NOT_NAVIGATION} ({lines[0][:60].strip()!r})", line=1)
     start = _RECORD_START[version]
     first_col = 23 if version == 3 else 22
     cont_col = 4 if version == 3 else 3

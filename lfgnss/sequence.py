@@ -9,7 +9,7 @@ from typing import Iterable
 import numpy as np
 
 from .errors import InputError
-from .frames import check_near_surface
+from .frames import check_in_orbit, check_near_surface
 from .time import gpst_stamp
 
 #: Default LF-GNSS feature set, in packing order (see lfgnss.features).
@@ -137,7 +137,15 @@ class Sequence:
         if not np.issubdtype(np.asarray(self.system_index).dtype, np.integer):
             raise ValueError(f"Sequence {self.name!r}: system_index must be an integer array, got dtype "
                              f"{np.asarray(self.system_index).dtype}")
-        check_near_surface(f"Sequence {self.name!r}", "truth_ecef_m", self.truth_ecef_m)
+        owner = f"Sequence {self.name!r}"
+        for key in ("pr_m", "sat_pos_ecef_m", "coarse_ecef_m", "coarse_clock_m"):
+            dtype = np.asarray(getattr(self, key)).dtype
+            if dtype.kind == "f" and dtype.itemsize < 8:     # float32 steps are 2 m at 2e7 m
+                raise ValueError(f"{owner}: {key} must be float64, got {dtype} (which rounds pseudoranges and "
+                                 f"satellite positions to metres): .astype(float) before rounding, from the source")
+        check_near_surface(owner, "truth_ecef_m", self.truth_ecef_m)
+        check_near_surface(owner, "coarse_ecef_m", self.coarse_ecef_m)
+        check_in_orbit(owner, "sat_pos_ecef_m (used slots)", np.asarray(self.sat_pos_ecef_m)[self.mask])
 
     def __len__(self) -> int:
         return int(self.mask.shape[0])

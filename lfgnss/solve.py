@@ -281,7 +281,7 @@ def _solve(args) -> _Solved:
     if args.formal_sd:
         options["inflate_cov"] = False
     label += " (hand-set noise)" if args.no_model else ""
-    label += f" (model {_model_tag(Path(args.model))})" if _own_model(args) else ""   # the table names the model
+    label += f" (model {model_tag(Path(args.model))})" if _own_model(args) else ""   # the table names the model
     if args.backend in PROGRESS_BACKENDS:
         options["progress"] = not args.quiet
     estimator = estimators.create(args.backend, **options)
@@ -489,7 +489,7 @@ def _run_tag(args: argparse.Namespace, options: dict, systems: str = "") -> str:
 
     tag = smoothed_name(args.backend + ("-fixed-lag" if options.get("mode") == "fixed-lag" else ""), args.smooth,
                         math.inf if args.smooth_lag is None else args.smooth_lag)
-    tag += f"-{_model_tag(Path(args.model))}" if _own_model(args) else ""
+    tag += f"-{model_tag(Path(args.model))}" if _own_model(args) else ""
     tag += "-hand-set" if args.no_model else ""
     tag += "-marginals" if args.marginals else ""
     tag += "-formal-sd" if args.formal_sd else ""
@@ -504,7 +504,7 @@ def _own_model(args: argparse.Namespace) -> bool:
     return args.model is not None and model_path(args.model).resolve() != DEFAULT_MODEL.resolve()
 
 
-def _model_tag(path: Path) -> str:
+def model_tag(path: Path) -> str:
     """A model file's name in output names; a training run's ``model.npz`` goes by its run folder (``runs/a``: ``a``)."""
     if path.stem != "model":
         return path.stem

@@ -186,7 +186,7 @@ def test_a_backend_that_raises_costs_its_row_only(tmp_path, plugin, sample_toml,
     assert "**Rows left out** (the estimator of one's own raised; the tables leave that row out on that dataset): " \
            "my-drive: row 'bad-filter' left out" in text
     rows = _table(text, "All labelled test epochs")
-    assert "bad-filter" not in rows and {PLAIN, "LF-GNSS EKF (model.npz)"} <= set(rows)
+    assert "bad-filter" not in rows and {PLAIN, f"LF-GNSS EKF ({model.parent.name})"} <= set(rows)
     with pytest.raises(ValueError, match="broadcast"):                     # run() without left_out: raised
         run(["my-drive"], model_dir=tmp_path / "no-models", plots=False, extra=[Method("bad", "bad-filter")])
 
@@ -217,8 +217,9 @@ def test_extra_rows_come_last_and_may_not_take_a_rows_name(tmp_path):
 
 def test_a_model_files_rows_carry_its_name_and_the_bundled_rows_keep_theirs(model):
     names = [m.name for m in methods(model, "berlin-pp")]
-    assert names[-4:] == [f"{PLAIN_MAIN_FILTER} (model.npz)", "LF-GNSS EKF (model.npz)",
-                          "LF-GNSS EKF + RTS smoother (model.npz)", "LF-GNSS FGO (model.npz)"]
+    label = f"({model.parent.name})"                # a run's model.npz: named by its folder, as lfgnss.solve names it
+    assert names[-4:] == [f"{PLAIN_MAIN_FILTER} {label}", f"LF-GNSS EKF {label}",
+                          f"LF-GNSS EKF + RTS smoother {label}", f"LF-GNSS FGO {label}"]
     bundled = [m.name for m in methods(MODEL_DIR, "berlin-pp")]
     assert {PLAIN_MAIN_FILTER, "LF-GNSS EKF", "LF-GNSS EKF + RTS smoother", "LF-GNSS FGO"} <= set(bundled)
     assert not any(".npz)" in name for name in bundled)                     # docs/results.md keeps its names
@@ -250,12 +251,13 @@ def test_a_model_files_rows_reach_the_targets_table_and_the_figures(tmp_path, sa
     monkeypatch.setattr(lfgnss.outputs, "plot_solution", lambda *a, label=None, **k: labels.append(label))
     datasets.register_toml(sample_toml("my-drive"))
     rows, rtk = run(["my-drive"], model_dir=model, out_dir=tmp_path, plots=True)
-    assert labels == ["LF-GNSS EKF (model.npz)"]                            # the figures' main solution
+    label = f"({model.parent.name})"
+    assert labels == [f"LF-GNSS EKF {label}"]                               # the figures' main solution
     figures = {r["method"]: r for r in rows}
     targets = {r["method"]: r for r in target_rows(rows, rtk)}
-    assert {"LF-GNSS EKF (model.npz)", "LF-GNSS FGO (model.npz)"} <= set(targets)
-    bar = figures[f"{PLAIN_MAIN_FILTER} (model.npz)"]["rmse_3d_m"]
-    assert targets["LF-GNSS EKF (model.npz)"]["3D vs plain EKF"].split(" (")[0].endswith(f"vs {bar:.2f}")
+    assert {f"LF-GNSS EKF {label}", f"LF-GNSS FGO {label}"} <= set(targets)
+    bar = figures[f"{PLAIN_MAIN_FILTER} {label}"]["rmse_3d_m"]
+    assert targets[f"LF-GNSS EKF {label}"]["3D vs plain EKF"].split(" (")[0].endswith(f"vs {bar:.2f}")
     assert np.isfinite(bar) and bar != figures[PLAIN]["rmse_3d_m"]
 
 
@@ -267,7 +269,7 @@ def test_the_help_names_the_options_and_the_labels(monkeypatch, capsys):
     assert "--plugin MODULE_OR_FILE" in shown and "--backend NAME" in shown
     assert "@estimators.register(\"NAME\")" in shown and "estimators.create(NAME)" in shown
     assert "The targets table reads only LF-GNSS rows" in shown
-    assert "named after the file: LF-GNSS EKF (model.npz)" in shown
+    assert "LF-GNSS EKF (x), LF-GNSS EKF + RTS smoother (x), LF-GNSS FGO (x) for a run's runs/x/model.npz" in shown
 
 
 def test_rows_of_ones_own_never_go_into_the_committed_results(tmp_path, monkeypatch):

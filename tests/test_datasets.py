@@ -362,10 +362,15 @@ def test_datasets_cli_reports_a_dataset_named_twice_once(tmp_path, clean_registr
 
 def test_a_split_that_misses_the_drive_shows_the_drives_span_on_its_axis(clean_registry, capsys, sample_toml):
     """A TOML without a description and with splits on the wrong axis (times of week given on relative_s): the report
-    line ends with the systems (it used to end in a dangling '; '), and each empty split says where the drive lies."""
+    line ends with the systems (it used to end in a dangling '; '), and each empty split says where the drive lies;
+    the command then exits 2 (it exited 0, so a script could not tell)."""
     cfg = sample_toml("tow-drive", splits=((126641.7, 126800), (126800, 126850), (126850, 126930)))
-    assert datasets.main(["--register", str(cfg)]) == 0
-    lines = capsys.readouterr().out.splitlines()
+    assert datasets.main(["--register", str(cfg)]) == 2
+    captured = capsys.readouterr()
+    assert captured.err.splitlines()[-1] == ("error: tow-drive: its train split has no epoch with truth; tow-drive: its "
+                                             "val split has no epoch with truth; tow-drive: its test split has no "
+                                             "epoch with truth (see above)")
+    lines = captured.out.splitlines()
     assert lines[0] == "tow-drive: 1375 epochs, 1372 with truth; systems GR"
     assert lines[1] == ("  train     0 matched epochs ([splits] axis = 'relative_s', train = [126641.7, 126800) holds no "
                         "labelled epoch of dataset tow-drive (the labelled epochs span [0, 282.8] on it))")

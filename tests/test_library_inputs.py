@@ -113,3 +113,205 @@ def test_a_requested_constellation_the_file_lacks_is_warned_of():
     with pytest.warns(lfgnss.rinex.RinexWarning, match=r"no C observations \(requested\)"):
         meas = lfgnss.load(SAMPLE_OBS, SAMPLE_NAV, systems="GC")
     assert meas.systems == ("G",)
+
+
+# ------------------------------------------------------------------ estimators: options, noise models, solves
+# (a library user's review of estimators/, session 51)
+@pytest.fixture(scope="module")
+def seq(meas):
+    """The bundled drive's first 200 epochs, with truth."""
+    truth = read_truth(SAMPLE_TRUTH, meas.time_gps_s, "smartloc")
+    return lfgnss.build_sequence(meas, lfgnss.spp(meas), truth_ecef_m=truth, name="drive").subset(slice(0, 200))
+
+
+def _fixed(seq, r_m2: float):
+    import estimators
+
+    return estimators.FixedNoise(np.full(seq.mask.shape, r_m2), np.zeros(seq.mask.shape))
+
+
+@pytest.mark.parametrize("psd", [(1.0, 1.0, np.nan), (1.0, 1.0, np.inf), ("a", 1.0, 1.0), (1.0, 1.0), 0.5])
+def test_fgo_refuses_a_non_finite_or_malformed_acceleration_density(psd):
+    """NaN passed ``np.any(psd <= 0)`` and the graph returned its initial guess as 'updated'."""
+    import estimators
+
+    with pytest.raises(ValueError, match=r"^LfgnssFgo: accel_psd_enu_m2_s3 must be 3 finite positive numbers "
+                                         r"\[m\^2/s\^3\] \(east, north, up\), got "):
+        estimators.create("fgo", accel_psd_enu_m2_s3=psd)
+
+
+def test_fgo_numeric_options_are_refused_as_the_ekf_config_refuses_them():
+    import estimators
+
+    same = "a number of dB-Hz or None, got '45'"
+    with pytest.raises(ValueError, match=f"^LfgnssFgo: doppler_cn0_ref_dbhz must be finite: {same}$"):
+        estimators.create("fgo", doppler_cn0_ref_dbhz="45")                       # was numpy's raw TypeError
+    with pytest.raises(ValueError, match=f"EkfConfig.doppler_cn0_ref_dbhz must be {same}$"):
+        estimators.EkfConfig(doppler_cn0_ref_dbhz="45")
+    with pytest.raises(ValueError, match="LfgnssFgo: doppler_cn0_ref_dbhz must be finite: a number"):
+        estimators.create("fgo", doppler_cn0_ref_dbhz=np.inf)
+    for key in ("lag_s", "robust_k", "prior_pos_sigma_m", "prior_vel_sigma_m_s", "doppler_sigma_m_s"):
+        for bad in (np.nan, np.inf, "1"):
+            with pytest.raises(ValueError, match=f"^LfgnssFgo: {key} must be a finite number, got "):
+                estimators.create("fgo", **{key: bad})
+    for key in ("zupt_sigma_m_s", "zupt_max_speed_m_s"):
+        with pytest.raises(ValueError, match=f"^LfgnssFgo: {key} must be a positive number of m/s"):
+            estimators.create("fgo", **{key: np.nan})
+
+
+@pytest.mark.parametrize("value", [float("inf"), float("nan"), -1.0, "0.1"])
+def test_ekf_config_refuses_a_non_finite_vertical_density(value):
+    """inf was accepted (the other densities must be finite) and gave NaN covariances."""
+    import estimators
+
+    with pytest.raises(ValueError, match=r"^estimators/models.py: EkfConfig.q_vel_up_m2_s3 must be a finite number "
+                                         r">= 0 \[\(m/s\)\^2/s\] or None, got "):
+        estimators.EkfConfig(q_vel_up_m2_s3=value)
+
+
+@pytest.mark.parametrize("options, epoch, cause", [
+    ({"noise": 1e11}, 24, r"its largest R is 1e\+11 m\^2: R must be a pseudorange variance in m\^2"),
+    ({"noise": 1e-12}, 193, r"its smallest R is 1e-12 m\^2: R must be a pseudorange variance in m\^2, not near 0$"),
+    ({"accel_psd_enu_m2_s3": (1e-9,) * 3}, 0, r"accel_psd_enu_m2_s3 is \(1e-09, 1e-09, 1e-09\) m\^2/s\^3: near 0"),
+])
+def test_a_singular_fixed_lag_graph_names_the_epoch_and_the_input(seq, options, epoch, cause):
+    """gtsam's multi-line RuntimeError ('Indeterminate linear system ... (Symbol: x24)') becomes one line."""
+    import estimators
+
+    if "noise" in options:
+        options = {"noise": _fixed(seq, options["noise"])}
+    with pytest.raises(ValueError, match=rf"^LfgnssFgo: the fixed-lag update at epoch {epoch} of 'drive' is "
+                                         rf"numerically singular \(gtsam: an indeterminate linear system near "
+                                         rf"variable [xv]{epoch}\); " + cause) as caught:
+        estimators.create("fgo", mode="fixed-lag", **options).solve(seq)
+    assert "\n" not in str(caught.value)
+
+
+def test_a_batch_graph_levenberg_marquardt_gives_up_on_is_named(seq):
+    """R = 1e-12 m^2: Levenberg-Marquardt stopped at its largest damping and the graph returned 88 m errors silently."""
+    import estimators
+
+    with pytest.raises(ValueError, match=r"^LfgnssFgo: the batch solve of 'drive' failed: Levenberg-Marquardt could "
+                                         r"not lower the error at its largest damping \(worst fit at epoch \d+\); "
+                                         r"its smallest R is 1e-12 m\^2: R must be a pseudorange variance in m\^2, "
+                                         r"not near 0$"):
+        estimators.create("fgo", noise=_fixed(seq, 1e-12)).solve(seq)
+
+
+def test_config_of_reads_a_bundled_model_name_or_a_model_file(tmp_path, monkeypatch):
+    """config_of("hk-tst-2019") gave EkfConfig() silently; noise="~/m.npz" was not found."""
+    import shutil
+
+    import estimators
+    from lfgnss.paths import bundled_models
+
+    model = load_model("hk-tst-2019")
+    want = estimators.config_of(model)
+    assert want != estimators.EkfConfig() and want.zupt_sigma_m_s == 0.02
+    assert estimators.config_of("hk-tst-2019") == want
+    assert estimators.config_of(bundled_models()["hk-tst-2019"]) == want            # a Path
+    assert estimators.config_of(None) == estimators.EkfConfig()                     # not a model: the defaults
+    assert estimators.config_of(lambda s: model(s)) == estimators.EkfConfig()
+    shutil.copy(bundled_models()["hk-tst-2019"], tmp_path / "m.npz")
+    monkeypatch.setenv("HOME", str(tmp_path))
+    assert estimators.config_of("~/m.npz") == want
+    assert estimators.create("ekf", noise="~/m.npz").config == want
+
+
+def test_the_ekf_takes_a_missing_coarse_clock_from_the_pseudoranges(seq):
+    """Only coarse_clock_m NaN (the position finite) gave no position at all, and no warning."""
+    import estimators
+    from estimators.models import pseudorange_clock_m
+
+    k = 50
+    clock = pseudorange_clock_m(seq.pr_m[k], seq.sat_pos_ecef_m[k], seq.system_index[k], seq.mask[k],
+                                seq.coarse_ecef_m[k], len(seq.systems))
+    assert abs(clock[0] - seq.coarse_clock_m[k, 0]) < 5.0 and abs(clock[1] - seq.coarse_clock_m[k, 1]) < 20.0
+    gps_out = seq.mask[k] & (seq.system_index[k] != 0)                # systems[0] absent: the next one takes the clock
+    alone = pseudorange_clock_m(seq.pr_m[k], seq.sat_pos_ecef_m[k], seq.system_index[k], gps_out,
+                                seq.coarse_ecef_m[k], len(seq.systems))
+    assert alone[1] == 0.0 and abs(alone[0] - clock[0] - clock[1]) < 1e-6
+    part = seq.subset(slice(0, 40))
+    blind = replace(part, coarse_clock_m=np.full_like(part.coarse_clock_m, np.nan))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        got = estimators.create("ekf").solve(blind)
+    want = estimators.create("ekf").solve(part)
+    assert got.has_position().all()
+    assert np.nanmax(np.linalg.norm(got.pos_ecef_m - want.pos_ecef_m, axis=1)) < 0.1
+    mask = blind.mask.copy()
+    mask[:3] = False                                   # no pseudorange to take a clock from at epochs 0-2
+    with pytest.warns(UserWarning, match=r"LfgnssEkf: coarse_clock_m of 'drive' is NaN at 3 epochs with a coarse "
+                                         r"position and no usable pseudorange to take a clock from "
+                                         r"\(first at epoch 0\)"):
+        sol = estimators.create("ekf").solve(replace(blind, mask=mask, prr_mask=blind.prr_mask & mask))
+    assert not sol.has_position()[:3].any() and sol.has_position()[3:].all()
+
+
+def test_fgo_options_its_mode_or_kernel_would_drop_are_refused():
+    """lag_s in batch mode and robust_k without a kernel were accepted and ignored (the EKF refuses smooth_lag_s
+    without smooth)."""
+    import estimators
+
+    with pytest.raises(ValueError, match=r"^LfgnssFgo: lag_s=3 needs mode='fixed-lag' \(the batch mode uses every "
+                                         r"epoch, with no window\)$"):
+        estimators.create("fgo", lag_s=3)
+    with pytest.raises(ValueError, match=r"^LfgnssFgo: robust_k=2 needs a robust kernel \(robust='auto', 'huber' or "
+                                         r"'cauchy'\); robust=None uses none$"):
+        estimators.create("fgo", robust=None, robust_k=2.0)
+    assert estimators.create("fgo", mode="fixed-lag", lag_s=3).lag_s == 3.0         # what they are for
+    assert estimators.create("fgo", robust="huber", robust_k=2.0).robust_k == 2.0
+    estimators.create("fgo", lag_s=10.0)                                              # the defaults, said aloud
+    estimators.create("fgo", robust=None, robust_k=None)
+
+
+def test_a_noise_model_returning_the_wrong_thing_names_itself_and_what_it_must_return(seq):
+    import estimators
+
+    part = seq.subset(slice(0, 5))
+    t, n = part.mask.shape
+    must = r"must return \(r_m2, vc_m\), each a \(T, N\) float array \[m\^2, m\]"
+    with pytest.raises(TypeError, match=r"^FixedNoise: r_m2 must be a \(T, N\) float array \[m\^2\], got an array of "
+                                        r"dtype <U1$"):
+        estimators.FixedNoise(np.full((t, n), "a"), np.zeros((t, n)))
+
+    def as_dict(sequence):
+        return {"r": np.ones((t, n)), "vc": np.zeros((t, n))}
+
+    with pytest.raises(TypeError, match=rf"^LfgnssEkf: the noise model <function .*as_dict> {must}; got a dict "
+                                        rf"\(keys 'r', 'vc'\): return the tuple$"):
+        estimators.LfgnssEkf(noise=as_dict, config=estimators.EkfConfig()).solve(part)
+
+    def as_strings(sequence):
+        return np.full((t, n), "a"), np.zeros((t, n))
+
+    with pytest.raises(TypeError, match=rf"^LfgnssFgo: the noise model <function .*as_strings> {must}; its r_m2 is an "
+                                        rf"array of dtype <U1$"):
+        estimators.LfgnssFgo(noise=as_strings).solve(part)
+    with pytest.raises(TypeError, match=r"^TruthNoise: fallback must be a noise model \(sequence -> \(r_m2, vc_m\)\), "
+                                        r"got int$"):
+        estimators.TruthNoise(fallback=3)
+    with pytest.raises(TypeError, match=rf"^TruthNoise.fallback: the noise model <function .*<lambda>> {must}; "
+                                        r"got int$"):
+        estimators.TruthNoise(fallback=lambda q: 1)(part)
+    torch = pytest.importorskip("torch")
+
+    def with_grad(sequence):
+        return torch.ones((t, n), requires_grad=True), np.zeros((t, n))
+
+    with pytest.raises(TypeError, match=rf"^LfgnssEkf: the noise model <function .*with_grad> {must}; its r_m2 is a "
+                                        r"torch tensor that requires grad \(return "
+                                        r"tensor.detach\(\).cpu\(\).numpy\(\)\)$"):
+        estimators.LfgnssEkf(noise=with_grad, config=estimators.EkfConfig()).solve(part)
+
+
+def test_solution_subset_of_another_length_says_so(seq):
+    import estimators
+
+    sol = estimators.create("wls").solve(seq.subset(slice(0, 20)))
+    with pytest.raises(IndexError, match=r"^Solution.subset: a boolean mask of shape \(10,\) for 20 epochs; give one "
+                                         r"of length 20$"):
+        sol.subset(np.ones(10, bool))
+    with pytest.raises(IndexError, match=r"^Solution.subset: epoch index 25 is out of range for 20 epochs$"):
+        sol.subset(np.array([0, 25]))
+    assert len(sol.subset(np.arange(20) < 5)) == 5 and len(sol.subset(-1)) == 1 and len(sol.subset(slice(2, 4))) == 2

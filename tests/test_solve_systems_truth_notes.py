@@ -293,7 +293,7 @@ def test_an_unknown_truth_format_is_refused_with_the_formats_before_any_file_is_
     err = capsys.readouterr().err
     assert exit_info.value.code == 2 and err.splitlines()[-1] == (
         "python -m lfgnss.solve: error: argument --truth-format: invalid choice: 'gpx' (choose from 'urbannav', "
-        "'smartloc', 'static', 'ecef-csv')")
+        "'smartloc', 'static', 'ecef-csv', 'pos')")
     assert not (tmp_path / "out").exists()
 
 

@@ -92,7 +92,7 @@ def test_the_benchmark_says_so_in_its_results_and_on_stderr(tmp_path, monkeypatc
     assert main(["my-drive", "--register", str(sample_toml("my-drive")), "--models", str(tmp_path / "model.npz"),
                  "--out", str(out), "--no-plots"]) == 0
     err = capsys.readouterr().err.splitlines()
-    assert len(err) == 1 and err[0].startswith("warning: my-drive: model.npz (rows 'LF-GNSS EKF (model.npz)', ")
+    assert len(err) == 1 and err[0].startswith(f"warning: my-drive: model.npz (rows 'LF-GNSS EKF ({tmp_path.name})', ")
     assert "trained on my-drive/train (my-drive train, GPS" in err[0] and "of my-drive's 100 test epochs" in err[0]
     text = (out / "results.md").read_text()
     assert "**Trained on test epochs** (these rows' figures are not held-out results): my-drive: model.npz" in text

@@ -1,0 +1,169 @@
+"""Session 50's own-data and library review of the front end: inputs that ran silently wrong or failed unclearly."""
+from __future__ import annotations
+
+import dataclasses
+import gzip
+
+import numpy as np
+import pytest
+
+from lfgnss import datasets
+from lfgnss.errors import InputError, RinexError
+from lfgnss.solve import SAMPLE_DIR
+
+SAMPLE_NAV = [SAMPLE_DIR / "brdc1580.16n.gz", SAMPLE_DIR / "brdc1580.16g.gz"]
+MET_HEADER = ("     3.02           METEOROLOGICAL DATA                     RINEX VERSION / TYPE\n"
+              "                                                            END OF HEADER\n")
+
+
+@pytest.fixture
+def seq():
+    """The first 20 epochs of the bundled drive as a Sequence."""
+    import lfgnss
+
+    return lfgnss.process(SAMPLE_DIR / "Berlin_Potsdamer_Platz.obs.gz", SAMPLE_NAV).subset(slice(0, 20))
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda s: {"coarse_ecef_m": np.where(np.arange(len(s))[:, None] < 5, 0.0, s.coarse_ecef_m)},
+     "coarse_ecef_m has 5 row(s) 0 m (first) from the Earth's centre"),
+    (lambda s: {"sat_pos_ecef_m": s.sat_pos_ecef_m / 1000.0}, "sat_pos_ecef_m (used slots) has"),
+    (lambda s: {"pr_m": s.pr_m.astype(np.float32)}, "pr_m must be float64, got float32"),
+    (lambda s: {"sat_pos_ecef_m": s.sat_pos_ecef_m.astype(np.float32)}, "sat_pos_ecef_m must be float64"),
+], ids=["coarse-zeros", "satellites-in-km", "float32-pseudoranges", "float32-satellites"])
+def test_a_sequence_refuses_positions_that_cannot_be_right(seq, change, message):
+    """Defect: zeros for "no coarse fix" put the factor graph at the Earth's centre as 'updated'; satellites in km or
+    float32 inputs ran and moved positions by metres, all without a word."""
+    with pytest.raises(ValueError, match=f"^Sequence '.*': {message}".replace("(", r"\(").replace(")", r"\)")):
+        dataclasses.replace(seq, **change(seq))
+
+
+def test_nan_coarse_fixes_and_masked_zero_satellites_still_pass(seq):
+    coarse = seq.coarse_ecef_m.copy()
+    coarse[:3] = np.nan
+    sats = np.where(seq.mask[..., None], seq.sat_pos_ecef_m, 0.0)
+    assert len(dataclasses.replace(seq, coarse_ecef_m=coarse, sat_pos_ecef_m=sats)) == 20
+
+
+def _toml(sample_toml, name: str, old: str, new: str):
+    path = sample_toml(name)
+    text = path.read_text()
+    assert old in text
+    path.write_text(text.replace(old, new))
+    return path
+
+
+def test_the_split_axis_is_read_in_any_case(sample_toml):
+    spec = datasets.register_toml(_toml(sample_toml, "axis-case", 'axis = "relative_s"', 'axis = "Relative_S"'))
+    assert spec.split_axis == "relative_s"
+
+
+def test_a_truth_origin_that_would_change_nothing_is_refused(sample_toml, tmp_path):
+    """Defect: time_origin_gps_s under an urbannav truth with tow splits was accepted and ignored, so a user who put
+    the UTC shift there saw the same 'are its times UTC?' warning."""
+    path = _toml(sample_toml, "origin-urbannav", 'format = "smartloc"', 'format = "urbannav"')
+    path.write_text(path.read_text().replace('axis = "relative_s"', 'axis = "tow"'))
+    with pytest.raises(InputError, match=r"time_origin_gps_s in \[truth\] is the t = 0 of a smartloc truth and of "
+                                         r"relative_s splits, and this dataset has neither \(format = 'urbannav', "
+                                         r"axis = 'tow'\): it would change nothing; remove it"):
+        datasets.register_toml(path)
+    path.write_text(path.read_text().replace('axis = "tow"', 'axis = "relative_s"'))
+    assert datasets.register_toml(path).time_origin_gps_s is not None       # the 0 of relative_s splits
+
+
+def test_home_folder_paths_in_a_toml_are_expanded(sample_toml, tmp_path, monkeypatch):
+    monkeypatch.setenv("HOME", str(tmp_path))
+    path = _toml(sample_toml, "home", f'file = "{SAMPLE_DIR / "Berlin_Potsdamer_Platz_GT.txt"}"', 'file = "~/gt.txt"')
+    assert datasets.register_toml(path).truth == tmp_path / "gt.txt"
+
+
+TRUTH_ROWS = "2051,47000.0,22.30,114.17,6.5\n2051,47001.0,22.30,114.17,6.6\n"
+EPOCHS = np.array([2051 * 604800 + 47000.0, 2051 * 604800 + 47001.0])
+
+
+@pytest.mark.parametrize("text, labelled", [
+    ("\ufeff" + TRUTH_ROWS, 2),                                            # Excel's "CSV UTF-8"
+    ("% program : RTKLIB\n%  GPST lat lon h\n" + TRUTH_ROWS, 2),           # '%' lines: comments, no warning
+], ids=["byte-order-mark", "percent-comments"])
+def test_truth_rows_after_a_byte_order_mark_or_percent_comments_are_read(tmp_path, text, labelled, recwarn):
+    path = tmp_path / "gt.csv"
+    path.write_bytes(text.encode("utf-8"))
+    truth = datasets.read_truth(path, EPOCHS)
+    assert np.isfinite(truth).all(axis=1).sum() == labelled
+    assert not [w for w in recwarn if "skipped" in str(w.message)]
+
+
+@pytest.mark.parametrize("line, why", [
+    ("2019/04/28 13:03:20.000 22.30 114.17 6.5", "a calendar date: truth times are numbers of GPS time"),
+    ("2051;47000,0;22,30;114,17;6,5", "semicolon-separated: separate numbers by commas or spaces"),
+], ids=["calendar", "semicolons"])
+def test_a_truth_of_calendar_dates_or_semicolons_says_so(tmp_path, line, why):
+    path = tmp_path / "gt.csv"
+    path.write_text(line + "\n")
+    with pytest.raises(InputError) as err:
+        datasets.read_truth(path, EPOCHS)
+    assert str(err.value).startswith(f"{path}:1: no readable ground-truth line; the first: unreadable truth line "
+                                     f"({why}")
+
+
+def test_an_rtklib_pos_file_is_a_truth_format(tmp_path, seq):
+    """A reference trajectory from RTKLIB (or from python -m lfgnss.solve) is read as truth (format "pos"), in
+    calendar or week/TOW time; its positions come back to the sub-millimetre."""
+    import estimators
+    from lfgnss.outputs import write_pos
+
+    sol = estimators.create("wls").solve(seq)
+    for time_format in ("calendar", "tow"):
+        path = write_pos(tmp_path / f"ref-{time_format}.pos", sol, time_format=time_format)
+        truth = datasets.read_truth(path, seq.time_gps_s, "POS")
+        ok = np.isfinite(sol.pos_ecef_m).all(axis=1)
+        assert ok.sum() > 10 and np.abs(truth[ok] - sol.pos_ecef_m[ok]).max() < 1e-3
+    bad = tmp_path / "bad.pos"
+    bad.write_text("%  GPST latitude(deg) longitude(deg) height(m)\n2016/06/06 11:10:41.7 52.5 13.3\n")
+    with pytest.raises(InputError, match=r"bad\.pos:2: expected at least 15 fields, got 4$"):
+        datasets.read_truth(bad, seq.time_gps_s, "pos")
+
+
+def test_a_truth_in_local_time_is_named_with_its_time_zone(sample_toml, tmp_path):
+    """Defect: a truth stamped in local time (UTC+8) got "its GPS times miss them" and raw second counts."""
+    import warnings
+
+    epochs = EPOCHS[0] + np.arange(600.0)
+    path = tmp_path / "gt_local.csv"
+    tow = epochs - 2051 * 604800 + 8 * 3600 - 18           # local time, UTC+8, on GPS time's week count
+    path.write_text("".join(f"2051,{t:.1f},22.30,114.17,6.5\n" for t in tow))
+    spec = datasets.DatasetSpec("local", (), (), path, "urbannav")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assert not np.isfinite(datasets.align_truth(epochs, spec)[0]).any()
+    words = datasets.unmatched_time_words(spec, epochs)
+    assert words.startswith("; its times (") and ("would fit the epochs as local time, about UTC+8 h: urbannav times "
+                                                  "are GPST, so subtract 8 h and add GPST - UTC (18 s here)") in words
+
+
+def test_an_unknown_split_is_one_line_with_a_suggestion_before_any_build(monkeypatch):
+    monkeypatch.setattr(datasets, "build", lambda *a, **k: pytest.fail("built before the split was checked"))
+    with pytest.raises(KeyError) as err:
+        datasets.load_split("hk-tst-2019", "tst")
+    assert str(err.value) == "dataset hk-tst-2019 has no split 'tst' (did you mean 'test'?); it has train, val, test"
+    with pytest.raises(KeyError, match="no split 'vall' \\(did you mean 'val'\\?\\)"):
+        datasets.load_split("hk-tst-2019", "train+vall")
+
+
+def test_a_met_file_among_navigation_files_is_left_out_with_a_warning(tmp_path):
+    """Defect: a glob over a station folder (brdc*.20n, .20g, .20m) failed on the meteorological file."""
+    from lfgnss.navigation import RinexWarning, load_nav
+
+    met = tmp_path / "brdc1580.16m"
+    met.write_text(MET_HEADER)
+    with pytest.warns(RinexWarning, match=f"^{met}: not a RINEX 2/3 navigation file .*METEOROLOGICAL DATA.*: left "
+                                          "out of the navigation files$"):
+        nav = load_nav([*SAMPLE_NAV, met], cache=False)
+    assert nav.kepler is not None
+    with pytest.raises(RinexError, match=f"^{met}:1: not a RINEX 2/3 navigation file"):
+        load_nav([met], cache=False)
+    other = tmp_path / "other.16m"
+    with gzip.open(other, "wt") as fh:
+        fh.write(MET_HEADER)
+    with pytest.raises(RinexError, match="not a RINEX 2/3 navigation file, nor is any other of the 2 files given"):
+        load_nav([met, other], cache=False)
