@@ -10,6 +10,7 @@ import pytest
 from lfgnss import benchmark, datasets
 from lfgnss.errors import InputError
 from lfgnss.simulate import simulate_sequence
+from lfgnss.solve import SAMPLE_DIR
 
 
 @pytest.fixture
@@ -266,3 +267,27 @@ def test_the_same_dataset_spelled_otherwise_from_another_file_is_accepted(tmp_pa
         (tmp_path / folder).mkdir()
         (tmp_path / folder / "same.toml").write_text(description + text)
         assert datasets.register_toml(tmp_path / folder / "same.toml").source == tmp_path / folder / "same.toml"
+
+
+def test_the_split_axis_is_read_in_any_case(sample_toml):
+    spec = datasets.register_toml(_edited(sample_toml, "axis-case", 'axis = "relative_s"', 'axis = "Relative_S"'))
+    assert spec.split_axis == "relative_s"
+
+
+def test_a_truth_origin_that_would_change_nothing_is_refused(sample_toml, tmp_path):
+    """Defect: time_origin_gps_s under an urbannav truth with tow splits was accepted and ignored, so a user who put
+    the UTC shift there saw the same 'are its times UTC?' warning."""
+    path = _edited(sample_toml, "origin-urbannav", 'format = "smartloc"', 'format = "urbannav"')
+    path.write_text(path.read_text().replace('axis = "relative_s"', 'axis = "tow"'))
+    with pytest.raises(InputError, match=r"time_origin_gps_s in \[truth\] is the t = 0 of a smartloc truth and of "
+                                         r"relative_s splits, and this dataset has neither \(format = 'urbannav', "
+                                         r"axis = 'tow'\): it would change nothing; remove it"):
+        datasets.register_toml(path)
+    path.write_text(path.read_text().replace('axis = "tow"', 'axis = "relative_s"'))
+    assert datasets.register_toml(path).time_origin_gps_s is not None       # the 0 of relative_s splits
+
+
+def test_home_folder_paths_in_a_toml_are_expanded(sample_toml, tmp_path, monkeypatch):
+    monkeypatch.setenv("HOME", str(tmp_path))
+    path = _edited(sample_toml, "home", f'file = "{SAMPLE_DIR / "Berlin_Potsdamer_Platz_GT.txt"}"', 'file = "~/gt.txt"')
+    assert datasets.register_toml(path).truth == tmp_path / "gt.txt"

@@ -45,38 +45,6 @@ def test_nan_coarse_fixes_and_masked_zero_satellites_still_pass(seq):
     assert len(dataclasses.replace(seq, coarse_ecef_m=coarse, sat_pos_ecef_m=sats)) == 20
 
 
-def _toml(sample_toml, name: str, old: str, new: str):
-    path = sample_toml(name)
-    text = path.read_text()
-    assert old in text
-    path.write_text(text.replace(old, new))
-    return path
-
-
-def test_the_split_axis_is_read_in_any_case(sample_toml):
-    spec = datasets.register_toml(_toml(sample_toml, "axis-case", 'axis = "relative_s"', 'axis = "Relative_S"'))
-    assert spec.split_axis == "relative_s"
-
-
-def test_a_truth_origin_that_would_change_nothing_is_refused(sample_toml, tmp_path):
-    """Defect: time_origin_gps_s under an urbannav truth with tow splits was accepted and ignored, so a user who put
-    the UTC shift there saw the same 'are its times UTC?' warning."""
-    path = _toml(sample_toml, "origin-urbannav", 'format = "smartloc"', 'format = "urbannav"')
-    path.write_text(path.read_text().replace('axis = "relative_s"', 'axis = "tow"'))
-    with pytest.raises(InputError, match=r"time_origin_gps_s in \[truth\] is the t = 0 of a smartloc truth and of "
-                                         r"relative_s splits, and this dataset has neither \(format = 'urbannav', "
-                                         r"axis = 'tow'\): it would change nothing; remove it"):
-        datasets.register_toml(path)
-    path.write_text(path.read_text().replace('axis = "tow"', 'axis = "relative_s"'))
-    assert datasets.register_toml(path).time_origin_gps_s is not None       # the 0 of relative_s splits
-
-
-def test_home_folder_paths_in_a_toml_are_expanded(sample_toml, tmp_path, monkeypatch):
-    monkeypatch.setenv("HOME", str(tmp_path))
-    path = _toml(sample_toml, "home", f'file = "{SAMPLE_DIR / "Berlin_Potsdamer_Platz_GT.txt"}"', 'file = "~/gt.txt"')
-    assert datasets.register_toml(path).truth == tmp_path / "gt.txt"
-
-
 TRUTH_ROWS = "2051,47000.0,22.30,114.17,6.5\n2051,47001.0,22.30,114.17,6.6\n"
 EPOCHS = np.array([2051 * 604800 + 47000.0, 2051 * 604800 + 47001.0])
 
