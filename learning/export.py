@@ -749,6 +749,18 @@ def ensemble_members(metadata: dict) -> list[dict]:
     return (metadata.get("ensemble") or {}).get("members") or []
 
 
+def trained_systems(metadata: dict) -> str | None:
+    """The constellations (letters, GCERJ order) of the data a model file was trained and selected on, from its
+    ``data_spans``; None for a file that does not record them (trained before session 50)."""
+    from lfgnss.constants import SYSTEMS
+
+    spans = [s for s in metadata.get("data_spans") or [] if isinstance(s, dict)]
+    if not spans or not all(isinstance(s.get("systems"), str) for s in spans):
+        return None
+    letters = set("".join(s["systems"] for s in spans))
+    return "".join(c for c in SYSTEMS if c in letters)
+
+
 def member_epochs(metadata: dict) -> list:
     """The training epoch of each network in a model file (one for a single network)."""
     return [m.get("epoch") for m in ensemble_members(metadata)] or [metadata.get("epoch")]
@@ -1016,6 +1028,7 @@ def describe_model(model: LfgnssModel) -> list[str]:
                                                                   else ""),
             *ensemble_lines(meta),
             f"features: {', '.join(model.feature_names)}",
+            *([] if trained_systems(meta) is None else [f"constellations trained on: {trained_systems(meta)}"]),
             f"filter (settings other than the defaults): {config_changes(config_of(model))}",
             *([] if untrained is None else [f"warning: {untrained}"]),
             *refilter_lines(meta),

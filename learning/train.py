@@ -559,10 +559,11 @@ def source_file_hashes(dataset_id: str) -> dict[str, str]:
 
 
 def data_span(dataset_id: str, split: str, sequence: Sequence) -> dict:
-    """A sequence's dataset, split, name, first and last GPS time [s] and truth's extent (``truth_extent``) [m]."""
+    """A sequence's dataset, split, name, constellations (letters), first and last GPS time [s] and truth's extent
+    (``truth_extent``) [m]."""
     t = sequence.time_gps_s
     centre, radius = truth_extent(sequence.truth_ecef_m[sequence.labelled])
-    return {"dataset": dataset_id, "split": split, "sequence": sequence.name,
+    return {"dataset": dataset_id, "split": split, "sequence": sequence.name, "systems": "".join(sequence.systems),
             "gps_s": [float(t[0]), float(t[-1])] if len(t) else [],
             "place_ecef_m": [round(float(v)) for v in centre] if radius is not None else [],
             "radius_m": math.ceil(radius) if radius is not None else None}

@@ -138,6 +138,23 @@ def _noise(args):
     return model, f"model {model_path(path)}"
 
 
+def unseen_systems_note(noise: object, systems: tuple[str, ...]) -> str | None:
+    """Words for a learned model that never saw some of ``systems`` (constellation letters) in training, or None
+    (hand-set noise, a model file that does not record its data's constellations, or nothing unseen)."""
+    from learning.export import trained_systems
+
+    from .constants import SYSTEM_NAMES
+
+    seen = trained_systems(getattr(noise, "metadata", None) or {})
+    unseen = [c for c in systems if seen is not None and c not in seen]
+    if not unseen:
+        return None
+    names = ", ".join(SYSTEM_NAMES.get(c, c) for c in unseen)
+    return (f"trained on {''.join(seen)} data only; this run's {names} satellites get R and v^c from a network that "
+            f"never saw that constellation (--systems {''.join(c for c in systems if c in seen) or seen} leaves them "
+            "out)")
+
+
 @dataclass
 class _Solved:
     """What a run solved and wrote, for its summary."""
@@ -231,6 +248,9 @@ def _solve(args) -> _Solved:
     spp_config = SppConfig(elevation_mask_deg=args.elevation_mask)
     meas = load(observations if keep.all() else observations.select_epochs(keep), nav,
                 systems=tuple(args.systems) if args.systems else None)
+    note = unseen_systems_note(noise, meas.systems)
+    if note:
+        warnings.warn(f"{model_path(args.model or DEFAULT_MODEL)}: {note}")
     fix = spp(meas, spp_config)
     truth = None
     if truth_path is not None:

@@ -218,3 +218,30 @@ def test_a_sequence_of_no_satellite_slot_gets_empty_noise_and_the_ekf_coasts_as_
     learned, plain = estimators.create("ekf").solve(empty), estimators.create("plain-ekf").solve(empty)
     np.testing.assert_array_equal(learned.pos_ecef_m, plain.pos_ecef_m)
     np.testing.assert_array_equal(learned.status, plain.status)
+
+
+def test_a_model_records_its_constellations_and_solve_names_those_it_never_saw():
+    """Defect: a model trained on GPS only ran on GPS + BeiDou data without a word (44 m against 14 m 3D)."""
+    from types import SimpleNamespace
+
+    from learning.export import trained_systems
+    from learning.train import data_span
+    from lfgnss.solve import unseen_systems_note
+
+    seq = lfgnss.process(SAMPLE_OBS, SAMPLE_NAV).subset(slice(0, 5))
+    assert data_span("mine", "train", seq)["systems"] == "GR"
+    g_only = SimpleNamespace(metadata={"data_spans": [{"systems": "G"}, {"systems": "G"}]})
+    assert trained_systems(g_only.metadata) == "G"
+    assert unseen_systems_note(g_only, ("G", "R")) == (
+        "trained on G data only; this run's GLONASS satellites get R and v^c from a network that never saw that "
+        "constellation (--systems G leaves them out)")
+    assert unseen_systems_note(g_only, ("G",)) is None
+    for older in ({"data_spans": [{"dataset": "x"}]}, {}):              # files of before session 50 say nothing
+        assert trained_systems(older) is None and unseen_systems_note(SimpleNamespace(metadata=older), ("C",)) is None
+    assert unseen_systems_note(None, ("G",)) is None                     # hand-set noise
+
+
+def test_show_names_the_constellations_a_model_was_trained_on(runs, capsys):
+    assert export_main(["--show", str(runs / "nodpc" / "model.npz")]) == 0
+    shown = [line for line in capsys.readouterr().out.splitlines() if line.startswith("constellations trained on: ")]
+    assert len(shown) == 1 and shown[0].removeprefix("constellations trained on: ") in ("G", "GC", "GR", "GCR", "GCER")
