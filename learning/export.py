@@ -860,7 +860,7 @@ def _used_as(split: object) -> str:
 
 
 def seen_test_epochs(metadata: dict, dataset_id: str, test_time_gps_s: np.ndarray, test_truth_ecef_m: np.ndarray,
-                     obs_hashes: Iterable[str] = ()) -> list[str]:
+                     obs_hashes: Iterable[str] = (), epochs_word: str = "test epochs") -> list[str]:
     """Where a model (or a model it was fine-tuned from) was trained or selected on test epochs: one line each.
 
     ``test_time_gps_s`` (T,) [s] and ``test_truth_ecef_m`` (T, 3) [m]: the test split's scored epochs. A training or
@@ -869,7 +869,8 @@ def seen_test_epochs(metadata: dict, dataset_id: str, test_time_gps_s: np.ndarra
     without spans (a model file of before session 49, or one fine-tuning started from) is checked only where another
     of its datasets reads one of the test dataset's observation files (``obs_hashes``: content SHA-256, 16 hex
     digits, ``lfgnss.paths.file_hashes``) and the record lists its ``source_files``: by that dataset's split bounds as
-    registered now (``lfgnss.datasets.epochs_in_split``), else named as one that may hold test epochs.
+    registered now (``lfgnss.datasets.epochs_in_split``), else named as one that may hold test epochs. The lines
+    call the epochs ``epochs_word`` (``lfgnss.solve``: the run's scored epochs).
     """
     from lfgnss.datasets import epochs_in_split
 
@@ -885,7 +886,7 @@ def seen_test_epochs(metadata: dict, dataset_id: str, test_time_gps_s: np.ndarra
             near = where is None or radius is None or np.linalg.norm(np.asarray(where) - centre) <= reach
             if n and near:
                 lines.append(f"{via}{_used_as(span.get('split'))} {span.get('sequence')} ({span.get('dataset')} {span.get('split')}, GPS "
-                             f"{t[0]:.1f}-{t[1]:.1f} s), which holds {n} of {dataset_id}'s {times.size} test epochs")
+                             f"{t[0]:.1f}-{t[1]:.1f} s), which holds {n} of {dataset_id}'s {times.size} {epochs_word}")
         files = record.get("source_files") or {}
         pieces = [] if spans else [p for p in record.get("data_fingerprints") or [] if isinstance(p, dict)]
         for ds in sorted({str(p.get("dataset", "")) for p in pieces}):
@@ -895,11 +896,11 @@ def seen_test_epochs(metadata: dict, dataset_id: str, test_time_gps_s: np.ndarra
             hits = [epochs_in_split(ds, split, times) for split in splits]
             if None in hits:
                 lines.append(f"{via}trained on dataset {ds}, which reads {dataset_id}'s observation file(s); the model "
-                             "does not record which epochs (it predates data_spans), so its training may hold test "
-                             "epochs")
+                             "does not record which epochs (it predates data_spans), so its training may hold "
+                             f"{epochs_word}")
             lines += [f"{via}{_used_as(split)} {ds} {split} (as its splits are "
                       f"registered now; the model predates data_spans), which holds {n} of {dataset_id}'s "
-                      f"{times.size} test epochs" for split, n in zip(splits, hits) if n]
+                      f"{times.size} {epochs_word}" for split, n in zip(splits, hits) if n]
         record = record.get("init_model")
         via = f"{via}fine-tuned from {(record or {}).get('path')}, which was "
     return lines

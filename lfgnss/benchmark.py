@@ -497,7 +497,7 @@ def _plot(folder: Path, dataset_id: str, solutions: dict, truth: np.ndarray, unw
     others = {name: sol for name, sol in solutions.items() if name != main_name}
     try:
         plot_solution(folder, solutions[main_name], truth, extra_solutions=others, prefix=f"{dataset_id}-",
-                      label=main_name)
+                      label=main_name, title=f"{dataset_id}, test split (python -m lfgnss.benchmark)")
     except OSError as err:
         if unwritten is None:
             raise
@@ -729,7 +729,8 @@ def write_report(path: Path, all_rows: list[dict], rtk_rows: list[dict], command
         "Targets are BENCHMARK.md's for the learned EKF (3D / 2D RMSE); the yardstick is its independent EKF for "
         "EKF rows and its robust batch graph for FGO and RTS-smoothed rows (both use later epochs); smoothed rows "
         "are compared with the smoothed plain EKF (in the default filter), and the LF-GNSS and per-dataset EKFs with "
-        "the plain EKF in their own filter where that row exists; RTKLIB is compared on the epochs it solved. `yes`: "
+        "the plain EKF in their own filter where that row exists, the FGO rows with the forward plain EKF in the default "
+        "filter (there is no plain graph row); RTKLIB is compared on the epochs it solved. `yes`: "
         "at or below the bar. Why figures fall short is discussed in the README's Results section.",
         "",
         markdown_table(targets) if targets else "No learned rows (no model files).\n",

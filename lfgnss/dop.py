@@ -18,6 +18,9 @@ present in the epoch, as a least-squares solver would set them up:
   (its ISB column is dropped, the others become ISBs relative to it).
 
 Position DOPs (PDOP, HDOP, VDOP) do not depend on this choice; GDOP does, through its clock terms.
+RTKLIB's ``dops()`` has one clock column whatever the constellations, so with several of them its DOPs are lower
+than these (hk-tst-static-2020, five constellations, one epoch: G/P/H/V 2.70 / 2.18 / 1.14 / 1.86 against 3.31 /
+2.44 / 1.24 / 2.10; GPS alone they agree), and its GDOP <= 30 cut reads another quantity than ``lfgnss.spp``'s.
 The layout of :func:`design_matrix` itself is fixed and does not apply these rules.
 
 Invalid epochs

@@ -138,6 +138,27 @@ def _noise(args):
     return model, f"model {model_path(path)}"
 
 
+#: The coarse least-squares fix's name in the accuracy table and the figures.
+COARSE_LABEL = "least squares (coarse)"
+
+
+def seen_epochs_notes(noise: object, obs: str | Path, time_gps_s: np.ndarray, truth_ecef_m: np.ndarray) -> list[str]:
+    """Where a learned model was trained or selected on epochs this run scores (``learning.export.seen_test_epochs``:
+    its recorded training pieces by time and place, else its datasets' observation files by content): one line
+    each, the accuracy table then being partly in-sample; [] for hand-set noise or none."""
+    from learning.export import seen_test_epochs
+
+    from .paths import file_hashes
+
+    meta = getattr(noise, "metadata", None)
+    if not isinstance(meta, dict):
+        return []
+    scored = np.isfinite(truth_ecef_m).all(axis=1)
+    hashes = {*file_hashes([obs]).values(), *file_hashes([obs], content=False).values()}
+    return seen_test_epochs(meta, Path(obs).name, time_gps_s[scored], truth_ecef_m[scored], hashes,
+                            epochs_word="scored epochs")
+
+
 def unseen_systems_note(noise: object, systems: tuple[str, ...]) -> str | None:
     """Words for a learned model that never saw some of ``systems`` (constellation letters) in training, or None
     (hand-set noise, a model file that does not record its data's constellations, or nothing unseen)."""
@@ -252,7 +273,7 @@ def _solve(args) -> _Solved:
     if note:
         warnings.warn(f"{model_path(args.model or DEFAULT_MODEL)}: {note}")
     fix = spp(meas, spp_config)
-    truth = None
+    truth, seen = None, []
     if truth_path is not None:
         if truth_format not in datasets.TRUTH_READERS:
             raise InputError(truth_path, f"unknown truth format {truth_format!r}")
@@ -273,6 +294,10 @@ def _solve(args) -> _Solved:
                 spec, time_origin_gps_s=float(observations.time_gps_s[0]))       # file's first epoch, not --start's
             for note in datasets.truth_fit_notes(read_with, meas.time_gps_s, truth, fixed):
                 print(f"warning: {note}", file=sys.stderr)
+            seen = seen_epochs_notes(noise, obs, meas.time_gps_s, truth)
+            if seen:
+                warnings.warn(f"{model_path(args.model or DEFAULT_MODEL)}: {'; '.join(seen)}: the accuracy table is "
+                              "partly in-sample")
     from .sequence import DEFAULT_FEATURES
 
     try:
@@ -319,9 +344,14 @@ def _solve(args) -> _Solved:
             (f"{stem}.kml", lambda p: [write_kml(p, solution)])]
     if truth is not None and not args.no_plots:
         figures: dict = {}                  # drawn at the first figure's turn, after the files above are written
+        learned = isinstance(getattr(noise, "metadata", None), dict)
+        title = f"{Path(obs).name}: {label}, " + (f"model {Path(args.model or DEFAULT_MODEL).name}" if learned
+                                                   else noise_text)
+        title += "\nin-sample: the model was trained or selected on some of these epochs" if seen else ""
 
         def save(path: str, name: str) -> list[Path]:
-            figures.update(figures or solution_figures(solution, truth, extra_solutions={"least squares": _coarse(seq)}))
+            figures.update(figures or solution_figures(solution, truth, extra_solutions={COARSE_LABEL: _coarse(seq)},
+                                                       title=title))
             return [save_figure(path, figures[name])]
 
         jobs += [(f"{stem}_{name}", lambda p, name=name: save(p, name)) for name in TRUTH_FIGURES]
@@ -354,7 +384,7 @@ def _print_summary(args: argparse.Namespace, solved: _Solved, caught: list[str])
         _print_run(solved, shown, len(notes))
     if solved.truth is not None:
         fix, solution, truth = solved.fix, solved.solution, solved.truth
-        rows = [accuracy_table(fix.pos_ecef_m, truth, fix.ok, method="least squares (coarse)"),
+        rows = [accuracy_table(fix.pos_ecef_m, truth, fix.ok, method=COARSE_LABEL),
                 accuracy_table(solution.pos_ecef_m, truth, solution.available, method=solved.label)]
         print(format_text(rows))
 

@@ -104,7 +104,7 @@ def test_track_title_names_no_single_method_when_it_shows_several():
     alone = solution_figures(sol, truth, label="LF-GNSS EKF")
     assert alone["track.png"].axes[0].get_title() == "horizontal track (LF-GNSS EKF)"
     assert [several["track.png"].axes[0].get_xlabel(), several["track.png"].axes[0].get_ylabel()] == \
-        ["east [m]", "north [m]"]
+        ["east of the first truth point [m]", "north of the first truth point [m]"]
 
 
 def test_a_static_truth_is_a_marker_on_the_track_and_a_moving_one_a_line():
@@ -140,3 +140,30 @@ def test_save_figure_writes_the_format_its_suffix_names(tmp_path):
     for name, magic in (("t.pdf", b"%PDF"), ("t.png", b"\x89PNG"), ("t", b"\x89PNG")):
         save_figure(tmp_path / name, fig)
         assert (tmp_path / name).read_bytes()[:4] == magic, name
+
+
+def test_every_figure_is_titled_the_main_run_stands_out_and_the_cdf_legend_covers_no_panel():
+    """Review (session 50): no figure named its data; the LF-GNSS EKF was one of 16 thin curves; the CDF legend sat
+    between the panels."""
+    runs = [_run(np.full(10, v), backend=f"run{v:g}") for v in (1.0, 2.0, 3.0, 4.0, 5.0)]
+    (main, truth), others = runs[0], [sol for sol, _ in runs[1:]]
+    figures = solution_figures(main, truth, extra_solutions=others, label="LF-GNSS EKF", title="my-drive, test split")
+    assert {name: fig.get_suptitle() for name, fig in figures.items()} == dict.fromkeys(figures, "my-drive, test split")
+    for fig in figures.values():
+        lines = [ln for ax in fig.axes for ln in ax.get_lines() if ln.get_label() in ("LF-GNSS EKF", "run2")]
+        widths = {ln.get_label(): ln.get_linewidth() for ln in lines}
+        assert widths["LF-GNSS EKF"] == 2 * widths["run2"], widths
+    left, right = figures["cdf.png"].axes
+    assert left.get_legend() is None and right.get_legend() is not None
+    assert solution_figures(main, truth)["cdf.png"].get_suptitle() == ""            # no title given: none drawn
+
+
+def test_the_benchmark_titles_its_figures_with_the_dataset_and_split(monkeypatch, tmp_path):
+    import lfgnss.outputs
+    from lfgnss import benchmark
+
+    seen = {}
+    monkeypatch.setattr(lfgnss.outputs, "plot_solution", lambda *a, title=None, **k: seen.update(title=title))
+    sol, truth = _run(np.full(5, 1.0))
+    benchmark._plot(tmp_path, "my-drive", {"LF-GNSS EKF": sol}, truth, None)
+    assert seen["title"] == "my-drive, test split (python -m lfgnss.benchmark)"

@@ -12,7 +12,7 @@ import pytest
 from lfgnss.datasets import TRUTH_MISMATCH_M, read_truth, static_time_note
 from lfgnss.frames import ecef_to_lla, lla_to_ecef
 from lfgnss.rinex import load_obs
-from lfgnss.solve import SAMPLE_NAV, SAMPLE_OBS, SAMPLE_TRUTH, _systems, main
+from lfgnss.solve import DEFAULT_MODEL, SAMPLE_NAV, SAMPLE_OBS, SAMPLE_TRUTH, _systems, main
 from lfgnss.time import SECONDS_PER_WEEK
 
 FAST = ["--backend", "wls", "--no-plots", "--quiet"]            # least squares: the inputs, not the filter
@@ -338,3 +338,17 @@ def test_a_truth_some_seconds_early_is_not_called_utc(tmp_path, capsys, berlin):
     err = capsys.readouterr().err
     assert re.search(r"with about (9|\d\.\d|1[0-2](\.\d)?) s added to its times, .*: are its times off\?", err), err
     assert "UTC" not in err
+
+
+def test_a_model_trained_on_the_drive_it_scores_is_named_and_its_figures_say_in_sample(tmp_path, capsys):
+    """Review (session 50): the main command's table and plots on the bundled drive were partly the bundled model's own
+    berlin-pp train and validation epochs, without a word (the benchmark says so of test epochs)."""
+    assert main(["--out", str(tmp_path), "--quiet"]) == 0
+    seen = [line for line in capsys.readouterr().err.splitlines() if "partly in-sample" in line]
+    assert seen == [f"warning: {DEFAULT_MODEL}: trained on berlin-pp train (as its splits are registered now; the model "
+                    "predates data_spans), which holds 724 of Berlin_Potsdamer_Platz.obs.gz's 1372 scored epochs; "
+                    "selected on berlin-pp val (as its splits are registered now; the model predates data_spans), "
+                    "which holds 148 of Berlin_Potsdamer_Platz.obs.gz's 1372 scored epochs: the accuracy table is "
+                    "partly in-sample"]
+    assert main(["--no-model", "--out", str(tmp_path / "plain"), "--quiet", "--no-plots"]) == 0
+    assert "in-sample" not in capsys.readouterr().err                           # hand-set noise learned nothing
