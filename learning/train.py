@@ -980,6 +980,28 @@ def _check_dataset_tomls(checkpoint: dict, where: Path) -> None:
                              f"as it was ({kept}), or start a new --out")
 
 
+def _check_source_files(checkpoint: dict, now: dict[str, dict[str, str]], where: Path) -> None:
+    """ValueError naming an input file of the run of the checkpoint ``where`` whose content is not what it was when the
+    run started (``source_files``: dataset -> file name -> SHA-256, 16 hex digits; runs of before session 49 hashed a
+    gzip file's bytes, which count too): a resumed run goes on with the data it was started with."""
+    from lfgnss.datasets import get
+    from lfgnss.paths import file_hashes
+
+    for dataset_id, recorded in (checkpoint.get("source_files") or {}).items():
+        current = now.get(dataset_id) or {}
+        changed = [name for name, digest in (recorded or {}).items() if name in current and current[name] != digest]
+        if not changed:
+            continue
+        paths = {Path(p).name: p for p in get(dataset_id).files()}
+        as_bytes = file_hashes([paths[n] for n in changed if n in paths], content=False)
+        changed = [n for n in changed if as_bytes.get(n) != recorded[n]]
+        if changed:
+            raise ValueError(f"{paths.get(changed[0], changed[0])}: its content differs from when {where} was "
+                             f"started (dataset {dataset_id}); a resumed run goes on with the data it was started with "
+                             "(log.csv and the best epoch would compare two data sets): put the file back as it was, "
+                             "or start a new --out")
+
+
 def _toml_change(was: str, now: str) -> str | None:
     """The first key in which two texts of a dataset TOML differ, ``splits.val is [0, 9] now, [0, 8]``; that the text
     differs where either does not parse; None where they hold the same settings (comments and layout aside)."""
@@ -1108,6 +1130,8 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
     random.seed(seed)
 
     prep = prepared or prepare(config)
+    if checkpoint is not None:
+        _check_source_files(checkpoint, prep.source_files, last_path)
     device = resolve_device(config.get("device", "cpu"))      # runs from before the setting resume on the CPU
     train_batch, val_batches = prep.train_batch.to(device), [b.to(device) for b in prep.val_batches]
     ekf_cfg = ekf_config(config)

@@ -245,3 +245,25 @@ def test_show_names_the_constellations_a_model_was_trained_on(runs, capsys):
     assert export_main(["--show", str(runs / "nodpc" / "model.npz")]) == 0
     shown = [line for line in capsys.readouterr().out.splitlines() if line.startswith("constellations trained on: ")]
     assert len(shown) == 1 and shown[0].removeprefix("constellations trained on: ") in ("G", "GC", "GR", "GCR", "GCER")
+
+
+def test_resume_refuses_a_data_file_changed_since_the_run_started(sample_toml, tmp_path, capsys):
+    """Review (session 50): --resume checked the dataset TOML's text, not the files it names."""
+    from lfgnss.solve import SAMPLE_DIR
+
+    truth = tmp_path / "gt.txt"
+    shutil.copy(SAMPLE_DIR / "Berlin_Potsdamer_Platz_GT.txt", truth)
+    toml = sample_toml("my-resume", truth=truth, splits=((0, 40), (40, 50), (50, 60)))
+    out = tmp_path / "run"
+    argv = ["--config", CONFIG, "--out", str(out), "--no-progress",
+            *sets(TINY[1:] + [f"data.register=['{toml}']", "data.datasets=['my-resume']"])]
+    assert train_main(argv) == 0
+    capsys.readouterr()
+    lines = truth.read_text().splitlines(keepends=True)
+    truth.write_text("".join(lines[:-1]))                           # one truth row fewer
+    err = _refused(train_main, ["--resume", "--out", str(out), "--set", "train.epochs=2", "--no-progress"], capsys)
+    assert err == (f"python -m learning.train: error: {truth}: its content differs from when {out / 'last.pt'} was "
+                   "started (dataset my-resume); a resumed run goes on with the data it was started with (log.csv and the best epoch would compare "
+                   "two data sets): put the file back as it was, or start a new --out\n")
+    truth.write_text("".join(lines))                                # put back: it resumes
+    assert train_main(["--resume", "--out", str(out), "--set", "train.epochs=2", "--no-progress"]) == 0
