@@ -16,7 +16,8 @@ so ``x = x^- + K (pr - h + vc)`` as in the paper. The Solution reports ``P_pos m
 the pseudorange residuals' variance factor (``estimators.consistency``; ``inflate_cov=False``: ``P_pos``).
 Initialisation and resets take the coarse fix
 (``Sequence.coarse_ecef_m`` / ``coarse_clock_m``; where only the clock is NaN, the epoch's pseudoranges give it,
-``coarse_clocks``) with covariance P0 and then update with the
+``coarse_clocks``, which ``learning.torch_ekf`` does not do: the sequences training builds have both) with covariance
+P0 and then update with the
 epoch's satellites, twice if a satellite's post-fit residual exceeds ``gate_sigma sqrt(r)`` (the
 second time without those satellites). Resets happen when the filter has no state yet, after a gap
 longer than ``max_gap_s``, when most usable satellites fail the gate (``reset_gated_fraction``; not in the epoch

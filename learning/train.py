@@ -1002,13 +1002,24 @@ def _check_source_files(checkpoint: dict, now: dict[str, dict[str, str]], where:
                              "or start a new --out")
 
 
+def _data_settings(flat: dict) -> dict:
+    """A flattened dataset TOML without the keys that change no data: ``description``, and a ``time_origin_gps_s``
+    that neither a smartloc truth nor relative_s splits read (refused at registration since session 50, so a run
+    started before then resumes once it is removed)."""
+    fmt = str(flat.get("truth.format", "urbannav")).lower()
+    axis = str(flat.get("splits.axis", "tow")).lower()
+    unread = {"description"} | ({"truth.time_origin_gps_s"} if fmt != "smartloc" and axis != "relative_s" else set())
+    return {k: v for k, v in flat.items() if k not in unread}
+
+
 def _toml_change(was: str, now: str) -> str | None:
-    """The first key in which two texts of a dataset TOML differ, ``splits.val is [0, 9] now, [0, 8]``; that the text
-    differs where either does not parse; None where they hold the same settings (comments and layout aside)."""
+    """The first key in which two texts of a dataset TOML differ in what they make of the data, ``splits.val is [0, 9]
+    now, [0, 8]``; that the text differs where either does not parse; None where they hold the same data settings
+    (comments, layout and ``_data_settings``' keys aside)."""
     if was == now:
         return None
     try:
-        before, after = _flat(tomllib.loads(was)), _flat(tomllib.loads(now))
+        before, after = (_data_settings(_flat(tomllib.loads(text))) for text in (was, now))
     except tomllib.TOMLDecodeError:
         return "its text differs from the text it had"
     changed = sorted(k for k in before.keys() | after.keys() if before.get(k, _UNSET) != after.get(k, _UNSET))

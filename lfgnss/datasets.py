@@ -295,6 +295,9 @@ def register_toml(path: str | Path, *, need_splits: tuple[str, ...] = ()) -> Dat
         raise InputError(path, f"match_tolerance_s in [truth] must be a number of seconds > 0 (how far an epoch may "
                                f"lie from a truth row), got {tolerance!r}")
     truth_format = str(cfg["truth"].get("format", "urbannav")).lower()
+    if truth_format not in TRUTH_READERS:
+        raise InputError(path, f"unknown truth format {truth_format!r} in [truth]; use one of "
+                               f"{', '.join(TRUTH_READERS)}{did_you_mean(truth_format, list(TRUTH_READERS))}")
     if "time_origin_gps_s" in cfg["truth"] and truth_format != "smartloc" and axis != "relative_s":
         raise InputError(path, f"time_origin_gps_s in [truth] is the t = 0 of a smartloc truth and of relative_s "
                                f"splits, and this dataset has neither (format = {truth_format!r}, axis = {axis!r}): "
@@ -316,9 +319,6 @@ def register_toml(path: str | Path, *, need_splits: tuple[str, ...] = ()) -> Dat
             source=path)
     except (KeyError, TypeError, ValueError) as err:
         raise InputError(path, f"dataset config lacks or misuses {err}") from None
-    if spec.truth_format not in TRUTH_READERS:
-        raise InputError(path, f"unknown truth format {spec.truth_format!r} in [truth]; "
-                               f"use one of {', '.join(TRUTH_READERS)}")
     return register(spec)
 
 
@@ -525,7 +525,7 @@ def read_ecef_csv(path: Path, spec: DatasetSpec) -> tuple[np.ndarray, np.ndarray
 def read_pos_truth(path: Path, spec: DatasetSpec) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """An RTKLIB ``.pos`` file (rnx2rtkp's or ``python -m lfgnss.solve``'s): every solution line's time [GPS s] and
     ECEF position [m] (``lfgnss.outputs.read_pos``: week/TOW or calendar time, GPST or UTC, lat/lon/height or ECEF;
-    the solution quality Q is not filtered)."""
+    lines of Q = 0, RTKLIB's "no solution", or off the Earth are skipped with a note; any other Q is kept)."""
     from .outputs import read_pos
 
     try:
@@ -538,7 +538,16 @@ def read_pos_truth(path: Path, spec: DatasetSpec) -> tuple[np.ndarray, np.ndarra
                          line=int(where.group(1)) if where else None) from None
     if not sol.time_gps_s.size:
         raise InputError(path, "no readable ground-truth line (no solution line in this .pos file)")
-    return sol.time_gps_s, sol.pos_ecef_m, []
+    radius = np.linalg.norm(sol.pos_ecef_m, axis=1)
+    low, high = TRUTH_RADIUS_M
+    # Q = 0 is RTKLIB's "no solution" (its position, often 0, 0, 0 in either frame, is none); off the Earth: junk
+    off = (np.asarray(sol.info["q"]) == 0) | ~((radius >= low) & (radius <= high))
+    if off.all():
+        raise InputError(path, "no readable ground-truth line: every solution line has Q = 0 (no solution) or lies "
+                               f"off the Earth (the first {radius[0]:.6g} m from its centre)")
+    notes = [f"{path}: {int(off.sum())} solution line(s) with Q = 0 (no solution) or off the Earth (the first at GPS "
+             f"{sol.time_gps_s[off][0]:.1f} s), skipped"] if off.any() else []
+    return sol.time_gps_s[~off], sol.pos_ecef_m[~off], notes
 
 
 TRUTH_READERS = {"urbannav": read_urbannav, "smartloc": read_smartloc, "static": read_static, "ecef-csv": read_ecef_csv,
@@ -630,17 +639,23 @@ def unmatched_time_words(spec: DatasetSpec, time_gps_s: np.ndarray) -> str:
 
 
 def _zone_offset_h(t_truth: np.ndarray, time_gps_s: np.ndarray, tolerance_s: float) -> float | None:
-    """The time zone [h from UTC, to a quarter hour, 0.5 to 14 h either way] in which truth times [s] stamped in local
-    time would overlap the epochs [GPS s] (from the middles of the two spans), else None."""
+    """The time zone [h from UTC, quarter hours, 0.5 to 14 h either way] in which truth times [s] stamped in local time
+    overlap the epochs [GPS s] longest, whole hours first among equals (a short truth lies within a long drive at many
+    zones), then the nearest to the one the spans' middles give; None where no zone makes them overlap."""
     from .time import leap_seconds
 
     if not t_truth.size or not time_gps_s.size:
         return None
     utc = time_gps_s - float(np.median(leap_seconds(time_gps_s)))
-    zone_h = round((np.ptp(t_truth) / 2 + t_truth.min() - np.ptp(utc) / 2 - utc.min()) / 900.0) / 4.0
-    local = utc + zone_h * 3600.0
-    overlap = t_truth.min() <= local.max() + tolerance_s and t_truth.max() >= local.min() - tolerance_s
-    return zone_h if 0.5 <= abs(zone_h) <= 14 and overlap else None
+    middles_h = (np.ptp(t_truth) / 2 + t_truth.min() - np.ptp(utc) / 2 - utc.min()) / 3600.0
+    zones = [z for z in np.arange(-14.0, 14.25, 0.25) if abs(z) >= 0.5]
+
+    def overlap_s(zone_h: float) -> float:
+        local = utc + zone_h * 3600.0
+        return min(t_truth.max(), local.max() + tolerance_s) - max(t_truth.min(), local.min() - tolerance_s)
+
+    best = max(zones, key=lambda z: (round(overlap_s(z), 3), float(z).is_integer(), -abs(z - middles_h)))
+    return float(best) if overlap_s(best) >= 0 else None
 
 
 def _origin_words(spec: DatasetSpec) -> str:

@@ -212,7 +212,7 @@ def read_pos(path: str | Path, backend: str | None = None) -> Solution:
     path = Path(path)
     scale, posf, program = "GPST", None, None
     times, pos, sds, qs, ns, ages, ratios = [], [], [], [], [], [], []
-    with open(path, "r", newline=None) as fh:
+    with open(path, "r", newline=None, encoding="utf-8-sig") as fh:      # a byte order mark is read past
         for lineno, raw in enumerate(fh, 1):
             line = raw.strip()
             if not line:

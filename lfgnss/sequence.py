@@ -138,11 +138,11 @@ class Sequence:
             raise ValueError(f"Sequence {self.name!r}: system_index must be an integer array, got dtype "
                              f"{np.asarray(self.system_index).dtype}")
         owner = f"Sequence {self.name!r}"
-        for key in ("pr_m", "sat_pos_ecef_m", "coarse_ecef_m", "coarse_clock_m"):
+        for key in ("time_gps_s", "pr_m", "sat_pos_ecef_m", "coarse_ecef_m", "coarse_clock_m", "truth_ecef_m"):
             dtype = np.asarray(getattr(self, key)).dtype
-            if dtype.kind == "f" and dtype.itemsize < 8:     # float32 steps are 2 m at 2e7 m
-                raise ValueError(f"{owner}: {key} must be float64, got {dtype} (which rounds pseudoranges and "
-                                 f"satellite positions to metres): .astype(float) before rounding, from the source")
+            if dtype.kind == "f" and dtype.itemsize < 8:     # float32 steps: 2 m at 2e7 m, 128 s at 1.2e9 s
+                raise ValueError(f"{owner}: {key} must be float64, got {dtype} (which rounds satellite ranges to "
+                                 f"metres and GPS times to minutes): .astype(float) before rounding, from the source")
         check_near_surface(owner, "truth_ecef_m", self.truth_ecef_m)
         check_near_surface(owner, "coarse_ecef_m", self.coarse_ecef_m)
         check_in_orbit(owner, "sat_pos_ecef_m (used slots)", np.asarray(self.sat_pos_ecef_m)[self.mask])

@@ -170,10 +170,11 @@ def unseen_systems_note(noise: object, systems: tuple[str, ...]) -> str | None:
     unseen = [c for c in systems if seen is not None and c not in seen]
     if not unseen:
         return None
-    names = ", ".join(SYSTEM_NAMES.get(c, c) for c in unseen)
+    names = " and ".join(SYSTEM_NAMES.get(c, c) for c in unseen)
+    kept = "".join(c for c in systems if c in seen)
+    what = "those constellations" if len(unseen) > 1 else "that constellation"
     return (f"trained on {''.join(seen)} data only; this run's {names} satellites get R and v^c from a network that "
-            f"never saw that constellation (--systems {''.join(c for c in systems if c in seen) or seen} leaves them "
-            "out)")
+            f"never saw {what}" + (f" (--systems {kept} leaves them out)" if kept else ""))
 
 
 @dataclass
@@ -345,8 +346,8 @@ def _solve(args) -> _Solved:
     if truth is not None and not args.no_plots:
         figures: dict = {}                  # drawn at the first figure's turn, after the files above are written
         learned = isinstance(getattr(noise, "metadata", None), dict)
-        title = f"{Path(obs).name}: {label}, " + (f"model {Path(args.model or DEFAULT_MODEL).name}" if learned
-                                                   else noise_text)
+        title = f"{Path(obs).name}: {label}" + ("" if _own_model(args) or args.no_model else
+                                                f", model {DEFAULT_MODEL.name}" if learned else f", {noise_text}")
         title += "\nin-sample: the model was trained or selected on some of these epochs" if seen else ""
 
         def save(path: str, name: str) -> list[Path]:

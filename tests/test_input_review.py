@@ -135,3 +135,58 @@ def test_a_met_file_among_navigation_files_is_left_out_with_a_warning(tmp_path):
         fh.write(MET_HEADER)
     with pytest.raises(RinexError, match="not a RINEX 2/3 navigation file, nor is any other of the 2 files given"):
         load_nav([met, other], cache=False)
+
+
+def test_a_pos_truths_lines_off_the_earth_are_skipped_and_a_byte_order_mark_read_past(tmp_path, seq):
+    """Review (session 50): a Q = 0 "no solution" line (0, 0, 0) was scored as truth (3D RMSE 155 km); a .pos file
+    with a byte order mark was refused."""
+    import estimators
+    from lfgnss.outputs import write_pos
+
+    sol = estimators.create("wls").solve(seq)
+    good = write_pos(tmp_path / "ref.pos", sol).read_text()
+    lines = good.splitlines(keepends=True)
+    body = [i for i, line in enumerate(lines) if not line.startswith("%")]
+    fields = lines[body[3]].split()
+    fields[2:6] = ["0.000000000", "0.000000000", "0.0000", "0"]            # a Q = 0 "no solution" line
+    lines[body[3]] = " ".join(fields) + "\n"
+    (tmp_path / "q0.pos").write_text("".join(lines))
+    with pytest.warns(UserWarning, match=r"q0\.pos: 1 solution line\(s\) with Q = 0 \(no solution\) or off the "
+                                         r"Earth \(the first at GPS "):
+        truth = datasets.read_truth(tmp_path / "q0.pos", seq.time_gps_s, "pos")
+    ok = np.isfinite(sol.pos_ecef_m).all(axis=1)       # the skipped line's epoch: interpolated between its neighbours
+    assert np.isfinite(truth[ok]).all() and np.linalg.norm(truth[ok] - sol.pos_ecef_m[ok], axis=1).max() < 50
+    (tmp_path / "bom.pos").write_text("\ufeff" + good, encoding="utf-8")
+    assert np.isfinite(datasets.read_truth(tmp_path / "bom.pos", seq.time_gps_s, "pos")).all(axis=1).sum() == len(body)
+    (tmp_path / "none.pos").write_text("".join(lines[:body[0]]) + lines[body[3]])
+    with pytest.raises(InputError, match="every solution line has Q = 0 \\(no solution\\) or lies off the Earth"):
+        datasets.read_truth(tmp_path / "none.pos", seq.time_gps_s, "pos")
+
+
+def test_the_local_time_zone_is_found_when_the_truth_covers_part_of_the_drive(tmp_path):
+    """Review (session 50): from the middles of the two spans, a 484 s truth inside an hour's drive read as UTC+8.25."""
+    epochs = EPOCHS[0] - 3000 + np.arange(4084.0)
+    tow = EPOCHS[0] + np.arange(484.0) - 2051 * 604800 + 8 * 3600 - 18
+    path = tmp_path / "gt_local.csv"
+    path.write_text("".join(f"2051,{t:.1f},22.30,114.17,6.5\n" for t in tow))
+    words = datasets.unmatched_time_words(datasets.DatasetSpec("local", (), (), path, "urbannav"), epochs)
+    assert "about UTC+8 h" in words and "subtract 8 h" in words, words
+
+
+def test_a_misspelt_truth_format_is_named_before_anything_about_its_keys(sample_toml):
+    path = sample_toml("typo-format")
+    path.write_text(path.read_text().replace('format = "smartloc"', 'format = "smartlock"'))
+    with pytest.raises(InputError, match=r"unknown truth format 'smartlock' in \[truth\]; use one of .* \(did you mean "
+                                         r"'smartloc'\?\)"):
+        datasets.register_toml(path)
+
+
+def test_the_unseen_constellation_note_offers_no_systems_option_that_would_leave_nothing():
+    from types import SimpleNamespace
+
+    from lfgnss.solve import unseen_systems_note
+
+    g_only = SimpleNamespace(metadata={"data_spans": [{"systems": "G"}]})
+    assert unseen_systems_note(g_only, ("E", "C")) == ("trained on G data only; this run's Galileo and BeiDou "
+                                                       "satellites get R and v^c from a network that never saw those "
+                                                       "constellations")

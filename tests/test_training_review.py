@@ -85,6 +85,12 @@ def test_a_toml_change_is_its_first_changed_key_and_comments_are_none():
     assert _toml_change(TOML_TEXT, "# mine\n" + TOML_TEXT.replace("\n[", "\n\n[")) is None
     assert _toml_change(TOML_TEXT, TOML_TEXT + 'description = "x"\n') == "splits.description is 'x' now, unset"
     assert _toml_change(TOML_TEXT, TOML_TEXT + "[[") == "its text differs from the text it had"
+    assert _toml_change(TOML_TEXT, 'description = "my drive"\n' + TOML_TEXT) is None          # no data setting
+    # a time_origin_gps_s that nothing read (urbannav truth, tow splits), removed as registration now asks: resumes
+    tow = TOML_TEXT.replace('axis = "relative_s"', 'axis = "tow"') + '[truth]\nfile = "t.csv"\n'
+    assert _toml_change(tow.replace('file = "t.csv"', 'file = "t.csv"\ntime_origin_gps_s = 5.0'), tow) is None
+    assert _toml_change(TOML_TEXT + '[truth]\nfile = "t.csv"\ntime_origin_gps_s = 5.0\n',
+                        TOML_TEXT + '[truth]\nfile = "t.csv"\n') == "truth.time_origin_gps_s is unset now, 5.0"
 
 
 # ------------------------------------------------------------------------ 2: --models once, rows by run folder
