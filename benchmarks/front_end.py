@@ -150,8 +150,17 @@ def accuracy_rows(run: Run) -> list[dict]:
 
 
 class _SeqLike:
+    """What ``lfgnss.datasets.split_index`` reads of a Sequence: epoch times [GPS s] and truth (T, 3) [m]."""
+
     def __init__(self, time_gps_s, truth):
         self.time_gps_s, self.truth_ecef_m = time_gps_s, truth
+
+    def __len__(self) -> int:
+        return len(self.time_gps_s)
+
+    @property
+    def labelled(self) -> np.ndarray:
+        return np.isfinite(self.truth_ecef_m).all(axis=1)
 
 
 def _seq_like(run: Run):

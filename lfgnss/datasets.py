@@ -16,8 +16,9 @@ file (``register_toml``)::
                                       # (default 0.05 for smartloc, else 0.5, as python -m lfgnss.solve); its
                                       # truth is interpolated between the rows around it when they are at
                                       # most 2 s apart (TRUTH_INTERPOLATION_MAX_GAP_S), else the nearest row
-    time_origin_gps_s = 1149246641.7  # optional, smartloc: GPS seconds of the truth's t = 0, also the 0 of
-                                      # relative_s splits; default the first observation epoch (as --truth-origin)
+    # time_origin_gps_s = 1149246641.7  # smartloc truth or relative_s splits only (else refused: it would change
+                                      # nothing): GPS seconds of a smartloc truth's t = 0, also the 0 of relative_s
+                                      # splits; default the first observation epoch (as --truth-origin)
     [splits]                          # [start, stop) on the split axis (a command needs the splits it uses)
     axis = "tow"                      # tow | relative_s | epoch
     train = [46701, 46941]            # learning.train fits train and selects on val (data.train_split,
@@ -976,11 +977,12 @@ def empty_split_words(seq: Sequence, spec: DatasetSpec, split: str) -> str:
 
 def split_axis_values(seq: Sequence, spec: DatasetSpec) -> np.ndarray:
     """(T,) each epoch's place on ``spec``'s split axis: time of week [s], seconds since the truth origin [s] (both to
-    0.1 s), or the index among labelled epochs (-1 for an unlabelled one)."""
+    0.1 s), or the index among labelled epochs (-1 for an unlabelled one). ``seq`` needs only ``time_gps_s`` and
+    ``truth_ecef_m`` (benchmarks/front_end.py passes such a stand-in)."""
     if spec.split_axis in ("tow", "relative_s"):
-        return _time_axis_values(seq.time_gps_s, spec, seq.time_gps_s[0] if len(seq) else 0.0)
+        return _time_axis_values(seq.time_gps_s, spec, seq.time_gps_s[0] if np.size(seq.time_gps_s) else 0.0)
     if spec.split_axis == "epoch":
-        labelled = seq.labelled
+        labelled = np.isfinite(seq.truth_ecef_m).all(axis=-1)
         return np.where(labelled, np.cumsum(labelled) - 1, -1)
     raise ValueError(f"dataset {spec.id}: unknown split axis {spec.split_axis!r}")
 

@@ -291,3 +291,16 @@ def test_home_folder_paths_in_a_toml_are_expanded(sample_toml, tmp_path, monkeyp
     monkeypatch.setenv("HOME", str(tmp_path))
     path = _edited(sample_toml, "home", f'file = "{SAMPLE_DIR / "Berlin_Potsdamer_Platz_GT.txt"}"', 'file = "~/gt.txt"')
     assert datasets.register_toml(path).truth == tmp_path / "gt.txt"
+
+
+def test_the_docstrings_example_registers(tmp_path):
+    """The README points to lfgnss/datasets.py's docstring for the full format: its example must be accepted as it is
+    (session 50 refused a time_origin_gps_s that changes nothing, which the example then held)."""
+    import textwrap
+
+    doc = datasets.__doc__
+    block = doc[doc.index('    id = "my-drive"'):doc.index("\n\n", doc.index('    id = "my-drive"'))]
+    path = tmp_path / "doc-drive.toml"
+    path.write_text(textwrap.dedent(block))
+    spec = datasets.register_toml(path)
+    assert spec.id == "my-drive" and spec.split_axis == "tow" and spec.splits["test"] == (47001, 47186)
