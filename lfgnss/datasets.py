@@ -978,11 +978,11 @@ def empty_split_words(seq: Sequence, spec: DatasetSpec, split: str) -> str:
 def split_axis_values(seq: Sequence, spec: DatasetSpec) -> np.ndarray:
     """(T,) each epoch's place on ``spec``'s split axis: time of week [s], seconds since the truth origin [s] (both to
     0.1 s), or the index among labelled epochs (-1 for an unlabelled one). ``seq`` needs only ``time_gps_s`` and
-    ``truth_ecef_m`` (benchmarks/front_end.py passes such a stand-in)."""
+    ``labelled`` (benchmarks/front_end.py passes such a stand-in)."""
     if spec.split_axis in ("tow", "relative_s"):
         return _time_axis_values(seq.time_gps_s, spec, seq.time_gps_s[0] if np.size(seq.time_gps_s) else 0.0)
     if spec.split_axis == "epoch":
-        labelled = np.isfinite(seq.truth_ecef_m).all(axis=-1)
+        labelled = seq.labelled
         return np.where(labelled, np.cumsum(labelled) - 1, -1)
     raise ValueError(f"dataset {spec.id}: unknown split axis {spec.split_axis!r}")
 

@@ -417,15 +417,15 @@ def test_a_header_line_is_named_as_one(tmp_path):
 
 
 @pytest.mark.parametrize("axis", ["tow", "relative_s", "epoch"])
-def test_split_axis_values_needs_only_times_and_truth(axis):
-    """benchmarks/front_end.py --table passes a stand-in with time_gps_s and truth_ecef_m only; session 49's len(seq)
-    made it crash (TypeError: object of type '_SeqLike' has no len())."""
+def test_split_axis_values_needs_only_times_and_labels(axis):
+    """benchmarks/front_end.py --table passes a stand-in with time_gps_s and labelled only; session 49's len(seq) made
+    it crash (TypeError: object of type '_SeqLike' has no len())."""
     from types import SimpleNamespace
 
     t = 1900 * 604800 + 126641.7 + np.arange(4.0)
     truth = np.tile([3783e3, 900e3, 5030e3], (4, 1)).astype(float)
     truth[1] = np.nan
     spec = datasets.DatasetSpec("x", (), (), "t.csv", "urbannav", split_axis=axis, time_origin_gps_s=float(t[0]))
-    values = datasets.split_axis_values(SimpleNamespace(time_gps_s=t, truth_ecef_m=truth), spec)
+    values = datasets.split_axis_values(SimpleNamespace(time_gps_s=t, labelled=np.isfinite(truth).all(axis=1)), spec)
     expected = {"tow": [126641.7, 126642.7, 126643.7, 126644.7], "relative_s": [0, 1, 2, 3], "epoch": [0, -1, 1, 2]}
     np.testing.assert_allclose(values, expected[axis])
