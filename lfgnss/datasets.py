@@ -16,6 +16,8 @@ file (``register_toml``)::
                                       # (default 0.05 for smartloc, else 0.5, as python -m lfgnss.solve); its
                                       # truth is interpolated between the rows around it when they are at
                                       # most 2 s apart (TRUTH_INTERPOLATION_MAX_GAP_S), else the nearest row
+    time_offset_s = 0                 # optional [s]: added to the truth's times as read, e.g. 18 for a truth
+                                      # stamped in UTC (2017-2026), -28782 for one in Hong Kong time (UTC+8)
     # time_origin_gps_s = 1149246641.7  # smartloc truth or relative_s splits only (else refused: it would change
                                       # nothing): GPS seconds of a smartloc truth's t = 0, also the 0 of relative_s
                                       # splits; default the first observation epoch (as --truth-origin)
@@ -82,7 +84,8 @@ class DatasetSpec:
     """Where a dataset's files are and how its truth and splits line up in time.
 
     Paths may be given as str. Several ``obs`` files are joined in time order. ``match_tolerance_s`` None:
-    ``default_match_tolerance_s(truth_format)``; ``time_origin_gps_s`` None: the first observation epoch.
+    ``default_match_tolerance_s(truth_format)``; ``time_origin_gps_s`` None: the first observation epoch;
+    ``time_offset_s`` [s] is added to every truth time as read (a truth stamped in UTC or local time, read as GPST).
     """
 
     id: str
@@ -97,6 +100,7 @@ class DatasetSpec:
     time_origin_gps_s: float | None = None        # [GPS s] smartLoc t = 0 and relative_s 0; None: first epoch
     description: str = ""
     source: Path | None = None                    # the TOML file it was registered from (register_toml)
+    time_offset_s: float = 0.0                    # [s] added to the truth's times (18 for UTC stamps in 2019)
 
     def __post_init__(self) -> None:
         def paths(value) -> tuple[Path, ...]:
@@ -182,7 +186,7 @@ def _dataset_key(spec: DatasetSpec) -> DatasetSpec:
 
 #: The keys a dataset TOML may hold, at the top and in its tables (see the module docstring).
 TOML_KEYS = ("id", "obs", "nav", "systems", "description", "truth", "splits")
-TRUTH_KEYS = ("file", "format", "match_tolerance_s", "time_origin_gps_s")
+TRUTH_KEYS = ("file", "format", "match_tolerance_s", "time_origin_gps_s", "time_offset_s")
 SPLIT_KEYS = ("axis", *SPLITS)
 #: What ``get`` says about an unknown id: how a dataset of one's own becomes known, for every command.
 REGISTER_HINT = ("register a dataset of your own first: --register FILE.toml, data.register = [\"FILE.toml\"] in "
@@ -290,6 +294,10 @@ def register_toml(path: str | Path, *, need_splits: tuple[str, ...] = ()) -> Dat
             cfg[key] = [cfg[key]]                      # one file may be given without a list
         if not cfg[key]:
             raise InputError(path, f"dataset config lists no {key} file")
+    offset = cfg["truth"].get("time_offset_s", 0.0)
+    if not (isinstance(offset, (int, float)) and not isinstance(offset, bool) and math.isfinite(offset)):
+        raise InputError(path, f"time_offset_s in [truth] must be a number of seconds added to the truth's times "
+                               f"(18 for a truth stamped in UTC in 2017-2026), got {offset!r}")
     tolerance = cfg["truth"].get("match_tolerance_s")
     if tolerance is not None and not (isinstance(tolerance, (int, float)) and not isinstance(tolerance, bool)
                                       and 0 < tolerance < math.inf):
@@ -299,6 +307,9 @@ def register_toml(path: str | Path, *, need_splits: tuple[str, ...] = ()) -> Dat
     if truth_format not in TRUTH_READERS:
         raise InputError(path, f"unknown truth format {truth_format!r} in [truth]; use one of "
                                f"{', '.join(TRUTH_READERS)}{did_you_mean(truth_format, list(TRUTH_READERS))}")
+    if cfg["truth"].get("time_offset_s") and truth_format == "static":
+        raise InputError(path, "time_offset_s in [truth] would change nothing for a static truth, whose one point "
+                               "labels every epoch; remove it")
     if "time_origin_gps_s" in cfg["truth"] and truth_format != "smartloc" and axis != "relative_s":
         raise InputError(path, f"time_origin_gps_s in [truth] is the t = 0 of a smartloc truth and of relative_s "
                                f"splits, and this dataset has neither (format = {truth_format!r}, axis = {axis!r}): "
@@ -316,7 +327,8 @@ def register_toml(path: str | Path, *, need_splits: tuple[str, ...] = ()) -> Dat
             truth=file(truth["file"]), truth_format=truth_format, splits=splits,
             split_axis=str(axis), systems=None if systems is None else tuple(systems),
             match_tolerance_s=None if tolerance is None else float(tolerance),
-            time_origin_gps_s=None if origin is None else float(origin), description=str(cfg.get("description", "")),
+            time_origin_gps_s=None if origin is None else float(origin), time_offset_s=float(offset),
+            description=str(cfg.get("description", "")),
             source=path)
     except (KeyError, TypeError, ValueError) as err:
         raise InputError(path, f"dataset config lacks or misuses {err}") from None
@@ -614,7 +626,7 @@ def unmatched_time_words(spec: DatasetSpec, time_gps_s: np.ndarray) -> str:
     if spec.truth_format not in ("ecef-csv", "urbannav") or not np.size(time_gps_s):
         return ""
     try:
-        t_truth = TRUTH_READERS[spec.truth_format](spec.truth, spec)[0]
+        t_truth = TRUTH_READERS[spec.truth_format](spec.truth, spec)[0] + spec.time_offset_s
     except InputError:
         return ""
     first, last = float(np.min(t_truth)), float(np.max(t_truth))
@@ -635,7 +647,7 @@ def unmatched_time_words(spec: DatasetSpec, time_gps_s: np.ndarray) -> str:
         leap = float(np.median(leap_seconds(np.asarray(time_gps_s, float))))
         return (f"; {span} would fit the epochs as local time, about UTC{zone_h:+g} h: {spec.truth_format} times are "
                 f"GPST, so {'subtract' if zone_h > 0 else 'add'} {abs(zone_h):g} h and add GPST - UTC ({leap:g} s "
-                f"here), and {epochs}")
+                f"here): {offset_words(spec, leap - zone_h * 3600.0)}; and {epochs}")
     return f"; {span.replace('its times', 'its GPS times')} miss them: {epochs}"
 
 
@@ -714,25 +726,37 @@ def truth_shift_note(spec: DatasetSpec, time_gps_s: np.ndarray, truth_ecef_m: np
         as_utc = median_m(-leap)        # UTC stamps: GPST - UTC too few seconds
         if as_utc[1] >= 0.8 * n and fits(as_utc[0]) and as_utc[0] <= TRUTH_SHIFT_UTC_RATIO * best_m:
             return (f"{words(as_utc[0], -leap)}: are its times UTC? {spec.truth_format} times are GPST (GPST - UTC = "
-                    f"{leap:g} s here); shift them by that much, it is scored as GPST all the same")
+                    f"{leap:g} s here): {offset_words(spec, leap)}; it is scored as stamped all the same")
     if spec.truth_format == "smartloc":
         return (f"{words(best_m, shift, 'about ')}: a wrong {_origin_words(spec)}? About GPS {origin - shift:.1f} s "
                 "fits; it is scored as stamped all the same")
-    return f"{words(best_m, shift, 'about ')}: are its times off? It is scored as stamped all the same"
+    return (f"{words(best_m, shift, 'about ')}: are its times off? ({offset_words(spec, -shift, 'about ')}); it is "
+            "scored as stamped all the same")
+
+
+def offset_words(spec: DatasetSpec, offset_s: float, about: str = "") -> str:
+    """How to add ``offset_s`` [s] to a truth's times (on top of any ``time_offset_s`` it has): the TOML key of the
+    dataset's file, else ``lfgnss.solve``'s option."""
+    total = spec.time_offset_s + offset_s
+    if spec.source:
+        return f"give {about}time_offset_s = {total:g} in [truth] of {spec.source}"
+    return f"give {about}--truth-offset {total:g}"
 
 
 def read_truth(path: str | Path, time_gps_s: np.ndarray, truth_format: str = "urbannav", *,
-               time_origin_gps_s: float | None = None, match_tolerance_s: float | None = None) -> np.ndarray:
+               time_origin_gps_s: float | None = None, match_tolerance_s: float | None = None,
+               time_offset_s: float = 0.0) -> np.ndarray:
     """(T, 3) ECEF ground truth [m] at epoch times [GPS s] from a truth file; NaN where none lies within the tolerance.
 
     ``truth_format``: one of ``TRUTH_READERS``, in any case; a smartloc file counts its t from
-    ``time_origin_gps_s`` (default: the first epoch). Skipped lines are warned about (the first five, then a count).
+    ``time_origin_gps_s`` (default: the first epoch); ``time_offset_s`` [s] is added to every truth time (18 for UTC
+    stamps in 2017-2026). Skipped lines are warned about (the first five, then a count).
     """
     truth_format = truth_format.lower() if isinstance(truth_format, str) else truth_format    # as --truth-format
     if truth_format not in TRUTH_READERS:
         raise InputError(path, f"unknown truth format {truth_format!r}; use one of {', '.join(TRUTH_READERS)}")
     spec = DatasetSpec("truth", (), (), path, truth_format, match_tolerance_s=match_tolerance_s,
-                       time_origin_gps_s=time_origin_gps_s)
+                       time_origin_gps_s=time_origin_gps_s, time_offset_s=time_offset_s)
     truth, notes = align_truth(time_gps_s, spec)
     for note in truth_note_summary(path, notes):
         warnings.warn(note, stacklevel=2)
@@ -781,6 +805,7 @@ def _sorted_truth_rows(spec: DatasetSpec, first_epoch_gps_s: float) -> tuple[np.
     else from ``first_epoch_gps_s``), ECEF [m], and the reader's notes."""
     origin = first_epoch_gps_s if spec.time_origin_gps_s is None else spec.time_origin_gps_s
     t_truth, xyz, bad = TRUTH_READERS[spec.truth_format](spec.truth, replace(spec, time_origin_gps_s=float(origin)))
+    t_truth = t_truth + spec.time_offset_s
     order = np.argsort(t_truth, kind="stable")
     return t_truth[order], xyz[order], bad
 
@@ -822,7 +847,8 @@ def _fingerprint(spec: DatasetSpec, feature_names: tuple[str, ...]) -> str:
         h.update(p.read_bytes())
     h.update(json.dumps([_BUILD_VERSION, rinex._PARSER_VERSION, navigation._CACHE_VERSION, spec.id,
                          list(feature_names), spec.systems, spec.truth_format,
-                         spec.match_tolerance_s, spec.time_origin_gps_s]).encode())
+                         spec.match_tolerance_s, spec.time_origin_gps_s,
+                         *([spec.time_offset_s] if spec.time_offset_s else [])]).encode())
     return h.hexdigest()[:24]
 
 

@@ -86,6 +86,9 @@ def build_parser() -> argparse.ArgumentParser:
                             f"{name}: {columns}" for name, columns in TRUTH_COLUMNS.items()))
     p.add_argument("--truth-origin", type=_finite_float, default=None,
                    help="GPS seconds of t=0 for smartloc truth (default: first epoch)")
+    p.add_argument("--truth-offset", type=_finite_float, default=None, metavar="SECONDS",
+                   help="seconds added to the --truth file's times as read: 18 for a truth stamped in UTC "
+                        "(2017-2026), -28782 for one in UTC+8 local time (default 0)")
     p.add_argument("--start", type=_gps_time, default=None, metavar="TIME",
                    help='first epoch to solve, GPST: WEEK:TOW (1900:126700.5) or "YYYY/MM/DD HH:MM:SS" (rnx2rtkp -ts)')
     p.add_argument("--end", type=_gps_time, default=None, metavar="TIME",
@@ -236,11 +239,14 @@ def _check_options(args) -> None:
         raise ValueError(f"--end {_gpst_text(args.end)} is before --start {_gpst_text(args.start)}")
     if args.obs is None and args.nav:
         raise ValueError("--nav needs --obs (without --obs the bundled sample is solved with its own navigation files)")
-    for option, value in (("--truth-format", args.truth_format), ("--truth-origin", args.truth_origin)):
+    for option, value in (("--truth-format", args.truth_format), ("--truth-origin", args.truth_origin),
+                          ("--truth-offset", args.truth_offset)):
         if value is not None and args.truth is None:
             raise ValueError(f"{option} applies to a --truth file, and none was given")
     if args.truth_origin is not None and args.truth_format != "smartloc":
         raise ValueError("--truth-origin applies to --truth-format smartloc only")
+    if args.truth_offset and args.truth_format == "static":
+        raise ValueError("--truth-offset changes nothing for --truth-format static, whose one point labels every epoch")
 
 
 def _solve(args) -> _Solved:
@@ -278,7 +284,8 @@ def _solve(args) -> _Solved:
     if truth_path is not None:
         if truth_format not in datasets.TRUTH_READERS:
             raise InputError(truth_path, f"unknown truth format {truth_format!r}")
-        spec = datasets.DatasetSpec("cli", obs, nav, truth_path, truth_format, time_origin_gps_s=args.truth_origin)
+        spec = datasets.DatasetSpec("cli", obs, nav, truth_path, truth_format, time_origin_gps_s=args.truth_origin,
+                                    time_offset_s=args.truth_offset or 0.0)
         truth, bad = datasets.align_truth(observations.time_gps_s, spec)   # the whole file's epochs, as always
         truth = truth[keep]
         for line in datasets.truth_note_summary(truth_path, bad):

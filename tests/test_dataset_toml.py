@@ -304,3 +304,26 @@ def test_the_docstrings_example_registers(tmp_path):
     path.write_text(textwrap.dedent(block))
     spec = datasets.register_toml(path)
     assert spec.id == "my-drive" and spec.split_axis == "tow" and spec.splits["test"] == (47001, 47186)
+
+
+@pytest.mark.parametrize("line, message", [
+    ('time_offset_s = "18"', r"time_offset_s in \[truth\] must be a number of seconds added to the truth's times"),
+    ("time_offset_s = nan", r"time_offset_s in \[truth\] must be a number of seconds"),
+])
+def test_a_time_offset_that_is_not_a_number_of_seconds_is_refused(sample_toml, line, message):
+    path = _edited(sample_toml, "offset", 'format = "smartloc"', f'format = "smartloc"\n{line}')
+    with pytest.raises(InputError, match=message):
+        datasets.register_toml(path)
+
+
+def test_a_time_offset_moves_the_truth_and_is_refused_where_it_moves_nothing(sample_toml, tmp_path):
+    """time_offset_s (session 50) is what the UTC and local-time notes tell a user to set: added to the truth's times."""
+    import numpy as np
+
+    truth = tmp_path / "gt.csv"
+    truth.write_text("1300000000.0,3783000.0,900000.0,5030000.0\n1300000001.0,3783001.0,900000.0,5030000.0\n")
+    read = datasets.read_truth(truth, np.array([1300000018.0, 1300000018.5]), "ecef-csv", time_offset_s=18.0)
+    np.testing.assert_allclose(read[:, 0], [3783000.0, 3783000.5])
+    path = _edited(sample_toml, "static-offset", 'format = "smartloc"', 'format = "static"\ntime_offset_s = 18')
+    with pytest.raises(InputError, match=r"time_offset_s in \[truth\] would change nothing for a static truth"):
+        datasets.register_toml(path)

@@ -26,6 +26,9 @@ from lfgnss.solve import DEFAULT_MODEL, SAMPLE_NAV, SAMPLE_OBS, SAMPLE_TRUTH, ma
     (["--backend", "ekf", "--marginals"], "--marginals applies to --backend fgo, not ekf"),
     (["--obs", "nope.obs"], "nope.obs: cannot read file (No such file or directory)"),   # not "no --nav"
     (["--model", "hk-tst"], "hk-tst: no such model file or bundled model (berlin-pp, default, hk-tst-2019,"),
+    (["--truth-offset", "18"], "--truth-offset applies to a --truth file, and none was given"),
+    (["--truth", "t.csv", "--truth-format", "static", "--truth-offset", "18"],
+     "--truth-offset changes nothing for --truth-format static, whose one point labels every epoch"),
 ])
 def test_misused_option_is_one_line_before_any_work(tmp_path, capsys, extra, message):
     out = tmp_path / "out"

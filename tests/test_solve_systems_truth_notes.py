@@ -112,17 +112,28 @@ def test_a_truth_stamped_in_utc_is_warned_of_and_still_scored(tmp_path, capsys, 
     captured = capsys.readouterr()
     said = (rf"{re.escape(str(utc))}: the truth lies a median [23]\d m horizontally from the receiver's least-squares "
             r"fixes with 17 s added to its times, against 1\d\d m as stamped \(on 1[23]\d\d epochs checked\): are its times "
-            r"UTC\? ecef-csv times are GPST \(GPST - UTC = 17 s here\); shift them by that much, it is scored as GPST "
-            r"all the same")
-    assert re.fullmatch(rf"warning: {said}\n", captured.err), captured.err
+            r"UTC\? ecef-csv times are GPST \(GPST - UTC = 17 s here\): give FIX; it is scored as stamped all the same")
+    assert re.fullmatch(rf"warning: {said.replace('FIX', '--truth-offset 17')}\n", captured.err), captured.err
     assert re.search(r"^wls +1[23]\d\d +1[23]\d\d +100\.0 ", captured.out, re.M), captured.out
     toml = tmp_path / "utc-drive.toml"
     toml.write_text(f'id = "utc-drive"\nobs = ["{SAMPLE_OBS}"]\nnav = {[str(n) for n in SAMPLE_NAV]!r}\n'.replace("'", '"')
                     + f'[truth]\nfile = "{utc}"\nformat = "ecef-csv"\n')
     assert datasets.main(["--register", str(toml)]) == 0
     captured = capsys.readouterr()
-    assert re.fullmatch(rf"warning: dataset utc-drive: {said}\n", captured.err), captured.err    # once
+    fix = f"time_offset_s = 17 in \\[truth\\] of {re.escape(str(toml))}"
+    assert re.fullmatch(rf"warning: dataset utc-drive: {said.replace('FIX', fix)}\n", captured.err), captured.err
     assert captured.out.startswith("utc-drive: ")
+    labelled = int(np.isfinite(truth).all(axis=1).sum())         # as the sample's own GPST truth labels (0.05 s)
+    # the fix it names: the file read 17 s later, by the option or by the key, labels those epochs (and the two more
+    # that ecef-csv's 0.5 s tolerance reaches), unwarned
+    assert main([*FAST, *SAMPLE, "--out", str(tmp_path / "o"), "--truth", str(utc), "--truth-format", "ecef-csv",
+                 "--truth-offset", "17"]) == 0
+    captured = capsys.readouterr()
+    assert captured.err == "" and re.search(rf"^wls +{labelled + 2} ", captured.out, re.M), captured
+    toml.write_text(toml.read_text() + "time_offset_s = 17\n")
+    assert datasets.main(["--register", str(toml)]) == 0
+    captured = capsys.readouterr()
+    assert captured.err == "" and f"utc-drive: 1375 epochs, {labelled + 2} with truth" in captured.out, captured
 
 
 @pytest.mark.parametrize("shift_s", [-10.0, 41.7])
@@ -148,7 +159,8 @@ def test_an_ecef_csv_truth_seconds_off_is_warned_of(tmp_path, capsys, berlin):
     err = capsys.readouterr().err
     assert re.fullmatch(rf"warning: {re.escape(str(late))}: the truth lies a median \d+ m horizontally from the "
                         r"receiver's least-squares fixes with about 1[2-8](?:\.\d)? s taken from its times, against \d+ m as stamped "
-                        r"\(on \d+ epochs checked\): are its times off\? It is scored as stamped all the same\n", err), err
+                        r"\(on \d+ epochs checked\): are its times off\? \(give about --truth-offset -1[2-8](?:\.\d)?\); it "
+                        r"is scored as stamped all the same\n", err), err
 
 
 def test_the_bundled_sample_with_its_own_truth_gives_no_warning(tmp_path, capsys):
