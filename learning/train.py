@@ -1003,12 +1003,13 @@ def _check_source_files(checkpoint: dict, now: dict[str, dict[str, str]], where:
 
 
 def _data_settings(flat: dict) -> dict:
-    """A flattened dataset TOML without the keys that change no data: ``description``, and a ``time_origin_gps_s``
-    that neither a smartloc truth nor relative_s splits read (refused at registration since session 50, so a run
+    """A flattened dataset TOML without the keys that change no data: ``description``, a ``time_offset_s`` of 0 and a
+    ``time_origin_gps_s`` that neither a smartloc truth nor relative_s splits read (refused at registration since session 50, so a run
     started before then resumes once it is removed)."""
     fmt = str(flat.get("truth.format", "urbannav")).lower()
     axis = str(flat.get("splits.axis", "tow")).lower()
     unread = {"description"} | ({"truth.time_origin_gps_s"} if fmt != "smartloc" and axis != "relative_s" else set())
+    unread |= {"truth.time_offset_s"} if flat.get("truth.time_offset_s") == 0 else set()     # the default
     return {k: v for k, v in flat.items() if k not in unread}
 
 

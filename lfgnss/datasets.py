@@ -45,6 +45,7 @@ import difflib
 import hashlib
 import json
 import math
+import numbers
 import re
 import tomllib
 import warnings
@@ -111,6 +112,9 @@ class DatasetSpec:
         object.__setattr__(self, "truth", Path(self.truth))
         if self.match_tolerance_s is None:
             object.__setattr__(self, "match_tolerance_s", default_match_tolerance_s(self.truth_format))
+        offset = self.time_offset_s
+        if isinstance(offset, bool) or not isinstance(offset, numbers.Real) or not math.isfinite(offset):
+            raise ValueError(f"DatasetSpec {self.id}: time_offset_s must be a finite number of seconds, got {offset!r}")
 
     def files(self) -> list[Path]:
         """Every input file of the dataset."""
@@ -622,29 +626,33 @@ def truth_fit_notes(spec: DatasetSpec, time_gps_s: np.ndarray, truth_ecef_m: np.
 
 def unmatched_time_words(spec: DatasetSpec, time_gps_s: np.ndarray) -> str:
     """Where a truth that labels no epoch has its times, against the epochs' [GPS s], when that tells what is wrong:
-    ``; its times (a to b s) look like times of week ...``, or ''."""
+    ``; its times (a to b s) look like times of week ...``, with the ``time_offset_s`` that fixes it where one does,
+    or ''. The file's own times are judged (any ``time_offset_s`` given is replaced by the one named)."""
     if spec.truth_format not in ("ecef-csv", "urbannav") or not np.size(time_gps_s):
         return ""
     try:
-        t_truth = TRUTH_READERS[spec.truth_format](spec.truth, spec)[0] + spec.time_offset_s
+        t_truth = TRUTH_READERS[spec.truth_format](spec.truth, spec)[0]
     except InputError:
         return ""
+    from .time import leap_seconds
+
+    times = np.asarray(time_gps_s, float)
+    leap = float(np.median(leap_seconds(times)))
     first, last = float(np.min(t_truth)), float(np.max(t_truth))
-    epochs = f"the epochs' are GPS {float(np.min(time_gps_s)):.1f} to {float(np.max(time_gps_s)):.1f} s"
+    epochs = f"the epochs' are GPS {float(np.min(times)):.1f} to {float(np.max(times)):.1f} s"
     span = f"its times ({first:.10g} to {last:.10g} s)"
     if spec.truth_format == "ecef-csv" and 0 <= first and last < SECONDS_PER_WEEK:
+        week = float(np.floor(np.min(times) / SECONDS_PER_WEEK) * SECONDS_PER_WEEK)
         return (f"; {span} look like times of week: ecef-csv times are GPS seconds since 1980-01-06 (week * 604800 + "
-                f"time of week), and {epochs}")
-    if spec.truth_format == "ecef-csv" and np.min(time_gps_s) - 86400 <= first / 1000 <= np.max(time_gps_s) + 86400:
+                f"time of week): {offset_words(spec, week)}; and {epochs}")
+    if spec.truth_format == "ecef-csv" and np.min(times) - 86400 <= first / 1000 <= np.max(times) + 86400:
         return f"; {span} look like milliseconds: ecef-csv times are seconds, and {epochs}"
-    if spec.truth_format == "ecef-csv" and abs(first - UNIX_TO_GPS_S - np.min(time_gps_s)) <= 86400:
+    if spec.truth_format == "ecef-csv" and abs(first - UNIX_TO_GPS_S - np.min(times)) <= 86400:
         return (f"; {span} look like Unix times (seconds since 1970, UTC): ecef-csv times are GPS seconds since "
-                f"1980-01-06, {UNIX_TO_GPS_S:.0f} s fewer (and GPST - UTC more), and {epochs}")
-    zone_h = _zone_offset_h(t_truth, np.asarray(time_gps_s, float), spec.match_tolerance_s)
+                f"1980-01-06, {UNIX_TO_GPS_S:.0f} s fewer (and GPST - UTC more): "
+                f"{offset_words(spec, leap - UNIX_TO_GPS_S)}; and {epochs}")
+    zone_h = _zone_offset_h(t_truth, times, spec.match_tolerance_s)
     if zone_h is not None:
-        from .time import leap_seconds
-
-        leap = float(np.median(leap_seconds(np.asarray(time_gps_s, float))))
         return (f"; {span} would fit the epochs as local time, about UTC{zone_h:+g} h: {spec.truth_format} times are "
                 f"GPST, so {'subtract' if zone_h > 0 else 'add'} {abs(zone_h):g} h and add GPST - UTC ({leap:g} s "
                 f"here): {offset_words(spec, leap - zone_h * 3600.0)}; and {epochs}")
@@ -726,21 +734,22 @@ def truth_shift_note(spec: DatasetSpec, time_gps_s: np.ndarray, truth_ecef_m: np
         as_utc = median_m(-leap)        # UTC stamps: GPST - UTC too few seconds
         if as_utc[1] >= 0.8 * n and fits(as_utc[0]) and as_utc[0] <= TRUTH_SHIFT_UTC_RATIO * best_m:
             return (f"{words(as_utc[0], -leap)}: are its times UTC? {spec.truth_format} times are GPST (GPST - UTC = "
-                    f"{leap:g} s here): {offset_words(spec, leap)}; it is scored as stamped all the same")
+                    f"{leap:g} s here): {offset_words(spec, spec.time_offset_s + leap)}; it is scored as stamped all "
+                    "the same")
     if spec.truth_format == "smartloc":
         return (f"{words(best_m, shift, 'about ')}: a wrong {_origin_words(spec)}? About GPS {origin - shift:.1f} s "
                 "fits; it is scored as stamped all the same")
-    return (f"{words(best_m, shift, 'about ')}: are its times off? ({offset_words(spec, -shift, 'about ')}); it is "
-            "scored as stamped all the same")
+    fix = offset_words(spec, spec.time_offset_s - shift, "about ")
+    return f"{words(best_m, shift, 'about ')}: are its times off? ({fix}); it is scored as stamped all the same"
 
 
-def offset_words(spec: DatasetSpec, offset_s: float, about: str = "") -> str:
-    """How to add ``offset_s`` [s] to a truth's times (on top of any ``time_offset_s`` it has): the TOML key of the
-    dataset's file, else ``lfgnss.solve``'s option."""
-    total = spec.time_offset_s + offset_s
+def offset_words(spec: DatasetSpec, total_s: float, about: str = "") -> str:
+    """How to have ``total_s`` [s] added to a truth's times as read: the ``time_offset_s`` key of the dataset's TOML
+    file, else ``lfgnss.solve``'s option (to 0.1 s, never in exponent form)."""
+    value = f"{round(total_s, 1):.1f}".removesuffix(".0")
     if spec.source:
-        return f"give {about}time_offset_s = {total:g} in [truth] of {spec.source}"
-    return f"give {about}--truth-offset {total:g}"
+        return f"give {about}time_offset_s = {value} in [truth] of {spec.source}"
+    return f"give {about}--truth-offset {value}"
 
 
 def read_truth(path: str | Path, time_gps_s: np.ndarray, truth_format: str = "urbannav", *,

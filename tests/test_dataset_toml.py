@@ -324,6 +324,8 @@ def test_a_time_offset_moves_the_truth_and_is_refused_where_it_moves_nothing(sam
     truth.write_text("1300000000.0,3783000.0,900000.0,5030000.0\n1300000001.0,3783001.0,900000.0,5030000.0\n")
     read = datasets.read_truth(truth, np.array([1300000018.0, 1300000018.5]), "ecef-csv", time_offset_s=18.0)
     np.testing.assert_allclose(read[:, 0], [3783000.0, 3783000.5])
+    with pytest.raises(ValueError, match="DatasetSpec api: time_offset_s must be a finite number of seconds, got nan"):
+        datasets.DatasetSpec("api", (), (), truth, "ecef-csv", time_offset_s=float("nan"))
     path = _edited(sample_toml, "static-offset", 'format = "smartloc"', 'format = "static"\ntime_offset_s = 18')
     with pytest.raises(InputError, match=r"time_offset_s in \[truth\] would change nothing for a static truth"):
         datasets.register_toml(path)

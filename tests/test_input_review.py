@@ -106,7 +106,11 @@ def test_a_truth_in_local_time_is_named_with_its_time_zone(sample_toml, tmp_path
         assert not np.isfinite(datasets.align_truth(epochs, spec)[0]).any()
     words = datasets.unmatched_time_words(spec, epochs)
     assert words.startswith("; its times (") and ("would fit the epochs as local time, about UTC+8 h: urbannav times "
-                                                  "are GPST, so subtract 8 h and add GPST - UTC (18 s here)") in words
+                                                  "are GPST, so subtract 8 h and add GPST - UTC (18 s here): give "
+                                                  "--truth-offset -28782;") in words
+    # a first guess already given (UTC: 18 s) does not enter the offset named, which is the whole one
+    guessed = dataclasses.replace(spec, time_offset_s=18.0)
+    assert "give --truth-offset -28782;" in datasets.unmatched_time_words(guessed, epochs)
 
 
 def test_an_unknown_split_is_one_line_with_a_suggestion_before_any_build(monkeypatch):

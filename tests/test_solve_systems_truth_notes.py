@@ -331,6 +331,13 @@ def test_an_ecef_csv_truth_in_other_units_says_so(tmp_path, capsys, berlin, unit
     assert main([*FAST, *SAMPLE, "--out", str(tmp_path / "o"), "--truth", str(path), "--truth-format", "ecef-csv"]) == 0
     err = capsys.readouterr().err
     assert "no truth epoch matches" in err and said in err and "the epochs' are GPS 1149246641.7 to " in err, err
+    if unit != "ms":                    # the offset named, taken as given, labels the drive with no further note
+        offset = re.search(r"give --truth-offset (-?\d+(?:\.\d)?);", err).group(1)
+        assert offset == {"tow": "1149120000", "unix": "-315964783"}[unit]
+        assert main([*FAST, *SAMPLE, "--out", str(tmp_path / "o"), "--truth", str(path), "--truth-format", "ecef-csv",
+                     "--truth-offset", offset]) == 0
+        captured = capsys.readouterr()
+        assert captured.err == "" and re.search(r"^wls +137\d ", captured.out, re.M), captured
 
 
 @pytest.mark.parametrize("window", [["--start", "1900:126661.7"], ["--start", "1900:126700.1"],

@@ -89,6 +89,9 @@ def test_a_toml_change_is_its_first_changed_key_and_comments_are_none():
     # a time_origin_gps_s that nothing read (urbannav truth, tow splits), removed as registration now asks: resumes
     tow = TOML_TEXT.replace('axis = "relative_s"', 'axis = "tow"') + '[truth]\nfile = "t.csv"\n'
     assert _toml_change(tow.replace('file = "t.csv"', 'file = "t.csv"\ntime_origin_gps_s = 5.0'), tow) is None
+    truth = TOML_TEXT + '[truth]\nfile = "t.csv"\n'
+    assert _toml_change(truth, truth + "time_offset_s = 0\n") is None                      # the default, spelt out
+    assert _toml_change(truth, truth + "time_offset_s = 18\n") == "truth.time_offset_s is 18 now, unset"
     assert _toml_change(TOML_TEXT + '[truth]\nfile = "t.csv"\ntime_origin_gps_s = 5.0\n',
                         TOML_TEXT + '[truth]\nfile = "t.csv"\n') == "truth.time_origin_gps_s is unset now, 5.0"
 
