@@ -112,9 +112,12 @@ class DatasetSpec:
         object.__setattr__(self, "truth", Path(self.truth))
         if self.match_tolerance_s is None:
             object.__setattr__(self, "match_tolerance_s", default_match_tolerance_s(self.truth_format))
-        offset = self.time_offset_s
+        offset, tolerance = self.time_offset_s, self.match_tolerance_s
         if isinstance(offset, bool) or not isinstance(offset, numbers.Real) or not math.isfinite(offset):
             raise ValueError(f"DatasetSpec {self.id}: time_offset_s must be a finite number of seconds, got {offset!r}")
+        if isinstance(tolerance, bool) or not isinstance(tolerance, numbers.Real) or not 0 < tolerance < math.inf:
+            raise ValueError(f"DatasetSpec {self.id}: match_tolerance_s must be a number of seconds > 0 (how far an "
+                             f"epoch may lie from a truth row), got {tolerance!r}")
 
     def files(self) -> list[Path]:
         """Every input file of the dataset."""

@@ -326,6 +326,8 @@ def test_a_time_offset_moves_the_truth_and_is_refused_where_it_moves_nothing(sam
     np.testing.assert_allclose(read[:, 0], [3783000.0, 3783000.5])
     with pytest.raises(ValueError, match="DatasetSpec api: time_offset_s must be a finite number of seconds, got nan"):
         datasets.DatasetSpec("api", (), (), truth, "ecef-csv", time_offset_s=float("nan"))
+    with pytest.raises(ValueError, match=r"DatasetSpec truth: match_tolerance_s must be a number of seconds > 0 .*got -1"):
+        datasets.read_truth(truth, np.array([1300000000.0]), "ecef-csv", match_tolerance_s=-1)
     path = _edited(sample_toml, "static-offset", 'format = "smartloc"', 'format = "static"\ntime_offset_s = 18')
     with pytest.raises(InputError, match=r"time_offset_s in \[truth\] would change nothing for a static truth"):
         datasets.register_toml(path)
