@@ -102,13 +102,12 @@ _GTSAM_SYMBOL = re.compile(r"\(Symbol: ([a-zA-Z])(\d+)\)")
 
 
 def symbol_epoch(message: str, n_systems: int) -> tuple[str, int] | None:
-    """(symbol, epoch) of the variable a gtsam error names, ``(Symbol: x24)``: ("x24", 24); a clock ``B(k C + j)``
-    gives epoch k. None when the message names none."""
+    """(symbol, epoch) of the variable a gtsam error names, ``(Symbol: x24)``: ("x24", 24) (``key_epoch``). None
+    when the message names none."""
     found = _GTSAM_SYMBOL.search(message)
     if found is None:
         return None
-    index = int(found.group(2))
-    return found.group(1) + found.group(2), index // n_systems if found.group(1) == "b" else index
+    return found.group(1) + found.group(2), key_epoch(found.group(1), int(found.group(2)), n_systems)
 
 
 def likely_cause(r_m2: np.ndarray, accel_psd_enu_m2_s3: np.ndarray) -> str | None:
@@ -142,6 +141,12 @@ def checked_accel_psd(value: object) -> np.ndarray:
 def clock_key(k: int, j: int, n_systems: int) -> int:
     """gtsam key of the receiver clock [s] of constellation ``j`` at epoch ``k``."""
     return B(k * n_systems + j)
+
+
+def key_epoch(letter: str, index: int, n_systems: int) -> int:
+    """The epoch of a variable from its symbol's letter and index: ``index`` itself, a clock's (``clock_key``)
+    ``index // n_systems``."""
+    return index // n_systems if letter == "b" else index
 
 
 def cv_process_covariance(dt_s: float, accel_psd_ecef: np.ndarray) -> np.ndarray:
@@ -611,8 +616,7 @@ class LfgnssFgo:
         """Epoch of the variable of the factor with the largest error at ``values`` (a clock ``B(k C + j)``: k)."""
         errors = [graph.at(i).error(values) if graph.exists(i) else -np.inf for i in range(graph.size())]
         symbol = gtsam.Symbol(graph.at(int(np.argmax(errors))).keys()[0])
-        index = int(symbol.index())
-        return index // n_systems if chr(symbol.chr()) == "b" else index
+        return key_epoch(chr(symbol.chr()), int(symbol.index()), n_systems)
 
     @staticmethod
     def _initial_trajectory(seq: Sequence, k0: int, dv: DopplerVelocity | None = None

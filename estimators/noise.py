@@ -85,11 +85,18 @@ def resolve_noise(noise: object, owner: str) -> NoiseModel | None:
         from learning.export import load_model   # numpy only, as default_noise; raises ModelFileError naming the file
 
         return load_model(os.path.expanduser(noise))
-    if isinstance(noise, type) or not callable(noise):
-        what = f"the class {noise.__name__} (pass an instance)" if isinstance(noise, type) else type(noise).__name__
+    what = not_a_model(noise)
+    if what:
         raise TypeError(f"{owner}: noise must be a noise model (sequence -> (r_m2, vc_m)) or a model file path, "
                         f"got {what}")
     return noise
+
+
+def not_a_model(value: object) -> str | None:
+    """What ``value`` is, in words, when it cannot be a noise model (a class, or something not callable); else None."""
+    if isinstance(value, type):
+        return f"the class {value.__name__} (pass an instance)"
+    return None if callable(value) else type(value).__name__
 
 
 def _must_return(owner: str, noise: object) -> str:
@@ -273,9 +280,8 @@ class TruthNoise:
     def __post_init__(self) -> None:
         if isinstance(self.floor_m, bool) or not isinstance(self.floor_m, (int, float)) or not self.floor_m > 0:
             raise ValueError(f"TruthNoise.floor_m must be > 0 [m], got {self.floor_m!r}")
-        if isinstance(self.fallback, type) or not callable(self.fallback):
-            what = (f"the class {self.fallback.__name__} (pass an instance)" if isinstance(self.fallback, type)
-                    else type(self.fallback).__name__)
+        what = not_a_model(self.fallback)
+        if what:
             raise TypeError(f"TruthNoise: fallback must be a noise model (sequence -> (r_m2, vc_m)), got {what}")
 
     def __call__(self, sequence: Sequence) -> tuple[np.ndarray, np.ndarray]:

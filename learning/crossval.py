@@ -345,8 +345,9 @@ def _init_saw_blocks(init, whole: dict[str, list[Sequence]]) -> list[str]:
             continue
         times = np.concatenate([s.time_gps_s[s.labelled] for s in sequences])
         truth = np.concatenate([s.truth_ecef_m[s.labelled] for s in sequences])
-        seen = seen_test_epochs(init.metadata, dataset_id, times, truth, obs_hashes(dataset_id))
-        lines += [seen[0].replace(" test epochs", " epochs to cross-validate on")] if seen else []
+        seen = seen_test_epochs(init.metadata, dataset_id, times, truth, obs_hashes(dataset_id),
+                                epochs_word="epochs to cross-validate on")
+        lines += seen[:1]
     return lines
 
 

@@ -984,9 +984,6 @@ def _check_source_files(checkpoint: dict, now: dict[str, dict[str, str]], where:
     """ValueError naming an input file of the run of the checkpoint ``where`` whose content is not what it was when the
     run started (``source_files``: dataset -> file name -> SHA-256, 16 hex digits; runs of before session 49 hashed a
     gzip file's bytes, which count too): a resumed run goes on with the data it was started with."""
-    from lfgnss.datasets import get
-    from lfgnss.paths import file_hashes
-
     for dataset_id, recorded in (checkpoint.get("source_files") or {}).items():
         current = now.get(dataset_id) or {}
         changed = [name for name, digest in (recorded or {}).items() if name in current and current[name] != digest]
@@ -1004,8 +1001,8 @@ def _check_source_files(checkpoint: dict, now: dict[str, dict[str, str]], where:
 
 def _data_settings(flat: dict) -> dict:
     """A flattened dataset TOML without the keys that change no data: ``description``, a ``time_offset_s`` of 0 and a
-    ``time_origin_gps_s`` that neither a smartloc truth nor relative_s splits read (refused at registration since session 50, so a run
-    started before then resumes once it is removed)."""
+    ``time_origin_gps_s`` that neither a smartloc truth nor relative_s splits read (refused at registration since
+    session 50, so a run started before then resumes once it is removed)."""
     fmt = str(flat.get("truth.format", "urbannav")).lower()
     axis = str(flat.get("splits.axis", "tow")).lower()
     unread = {"description"} | ({"truth.time_origin_gps_s"} if fmt != "smartloc" and axis != "relative_s" else set())

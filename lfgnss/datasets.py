@@ -58,7 +58,7 @@ import numpy as np
 from .constants import SYSTEMS, unknown_systems
 from .errors import InputError, UnknownNameError, did_you_mean
 from .frames import NEAR_SURFACE_RADIUS_M, lla_to_ecef
-from .paths import cache_file, file_hashes, load_cached, names_something, shared_data_dir, store_cached
+from .paths import cache_file, file_digests, load_cached, names_something, shared_data_dir, store_cached
 from .sequence import DEFAULT_FEATURES, Sequence, load_sequence, save_sequence
 from .time import SECONDS_PER_WEEK, gps_s_to_week_tow, week_tow_to_gps_s
 
@@ -73,6 +73,12 @@ SPLIT_AXES = ("tow", "relative_s", "epoch")
 STATIC_SPREAD_M = 5.0
 #: An epoch between two truth rows at most this far apart gets their linear interpolation, else the nearest row [s].
 TRUTH_INTERPOLATION_MAX_GAP_S = 2.0
+
+
+def _is_seconds(value: object, *, positive: bool = False) -> bool:
+    """Whether ``value`` is a finite number (not a bool) of seconds, > 0 where ``positive``."""
+    return (isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
+            and (value > 0 or not positive))
 
 
 def default_match_tolerance_s(truth_format: str) -> float:
@@ -113,9 +119,9 @@ class DatasetSpec:
         if self.match_tolerance_s is None:
             object.__setattr__(self, "match_tolerance_s", default_match_tolerance_s(self.truth_format))
         offset, tolerance = self.time_offset_s, self.match_tolerance_s
-        if isinstance(offset, bool) or not isinstance(offset, numbers.Real) or not math.isfinite(offset):
+        if not _is_seconds(offset):
             raise ValueError(f"DatasetSpec {self.id}: time_offset_s must be a finite number of seconds, got {offset!r}")
-        if isinstance(tolerance, bool) or not isinstance(tolerance, numbers.Real) or not 0 < tolerance < math.inf:
+        if not _is_seconds(tolerance, positive=True):
             raise ValueError(f"DatasetSpec {self.id}: match_tolerance_s must be a number of seconds > 0 (how far an "
                              f"epoch may lie from a truth row), got {tolerance!r}")
 
@@ -302,12 +308,11 @@ def register_toml(path: str | Path, *, need_splits: tuple[str, ...] = ()) -> Dat
         if not cfg[key]:
             raise InputError(path, f"dataset config lists no {key} file")
     offset = cfg["truth"].get("time_offset_s", 0.0)
-    if not (isinstance(offset, (int, float)) and not isinstance(offset, bool) and math.isfinite(offset)):
+    if not _is_seconds(offset):
         raise InputError(path, f"time_offset_s in [truth] must be a number of seconds added to the truth's times "
                                f"(18 for a truth stamped in UTC in 2017-2026), got {offset!r}")
     tolerance = cfg["truth"].get("match_tolerance_s")
-    if tolerance is not None and not (isinstance(tolerance, (int, float)) and not isinstance(tolerance, bool)
-                                      and 0 < tolerance < math.inf):
+    if tolerance is not None and not _is_seconds(tolerance, positive=True):
         raise InputError(path, f"match_tolerance_s in [truth] must be a number of seconds > 0 (how far an epoch may "
                                f"lie from a truth row), got {tolerance!r}")
     truth_format = str(cfg["truth"].get("format", "urbannav")).lower()
@@ -654,7 +659,7 @@ def unmatched_time_words(spec: DatasetSpec, time_gps_s: np.ndarray) -> str:
         return (f"; {span} look like Unix times (seconds since 1970, UTC): ecef-csv times are GPS seconds since "
                 f"1980-01-06, {UNIX_TO_GPS_S:.0f} s fewer (and GPST - UTC more): "
                 f"{offset_words(spec, leap - UNIX_TO_GPS_S)}; and {epochs}")
-    zone_h = _zone_offset_h(t_truth, times, spec.match_tolerance_s)
+    zone_h = _zone_offset_h(t_truth, times - leap, spec.match_tolerance_s)
     if zone_h is not None:
         return (f"; {span} would fit the epochs as local time, about UTC{zone_h:+g} h: {spec.truth_format} times are "
                 f"GPST, so {'subtract' if zone_h > 0 else 'add'} {abs(zone_h):g} h and add GPST - UTC ({leap:g} s "
@@ -662,15 +667,13 @@ def unmatched_time_words(spec: DatasetSpec, time_gps_s: np.ndarray) -> str:
     return f"; {span.replace('its times', 'its GPS times')} miss them: {epochs}"
 
 
-def _zone_offset_h(t_truth: np.ndarray, time_gps_s: np.ndarray, tolerance_s: float) -> float | None:
+def _zone_offset_h(t_truth: np.ndarray, utc: np.ndarray, tolerance_s: float) -> float | None:
     """The time zone [h from UTC, quarter hours, 0.5 to 14 h either way] in which truth times [s] stamped in local time
-    overlap the epochs [GPS s] longest, whole hours first among equals (a short truth lies within a long drive at many
-    zones), then the nearest to the one the spans' middles give; None where no zone makes them overlap."""
-    from .time import leap_seconds
-
-    if not t_truth.size or not time_gps_s.size:
+    overlap the epochs (``utc``, their UTC times [s]) longest, whole hours first among equals (a short truth lies
+    within a long drive at many zones), then the nearest to the one the spans' middles give; None where no zone makes
+    them overlap."""
+    if not t_truth.size or not utc.size:
         return None
-    utc = time_gps_s - float(np.median(leap_seconds(time_gps_s)))
     middles_h = (np.ptp(t_truth) / 2 + t_truth.min() - np.ptp(utc) / 2 - utc.min()) / 3600.0
     zones = [z for z in np.arange(-14.0, 14.25, 0.25) if abs(z) >= 0.5]
 
@@ -979,8 +982,7 @@ def check_split(spec: DatasetSpec, split: str) -> None:
 def obs_hashes(dataset_id: str) -> set[str]:
     """SHA-256 (16 hex digits) of a dataset's observation files, of their content and of their bytes (older model
     records hashed a ``.gz`` file's bytes; ``lfgnss.paths.file_hashes``)."""
-    files = get(dataset_id).obs
-    return {*file_hashes(files).values(), *file_hashes(files, content=False).values()}
+    return file_digests(get(dataset_id).obs)
 
 
 def epochs_in_split(dataset_id: str, split: str, time_gps_s: np.ndarray) -> int | None:

@@ -82,8 +82,7 @@ def file_hashes(paths: Iterable[str | os.PathLike], *, content: bool = True) -> 
 
     out = {}
     for path in paths:
-        with open(path, "rb") as raw:
-            packed = content and raw.read(2) == b"\x1f\x8b"
+        packed = content and is_gzip(path)
         try:
             out[Path(path).name] = digest(gzip.open if packed else open, path)
         except (OSError, EOFError, zlib.error):
@@ -91,6 +90,19 @@ def file_hashes(paths: Iterable[str | os.PathLike], *, content: bool = True) -> 
                 raise
             out[Path(path).name] = digest(open, path)
     return out
+
+
+def is_gzip(path: str | os.PathLike) -> bool:
+    """Whether the file starts with gzip's magic bytes (whatever its name)."""
+    with open(path, "rb") as raw:
+        return raw.read(2) == b"\x1f\x8b"
+
+
+def file_digests(paths: Iterable[str | os.PathLike]) -> set[str]:
+    """Every SHA-256 (16 hex digits) a record may hold of these files (``file_hashes``): of their content, and of a
+    gzip file's bytes as they are too (records of before session 49 hashed those); a plain file is read once."""
+    paths = list(paths)
+    return {*file_hashes(paths).values(), *file_hashes([p for p in paths if is_gzip(p)], content=False).values()}
 
 
 def cache_dir() -> Path:

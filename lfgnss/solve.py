@@ -151,14 +151,13 @@ def seen_epochs_notes(noise: object, obs: str | Path, time_gps_s: np.ndarray, tr
     each, the accuracy table then being partly in-sample; [] for hand-set noise or none."""
     from learning.export import seen_test_epochs
 
-    from .paths import file_hashes
+    from .paths import file_digests
 
     meta = getattr(noise, "metadata", None)
     if not isinstance(meta, dict):
         return []
     scored = np.isfinite(truth_ecef_m).all(axis=1)
-    hashes = {*file_hashes([obs]).values(), *file_hashes([obs], content=False).values()}
-    return seen_test_epochs(meta, Path(obs).name, time_gps_s[scored], truth_ecef_m[scored], hashes,
+    return seen_test_epochs(meta, Path(obs).name, time_gps_s[scored], truth_ecef_m[scored], file_digests([obs]),
                             epochs_word="scored epochs")
 
 
