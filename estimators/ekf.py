@@ -30,7 +30,8 @@ implements exactly this logic, batched and differentiable.
 A noise model that is ``online`` (a model trained with ``model.innovation``) is asked epoch by epoch, after
 the predict step: ``noise.predict(features_k, mask_k, innovation_feature(pr - h(x^-) - median))``, with zero
 innovations where the epoch has no prior (start, re-initialisation after a gap). ``info["r_m2"]`` and
-``info["vc_m"]`` keep the noise every epoch used.
+``info["vc_m"]`` keep the noise every epoch used: R as the filter used it, the noise model's times
+``EkfConfig.glonass_sigma_factor`` squared on GLONASS satellites (``models.pseudorange_variance_factor``).
 """
 from __future__ import annotations
 
@@ -251,7 +252,8 @@ class LfgnssEkf:
             usable = switched_on(usable, r_all)
             vc_all = np.where(usable, vc_all, 0.0)
         z_all = compensated_pseudorange(pr_all, vc_all)
-        r_all = np.where(usable, r_all, 1.0)
+        r_factor = models.pseudorange_variance_factor(models.glonass_slots(sequence.system_index, sequence.systems), cfg)
+        r_all = np.where(usable, r_all * r_factor, 1.0)
         doppler_ok = usable & doppler_ok if cfg.doppler_sigma_m_s > 0 else np.zeros_like(usable)
         prr_all = np.where(doppler_ok, sequence.prr_m_s, 0.0)
         satvel_all = sequence.sat_vel_ecef_m_s
@@ -341,7 +343,7 @@ class LfgnssEkf:
                 row = slice(k, k + 1)
                 still[k] = models.stationary_epochs(prr_all[row], doppler_ok[row], sat_all[row], satvel_all[row],
                                                     sequence.coarse_ecef_m[row], r_doppler_all[row], cfg)[0]
-            r_all[k] = np.where(usable[k], r, 1.0)
+            r_all[k] = np.where(usable[k], r * r_factor[k], 1.0)
             vc_all[k] = np.where(usable[k], vc, 0.0)
             z_all[k] = compensated_pseudorange(pr_all[k], vc_all[k])
             return np.flatnonzero(usable[k]), np.flatnonzero(doppler_ok[k])

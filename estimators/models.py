@@ -174,6 +174,11 @@ class EkfConfig:
     zupt_max_speed_m_s : float
         The standstill test's speed bound [m/s]: the epoch's Doppler velocity must be slower than this, as well as
         consistent with zero at 99 % (``stationary_epochs``).
+    glonass_sigma_factor : float
+        Factor on the pseudorange sigma of every GLONASS satellite: its R (the noise model's) is multiplied by the
+        square (``pseudorange_variance_factor``). RTKLIB's single-point solution uses 1.5 (``EFACT_GLO``, pntpos.c):
+        broadcast GLONASS orbits and clocks, and the inter-frequency biases of FDMA signals, leave metres that the
+        other constellations' broadcast errors do not. 1 keeps R as the noise model gives it.
     """
 
     p0_pos_m2: float = 100.0 ** 2
@@ -200,6 +205,7 @@ class EkfConfig:
     huber_k: float | None = None
     zupt_sigma_m_s: float | None = None
     zupt_max_speed_m_s: float = 0.5
+    glonass_sigma_factor: float = 1.0
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -210,7 +216,7 @@ class EkfConfig:
                 raise ValueError(f"estimators/models.py: EkfConfig.{f.name} must be a number, got {value!r}")
         for name in ("p0_pos_m2", "p0_vel_m2_s2", "p0_clock_m2", "p0_drift_m2_s2", "p0_isb_m2", "q_pos_m2_s",
                      "q_vel_m2_s3", "q_clock_m2_s", "q_drift_m2_s3", "q_isb_m2_s", "doppler_sigma_m_s",
-                     "zupt_max_speed_m_s"):
+                     "zupt_max_speed_m_s", "glonass_sigma_factor"):
             if not np.isfinite(getattr(self, name)):
                 raise ValueError(f"estimators/models.py: EkfConfig.{name} must be finite, got {getattr(self, name)}")
         for name in ("reset_min_sats", "min_sats_for_update", "reset_min_redundancy"):
@@ -221,7 +227,7 @@ class EkfConfig:
         if not self.reset_gated_fraction >= 0:
             raise ValueError(f"estimators/models.py: EkfConfig.reset_gated_fraction must be >= 0 (>= 1 disables), "
                              f"got {self.reset_gated_fraction}")
-        for name in ("p0_pos_m2", "p0_vel_m2_s2", "p0_clock_m2", "p0_drift_m2_s2", "p0_isb_m2"):
+        for name in ("p0_pos_m2", "p0_vel_m2_s2", "p0_clock_m2", "p0_drift_m2_s2", "p0_isb_m2", "glonass_sigma_factor"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"estimators/models.py: EkfConfig.{name} must be > 0, got {getattr(self, name)}")
         for name in ("q_pos_m2_s", "q_vel_m2_s3", "q_clock_m2_s", "q_drift_m2_s3", "q_isb_m2_s", "gate_sigma",
@@ -491,6 +497,20 @@ def prior_innovation_m(x: np.ndarray, sat_pos_ecef_m: np.ndarray, system_index: 
         return np.zeros(0)
     v = pr_m - measurement(x, sat_pos_ecef_m, system_index)[0]
     return v - lower_median(v)
+
+
+def glonass_slots(system_index: np.ndarray, systems: tuple[str, ...]) -> np.ndarray:
+    """(T, N) bool: the slots whose satellite is GLONASS (``system_index`` into ``systems``; -1 padded)."""
+    if "R" not in systems:
+        return np.zeros(np.shape(system_index), bool)
+    return np.asarray(system_index) == systems.index("R")
+
+
+def pseudorange_variance_factor(glonass: ArrayOrTensor, config: EkfConfig) -> ArrayOrTensor:
+    """Factor on each slot's pseudorange variance R from its GLONASS flag (numpy bool array or torch bool tensor):
+    ``config.glonass_sigma_factor`` squared on GLONASS slots, 1 elsewhere (float64)."""
+    flags = glonass.double() if hasattr(glonass, "double") else np.asarray(glonass, float)   # torch, else numpy
+    return 1.0 + (float(config.glonass_sigma_factor) ** 2 - 1.0) * flags
 
 
 def doppler_variance_m2_s2(cn0_dbhz: ArrayOrTensor, config: EkfConfig) -> ArrayOrTensor:

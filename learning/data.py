@@ -12,6 +12,7 @@ from typing import Iterable, Sequence as Seq
 import numpy as np
 import torch
 
+from estimators import models
 from lfgnss.errors import did_you_mean
 from lfgnss.features import AVAILABLE_FEATURES
 from lfgnss.sequence import DEFAULT_FEATURES, Sequence
@@ -112,7 +113,7 @@ def collate(sequences: Seq[Sequence], windows: Seq[Window], normaliser: Normalis
     parts: dict[str, list[np.ndarray]] = {k: [] for k in ("time_gps_s", "pr_m", "sat_pos_ecef_m", "system_index",
                                                           "mask", "features", "coarse_ecef_m", "coarse_clock_m",
                                                           "truth_ecef_m", "prr_m_s", "prr_mask",
-                                                          "sat_vel_ecef_m_s", "cn0_dbhz")}
+                                                          "sat_vel_ecef_m_s", "cn0_dbhz", "glonass")}
     for w in windows:
         seq = sequences[w.seq_index].subset(slice(w.start, w.start + w.length)).pad_to(n)
         clock = np.zeros((len(seq), c))
@@ -132,7 +133,9 @@ def collate(sequences: Seq[Sequence], windows: Seq[Window], normaliser: Normalis
         parts["prr_mask"].append(seq.prr_mask)
         parts["sat_vel_ecef_m_s"].append(seq.sat_vel_ecef_m_s)
         parts["cn0_dbhz"].append(seq.cn0_dbhz)
-    dtypes = {"system_index": torch.int64, "mask": torch.bool, "prr_mask": torch.bool, "features": torch.float32}
+        parts["glonass"].append(models.glonass_slots(seq.system_index, seq.systems))
+    dtypes = {"system_index": torch.int64, "mask": torch.bool, "prr_mask": torch.bool, "features": torch.float32,
+              "glonass": torch.bool}
     return WindowBatch(**{k: torch.as_tensor(np.stack(v), dtype=dtypes.get(k, torch.float64))
                           for k, v in parts.items()})
 

@@ -267,7 +267,8 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor | None, vc_m: torch.Tensor 
     n_systems : int
         Constellations C in the state (clock + C - 1 ISBs).
     config : EkfConfig
-        The same settings the plug-in takes.
+        The same settings the plug-in takes; a ``glonass_sigma_factor`` other than 1 scales R on the batch's
+        ``glonass`` slots (``learning.data.collate`` flags them) and needs those flags.
     noise_step : NoiseStep or None
         If given, ``r_m2`` and ``vc_m`` must be None: each epoch's noise comes from
         ``noise_step(k, innovation_feature(prior_innovation))`` instead.
@@ -300,8 +301,14 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor | None, vc_m: torch.Tensor 
     far = torch.tensor(_FAR_SAT_ECEF_M, dtype=f64, device=dev)
     sat_all = torch.where(usable_all[..., None], batch.sat_pos_ecef_m.to(f64), far)
     pr = torch.where(usable_all, batch.pr_m.to(f64), torch.zeros((), dtype=f64, device=dev))
+    if config.glonass_sigma_factor != 1.0 and batch.glonass is None:
+        raise ValueError("learning/torch_ekf.py: EkfConfig.glonass_sigma_factor needs the batch's glonass flags "
+                         "(learning.data.collate sets them)")
+    glonass = torch.zeros_like(usable_all) if batch.glonass is None else batch.glonass.to(dev).bool()
+    r_factor_all = models.pseudorange_variance_factor(glonass & usable_all, config)
     if noise_step is None:
         z_all, r_all = _measurement_noise(pr, r_m2, vc_m, usable_all)
+        r_all = r_all * r_factor_all
     clock_rows_all = _clock_rows(batch.system_index.long(), usable_all, n)
     use_doppler = config.doppler_sigma_m_s > 0
     dop_all = usable_all & batch.prr_mask if use_doppler else torch.zeros_like(usable_all)
@@ -357,6 +364,7 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor | None, vc_m: torch.Tensor 
         else:
             innov = prior_innovation(x_pred, sat_all[:, k], clock_rows_all[:, k], pr[:, k], usable_all[:, k], normal)
             z_k, r_k = _measurement_noise(pr[:, k], *noise_step(k, innovation_feature(innov)), usable_all[:, k])
+            r_k = r_k * r_factor_all[:, k]
 
         # Both branches in one batched call: rows [0, B) normal prior, [B, 2B) reset prior.
         two = lambda a: torch.cat([a, a], 0)  # noqa: E731

@@ -647,7 +647,8 @@ def evaluate(model: LfgnssNet, batches: list[WindowBatch], *, n_systems: int, ek
 
 def _index_batch(full: WindowBatch, index: np.ndarray) -> WindowBatch:
     idx = torch.as_tensor(index, dtype=torch.long, device=full.pr_m.device)
-    return WindowBatch(**{f.name: getattr(full, f.name)[idx] for f in dataclasses.fields(full)})
+    return WindowBatch(**{f.name: None if getattr(full, f.name) is None else getattr(full, f.name)[idx]
+                          for f in dataclasses.fields(full)})
 
 
 def jitter_features(batch: WindowBatch, std: float, generator: torch.Generator) -> WindowBatch:

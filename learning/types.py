@@ -27,6 +27,7 @@ class WindowBatch:
     prr_mask: torch.Tensor | None = None          # (B, T, N) bool
     sat_vel_ecef_m_s: torch.Tensor | None = None  # (B, T, N, 3) float64
     cn0_dbhz: torch.Tensor | None = None          # (B, T, N) float64, raw C/N0 (the Doppler variance's)
+    glonass: torch.Tensor | None = None           # (B, T, N) bool, GLONASS slots (EkfConfig.glonass_sigma_factor)
 
     def __post_init__(self) -> None:
         if self.prr_mask is None:               # no Doppler: zeros, nothing usable
@@ -35,7 +36,9 @@ class WindowBatch:
             self.sat_vel_ecef_m_s = torch.zeros_like(self.sat_pos_ecef_m)
         if self.cn0_dbhz is None:               # unknown: NaN, refused by a C/N0-dependent Doppler variance
             self.cn0_dbhz = torch.full_like(self.pr_m, float("nan"))
+        # glonass None: unknown, refused by a GLONASS sigma factor other than 1 (learning.torch_ekf.batch_ekf)
 
     def to(self, device: torch.device | str) -> "WindowBatch":
         """The same batch on another device."""
-        return WindowBatch(**{f.name: getattr(self, f.name).to(device) for f in fields(self)})
+        return WindowBatch(**{f.name: None if getattr(self, f.name) is None else getattr(self, f.name).to(device)
+                              for f in fields(self)})

@@ -419,3 +419,55 @@ def test_online_network_plugin_matches_torch(cases, tmp_path):
         assert np.all(r[s.mask] > 0) and np.any(vc[s.mask] != 0)
     fixed = LfgnssEkf(FixedNoise(r, vc), config=CONFIG).solve(seqs[-1])   # the same filter given those arrays
     np.testing.assert_array_equal(fixed.pos_ecef_m, sol.pos_ecef_m)
+
+
+def test_glonass_sigma_factor_matches_the_plugin_and_scales_only_glonass():
+    """glonass_sigma_factor in both filters: R of GLONASS slots times its square, the same run as giving that R."""
+    rng = np.random.default_rng(3)
+    seqs = [simulate_sequence(60, seed=40 + i, n_slots=16, systems=("G", "R")) for i in range(2)]
+    r = np.stack([np.where(s.mask, rng.uniform(2.0, 60.0, s.mask.shape), 0.0) for s in seqs])
+    vc = np.stack([np.where(s.mask, rng.normal(0.0, 2.0, s.mask.shape), 0.0) for s in seqs])
+    cfg = EkfConfig(glonass_sigma_factor=1.5)
+    glonass = np.stack([models.glonass_slots(s.system_index, s.systems) for s in seqs])
+    assert glonass.any() and (~glonass & np.stack([s.mask for s in seqs])).any()
+    batch = to_batch(seqs)
+    batch.glonass = torch.as_tensor(glonass)
+    out = batch_ekf(batch, torch.as_tensor(r), torch.as_tensor(vc), n_systems=2, config=cfg)
+    scaled = batch_ekf(to_batch(seqs), torch.as_tensor(np.where(glonass, 2.25 * r, r)), torch.as_tensor(vc),
+                       n_systems=2, config=CONFIG)
+    np.testing.assert_allclose(out.pos_ecef_m.numpy(), scaled.pos_ecef_m.numpy(), rtol=0, atol=1e-9, equal_nan=True)
+    for i, s in enumerate(seqs):
+        sol = LfgnssEkf(noise=FixedNoise(r[i], vc[i]), config=cfg).solve(s)
+        np.testing.assert_array_equal(out.status[i].numpy(), sol.status)
+        np.testing.assert_allclose(out.pos_ecef_m[i].numpy(), sol.pos_ecef_m, rtol=0, atol=1e-6, equal_nan=True)
+        used = s.mask & (sol.info["r_m2"] != 1.0)
+        np.testing.assert_allclose(sol.info["r_m2"][used], np.where(glonass[i], 2.25 * r[i], r[i])[used])
+    plain = batch_ekf(to_batch(seqs), torch.as_tensor(r), torch.as_tensor(vc), n_systems=2, config=CONFIG)
+    assert not np.allclose(out.pos_ecef_m.numpy(), plain.pos_ecef_m.numpy(), rtol=0, atol=1e-3, equal_nan=True)
+    with pytest.raises(ValueError, match="glonass_sigma_factor needs the batch's glonass flags"):
+        batch_ekf(to_batch(seqs), torch.as_tensor(r), torch.as_tensor(vc), n_systems=2, config=cfg)
+
+
+def test_glonass_sigma_factor_is_refused_unless_a_finite_positive_number():
+    for bad in (0.0, -1.5, float("nan"), float("inf"), True, "1.5"):
+        with pytest.raises(ValueError, match="glonass_sigma_factor must be"):
+            EkfConfig(glonass_sigma_factor=bad)
+    flags = np.array([[True, False]])
+    np.testing.assert_array_equal(models.pseudorange_variance_factor(flags, EkfConfig(glonass_sigma_factor=2.0)),
+                                  [[4.0, 1.0]])
+    np.testing.assert_array_equal(models.glonass_slots(np.array([[0, 1, -1]]), ("G", "C")), [[False, False, False]])
+    np.testing.assert_array_equal(models.glonass_slots(np.array([[0, 1, -1]]), ("G", "R")), [[False, True, False]])
+
+
+def test_collate_flags_glonass_slots_of_every_sequence():
+    """Batches of a joint recipe mix sequences whose system_index means different letters: the flags follow each."""
+    from learning.data import Window, collate
+    from learning.normalise import Normaliser
+    from lfgnss.sequence import DEFAULT_FEATURES
+
+    gr = simulate_sequence(10, seed=1, n_slots=16, systems=("G", "R"))
+    gc = simulate_sequence(10, seed=2, n_slots=16, systems=("G", "C"))
+    batch = collate([gr, gc], [Window(0, 0, 10), Window(1, 0, 10)], Normaliser.fit([gr, gc], DEFAULT_FEATURES))
+    expected = np.stack([np.char.startswith(gr.sv.astype(str), "R"), np.zeros(gc.sv.shape, bool)])
+    assert expected[0].any()
+    np.testing.assert_array_equal(batch.glonass.numpy(), expected)
