@@ -7,7 +7,8 @@ show it. Their mean squared normalised value, the a-posteriori variance factor
     g_k = mean_i e_i^2 / r_i,   e_i = pr_i - |s_i - x_k| - median over i's constellation    (usable pseudoranges)
 
 (each constellation's median standing in for its clock: ``noise.constellation_residual_m``, as ``TruthNoise``
-uses it; the noise model's R before any Huber scaling; no v^c) is about 1 when R is right and far above it when R
+uses it; the R the estimator weighs with, before any Huber scaling: the noise model's, in the EKF times
+``EkfConfig.glonass_sigma_factor`` squared on GLONASS; no v^c) is about 1 when R is right and far above it when R
 is too small.
 ``covariance_inflation`` averages it over the last ``tau_s`` seconds (the errors it flags last for seconds) and
 never shrinks the covariance: residuals smaller than R do not prove the position right. The choice of this factor
@@ -30,7 +31,7 @@ def residual_variance_factor(sequence: Sequence, pos_ecef_m: np.ndarray, r_m2: n
                              ) -> np.ndarray:
     """(T,) ``g_k``, the mean of e^2 / r [-] over each epoch's usable pseudoranges at ``pos_ecef_m`` (T, 3) [m].
 
-    ``r_m2`` (T, N) [m^2] is the noise model's R; NaN where an epoch has no position, or no constellation with two
+    ``r_m2`` (T, N) [m^2] is the R the estimator weighs with (module docstring); NaN where an epoch has no position, or no constellation with two
     usable pseudoranges (a position-blind epoch: nothing to compare).
     """
     pos = np.asarray(pos_ecef_m, float)

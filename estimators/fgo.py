@@ -247,7 +247,9 @@ class LfgnssFgo:
         ``noise(sequence) -> (r_m2, vc_m)``, (T, N) each; sigma_i = sqrt(r_i), measurement pr + vc; or the path
         of a model file (read with ``learning.export.load_model``). None: ``HeuristicNoise``; ``create("fgo")``
         gives the bundled model. An R above ``estimators.noise.R_OFF_M2`` (1e12 m^2; 1e30, say) switches the
-        satellite off: its pseudorange and Doppler are left out as if masked (``switched_on``).
+        satellite off: its pseudorange and Doppler are left out as if masked (``switched_on``). R is used as given:
+        the graph does not apply a model filter's ``EkfConfig.glonass_sigma_factor`` (the static model's 1.5
+        reaches its EKF, not this graph).
     mode : {"batch", "fixed-lag"}
         Whole-trajectory smoothing, or causal fixed-lag estimation (filtered estimate per epoch).
     lag_s : float

@@ -8,7 +8,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from estimators.base import STATUS_NONE, STATUS_RESET, STATUS_UPDATED  # noqa: E402
+from estimators.base import STATUS_NONE, STATUS_RESET, STATUS_UPDATED, usable_measurements  # noqa: E402
 from estimators.ekf import LfgnssEkf  # noqa: E402
 from estimators import models  # noqa: E402
 from estimators.models import EkfConfig  # noqa: E402
@@ -385,32 +385,39 @@ def test_prior_innovation_twin(cases):
     np.testing.assert_allclose(innovation_feature(torch.as_tensor(want)).numpy(), innovation_feature_np(want))
 
 
-def test_online_network_plugin_matches_torch(cases, tmp_path):
-    """A network that reads the prior innovations: the exported file in the numpy plug-in = the torch filter."""
+def online_run(seqs, cfg: EkfConfig, seed: int, tmp_path):
+    """A random online network (reads the prior innovations) exported to a model file of filter ``cfg``, and the
+    positions the torch filter gives with it on ``seqs``: (model, (B, T, 3) positions)."""
     from learning.export import export_model, load_model
     from learning.network import LfgnssNet
     from learning.normalise import Normaliser
     from learning.train import run_filter
     from lfgnss.sequence import DEFAULT_FEATURES
 
-    seqs = cases[0]
     norm = Normaliser.fit(seqs, DEFAULT_FEATURES)
-    torch.manual_seed(0)
+    torch.manual_seed(seed)
     net = LfgnssNet(len(DEFAULT_FEATURES), r_init_m2=30.0, innovation=True)
     with torch.no_grad():
         for p in net.parameters():
             p.add_(0.05 * torch.randn_like(p))
     ckpt = tmp_path / "last.pt"
     torch.save({"model": net.state_dict(), "model_hparams": net.hyperparameters(), "normaliser": norm.to_dict(),
-                "config": {}, "epoch": 1, "history": [], "ekf_config": vars(CONFIG)}, ckpt)
+                "config": {}, "epoch": 1, "history": [], "ekf_config": vars(cfg)}, ckpt)
     model = load_model(export_model(ckpt, tmp_path / "model.npz"))
     assert model.online
     batch = to_batch(seqs)
     batch.features = torch.as_tensor(np.stack([norm.apply(s.features, s.mask) for s in seqs]))
+    batch.glonass = torch.as_tensor(np.stack([models.glonass_slots(s.system_index, s.systems) for s in seqs]))
     net64 = LfgnssNet(**net.hyperparameters()).double().eval()
     net64.load_state_dict(net.state_dict())
     with torch.no_grad():
-        pos = run_filter(net64, batch, n_systems=2, ekf_cfg=CONFIG).numpy()
+        return model, run_filter(net64, batch, n_systems=2, ekf_cfg=cfg).numpy()
+
+
+def test_online_network_plugin_matches_torch(cases, tmp_path):
+    """A network that reads the prior innovations: the exported file in the numpy plug-in = the torch filter."""
+    seqs = cases[0]
+    model, pos = online_run(seqs, CONFIG, 0, tmp_path)
     for i, s in enumerate(seqs):
         sol = LfgnssEkf(model, config=CONFIG).solve(s)
         np.testing.assert_allclose(pos[i], sol.pos_ecef_m, rtol=0, atol=1e-4, equal_nan=True)  # float32 weights
@@ -440,7 +447,8 @@ def test_glonass_sigma_factor_matches_the_plugin_and_scales_only_glonass():
         sol = LfgnssEkf(noise=FixedNoise(r[i], vc[i]), config=cfg).solve(s)
         np.testing.assert_array_equal(out.status[i].numpy(), sol.status)
         np.testing.assert_allclose(out.pos_ecef_m[i].numpy(), sol.pos_ecef_m, rtol=0, atol=1e-6, equal_nan=True)
-        used = s.mask & (sol.info["r_m2"] != 1.0)
+        used = usable_measurements(s)
+        assert (used & glonass[i]).any()
         np.testing.assert_allclose(sol.info["r_m2"][used], np.where(glonass[i], 2.25 * r[i], r[i])[used])
     plain = batch_ekf(to_batch(seqs), torch.as_tensor(r), torch.as_tensor(vc), n_systems=2, config=CONFIG)
     assert not np.allclose(out.pos_ecef_m.numpy(), plain.pos_ecef_m.numpy(), rtol=0, atol=1e-3, equal_nan=True)
@@ -449,7 +457,7 @@ def test_glonass_sigma_factor_matches_the_plugin_and_scales_only_glonass():
 
 
 def test_glonass_sigma_factor_is_refused_unless_a_finite_positive_number():
-    for bad in (0.0, -1.5, float("nan"), float("inf"), True, "1.5"):
+    for bad in (0.0, -1.5, float("nan"), float("inf"), True, "1.5", 1e200, 1e-200):   # the last two: square not finite > 0
         with pytest.raises(ValueError, match="glonass_sigma_factor must be"):
             EkfConfig(glonass_sigma_factor=bad)
     flags = np.array([[True, False]])
@@ -471,3 +479,50 @@ def test_collate_flags_glonass_slots_of_every_sequence():
     expected = np.stack([np.char.startswith(gr.sv.astype(str), "R"), np.zeros(gc.sv.shape, bool)])
     assert expected[0].any()
     np.testing.assert_array_equal(batch.glonass.numpy(), expected)
+
+
+def test_glonass_sigma_factor_online_network_matches_torch_and_is_not_applied_twice(tmp_path):
+    """An online network in a GLONASS x 1.5 filter: plug-in = torch filter; the model as a NoiseModel gives the R it
+    was asked for, so a filter given those arrays applies the factor once and repeats the run."""
+    seqs = [simulate_sequence(60, seed=50 + i, n_slots=16, systems=("G", "R")) for i in range(2)]
+    cfg = EkfConfig(glonass_sigma_factor=1.5)
+    model, pos = online_run(seqs, cfg, 1, tmp_path)
+    for i, s in enumerate(seqs):
+        sol = LfgnssEkf(model).solve(s)                         # the file's filter: the factor 1.5
+        assert sol.info["config"].glonass_sigma_factor == 1.5
+        np.testing.assert_allclose(pos[i], sol.pos_ecef_m, rtol=0, atol=1e-4, equal_nan=True)  # float32 weights
+        r, vc = model(s)
+        used, glonass = usable_measurements(s), models.glonass_slots(s.system_index, s.systems)
+        assert (used & glonass).any()
+        np.testing.assert_allclose(sol.info["r_m2"][used], np.where(glonass, 2.25 * r, r)[used])
+        fixed = LfgnssEkf(FixedNoise(r, vc), config=cfg).solve(s)
+        np.testing.assert_allclose(fixed.pos_ecef_m, sol.pos_ecef_m, rtol=0, atol=1e-9, equal_nan=True)
+
+
+def test_glonass_sigma_factor_applies_after_the_switch_off():
+    """An R below R_OFF_M2 stays on however the factor scales it; one above is off, in both filters alike."""
+    from estimators.noise import R_OFF_M2
+
+    s = simulate_sequence(30, seed=61, n_slots=16, systems=("G", "R"))
+    glonass = models.glonass_slots(s.system_index, s.systems)
+    k = np.argwhere(s.mask & glonass)[0]
+    cfg = EkfConfig(glonass_sigma_factor=1.5)
+    for value, on in ((0.5 * R_OFF_M2, True), (2.0 * R_OFF_M2, False)):
+        r = np.where(s.mask, 25.0, 0.0)
+        r[k[0], k[1]] = value
+        vc = np.zeros(r.shape)
+        sol = LfgnssEkf(noise=FixedNoise(r, vc), config=cfg).solve(s)
+        batch = to_batch([s])
+        batch.glonass = torch.as_tensor(glonass[None])
+        out = batch_ekf(batch, torch.as_tensor(r[None]), torch.as_tensor(vc[None]), n_systems=2, config=cfg)
+        np.testing.assert_allclose(out.pos_ecef_m[0].numpy(), sol.pos_ecef_m, rtol=0, atol=1e-6, equal_nan=True)
+        assert bool(sol.info["r_m2"][k[0], k[1]] == 2.25 * value) == on
+
+
+def test_the_bundled_static_model_runs_with_rtklibs_glonass_factor():
+    """Session 51's adoption is in the shipped file (the rows of docs/results.md read it), the others stay at 1."""
+    from estimators.ekf import config_of
+
+    assert config_of("hk-tst-static-2020").glonass_sigma_factor == 1.5
+    for name in ("default", "berlin-pp", "hk-tst-2019"):
+        assert config_of(name).glonass_sigma_factor == 1.0
