@@ -1,4 +1,5 @@
 """estimators.TruthNoise (R from the ground truth, a reference) and benchmarks/truth_weights.py."""
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -68,7 +69,11 @@ def test_truth_weights_script_on_a_validation_split(tmp_path):
     assert len(rows) == 2 * (2 + len(truth_weights.FLOORS_M)) and all(r["availability"] == 1.0 for r in rows)
     seq = datasets.load_split("hk-tst-static-2020", "val")[0]
     model = [r["filter"] for r in rows if r["filter"].startswith("LF-GNSS")][0]
-    config = truth_weights.filters_for("hk-tst-static-2020")[model](0.0).config
+    filters = truth_weights.filters_for("hk-tst-static-2020")
+    config = filters["EKF, weights from the truth, floor 1 m"](0.0).config
+    # the model's filter, but R from the truth as it is: its GLONASS sigma factor (1.5 since session 51) at 1
+    assert filters[model](0.0).config.glonass_sigma_factor == 1.5
+    assert config == dataclasses.replace(filters[model](0.0).config, glonass_sigma_factor=1.0)
     sol = LfgnssEkf(noise=TruthNoise(floor_m=1.0), config=config).solve(seq)
     want = accuracy_table(sol.pos_ecef_m, seq.truth_ecef_m, sol.available)["rmse_3d_m"]
     assert [r["rmse_3d_m"] for r in rows if r["filter"].endswith("floor 1 m") and r["mode"] == "forward"] == [want]
