@@ -54,7 +54,7 @@ from .base import (STATUS_COASTED, STATUS_NONE, STATUS_RESET, STATUS_UPDATED, So
 from .consistency import covariance_inflation, residual_variance_factor
 from .models import EkfConfig
 from .noise import (HeuristicNoise, NoiseModel, checked_noise, default_noise, describe_noise, noise_output,
-                    resolve_noise, switched_on, warn_no_filter_settings)
+                    resolve_noise, switched_on, warn_no_filter_settings, warn_switched_off)
 from .smoother import lag_horizon, rts_smooth
 
 
@@ -246,10 +246,13 @@ class LfgnssEkf:
         online = bool(getattr(self.noise, "online", False))
         if online:
             features = self.noise.features(sequence)
+            usable_before_noise = usable.copy()      # ask_noise switches slots off epoch by epoch
             r_all, vc_all = np.ones(usable.shape), np.zeros(usable.shape)
         else:
             r_all, vc_all = self.noise_arrays(sequence, usable)
-            usable = switched_on(usable, r_all)
+            on = switched_on(usable, r_all)
+            warn_switched_off(type(self).__name__, sequence.name, usable, on)
+            usable = on
             vc_all = np.where(usable, vc_all, 0.0)
         z_all = compensated_pseudorange(pr_all, vc_all)
         r_factor = models.pseudorange_variance_factor(models.glonass_slots(sequence.system_index, sequence.systems), cfg)
@@ -414,6 +417,8 @@ class LfgnssEkf:
             state[k] = ekf.x
             cov[k] = ekf.P
 
+        if online:
+            warn_switched_off(type(self).__name__, sequence.name, usable_before_noise, usable)
         info = {"n_gated": n_gated, "n_usable": usable.sum(1), "n_doppler": n_doppler, "stationary": still,
                 "clock_realigned": clock_realigned, "config": cfg, "filtered_state": state, "r_m2": r_all,
                 "vc_m": vc_all, "smooth": self.smooth, "smooth_lag_s": self.smooth_lag_s if self.smooth else 0.0}

@@ -165,6 +165,17 @@ def switched_on(usable: np.ndarray, r_m2: np.ndarray) -> np.ndarray:
     return usable & (r_m2 <= R_OFF_M2)
 
 
+def warn_switched_off(owner: str, sequence_name: str, usable: np.ndarray, on: np.ndarray) -> None:
+    """Warn when the noise model switched off (``switched_on``) every usable pseudorange of an epoch: ``usable`` and
+    ``on`` (T, N) before and after. Such an epoch has nothing to place a position; a filter only coasts through it."""
+    emptied = np.asarray(usable, bool).any(axis=-1) & ~np.asarray(on, bool).any(axis=-1)
+    if emptied.any():
+        warnings.warn(f"{owner}: the noise model switched off every usable pseudorange (R above "
+                      f"estimators.noise.R_OFF_M2, {R_OFF_M2:.0e} m^2) at {int(emptied.sum())} of {emptied.size} "
+                      f"epochs of {sequence_name!r} (first at epoch {int(np.flatnonzero(emptied)[0])}): no satellite "
+                      f"places a position there", UserWarning, stacklevel=caller_stacklevel())
+
+
 def checked_noise(owner: str, sequence_name: str, usable: np.ndarray, r_m2: object, vc_m: object,
                   noise: object = None) -> tuple[np.ndarray, np.ndarray]:
     """A noise model's ``(r_m2, vc_m)`` as float arrays shaped like ``usable``; ValueError naming the first bad epoch.

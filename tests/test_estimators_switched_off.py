@@ -114,3 +114,25 @@ def test_a_large_but_finite_variance_still_counts(case):
     removed = LfgnssEkf(noise=FixedNoise(r, vc), config=config).solve(_removed(seq, off))
     assert np.all(weak.n_used >= removed.n_used) and np.any(weak.n_used > removed.n_used)
     np.testing.assert_allclose(weak.pos_ecef_m, removed.pos_ecef_m, rtol=0, atol=1e-3)
+
+
+def test_every_estimator_warns_when_the_noise_model_switches_a_whole_epoch_off(case):
+    """Epochs whose every pseudorange the noise model switches off place no position: said once, with the count and
+    the first epoch; switching single satellites off (the other tests) says nothing."""
+    pytest.importorskip("gtsam")
+    from estimators.fgo import LfgnssFgo
+
+    seq, r, vc, off = case
+    dark = np.zeros_like(seq.mask)
+    dark[20:25] = True
+    r_dark = np.where(dark | off, 1e30, r)
+    said = "switched off every usable pseudorange .* at 5 of 80 epochs of 'synthetic' \\(first at epoch 20\\)"
+    for estimator in (LfgnssEkf(noise=FixedNoise(r_dark, vc), config=EkfConfig()),
+                      LfgnssEkf(noise=_OnlineNoise(r_dark, vc), config=EkfConfig()),
+                      LfgnssFgo(noise=FixedNoise(r_dark, vc)),
+                      create("wls-weighted", noise=FixedNoise(r_dark, vc))):
+        with pytest.warns(UserWarning, match=said):
+            estimator.solve(seq)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("error", message=".*switched off every usable pseudorange")
+        LfgnssEkf(noise=FixedNoise(np.where(off, 1e30, r), vc), config=EkfConfig()).solve(seq)
