@@ -234,8 +234,9 @@ def read_pos(path: str | Path, backend: str | None = None) -> Solution:
                                          f"(need lat/lon/height in degrees or x/y/z-ecef): {body!r}")
                 continue
             fields = line.split()
-            if len(fields) < 15:
-                raise ValueError(f"read_pos {path}:{lineno}: expected at least 15 fields, got {len(fields)}")
+            if len(fields) < 13:        # age and ratio (RTKLIB writes them) may be missing: read as 0
+                raise ValueError(f"read_pos {path}:{lineno}: expected at least 13 fields (time, position, Q, ns, six "
+                                 f"sds; age and ratio may follow), got {len(fields)}")
             try:
                 times.append(_parse_pos_time(fields[:2], scale))
                 vals = [float(v) for v in fields[2:15]]

@@ -88,7 +88,7 @@ def test_an_rtklib_pos_file_is_a_truth_format(tmp_path, seq):
         assert ok.sum() > 10 and np.abs(truth[ok] - sol.pos_ecef_m[ok]).max() < 1e-3
     bad = tmp_path / "bad.pos"
     bad.write_text("%  GPST latitude(deg) longitude(deg) height(m)\n2016/06/06 11:10:41.7 52.5 13.3\n")
-    with pytest.raises(InputError, match=r"bad\.pos:2: expected at least 15 fields, got 4$"):
+    with pytest.raises(InputError, match=r"bad\.pos:2: expected at least 13 fields \(time, position, Q, ns, six sds; age and ratio may follow\), got 4$"):
         datasets.read_truth(bad, seq.time_gps_s, "pos")
 
 

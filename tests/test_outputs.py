@@ -129,6 +129,12 @@ def test_read_pos_ecef_and_week_tow(tmp_path):
     e = read_pos(q)
     np.testing.assert_allclose(e.pos_ecef_m[0], [3785166.0232, 900013.2237, 5037378.8574])
     np.testing.assert_allclose(e.cov_ecef_m2[0, 0, 1], 4.3097 ** 2)
+    short = tmp_path / "short.pos"        # without age and ratio (13 fields): read as 0
+    short.write_text("1900 126645.200   3785166.0232    900013.2237   5037378.8574   5   8   8.0715   4.6848  12.5726"
+                     "   4.3097   6.2448   7.5152\n")
+    s = read_pos(short)
+    np.testing.assert_allclose(s.pos_ecef_m, e.pos_ecef_m)
+    assert s.info["age_s"][0] == 0.0 and s.info["ratio"][0] == 0.0
     bad = tmp_path / "bad.pos"
     bad.write_text("2016/06/06 11:10:45.200 52.5 13.3\n")
     with pytest.raises(ValueError, match="bad.pos:1"):
