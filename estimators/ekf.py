@@ -31,7 +31,8 @@ A noise model that is ``online`` (a model trained with ``model.innovation``) is 
 the predict step: ``noise.predict(features_k, mask_k, innovation_feature(pr - h(x^-) - median))``, with zero
 innovations where the epoch has no prior (start, re-initialisation after a gap). ``info["r_m2"]`` and
 ``info["vc_m"]`` keep the noise every epoch used: R as the filter used it, the noise model's times
-``EkfConfig.glonass_sigma_factor`` squared on GLONASS satellites (``models.pseudorange_variance_factor``).
+``EkfConfig.glonass_sigma_factor`` squared on GLONASS satellites (``models.pseudorange_variance_factor``), and 1 on
+slots left out or switched off; ``info["noise_r_m2"]`` the noise model's R itself, as it gave it.
 """
 from __future__ import annotations
 
@@ -248,8 +249,10 @@ class LfgnssEkf:
             features = self.noise.features(sequence)
             usable_before_noise = usable.copy()      # ask_noise switches slots off epoch by epoch
             r_all, vc_all = np.ones(usable.shape), np.zeros(usable.shape)
+            r_noise = np.ones(usable.shape)          # every epoch asks (ask_noise) before anything reads it
         else:
             r_all, vc_all = self.noise_arrays(sequence, usable)
+            r_noise = r_all.copy()
             on = switched_on(usable, r_all)
             warn_switched_off(type(self).__name__, sequence.name, usable, on)
             usable = on
@@ -339,6 +342,7 @@ class LfgnssEkf:
                 innovation[idx] = models.prior_innovation_m(prior_x, sat_all[k, idx], sys_all[k, idx], pr_all[k, idx])
             r, vc = self._checked(sequence, usable[k], *noise_output(type(self).__name__, self.noise.predict(
                 features[k], sequence.mask[k], innovation_feature(innovation)), self.noise))
+            r_noise[k] = r
             on = switched_on(usable[k], r)
             if not np.array_equal(on, usable[k]):       # as if masked out: redo what the epoch's slots decided
                 usable[k], doppler_ok[k] = on, doppler_ok[k] & on
@@ -421,6 +425,7 @@ class LfgnssEkf:
             warn_switched_off(type(self).__name__, sequence.name, usable_before_noise, usable)
         info = {"n_gated": n_gated, "n_usable": usable.sum(1), "n_doppler": n_doppler, "stationary": still,
                 "clock_realigned": clock_realigned, "config": cfg, "filtered_state": state, "r_m2": r_all,
+                "noise_r_m2": r_noise,
                 "vc_m": vc_all, "smooth": self.smooth, "smooth_lag_s": self.smooth_lag_s if self.smooth else 0.0}
         # From the forward run for the smoother too: the factor stays causal, as the filter's sds are.
         info["residual_factor"] = residual_variance_factor(sequence, state[:, models.POS], r_all, usable)

@@ -252,11 +252,10 @@ class EkfConfig:
         if z is not None and not self.doppler_sigma_m_s > 0:
             raise ValueError("estimators/models.py: EkfConfig.zupt_sigma_m_s needs Dopplers to detect a standstill; "
                              "doppler_sigma_m_s is 0")
-        with np.errstate(over="ignore", under="ignore"):           # squared: 1e200 or 1e-200 would not be a variance
-            squared = np.square(np.float64(self.glonass_sigma_factor))
-        if not 0 < squared < np.inf:
-            raise ValueError(f"estimators/models.py: EkfConfig.glonass_sigma_factor must be a sigma factor whose square "
-                             f"is a finite number > 0 (RTKLIB: 1.5), got {self.glonass_sigma_factor!r}")
+        if not 1e-3 <= self.glonass_sigma_factor <= 1e3:         # its square multiplies R: keep it a variance
+            raise ValueError(f"estimators/models.py: EkfConfig.glonass_sigma_factor must be a sigma factor in [0.001, "
+                             f"1000] (RTKLIB: 1.5; to leave GLONASS out, select the other systems), got "
+                             f"{self.glonass_sigma_factor!r}")
         if self.min_sats_for_update < 1:
             raise ValueError("estimators/models.py: EkfConfig.min_sats_for_update must be >= 1")
 

@@ -517,14 +517,12 @@ class LfgnssModel:
 
     def __call__(self, sequence: Sequence) -> tuple[np.ndarray, np.ndarray]:
         """(r_m2, vc_m), each (T, N), for ``sequence``: a NoiseModel (``online``: those its EKF run asked the network
-        for, R without the filter's own GLONASS factor, which a filter given these would apply again)."""
+        for, R as the network gave it: switched-off slots stay off, and the filter's GLONASS factor is not in it)."""
         if self.online:
-            from estimators import models
             from estimators.ekf import LfgnssEkf
 
             info = LfgnssEkf(self).solve(sequence).info
-            glonass = models.glonass_slots(sequence.system_index, sequence.systems)
-            return info["r_m2"] / models.pseudorange_variance_factor(glonass, info["config"]), info["vc_m"]
+            return info["noise_r_m2"], info["vc_m"]
         return self.predict(self.features(sequence), sequence.mask)
 
 

@@ -207,7 +207,8 @@ def read_pos(path: str | Path, backend: str | None = None) -> Solution:
     Solution
         One row per line. ``status``: ``coasted`` for Q = 7, ``updated`` otherwise; ``cov_ecef_m2``
         rebuilt from the six standard deviations; ``clock_m`` NaN (not in the file);
-        ``info`` holds ``q``, ``age_s``, ``ratio`` (T,) and ``source`` (the path).
+        ``info`` holds ``q``, ``age_s``, ``ratio`` (T,; 0 for lines without those columns, 13 fields instead of
+        RTKLIB's 15) and ``source`` (the path).
     """
     path = Path(path)
     scale, posf, program = "GPST", None, None

@@ -422,8 +422,10 @@ def test_online_network_plugin_matches_torch(cases, tmp_path):
     for i, s in enumerate(seqs):
         sol = LfgnssEkf(model, config=CONFIG).solve(s)
         np.testing.assert_allclose(pos[i], sol.pos_ecef_m, rtol=0, atol=1e-4, equal_nan=True)  # float32 weights
-        r, vc = model(s)                          # a NoiseModel too: the noise its own EKF run used
-        np.testing.assert_array_equal(r, sol.info["r_m2"])
+        r, vc = model(s)                          # a NoiseModel too: the noise its own EKF run asked for
+        np.testing.assert_array_equal(r, sol.info["noise_r_m2"])
+        used = usable_measurements(s)
+        np.testing.assert_array_equal(r[used], sol.info["r_m2"][used])
         assert np.all(r[s.mask] > 0) and np.any(vc[s.mask] != 0)
     fixed = LfgnssEkf(FixedNoise(r, vc), config=CONFIG).solve(seqs[-1])   # the same filter given those arrays
     np.testing.assert_array_equal(fixed.pos_ecef_m, sol.pos_ecef_m)
@@ -458,7 +460,7 @@ def test_glonass_sigma_factor_matches_the_plugin_and_scales_only_glonass():
 
 
 def test_glonass_sigma_factor_is_refused_unless_a_finite_positive_number():
-    for bad in (0.0, -1.5, float("nan"), float("inf"), True, "1.5", 1e200, 1e-200):   # the last two: square not finite > 0
+    for bad in (0.0, -1.5, float("nan"), float("inf"), True, "1.5", 1e154, 1e-200):   # the last two: R times 1e308, 0
         with pytest.raises(ValueError, match="glonass_sigma_factor must be"):
             EkfConfig(glonass_sigma_factor=bad)
     flags = np.array([[True, False]])
@@ -527,3 +529,21 @@ def test_the_bundled_static_model_runs_with_rtklibs_glonass_factor():
     assert config_of("hk-tst-static-2020").glonass_sigma_factor == 1.5
     for name in ("default", "berlin-pp", "hk-tst-2019"):
         assert config_of(name).glonass_sigma_factor == 1.0
+
+
+def test_an_online_model_as_a_noise_model_keeps_its_switched_off_slots_off(cases, tmp_path):
+    """model(seq) of an online model returns the R its network gave, 1e30 included: a graph or a weighted fix given
+    those arrays leaves the satellite out too (it got R = 1 back before)."""
+    seqs = cases[0][:1]
+    model, _ = online_run(seqs, CONFIG, 2, tmp_path)
+    predict = model.predict
+
+    def predict_with_one_off(features, mask, innovation):
+        r, vc = predict(features, mask, innovation)
+        return np.where(np.arange(r.shape[-1]) == np.flatnonzero(mask)[0], 1e30, r), vc
+
+    model.predict = predict_with_one_off
+    r, _ = model(seqs[0])
+    first = seqs[0].mask.argmax(axis=1)
+    assert (r[np.arange(len(r)), first] == 1e30).all()
+    assert (r[seqs[0].mask] > 0).all() and (r[seqs[0].mask] < 1e30).sum() > len(r)
