@@ -55,7 +55,8 @@ from .base import (STATUS_COASTED, STATUS_NONE, STATUS_RESET, STATUS_UPDATED, So
 from .consistency import covariance_inflation, residual_variance_factor
 from .models import EkfConfig
 from .noise import (HeuristicNoise, NoiseModel, checked_noise, default_noise, describe_noise, noise_output,
-                    resolve_noise, switched_on, warn_no_filter_settings, warn_switched_off)
+                    resolve_noise, switched_on, switched_on_warned, warn_no_filter_settings,
+                    warn_switched_off)
 from .smoother import lag_horizon, rts_smooth
 
 
@@ -253,9 +254,7 @@ class LfgnssEkf:
         else:
             r_all, vc_all = self.noise_arrays(sequence, usable)
             r_noise = r_all.copy()
-            on = switched_on(usable, r_all)
-            warn_switched_off(type(self).__name__, sequence.name, usable, on)
-            usable = on
+            usable = switched_on_warned(type(self).__name__, sequence.name, usable, r_all)
             vc_all = np.where(usable, vc_all, 0.0)
         z_all = compensated_pseudorange(pr_all, vc_all)
         r_factor = models.pseudorange_variance_factor(models.glonass_slots(sequence.system_index, sequence.systems), cfg)

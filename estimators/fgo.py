@@ -79,7 +79,7 @@ from .consistency import covariance_inflation, residual_variance_factor
 from .ekf import config_of
 from .models import EkfConfig, still_fixes, used_doppler_variance_m2_s2
 from .noise import (HeuristicNoise, NoiseModel, checked_noise, default_noise, describe_noise, noise_output,
-                    resolve_noise, switched_on, warn_no_filter_settings, warn_switched_off)
+                    resolve_noise, switched_on_warned, warn_no_filter_settings)
 
 MODES = ("batch", "fixed-lag")
 ROBUST_KERNELS = ("huber", "cauchy")
@@ -110,18 +110,22 @@ def symbol_epoch(message: str, n_systems: int) -> tuple[str, int] | None:
     return found.group(1) + found.group(2), key_epoch(found.group(1), int(found.group(2)), n_systems)
 
 
+def psd_text(accel_psd_enu_m2_s3: np.ndarray) -> str:
+    """The acceleration density in a message: ``accel_psd_enu_m2_s3 is (1, 1, 0.1) m^2/s^3``."""
+    return f"accel_psd_enu_m2_s3 is ({', '.join(f'{v:g}' for v in accel_psd_enu_m2_s3)}) m^2/s^3"
+
+
 def likely_cause(r_m2: np.ndarray, accel_psd_enu_m2_s3: np.ndarray) -> str | None:
     """The input most likely behind an ill-conditioned graph, in words: R [m^2] (an epoch's, (n,)) near 0 or huge,
     or an acceleration density [m^2/s^3] near 0; None when neither is out of the ordinary."""
     r = np.asarray(r_m2, float)
-    psd = ", ".join(f"{v:g}" for v in accel_psd_enu_m2_s3)
     if r.size and r.min() < R_TINY_M2:
         return f"its smallest R is {r.min():.3g} m^2: R must be a pseudorange variance in m^2, not near 0"
     if r.size and r.max() > R_HUGE_M2:
         return (f"its largest R is {r.max():.3g} m^2: R must be a pseudorange variance in m^2 (a sigma of kilometres "
                 f"says nothing; an R above estimators.noise.R_OFF_M2, 1e12 m^2, leaves a satellite out)")
     if min(accel_psd_enu_m2_s3) < PSD_TINY_M2_S3:
-        return (f"accel_psd_enu_m2_s3 is ({psd}) m^2/s^3: near 0 the motion factors outweigh every pseudorange; "
+        return (f"{psd_text(accel_psd_enu_m2_s3)}: near 0 the motion factors outweigh every pseudorange; "
                 f"a car's is about 0.1 to 10")
     return None
 
@@ -545,9 +549,7 @@ class LfgnssFgo:
             raise ValueError(f"LfgnssFgo: {seq.name!r}: time not increasing at epoch {k + 1}")
         r_m2, vc_m = checked_noise(type(self).__name__, seq.name, seq.mask,
                                    *noise_output(type(self).__name__, self.noise(seq), self.noise), self.noise)
-        on = switched_on(seq.mask, r_m2)
-        warn_switched_off(type(self).__name__, seq.name, seq.mask, on)
-        seq = keep_slots(seq, on)
+        seq = keep_slots(seq, switched_on_warned(type(self).__name__, seq.name, seq.mask, r_m2))
         z_m = np.where(seq.mask, seq.pr_m + vc_m, 0.0)
         sigma_m = np.sqrt(np.where(seq.mask, r_m2, 1.0))
 
@@ -609,8 +611,7 @@ class LfgnssFgo:
         if cause is None and not always:
             return None
         r = r_m2[seq.mask]
-        psd = ", ".join(f"{v:g}" for v in self.accel_psd_enu_m2_s3)
-        cause = cause or (f"R spans {r.min():.3g} to {r.max():.3g} m^2 and accel_psd_enu_m2_s3 is ({psd}) m^2/s^3: "
+        cause = cause or (f"R spans {r.min():.3g} to {r.max():.3g} m^2 and {psd_text(self.accel_psd_enu_m2_s3)}: "
                           f"R must be a pseudorange variance in m^2 and the density a car's, about 0.1 to 10 m^2/s^3"
                           if r.size else "no satellite is used")
         return ValueError(f"{type(self).__name__}: {what}; {cause}")

@@ -216,7 +216,7 @@ class EkfConfig:
                 raise ValueError(f"estimators/models.py: EkfConfig.{f.name} must be a number, got {value!r}")
         for name in ("p0_pos_m2", "p0_vel_m2_s2", "p0_clock_m2", "p0_drift_m2_s2", "p0_isb_m2", "q_pos_m2_s",
                      "q_vel_m2_s3", "q_clock_m2_s", "q_drift_m2_s3", "q_isb_m2_s", "doppler_sigma_m_s",
-                     "zupt_max_speed_m_s", "glonass_sigma_factor"):
+                     "zupt_max_speed_m_s"):
             if not np.isfinite(getattr(self, name)):
                 raise ValueError(f"estimators/models.py: EkfConfig.{name} must be finite, got {getattr(self, name)}")
         for name in ("reset_min_sats", "min_sats_for_update", "reset_min_redundancy"):
@@ -227,7 +227,7 @@ class EkfConfig:
         if not self.reset_gated_fraction >= 0:
             raise ValueError(f"estimators/models.py: EkfConfig.reset_gated_fraction must be >= 0 (>= 1 disables), "
                              f"got {self.reset_gated_fraction}")
-        for name in ("p0_pos_m2", "p0_vel_m2_s2", "p0_clock_m2", "p0_drift_m2_s2", "p0_isb_m2", "glonass_sigma_factor"):
+        for name in ("p0_pos_m2", "p0_vel_m2_s2", "p0_clock_m2", "p0_drift_m2_s2", "p0_isb_m2"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"estimators/models.py: EkfConfig.{name} must be > 0, got {getattr(self, name)}")
         for name in ("q_pos_m2_s", "q_vel_m2_s3", "q_clock_m2_s", "q_drift_m2_s3", "q_isb_m2_s", "gate_sigma",

@@ -176,6 +176,13 @@ def warn_switched_off(owner: str, sequence_name: str, usable: np.ndarray, on: np
                       f"places a position there", UserWarning, stacklevel=caller_stacklevel())
 
 
+def switched_on_warned(owner: str, sequence_name: str, usable: np.ndarray, r_m2: np.ndarray) -> np.ndarray:
+    """``switched_on(usable, r_m2)``, with ``warn_switched_off`` when it leaves an epoch no usable pseudorange."""
+    on = switched_on(usable, r_m2)
+    warn_switched_off(owner, sequence_name, usable, on)
+    return on
+
+
 def checked_noise(owner: str, sequence_name: str, usable: np.ndarray, r_m2: object, vc_m: object,
                   noise: object = None) -> tuple[np.ndarray, np.ndarray]:
     """A noise model's ``(r_m2, vc_m)`` as float arrays shaped like ``usable``; ValueError naming the first bad epoch.
