@@ -55,7 +55,7 @@ from .base import (STATUS_COASTED, STATUS_NONE, STATUS_RESET, STATUS_UPDATED, So
 from .consistency import covariance_inflation, residual_variance_factor
 from .models import EkfConfig
 from .noise import (HeuristicNoise, NoiseModel, checked_noise, default_noise, describe_noise, noise_output,
-                    resolve_noise, switched_on, switched_on_warned, warn_no_filter_settings,
+                    resolve_noise, switched_on, switched_on_warned, warn_implausible_r, warn_no_filter_settings,
                     warn_switched_off)
 from .smoother import lag_horizon, rts_smooth
 
@@ -222,11 +222,11 @@ class LfgnssEkf:
         """(r_m2, vc_m), each (T, N), from the noise model, checked on the usable slots."""
         return self._checked(sequence, usable, *noise_output(type(self).__name__, self.noise(sequence), self.noise))
 
-    def _checked(self, sequence: Sequence, usable: np.ndarray, r: object, vc: object
+    def _checked(self, sequence: Sequence, usable: np.ndarray, r: object, vc: object, judge_scale: bool = True
                  ) -> tuple[np.ndarray, np.ndarray]:
         """``(r, vc)`` with positive finite R and finite v^c on the usable slots (v^c 0 without compensation)."""
         r, vc = checked_noise(type(self).__name__, sequence.name, usable, r,
-                              vc if self.use_compensation else np.zeros(np.shape(r)), self.noise)
+                              vc if self.use_compensation else np.zeros(np.shape(r)), self.noise, judge_scale)
         return r, vc
 
     def solve(self, sequence: Sequence) -> Solution:
@@ -340,7 +340,7 @@ class LfgnssEkf:
             if prior_x is not None:
                 innovation[idx] = models.prior_innovation_m(prior_x, sat_all[k, idx], sys_all[k, idx], pr_all[k, idx])
             r, vc = self._checked(sequence, usable[k], *noise_output(type(self).__name__, self.noise.predict(
-                features[k], sequence.mask[k], innovation_feature(innovation)), self.noise))
+                features[k], sequence.mask[k], innovation_feature(innovation)), self.noise), judge_scale=False)
             r_noise[k] = r
             on = switched_on(usable[k], r)
             if not np.array_equal(on, usable[k]):       # as if masked out: redo what the epoch's slots decided
@@ -422,6 +422,7 @@ class LfgnssEkf:
 
         if online:
             warn_switched_off(type(self).__name__, sequence.name, usable_before_noise, usable)
+            warn_implausible_r(type(self).__name__, sequence.name, usable_before_noise, r_noise)
         info = {"n_gated": n_gated, "n_usable": usable.sum(1), "n_doppler": n_doppler, "stationary": still,
                 "clock_realigned": clock_realigned, "config": cfg, "filtered_state": state, "r_m2": r_all,
                 "noise_r_m2": r_noise,

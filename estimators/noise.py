@@ -183,13 +183,35 @@ def switched_on_warned(owner: str, sequence_name: str, usable: np.ndarray, r_m2:
     return on
 
 
+#: Median pseudorange variance [m^2] of a run outside which ``warn_implausible_r`` says R looks given in another
+#: unit: a code pseudorange's sd lies between 10 cm and 100 m (in cm^2 or km^2 the bundled models' R falls outside).
+R_PLAUSIBLE_M2 = (1e-2, 1e4)
+
+
+def warn_implausible_r(owner: str, sequence_name: str, usable: np.ndarray, r_m2: np.ndarray) -> None:
+    """Warn when the median R [m^2] over the switched-on usable slots lies outside ``R_PLAUSIBLE_M2``: a variance in
+    cm^2 or km^2 runs without error, but weighs the pseudoranges otherwise than meant."""
+    on = switched_on(np.asarray(usable, bool), r_m2)
+    if not on.any():
+        return
+    median = float(np.median(r_m2[on]))
+    low, high = R_PLAUSIBLE_M2
+    if not low <= median <= high:
+        warnings.warn(f"{owner}: the noise model's median R over the usable pseudoranges of {sequence_name!r} is "
+                      f"{median:.3g} m^2 (sd {np.sqrt(median):.3g} m), outside a code pseudorange's "
+                      f"{low:g}-{high:g} m^2: R is a variance in m^2 (the sd squared); is it in another unit?",
+                      UserWarning, stacklevel=caller_stacklevel())
+
+
 def checked_noise(owner: str, sequence_name: str, usable: np.ndarray, r_m2: object, vc_m: object,
-                  noise: object = None) -> tuple[np.ndarray, np.ndarray]:
+                  noise: object = None, judge_scale: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """A noise model's ``(r_m2, vc_m)`` as float arrays shaped like ``usable``; ValueError naming the first bad epoch.
 
     R must be finite and > 0 [m^2] and v^c finite [m] on the usable slots; other slots may hold anything. An R above
     ``R_OFF_M2`` (1e30, say) switches the satellite off (``switched_on``): the estimators leave it out as if masked.
-    Values that are not numbers are a TypeError naming ``owner`` and the model ``noise`` (``float_array``).
+    With ``judge_scale``, a median R outside ``R_PLAUSIBLE_M2`` is a warning (``warn_implausible_r``; an online model
+    asked epoch by epoch is judged once, on the whole run). Values that are not numbers are a TypeError naming
+    ``owner`` and the model ``noise`` (``float_array``).
     """
     r = float_array(owner, "r_m2", r_m2, noise)
     vc = float_array(owner, "vc_m", vc_m, noise)
@@ -202,6 +224,8 @@ def checked_noise(owner: str, sequence_name: str, usable: np.ndarray, r_m2: obje
         if bad.any():
             where = f" (first at epoch {int(np.argwhere(bad)[0, 0])})" if bad.ndim == 2 else ""
             raise ValueError(f"{owner}: noise model gave {what} on usable satellites of {sequence_name!r}{where}")
+    if judge_scale:
+        warn_implausible_r(owner, sequence_name, usable, r)
     return r, vc
 
 

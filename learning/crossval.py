@@ -37,6 +37,8 @@ gets a row per dataset (``J:ID``, its last epoch on that dataset's held-out piec
 same recipe) again on its held-out block, under this run's ``[ekf]`` settings, e.g. ``--set ekf.huber_k=2``: an
 inference-time variant of the filter judged on every block in a minute instead of a retraining. Anything else that
 differs from the saved run's configuration (seed included) is refused; so is a held-out block whose data changed.
+A fold model trained on another machine (its held-out block's features differ in the last digits: the same input
+files, epochs, dataset TOML settings and, to rounding, normalisation) is scored here with a warning.
 ``--reuse`` repeated (runs of one recipe with different ``--set seed=S``) scores, per fold, the ensemble of the runs'
 fold models (``learning.network.NetworkEnsemble``, as ``python -m learning.export`` writes several checkpoints):
 their seeds may differ, nothing else; ``--combine mixture`` combines the members as a moment-matched Gaussian
@@ -56,6 +58,7 @@ import csv
 import math
 import shlex
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -159,10 +162,11 @@ def _recipe(config: dict, free: tuple[str, ...] = RESCORE_FREE) -> dict:
 
 
 def saved_fold(reuse_dir: str | Path, fold: int, config: dict, held: list[Sequence],
-               free: tuple[str, ...] = RESCORE_FREE) -> dict:
+               free: tuple[str, ...] = RESCORE_FREE, trained: list[Sequence] | None = None) -> dict:
     """The checkpoint ``reuse_dir/fold<fold>/last.pt``, checked to be of ``config``'s recipe (the ``free`` settings
-    aside) and of the held-out pieces ``held``."""
-    from .train import fingerprint, source_file_hashes
+    aside) and of the held-out pieces ``held`` (to the last digit, or to rounding: ``_same_data_elsewhere``, which
+    reads the fold's training pieces ``trained``)."""
+    from .train import fingerprint
 
     path = Path(reuse_dir) / f"fold{fold}" / "last.pt"
     try:
@@ -179,26 +183,67 @@ def saved_fold(reuse_dir: str | Path, fold: int, config: dict, held: list[Sequen
     val = config["data"]["val_split"]
     trained_on = [(p["sequence"], p["sha256_16"]) for p in prints if p["split"] == val]
     if trained_on != [(s.name, fingerprint(s)) for s in held]:
-        files = {ds: source_file_hashes(ds) for ds in config["data"]["datasets"]}
-        if (any(files.values()) and saved.get("source_files") == files
-                and [(p["sequence"], p.get("epochs")) for p in prints if p["split"] == val] ==
-                [(s.name, len(s)) for s in held]):
-            raise ValueError(f"{path}: its held-out block's features differ from this run's, though they come from "
-                             "the same input files and epochs: trained on another machine (whose arithmetic differs "
-                             "in the last digits) or another version of lfgnss's front end; rescore it where it was "
-                             "trained")
-        raise ValueError(f"{path}: its held-out block is not this run's (another --folds, the data changed since "
-                         "it was trained, or an older learning.crossval cut it, which broke folds at the "
-                         "train/validation boundary)")
+        why = _same_data_elsewhere(saved, config, held, trained)
+        if why is not None:
+            raise ValueError(f"{path}: its held-out block is not this run's ({why})")
+        warnings.warn(_other_features_note(path, saved), stacklevel=2)
     _check_weights(path, saved)
     return saved
 
 
-def saved_ensemble(reuse_dirs: list[str | Path], fold: int, config: dict, held: list[Sequence]) -> list[dict]:
-    """``saved_fold`` of each folder; several must be runs of one recipe that differ in their seed only (as
-    ``learning.export`` takes an ensemble's members), on identically normalised features."""
+def _same_data_elsewhere(saved: dict, config: dict, held: list[Sequence], trained: list[Sequence] | None
+                         ) -> str | None:
+    """None when a fold checkpoint whose held-out fingerprints differ from ``held``'s was trained on this data all the
+    same, on another machine: the same input files (SHA-256), pieces and epochs, registered from the same dataset
+    TOML settings, and (unless ``train.init`` fixed it) a normaliser within rounding (``Normaliser.same_as``) of the
+    one the fold's training pieces ``trained`` give here. Else the reason in words."""
+    from .train import dataset_toml_change, source_file_hashes
+
+    files = {ds: source_file_hashes(ds) for ds in config["data"]["datasets"]}
+    val = config["data"]["val_split"]
+    if not any(files.values()) or saved.get("source_files") != files:
+        return "its input files are not this run's, or the data changed since it was trained"
+    if ([(p["sequence"], p.get("epochs")) for p in saved["data_fingerprints"] if p["split"] == val] !=
+            [(s.name, len(s)) for s in held]):
+        return ("another --folds, the data changed since it was trained, or an older learning.crossval cut it, which "
+                "broke folds at the train/validation boundary")
+    for toml, text in ((saved.get("provenance") or {}).get("dataset_tomls") or {}).items():
+        try:
+            change = dataset_toml_change(text, Path(toml).read_text()) if isinstance(text, str) else None
+        except (OSError, UnicodeDecodeError):
+            change = "it cannot be read now"
+        if change is not None:
+            return f"{toml}: {change} when it was trained"
+    if trained and not config["train"].get("init"):
+        here = Normaliser.fit(trained, saved["feature_names"])
+        if not here.same_as(Normaliser.from_dict(saved["normaliser"])):
+            return ("its training blocks' features differ from this run's beyond rounding: another version of "
+                    "lfgnss's front end")
+    return None
+
+
+def _other_features_note(path: Path, saved: dict) -> str:
+    """The warning of a fold model rescored on held-out features that come from its input files and epochs but not
+    to the last digit: another machine's arithmetic, or (where the code differs) another front end too."""
+    from .provenance import code_text, git_state
+
+    trained, here = (saved.get("provenance") or {}).get("git") or {}, git_state() or {}
+    code = (f"; it was trained at {code_text(trained)} and this is {code_text(here)}: if lfgnss's front end differs "
+            "between them, its figures here are not those it would have had"
+            if trained and here and (trained.get("commit") != here.get("commit") or trained.get("dirty")
+                                     or here.get("dirty")) else "")
+    return (f"{path}: its held-out block's features differ in the last digits from those it was validated on when "
+            f"trained (the same input files, epochs and normalisation: another machine's arithmetic); it is scored "
+            f"on this machine's features{code}")
+
+
+def saved_ensemble(reuse_dirs: list[str | Path], fold: int, config: dict, held: list[Sequence],
+                   trained: list[Sequence] | None = None) -> list[dict]:
+    """``saved_fold`` of each folder (``trained``: the fold's training pieces); several must be runs of one recipe
+    that differ in their seed only (as ``learning.export`` takes an ensemble's members), on identically normalised
+    features."""
     free = RESCORE_FREE + (("seed",) if len(reuse_dirs) > 1 else ())
-    saved = [saved_fold(r, fold, config, held, free) for r in reuse_dirs]
+    saved = [saved_fold(r, fold, config, held, free, trained) for r in reuse_dirs]
     seeds = [s["config"].get("seed") for s in saved]
     for r, s in zip(reuse_dirs[1:], saved[1:]):
         path = Path(r) / f"fold{fold}" / "last.pt"
@@ -501,12 +546,12 @@ def _run_folds(rows: list[dict], chosen, folds: int, whole: dict, config: dict, 
             return parts[ds][0] if split == data["train_split"] else parts[ds][1]
 
         held = [s for _, h in parts.values() for s in h]
+        pieces = [s for t, _ in parts.values() for s in t]
         if reuse is not None:
-            saved = saved_ensemble(reuse, j, config, held)
+            saved = saved_ensemble(reuse, j, config, held, pieces)
             rows.append(_rescored_row(j, saved, config, held, combine))
             rows.extend(_dataset_rows(j, saved, config, parts, combine))
             continue
-        pieces = [s for t, _ in parts.values() for s in t]
         if epoch_lines:                 # its epoch lines follow; their "val 3D RMSE" is on the held-out block
             print(f"fold {j} ({j + 1}/{folds}): training on {sum(map(len, pieces))} epochs in {len(pieces)} "
                   f"piece(s), holding out {sum(map(len, held))} epochs", flush=True)

@@ -13,7 +13,8 @@ label) or whose estimate is not finite are left out of both.
 
 ``compensation_loss`` is an optional second term (``loss.vc_weight``) that supervises v^c per satellite
 with the pseudorange's error at the true position (``pseudorange_error_m``), where the position loss
-reaches it only through the filter.
+reaches it only through the filter; ``variance_loss`` (``loss.r_weight``) does the same for R, by the Gaussian
+negative log-likelihood of the error left after v^c.
 """
 from __future__ import annotations
 
@@ -129,6 +130,16 @@ def labelled_errors_m(batch, n_systems: int) -> tuple[torch.Tensor, torch.Tensor
                                        batch.system_index, n_systems)
 
 
+def _centred(d: torch.Tensor, usable: torch.Tensor, system_index: torch.Tensor, n_systems: int) -> torch.Tensor:
+    """``d`` on the usable slots less its constellation's epoch median (numpy's), 0 elsewhere."""
+    centred = torch.zeros_like(d)
+    for k in range(n_systems):
+        in_sys = usable & (system_index == k)
+        med = torch.nanquantile(torch.where(in_sys, d, torch.nan), 0.5, dim=-1, keepdim=True)
+        centred = torch.where(in_sys, d - torch.nan_to_num(med), centred)
+    return centred
+
+
 def compensation_loss(vc_m: torch.Tensor, error_m: torch.Tensor, usable: torch.Tensor, system_index: torch.Tensor,
                       n_systems: int, *, delta_m: float = 5.0) -> torch.Tensor:
     """Mean Huber(delta) of v^c + e over the usable satellites [m^2], each constellation's epoch median removed.
@@ -138,14 +149,59 @@ def compensation_loss(vc_m: torch.Tensor, error_m: torch.Tensor, usable: torch.T
     let one large error move what the others are scored against. 0 when nothing is usable.
     """
     d = torch.where(usable, vc_m.to(error_m.dtype) + error_m, torch.zeros_like(error_m))
-    centred = torch.zeros_like(d)
-    for k in range(n_systems):
-        in_sys = usable & (system_index == k)
-        med = torch.nanquantile(torch.where(in_sys, d, torch.nan), 0.5, dim=-1, keepdim=True)
-        centred = torch.where(in_sys, d - torch.nan_to_num(med), centred)
     if not usable.any():
         return d.sum() * 0.0
+    centred = _centred(d, usable, system_index, n_systems)
     return torch.nn.functional.huber_loss(centred[usable], torch.zeros_like(centred[usable]), delta=delta_m)
+
+
+#: ``variance_loss``'s "strongest" clock: the median of a constellation's this many highest-C/N0 signals, taken only
+#: where it has at least ``STRONGEST_MIN_SATS`` usable satellites in the epoch (benchmarks/bad_pseudoranges.py).
+STRONGEST_K, STRONGEST_MIN_SATS = 3, 5
+
+
+def strongest_centred(d: torch.Tensor, cn0_dbhz: torch.Tensor, usable: torch.Tensor, system_index: torch.Tensor,
+                      n_systems: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(centred, kept): ``d`` less the median of its constellation's ``STRONGEST_K`` highest-C/N0 usable slots in the
+    epoch, and where that clock exists (``STRONGEST_MIN_SATS`` usable satellites or more); 0 / False elsewhere."""
+    centred, kept = torch.zeros_like(d), torch.zeros_like(usable)
+    for k in range(n_systems):
+        in_sys = usable & (system_index == k)
+        enough = in_sys.sum(dim=-1, keepdim=True) >= STRONGEST_MIN_SATS
+        if not enough.any():
+            continue
+        score = torch.where(in_sys, cn0_dbhz.to(d.dtype), torch.full_like(d, -torch.inf))
+        top = torch.topk(score, min(STRONGEST_K, d.shape[-1]), dim=-1).indices
+        clock = torch.median(torch.gather(d, -1, top), dim=-1, keepdim=True).values
+        keep = in_sys & enough
+        centred = torch.where(keep, d - clock, centred)
+        kept = kept | keep
+    return centred, kept
+
+
+def variance_loss(r_m2: torch.Tensor, vc_m: torch.Tensor, error_m: torch.Tensor, usable: torch.Tensor,
+                  system_index: torch.Tensor, n_systems: int, cn0_dbhz: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean Gaussian negative log-likelihood 0.5 (ln R + c^2 / R) over the usable satellites [1].
+
+    c = v^c + e less its constellation's epoch median [m]: the error a pseudorange keeps after its compensation, the
+    clock and ISB aside (``compensation_loss``). Its minimum over R is R = c^2, the variance ``estimators.TruthNoise``
+    gives without a floor; so the median satellite of a constellation with an odd count (and a lone one), whose c is
+    0, is pulled to the network's ``r_floor_m2``. With ``cn0_dbhz`` [dB-Hz] the clock is instead the median of the
+    constellation's three strongest signals (``strongest_centred``; epochs where it has under five satellites are left
+    out): where half the signals are reflections, the plain median sits among them and makes clean signals look
+    10-20 m early (docs/findings.md, session 50). No gradient flows through v^c (the shared layers still move). Scale
+    free: errors and sds scaled alike (``loss.balance``) shift it by a constant. 0 when nothing is usable.
+    """
+    r = torch.where(usable, r_m2.to(error_m.dtype), torch.ones_like(error_m))
+    d = torch.where(usable, vc_m.detach().to(error_m.dtype) + error_m, torch.zeros_like(error_m))
+    if cn0_dbhz is None:
+        centred, kept = _centred(d, usable, system_index, n_systems), usable
+    else:
+        centred, kept = strongest_centred(d, cn0_dbhz, usable, system_index, n_systems)
+    if not kept.any():
+        return r.sum() * 0.0
+    c, r = centred[kept], r[kept]
+    return 0.5 * torch.mean(torch.log(r) + c ** 2 / r)
 
 
 def make_loss(kind: str, *, alpha: float = 0.75, gamma: float = 1.5, lam: float = 1.0, up_weight: float = 1.0):

@@ -68,7 +68,7 @@ from lfgnss.sequence import DEFAULT_FEATURES, Sequence
 from . import provenance
 from .data import Window, collate, make_windows, resolve_feature_names, sequence_batch
 from .export import model_settings, truth_extent
-from .loss import compensation_loss, error_norm_m, labelled_errors_m, make_loss
+from .loss import compensation_loss, error_norm_m, labelled_errors_m, make_loss, variance_loss
 from .network import LfgnssNet
 from .normalise import Normaliser
 from .types import WindowBatch
@@ -97,7 +97,7 @@ DEFAULT_CONFIG: dict[str, Any] = {
               "feature_noise": 0.0, "weight_decay": 0.0, "select": "val", "ema_decay": 0.0, "init": "", "smooth": False,
               "freeze": []},
     "loss": {"kind": "hem", "alpha": 0.75, "gamma": 1.5, "lambda": 1.0, "up_weight": 1.0, "balance": "none",
-             "vc_weight": 0.0, "vc_delta_m": 5.0},
+             "vc_weight": 0.0, "vc_delta_m": 5.0, "r_weight": 0.0, "r_clock": "median"},
     "ekf": {},
 }
 
@@ -304,7 +304,8 @@ def check_config(config: dict) -> dict:
             raise ValueError(f"{key} must be a split name or names joined by '+' (e.g. \"train+val\"), each once and "
                              f"without spaces, got {_setting(config, key)!r}")
     for key, choices in (("train.select", ("val", "last")), ("model.r_prior", ("none", "heuristic")),
-                         ("loss.kind", ("hem", "rmse")), ("loss.balance", ("none", "plain_ekf"))):
+                         ("loss.kind", ("hem", "rmse")), ("loss.balance", ("none", "plain_ekf")),
+                         ("loss.r_clock", ("median", "strongest"))):
         if _setting(config, key) not in choices:
             raise ValueError(f"{key} must be {' or '.join(map(repr, choices))}, got {_setting(config, key)!r}")
     for key in ("train.smooth", "model.compensation", "model.innovation"):
@@ -318,11 +319,17 @@ def check_config(config: dict) -> dict:
                        ("train.grad_clip", False), ("train.feature_noise", False), ("model.r_floor_m2", False),
                        ("model.r_scale_m2", True), ("loss.alpha", True), ("loss.gamma", False),
                        ("loss.lambda", False), ("loss.up_weight", False), ("loss.vc_weight", False),
-                       ("loss.vc_delta_m", True)):
+                       ("loss.vc_delta_m", True), ("loss.r_weight", False)):
         _check_number(config, key, 0, above=above)
     if _setting(config, "loss.vc_weight") > 0 and _setting(config, "model.innovation"):
         raise ValueError("loss.vc_weight needs a network that reads its features alone; with model.innovation = true "
                          "its v^c is made inside the filter")
+    if _setting(config, "loss.r_weight") > 0 and _setting(config, "model.innovation"):
+        raise ValueError("loss.r_weight needs a network that reads its features alone; with model.innovation = true "
+                         "its R is made inside the filter")
+    if _setting(config, "loss.r_weight") > 0 and not _setting(config, "model.r_floor_m2") > 0:
+        raise ValueError("loss.r_weight needs model.r_floor_m2 > 0: the term's ln R pulls R to the floor where a "
+                         "satellite's error is its constellation's median, and ln 0 is -inf")
     if _setting(config, "loss.vc_weight") > 0 and not _setting(config, "model.compensation"):
         raise ValueError("loss.vc_weight supervises v^c, and model.compensation = false has none (v^c = 0)")
     _check_number(config, "data.synthetic.nlos_fraction", 0, 1)
@@ -974,7 +981,7 @@ def _check_dataset_tomls(checkpoint: dict, where: Path) -> None:
                              f"missing now; put it back as it was to --resume ({kept}), or start a new --out") from None
         except (OSError, UnicodeDecodeError):
             continue                                    # register_toml says what is wrong with it, as for a new run
-        change = _toml_change(was, now)
+        change = dataset_toml_change(was, now)
         if change is not None:
             raise ValueError(f"{path}: {change} when {where} was started; a resumed run goes on with the data it was "
                              "started with (log.csv and the best epoch would compare two splits): put the file back "
@@ -1011,7 +1018,7 @@ def _data_settings(flat: dict) -> dict:
     return {k: v for k, v in flat.items() if k not in unread}
 
 
-def _toml_change(was: str, now: str) -> str | None:
+def dataset_toml_change(was: str, now: str) -> str | None:
     """The first key in which two texts of a dataset TOML differ in what they make of the data, ``splits.val is [0, 9]
     now, [0, 8]``; that the text differs where either does not parse; None where they hold the same data settings
     (comments, layout and ``_data_settings``' keys aside)."""
@@ -1174,6 +1181,7 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
     loss_fn = make_loss(lc["kind"], alpha=float(lc["alpha"]), gamma=float(lc["gamma"]), lam=float(lc["lambda"]),
                         up_weight=float(lc.get("up_weight", 1.0)))   # runs from before it resume
     vc_weight, vc_delta = float(lc.get("vc_weight", 0.0)), float(lc.get("vc_delta_m", 5.0))
+    r_weight, strongest_clock = float(lc.get("r_weight", 0.0)), lc.get("r_clock", "median") == "strongest"
     history: list[dict] = []
     best = float("inf")
     start_epoch = 1
@@ -1236,7 +1244,7 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
         jitter = torch.Generator().manual_seed(int(seed) * 100_003 + epoch)
         for idx in chunks:
             batch = jitter_features(_index_batch(train_batch, idx), feature_noise, jitter)
-            noise = model(batch.features, batch.mask) if vc_weight > 0 else None
+            noise = model(batch.features, batch.mask) if vc_weight > 0 or r_weight > 0 else None
             pos = run_filter(model, batch, n_systems=prep.n_systems, ekf_cfg=ekf_cfg, smooth=smooth, noise=noise)
             k = 1.0                                 # errors scaled per dataset (loss.balance)
             if prep.window_scale is not None:
@@ -1244,10 +1252,15 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
                 truth = batch.truth_ecef_m
                 pos = truth + k * (pos - truth)
             loss = loss_fn(pos, batch.truth_ecef_m)
-            if noise is not None:                   # v^c supervised per satellite by the true error (loss.vc_weight)
-                usable, error = labelled_errors_m(batch, prep.n_systems)
-                loss = loss + vc_weight * compensation_loss(k * noise[1], k * error, usable, batch.system_index,
-                                                            prep.n_systems, delta_m=vc_delta)
+            if noise is not None:                   # supervised per satellite by the true error (loss.vc_weight,
+                usable, error = labelled_errors_m(batch, prep.n_systems)                       # loss.r_weight)
+                if vc_weight > 0:
+                    loss = loss + vc_weight * compensation_loss(k * noise[1], k * error, usable, batch.system_index,
+                                                                prep.n_systems, delta_m=vc_delta)
+                if r_weight > 0:                    # scale free: loss.balance's k would shift it by a constant
+                    loss = loss + r_weight * variance_loss(noise[0], noise[1], error, usable, batch.system_index,
+                                                           prep.n_systems,
+                                                           batch.cn0_dbhz if strongest_clock else None)
             if not torch.isfinite(loss):
                 raise FloatingPointError(f"epoch {epoch}: non-finite training loss {float(loss.detach())}")
             optimiser.zero_grad(set_to_none=True)

@@ -67,6 +67,16 @@ test = {test}
     return write
 
 
+@pytest.fixture
+def my_drive(monkeypatch, sample_toml):
+    """The bundled drive registered alone as dataset ``my-drive`` (splits 0-150, 150-180, 180-200 s)."""
+    from lfgnss import datasets
+
+    monkeypatch.setattr(datasets, "_REGISTRY", {}, raising=False)
+    datasets.register_toml(sample_toml("my-drive", splits=((0, 150), (150, 180), (180, 200))))
+    return "my-drive"
+
+
 @pytest.fixture(autouse=True)
 def _own_dataset_registry(monkeypatch):
     """Each test registers its datasets in a copy of the registry: a dataset id registered by another test's TOML

@@ -16,13 +16,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import cold_start  # noqa: E402
 
 
-@pytest.fixture
-def my_drive(monkeypatch, sample_toml):
-    monkeypatch.setattr(datasets, "_REGISTRY", {}, raising=False)
-    datasets.register_toml(sample_toml("my-drive", splits=((0, 150), (150, 180), (180, 200))))
-    return "my-drive"
-
-
 def test_the_truth_start_changes_only_the_first_fix_and_p0(my_drive):
     seq = datasets.load_split(my_drive, "test")[0]
     started = cold_start.started_at_truth(seq)

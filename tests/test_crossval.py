@@ -133,14 +133,47 @@ def test_reuse_scores_the_saved_fold_models_again_under_new_filter_settings(trai
         main(RECIPE + ["--fold", "0", "--out", str(tmp_path / "z"), "--reuse", str(tmp_path / "tampered")])
     assert exit_info.value.code == 2 and "its held-out block is not this run's" in capsys.readouterr().err
     saved["source_files"] = {"synthetic": {"drive.obs": "1234"}}     # the same files, another machine's features
+    saved["provenance"] = dict(saved.get("provenance") or {}, git={"commit": "1" * 40, "dirty": False})
     torch.save(saved, tampered / "last.pt")
-    with monkeypatch.context() as m:
-        m.setattr("learning.train.source_file_hashes", lambda ds: {"drive.obs": "1234"})
-        with pytest.raises(SystemExit) as exit_info:
-            main(RECIPE + ["--fold", "0", "--out", str(tmp_path / "z"), "--reuse", str(tmp_path / "tampered")])
-    assert exit_info.value.code == 2 and "tampered/fold0/last.pt: its held-out block's features differ from this " \
-        "run's, though they come from the same input files and epochs: trained on another machine" \
+
+    def rescore(out: str, git: dict | None = None) -> int:
+        """The tampered fold rescored, as if its input files were this run's (and the code at ``git``)."""
+        with monkeypatch.context() as m:
+            m.setattr("learning.train.source_file_hashes", lambda ds: {"drive.obs": "1234"})
+            m.setattr("learning.provenance.git_state", lambda *a, **k: git or {"commit": "1" * 40, "dirty": False})
+            return main(RECIPE + ["--fold", "0", "--out", str(tmp_path / out), "--reuse", str(tmp_path / "tampered")])
+
+    assert rescore("z") == 0
+    err = capsys.readouterr().err
+    assert "warning: " + str(tampered / "last.pt") + ": its held-out block's features differ in the last digits from " \
+        "those it was validated on when trained (the same input files, epochs and normalisation: another machine's " \
+        "arithmetic); it is scored on this machine's features" in err and "trained at git" not in err
+    assert float(_rows(tmp_path / "z")[0]["last_rmse_3d_m"]) == pytest.approx(float(first[0]["last_rmse_3d_m"]),
+                                                                               rel=1e-9)     # scored as it was
+    assert rescore("u", {"commit": "2" * 40, "dirty": True}) == 0
+    assert "it was trained at git 111111111111 and this is git 222222222222 with uncommitted changes: if lfgnss's " \
+        "front end differs between them" in capsys.readouterr().err
+    toml = tmp_path / "drive.toml"
+    toml.write_text('id = "drive"\n[truth]\nfile = "t.csv"\ntime_offset_s = 18\n')
+    saved["provenance"]["dataset_tomls"] = {str(toml): toml.read_text().replace("18", "0")}
+    torch.save(saved, tampered / "last.pt")
+    with pytest.raises(SystemExit) as exit_info:                     # its dataset TOML says otherwise now: refused
+        rescore("t")
+    assert exit_info.value.code == 2 and f"its held-out block is not this run's ({toml}: truth.time_offset_s is 18 " \
+        "now, unset when it was trained)" in capsys.readouterr().err
+    saved["provenance"]["dataset_tomls"] = {}
+    saved["normaliser"] = dict(saved["normaliser"], mean=[m + 1.0 for m in saved["normaliser"]["mean"]])
+    torch.save(saved, tampered / "last.pt")
+    with pytest.raises(SystemExit) as exit_info:                     # its training blocks normalise otherwise
+        rescore("s")
+    assert exit_info.value.code == 2 and "its training blocks' features differ from this run's beyond rounding" \
         in capsys.readouterr().err
+    saved["source_files"] = {"synthetic": {"drive.obs": "5678"}}     # other input files: refused as before
+    torch.save(saved, tampered / "last.pt")
+    with pytest.raises(SystemExit) as exit_info:
+        rescore("r")
+    assert exit_info.value.code == 2 and "its held-out block is not this run's (its input files are not this " \
+        "run's" in capsys.readouterr().err
     (tampered / "last.pt").write_text("not a checkpoint")
     with pytest.raises(SystemExit) as exit_info:
         main(RECIPE + ["--fold", "0", "--out", str(tmp_path / "w"), "--reuse", str(tmp_path / "tampered")])

@@ -139,3 +139,26 @@ def test_every_estimator_warns_when_the_noise_model_switches_a_whole_epoch_off(c
             lines = [str(w.message) for w in caught if "switched off every usable pseudorange" in str(w.message)]
             assert len(lines) == expected, (estimator, lines)
             assert all(said in line for line in lines), lines
+
+
+def test_every_estimator_warns_when_r_looks_given_in_another_unit(case):
+    """A median R given in cm^2 or km^2 (the hand-set one x 1e4 or x 1e-6) runs, with one warning naming the median
+    and its sd, an online model's too (judged on the whole run, not epoch by epoch); the hand-set R says nothing."""
+    pytest.importorskip("gtsam")
+    from estimators.fgo import LfgnssFgo
+
+    seq, r, vc, _ = case
+    for scale, said in ((1e4, True), (1e-6, True), (1.0, False)):
+        given = r * scale
+        for estimator in (LfgnssEkf(noise=FixedNoise(given, vc), config=EkfConfig()),
+                          LfgnssEkf(noise=_OnlineNoise(given, vc), config=EkfConfig()),
+                          LfgnssFgo(noise=FixedNoise(given, vc)),
+                          create("wls-weighted", noise=FixedNoise(given, vc))):
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                estimator.solve(seq)
+            lines = [str(w.message) for w in caught if "R is a variance in m^2" in str(w.message)]
+            assert len(lines) == said, (estimator, lines)
+            median = float(np.median(given[seq.mask]))
+            assert all(f"is {median:.3g} m^2 (sd {np.sqrt(median):.3g} m), outside a code pseudorange's 0.01-10000 "
+                       f"m^2" in x for x in lines), lines

@@ -37,7 +37,10 @@ def test_smartloc_truth_for_epochs_not_starting_at_its_origin_is_warned_of(meas)
     with pytest.warns(UserWarning, match=r"only \d+ of \d+ epochs within the truth's time span match a truth time "
                                          r"when its t = 0 is taken as the first epoch given") as caught:
         read_truth(SAMPLE_TRUTH, t[300:], "smartloc")
-    assert caught[0].filename == __file__
+    assert caught[0].filename == __file__ and "shifted" not in str(caught[0].message)
+    with pytest.warns(UserWarning, match=r"taken as the first epoch given \(GPS \d+\.\d s\) and its times shifted by "
+                                         r"\+0\.3 s \(time_offset_s, --truth-offset\); if these epochs"):
+        read_truth(SAMPLE_TRUTH, t[300:], "smartloc", time_offset_s=0.3)       # the shift the user gave is named
 
 
 def test_a_model_refuses_non_finite_features_on_used_slots():

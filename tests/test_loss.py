@@ -1,6 +1,7 @@
 """HEM loss against a hand computation; RMSE loss; masking; safe gradients."""
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -115,3 +116,59 @@ def test_compensation_loss_is_zero_for_the_perfect_correction_up_to_a_constellat
     assert torch.all(torch.isfinite(vc.grad)) and float(vc.grad[0, 5]) == 0.0
     none = torch.zeros_like(usable)
     assert float(compensation_loss(vc, error, none, system, 2).detach()) == 0.0
+
+
+def test_variance_loss_is_the_gaussian_nll_of_the_centred_error_and_teaches_r_only():
+    """0.5 (ln R + c^2 / R) over the usable satellites, c = v^c + e less its constellation's median; least at R = c^2;
+    no gradient reaches v^c; 0 when nothing is usable."""
+    from learning.loss import variance_loss
+
+    error = torch.tensor([[3.0, -1.0, 40.0, 2.0, -2.0, 0.0]], dtype=torch.float64)
+    system = torch.tensor([[0, 0, 0, 1, 1, 1]])
+    usable = torch.tensor([[True, True, True, True, True, False]])
+    r = torch.tensor([[1.0, 4.0, 100.0, 2.0, 8.0, 0.5]], dtype=torch.float64, requires_grad=True)
+    vc = torch.full_like(error, 0.5, requires_grad=True)
+    loss = variance_loss(r, vc, error, usable, system, 2)
+    c = torch.tensor([0.0, -4.0, 37.0, 2.0, -2.0], dtype=torch.float64)    # medians 3.5 and 0.5 of v^c + e removed
+    rr = r.detach()[usable]
+    assert float(loss.detach()) == pytest.approx(float(0.5 * torch.mean(torch.log(rr) + c ** 2 / rr)))
+    loss.backward()
+    assert vc.grad is None or torch.all(vc.grad == 0)
+    assert float(r.grad[0, 5]) == 0.0
+    want = 0.5 / 5 * (1 / rr - c ** 2 / rr ** 2)                           # d/dR: zero at R = c^2
+    assert torch.allclose(r.grad[usable], want)
+    at_c2 = torch.tensor([[1.0, 16.0, 37.0 ** 2, 4.0, 4.0, 1.0]], dtype=torch.float64, requires_grad=True)
+    variance_loss(at_c2, vc.detach(), error, usable, system, 2).backward()    # R = c^2 (slot 0: c = 0, R = 1)
+    assert torch.allclose(at_c2.grad[0, 1:5], torch.zeros(4, dtype=torch.float64), atol=1e-12)
+    assert float(variance_loss(r, vc, error, torch.zeros_like(usable), system, 2).detach()) == 0.0
+    padded = r.detach().clone()
+    padded[0, 5] = float("nan")                                   # an unusable slot may hold anything
+    assert float(variance_loss(padded, vc, error, torch.zeros_like(usable), system, 2)) == 0.0
+    assert torch.isfinite(variance_loss(padded, vc, error, usable, system, 2))
+
+
+def test_the_strongest_clock_centres_on_the_three_strongest_of_five_or_more():
+    """The "strongest" clock: the median of a constellation's three highest-C/N0 usable slots, only with five usable
+    satellites or more in the epoch; the R term then reads only those slots (the script's labelling,
+    benchmarks/bad_pseudoranges.py, on the same numbers)."""
+    import importlib
+    import sys as _sys
+    from pathlib import Path as _Path
+
+    from learning.loss import strongest_centred, variance_loss
+
+    d = torch.tensor([[1.0, 25.0, 2.0, 30.0, 3.0, 40.0, 7.0, 8.0]], dtype=torch.float64)
+    cn0 = torch.tensor([[48.0, 30.0, 47.0, 31.0, 46.0, 29.0, 50.0, 20.0]], dtype=torch.float64)
+    system = torch.tensor([[0, 0, 0, 0, 0, 0, 1, 1]])
+    usable = torch.tensor([[True] * 8])
+    centred, kept = strongest_centred(d, cn0, usable, system, 2)
+    assert kept.tolist() == [[True] * 6 + [False, False]]             # system 1 has two satellites: no clock
+    assert centred[0, :6].tolist() == [-1.0, 23.0, 0.0, 28.0, 1.0, 38.0]   # clock 2: median of 1, 2, 3
+    _sys.path.insert(0, str(_Path(__file__).resolve().parents[1] / "benchmarks"))
+    bp = importlib.import_module("bad_pseudoranges")
+    clock = bp.strongest_clock_m(d.numpy(), cn0.numpy(), usable.numpy(), system.numpy(), 2)
+    assert np.allclose((d.numpy() - clock)[kept.numpy()], centred[kept].numpy())
+    r = torch.full_like(d, 4.0)
+    want = 0.5 * torch.mean(torch.log(r[kept]) + centred[kept] ** 2 / r[kept])
+    assert float(variance_loss(r, torch.zeros_like(d), d, usable, system, 2, cn0)) == pytest.approx(float(want))
+    assert float(variance_loss(r, torch.zeros_like(d), d, usable & (system == 1), system, 2, cn0)) == 0.0

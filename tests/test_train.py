@@ -526,6 +526,14 @@ def test_a_run_from_before_loss_up_weight_resumes(tmp_path):
     assert torch.load(tmp_path / "last.pt", weights_only=False)["history"][-1]["epoch"] == 2
 
 
+def _noise_of(run_dir, cfg, prepared):
+    """(R, v^c) of the network in ``run_dir/last.pt`` on the prepared training windows."""
+    model = build_model(cfg, len(prepared.feature_names))
+    model.load_state_dict(torch.load(run_dir / "last.pt", weights_only=False)["model"])
+    with torch.no_grad():
+        return model(prepared.train_batch.features, prepared.train_batch.mask)
+
+
 def test_compensation_term_pulls_vc_towards_the_true_pseudorange_errors(config, prepared, full_run, tmp_path):
     """loss.vc_weight > 0 adds the per-satellite v^c term: after the same schedule, v^c is nearer to minus the true
     errors of the training epochs than without it; a network that makes v^c inside the filter is refused."""
@@ -541,13 +549,9 @@ def test_compensation_term_pulls_vc_towards_the_true_pseudorange_errors(config, 
     usable = batch.mask & torch.isfinite(batch.truth_ecef_m).all(dim=-1)[..., None]
     error = pseudorange_error_m(batch.pr_m, batch.sat_pos_ecef_m, batch.truth_ecef_m, usable, batch.system_index,
                                 prepared.n_systems)
-    term = {}
-    for name, out in (("with", tmp_path), ("without", full_run[0])):
-        model = build_model(cfg, len(prepared.feature_names))
-        model.load_state_dict(torch.load(out / "last.pt", weights_only=False)["model"])
-        with torch.no_grad():
-            _, vc = model(batch.features, batch.mask)
-        term[name] = float(compensation_loss(vc, error, usable, batch.system_index, prepared.n_systems))
+    term = {name: float(compensation_loss(_noise_of(out, cfg, prepared)[1], error, usable, batch.system_index,
+                                          prepared.n_systems))
+            for name, out in (("with", tmp_path), ("without", full_run[0]))}
     assert term["with"] < 0.8 * term["without"], term
     with pytest.raises(ValueError, match="loss.vc_weight needs a network that reads its features alone"):
         load_config("learning/configs/default.toml", ["loss.vc_weight=0.5", "model.innovation=true"])
@@ -560,6 +564,36 @@ def test_compensation_term_pulls_vc_towards_the_true_pseudorange_errors(config, 
     cfg["loss"]["balance"] = "plain_ekf"
     runs.append(train(cfg, tmp_path / "balanced", progress=False, prepared=prepare(cfg)))
     assert runs[0][1]["train_loss"] == runs[1][1]["train_loss"]
+
+
+def test_variance_term_fits_r_to_the_errors_left_after_compensation(config, prepared, full_run, tmp_path):
+    """loss.r_weight > 0 adds the per-satellite Gaussian NLL of R: after the same schedule that term is lower on the
+    training epochs than without it; a network that makes R inside the filter is refused, a negative weight too."""
+    from learning.loss import labelled_errors_m, variance_loss
+
+    cfg = copy.deepcopy(config)
+    cfg["loss"]["r_weight"] = 1.0
+    history = train(cfg, tmp_path, progress=False, prepared=prepared)
+    assert np.isfinite(history[-1]["train_loss"])
+    batch = prepared.train_batch
+    usable, error = labelled_errors_m(batch, prepared.n_systems)
+    term = {name: float(variance_loss(*_noise_of(out, cfg, prepared), error, usable, batch.system_index,
+                                      prepared.n_systems))
+            for name, out in (("with", tmp_path), ("without", full_run[0]))}
+    assert term["with"] < term["without"] - 0.1, term
+    with pytest.raises(ValueError, match="loss.r_weight needs a network that reads its features alone"):
+        load_config("learning/configs/default.toml", ["loss.r_weight=0.5", "model.innovation=true"])
+    with pytest.raises(ValueError, match="loss.r_weight"):
+        load_config("learning/configs/default.toml", ["loss.r_weight=-1"])
+    with pytest.raises(ValueError, match=r"loss.r_weight needs model.r_floor_m2 > 0"):
+        load_config("learning/configs/default.toml", ["loss.r_weight=1", "model.r_floor_m2=0"])
+    with pytest.raises(ValueError, match=r"loss.r_clock must be 'median' or 'strongest', got 'mean'"):
+        load_config("learning/configs/default.toml", ["loss.r_weight=1", "loss.r_clock='mean'"])
+    cfg["loss"]["r_clock"], cfg["train"]["epochs"] = "strongest", 1     # the three strongest signals' clock
+    plain = train(copy.deepcopy(dict(cfg, loss=dict(cfg["loss"], r_weight=0.0))), tmp_path / "plain", progress=False,
+                  prepared=prepared)
+    strongest = train(cfg, tmp_path / "strongest", progress=False, prepared=prepared)
+    assert np.isfinite(strongest[1]["train_loss"]) and strongest[1]["train_loss"] != plain[1]["train_loss"]
 
 
 def test_resuming_from_python_says_what_it_ignores_and_a_schedule_taken_past_its_turn(config, prepared, tmp_path):

@@ -14,7 +14,7 @@ import torch
 import estimators
 import lfgnss
 from learning.export import load_model, main as export_main
-from learning.train import _toml_change, main as train_main
+from learning.train import dataset_toml_change, main as train_main
 from lfgnss import datasets
 from lfgnss.benchmark import (DEFAULT_DATASETS, MODEL_DIR, RTKLIB, _trained_on, file_label, main as bench_main,
                               methods)
@@ -82,17 +82,17 @@ def test_resume_refuses_a_dataset_toml_edited_or_gone_since_the_run_started(runs
 
 
 def test_a_toml_change_is_its_first_changed_key_and_comments_are_none():
-    assert _toml_change(TOML_TEXT, "# mine\n" + TOML_TEXT.replace("\n[", "\n\n[")) is None
-    assert _toml_change(TOML_TEXT, TOML_TEXT + 'description = "x"\n') == "splits.description is 'x' now, unset"
-    assert _toml_change(TOML_TEXT, TOML_TEXT + "[[") == "its text differs from the text it had"
-    assert _toml_change(TOML_TEXT, 'description = "my drive"\n' + TOML_TEXT) is None          # no data setting
+    assert dataset_toml_change(TOML_TEXT, "# mine\n" + TOML_TEXT.replace("\n[", "\n\n[")) is None
+    assert dataset_toml_change(TOML_TEXT, TOML_TEXT + 'description = "x"\n') == "splits.description is 'x' now, unset"
+    assert dataset_toml_change(TOML_TEXT, TOML_TEXT + "[[") == "its text differs from the text it had"
+    assert dataset_toml_change(TOML_TEXT, 'description = "my drive"\n' + TOML_TEXT) is None          # no data setting
     # a time_origin_gps_s that nothing read (urbannav truth, tow splits), removed as registration now asks: resumes
     tow = TOML_TEXT.replace('axis = "relative_s"', 'axis = "tow"') + '[truth]\nfile = "t.csv"\n'
-    assert _toml_change(tow.replace('file = "t.csv"', 'file = "t.csv"\ntime_origin_gps_s = 5.0'), tow) is None
+    assert dataset_toml_change(tow.replace('file = "t.csv"', 'file = "t.csv"\ntime_origin_gps_s = 5.0'), tow) is None
     truth = TOML_TEXT + '[truth]\nfile = "t.csv"\n'
-    assert _toml_change(truth, truth + "time_offset_s = 0\n") is None                      # the default, spelt out
-    assert _toml_change(truth, truth + "time_offset_s = 18\n") == "truth.time_offset_s is 18 now, unset"
-    assert _toml_change(TOML_TEXT + '[truth]\nfile = "t.csv"\ntime_origin_gps_s = 5.0\n',
+    assert dataset_toml_change(truth, truth + "time_offset_s = 0\n") is None              # the default, spelt out
+    assert dataset_toml_change(truth, truth + "time_offset_s = 18\n") == "truth.time_offset_s is 18 now, unset"
+    assert dataset_toml_change(TOML_TEXT + '[truth]\nfile = "t.csv"\ntime_origin_gps_s = 5.0\n',
                         TOML_TEXT + '[truth]\nfile = "t.csv"\n') == "truth.time_origin_gps_s is unset now, 5.0"
 
 

@@ -1,0 +1,306 @@
+"""Which cues tell pseudoranges more than 10 m off apart: areas under the ROC curve against the truth.
+
+    python benchmarks/bad_pseudoranges.py            # train and val splits, print the tables
+    python benchmarks/bad_pseudoranges.py --write    # ... and write docs/bad_pseudoranges.md and its PNG
+
+A diagnostic, not a method: every usable pseudorange of an epoch with truth is labelled by its error at the true
+position (``estimators.noise.constellation_residual_m``) less a receiver clock per epoch and constellation, taken
+two ways: the median of the constellation's errors (``estimators.TruthNoise``'s clock) or the median of its three
+strongest signals' errors (constellations with 5 satellites or more in the epoch). A pseudorange is bad when that
+error exceeds 10 m in size, late when it is positive. Each cue (C/N0, elevation, the coarse and the weighted fix's
+|residual|, the R of the dataset's own model and of the joint model) is scored by the area under the ROC curve for
+bad against good, oriented so that 0.5 is chance and 1 ranks every bad signal as worse than every good one. Train and
+validation splits only (the test split is never read); nothing is chosen from these figures.
+"""
+from __future__ import annotations
+
+import sys
+import warnings
+from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from lfgnss.sequence import Sequence
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from smoothing_lag import command_line, publish, save_figure, script_parser, unknown_datasets  # noqa: E402
+
+DOC = REPO / "docs" / "bad_pseudoranges.md"
+FIGURE = REPO / "docs" / "figures" / "bad_pseudoranges.png"
+DATASETS = ("berlin-pp", "hk-tst-2019")
+SPLITS = ("train", "val")                 # never the test split
+BAD_M = 10.0
+STRONG_DBHZ = 38.0
+STRONGEST_K = 3
+STRONGEST_MIN_SATS = 5
+LABELLINGS = {"median": "each constellation's epoch median", "strongest 3": "median of its 3 strongest signals"}
+CUES = ("C/N0", "elevation", "coarse |residual|", "weighted-fix |residual|", "R own model", "R joint model")
+
+
+def roc_auc(score: np.ndarray, positive: np.ndarray) -> float:
+    """Area under the ROC curve of ``score`` (higher = more likely positive): P(a positive scores above a negative),
+    ties counted half; NaN when either class is empty. ValueError on non-finite scores or mismatched shapes."""
+    score, positive = np.asarray(score, float).ravel(), np.asarray(positive, bool).ravel()
+    if score.shape != positive.shape:
+        raise ValueError(f"roc_auc: {score.size} scores for {positive.size} labels")
+    if not np.isfinite(score).all():
+        raise ValueError("roc_auc: scores must be finite (leave the others out)")
+    n_pos = int(positive.sum())
+    n_neg = positive.size - n_pos
+    if n_pos == 0 or n_neg == 0:
+        return float("nan")
+    _, inverse, counts = np.unique(score, return_inverse=True, return_counts=True)
+    mid_rank = np.cumsum(counts) - (counts - 1) / 2.0      # 1-based rank of each distinct value, ties averaged
+    rank_sum = mid_rank[inverse.ravel()][positive].sum()
+    return float((rank_sum - n_pos * (n_pos + 1) / 2.0) / (n_pos * n_neg))   # Mann-Whitney U / (n_pos n_neg)
+
+
+def roc_curve(score: np.ndarray, positive: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(false, true positive rate) at each distinct threshold of ``score``, from (0, 0) to (1, 1); its trapezoid area
+    is ``roc_auc``. Both classes must be present."""
+    score, positive = np.asarray(score, float).ravel(), np.asarray(positive, bool).ravel()
+    order = np.argsort(-score, kind="stable")
+    s, p = score[order], positive[order]
+    last = np.r_[np.flatnonzero(np.diff(s) != 0), s.size - 1]          # last index of each group of equal scores
+    tp, fp = np.cumsum(p)[last], np.cumsum(~p)[last]
+    return np.r_[0.0, fp / max(fp[-1], 1)], np.r_[0.0, tp / max(tp[-1], 1)]
+
+
+def strongest_clock_m(error_m: np.ndarray, cn0_dbhz: np.ndarray, ok: np.ndarray, system_index: np.ndarray,
+                      n_systems: int, k: int = STRONGEST_K, min_sats: int = STRONGEST_MIN_SATS) -> np.ndarray:
+    """(T, N) each slot's epoch median of ``error_m`` [m] over the ``k`` highest-C/N0 ``ok`` slots of its
+    constellation (equal C/N0: the lower slot first); NaN where that constellation has under ``min_sats`` ok slots."""
+    out = np.full(np.shape(error_m), np.nan)
+    for c in range(n_systems):
+        in_sys = ok & (system_index == c)
+        strongest = np.argsort(np.where(in_sys, -np.asarray(cn0_dbhz, float), np.inf), axis=1, kind="stable")[:, :k]
+        clock = np.median(np.take_along_axis(np.asarray(error_m, float), strongest, axis=1), axis=1)
+        enough = in_sys.sum(axis=1) >= max(min_sats, k)
+        out = np.where(in_sys & enough[:, None], clock[:, None], out)
+    return out
+
+
+def truth_errors_m(sequence: "Sequence") -> dict[str, np.ndarray]:
+    """{labelling: (T, N) error [m] at the true position less that labelling's clock}; NaN where not labelled."""
+    from estimators.noise import constellation_residual_m
+
+    ok = sequence.mask & sequence.labelled[:, None]
+    median = constellation_residual_m(sequence, sequence.truth_ecef_m, ok)
+    # the median clock is one value per epoch and constellation, so removing it first leaves the strongest-3 error
+    strongest = median - strongest_clock_m(median, sequence.cn0_dbhz, ok, sequence.system_index,
+                                           len(sequence.systems))
+    return {"median": median, "strongest 3": strongest}
+
+
+def _feature(sequence: "Sequence", name: str) -> np.ndarray:
+    """(T, N) the raw feature ``name``; NaN everywhere when the sequence was built without it."""
+    if name not in sequence.feature_names:
+        return np.full(sequence.mask.shape, np.nan)
+    return sequence.features[..., sequence.feature_names.index(name)]
+
+
+def signals(sequence: "Sequence", models: dict[str, Callable]) -> dict[str, np.ndarray]:
+    """Flat arrays over the usable slots of labelled epochs: each labelling's error [m], C/N0 [dB-Hz], each cue
+    oriented so that higher is worse, and the own model's v^c [m]."""
+    ok = sequence.mask & sequence.labelled[:, None]
+    out = {f"error {name}": e[ok] for name, e in truth_errors_m(sequence).items()}
+    out["cn0"] = sequence.cn0_dbhz[ok]
+    cues = {"C/N0": -sequence.cn0_dbhz, "elevation": -sequence.el_rad,
+            "coarse |residual|": np.abs(_feature(sequence, "residual")),
+            "weighted-fix |residual|": np.abs(_feature(sequence, "residual_weighted"))}
+    for name, model in models.items():
+        r_m2, vc_m = model(sequence)
+        cues[f"R {name}"] = np.asarray(r_m2, float)
+        if name == "own model":
+            out["vc own model"] = np.asarray(vc_m, float)[ok]
+    out.update({f"cue {name}": value[ok] for name, value in cues.items()})
+    return out
+
+
+def _aucs(sig: dict[str, np.ndarray], bad: np.ndarray, on: np.ndarray) -> dict[str, float]:
+    """{cue: area under the ROC curve} over the slots ``on`` (each cue's finite values)."""
+    out = {}
+    for cue in CUES:
+        score = sig[f"cue {cue}"]
+        keep = on & np.isfinite(score)
+        out[cue] = roc_auc(score[keep], bad[keep]) if keep.any() else float("nan")
+    return out
+
+
+def summary(sig: dict[str, np.ndarray], labelling: str) -> dict:
+    """One row: counts, bad and late shares, the error's 5th percentile [m], the cues' areas (all signals and those
+    of ``STRONG_DBHZ`` and above) and the correlation of the own model's v^c with minus the error."""
+    error = sig[f"error {labelling}"]
+    on = np.isfinite(error)
+    bad = on & (np.abs(np.nan_to_num(error)) > BAD_M)
+    strong = on & (sig["cn0"] >= STRONG_DBHZ)
+    n_bad = int(bad.sum())
+    vc = sig["vc own model"][on]
+    nan = float("nan")
+    return {"labelled": int(on.sum()), "n_bad": n_bad, "bad": n_bad / on.sum() if on.any() else nan,
+            "late": float((error[bad] > 0).mean()) if n_bad else nan,
+            "p5_m": float(np.percentile(error[on], 5)) if on.any() else nan,
+            "vc_corr": float(np.corrcoef(vc, -error[on])[0, 1]) if on.sum() > 1 and vc.std() > 0 else nan,
+            "auc": _aucs(sig, bad, on),
+            "strong": {"labelled": int(strong.sum()), "n_bad": int(bad[strong].sum()),
+                       "bad": float(bad[strong].mean()) if strong.any() else nan,
+                       "of_bad": float(bad[strong].sum() / n_bad) if n_bad else nan,
+                       "auc": _aucs(sig, bad, strong)}}
+
+
+def model_files(dataset_id: str) -> dict[str, Path]:
+    """{"own model": the dataset's bundled model (else the joint one), "joint model": the joint one}."""
+    from lfgnss.benchmark import MODEL_DIR
+
+    own = MODEL_DIR / f"lfgnss-{dataset_id}.npz"
+    joint = MODEL_DIR / "lfgnss-default.npz"
+    return {"own model": own if own.exists() else joint, "joint model": joint}
+
+
+def _concat(parts: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+    return {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
+
+
+def run(dataset_ids: list[str], splits: tuple[str, ...] = SPLITS) -> tuple[list[dict], dict]:
+    """Rows (dataset, split, labelling, ``summary``), the splits pooled as a last row per dataset and labelling when
+    there are several, and the flat ``signals`` {(dataset, split): ...} for the figure."""
+    from learning.export import load_model
+    from lfgnss import datasets
+    from lfgnss.sequence import DEFAULT_FEATURES
+
+    if "test" in splits:
+        raise ValueError("bad_pseudoranges: the test split is not read by this diagnostic")
+    rows, kept = [], {}
+    for dataset_id in datasets.present(list(dataset_ids)):
+        files = model_files(dataset_id)
+        models = {name: load_model(path) for name, path in files.items()}
+        names = list(DEFAULT_FEATURES) + ["residual_weighted"]
+        names += [n for m in models.values() for n in getattr(m, "feature_names", ()) if n not in names]
+        per_split = {}
+        for split in splits:
+            seqs = datasets.load_split(dataset_id, split, feature_names=tuple(dict.fromkeys(names)))
+            if seqs:
+                per_split[split] = _concat([signals(s, models) for s in seqs])
+            else:
+                print(f"{dataset_id}: no labelled epoch in its {split} split: left out", file=sys.stderr)
+        if len(per_split) > 1:
+            per_split["+".join(per_split)] = _concat(list(per_split.values()))
+        for split, sig in per_split.items():
+            kept[(dataset_id, split)] = sig
+            for labelling in LABELLINGS:
+                rows.append({"dataset": dataset_id, "split": split, "labelling": labelling,
+                             "models": {k: v.name for k, v in files.items()}, **summary(sig, labelling)})
+    return rows, kept
+
+
+def _f(x: float, fmt: str = ".3f") -> str:
+    return "-" if not np.isfinite(x) else format(x, fmt)
+
+
+def _pct(x: float) -> str:
+    return "-" if not np.isfinite(x) else f"{100 * x:.0f} %"
+
+
+def _count(n: int, share: float) -> str:
+    """``"5147 (47 %)"``; under 1 % with a decimal, so a handful does not read as none."""
+    return f"{n} ({100 * share:.1f} %)" if 0 < share < 0.01 else f"{n} ({_pct(share)})"
+
+
+def tables(rows: list[dict], labelling: str) -> list[str]:
+    """Markdown lines: the labelling's table over all signals and its table over those of ``STRONG_DBHZ`` and up."""
+    mine = [r for r in rows if r["labelling"] == labelling]
+    head = " | ".join(c.replace("|", "\\|") for c in CUES)
+    out = ["### All signals", "",
+           f"| dataset / split | labelled | bad | late of bad | error p5 [m] | {head} | corr(v^c, -error) |",
+           "| --- |" + " ---: |" * (len(CUES) + 5)]
+    for r in mine:
+        out.append(f"| {r['dataset']} {r['split']} | {r['labelled']} | {_count(r['n_bad'], r['bad'])} | "
+                   f"{_pct(r['late'])} | {_f(r['p5_m'], '.1f')} | " + " | ".join(_f(r["auc"][c]) for c in CUES)
+                   + f" | {_f(r['vc_corr'], '.2f')} |")
+    out += ["", f"### Signals of {STRONG_DBHZ:g} dB-Hz and above", "",
+            f"| dataset / split | signals | bad | share of all bad | {head} |", "| --- |" + " ---: |" * (len(CUES) + 3)]
+    for r in mine:
+        s = r["strong"]
+        out.append(f"| {r['dataset']} {r['split']} | {s['labelled']} | {_count(s['n_bad'], s['bad'])} | "
+                   f"{_pct(s['of_bad'])} | " + " | ".join(_f(s["auc"][c]) for c in CUES) + " |")
+    return out + [""]
+
+
+def markdown(rows: list[dict], command: str) -> str:
+    """The page: a header paragraph and, per labelling, the two tables of ``tables``."""
+    models = "; ".join(f"{d}: `{r['models']['own model']}`" for d, r in
+                       {r["dataset"]: r for r in rows}.items())
+    out = ["# Telling bad pseudoranges apart", "",
+           f"Produced by `{command}` (area under the ROC curve for a pseudorange more than {BAD_M:g} m off, bad "
+           "against good: rank statistic, ties counted half, 0.5 is chance, 1 ranks every bad signal as worse). It "
+           "reads the truth: a diagnostic, nothing is chosen from it, and only the train and validation splits are "
+           "read (train+val: the two pooled). Labelled: each usable pseudorange of an epoch with truth, its error "
+           "at the true position less a receiver clock per epoch and constellation: *median*, the constellation's "
+           "epoch median (`estimators.TruthNoise`'s clock); *strongest 3*, the median of its three highest-C/N0 "
+           "signals' errors (C/N0 comes in whole dB-Hz: ties broken by slot order), only where the constellation "
+           f"has {STRONGEST_MIN_SATS} satellites or more in the epoch "
+           "(the others are left out). Late: error > 0 (longer than the clock says). Cues, higher = worse: minus "
+           "C/N0, minus elevation, |residual| of the equal-weight (coarse) fix and of the C/N0-elevation weighted "
+           "fix (features `residual`, `residual_weighted`), and the learned R of the dataset's own bundled model "
+           f"({models}) and of the joint one (`lfgnss-default.npz`); the models were trained on the train splits, so "
+           "only the validation rows are out of sample for them. corr(v^c, -error): Pearson correlation of the own "
+           "model's v^c with minus the error. Over a handful of bad signals (the counts) an area is noise. "
+           f"Figure: `figures/{FIGURE.name}` (ROC curves, first dataset's "
+           "validation split).", ""]
+    for labelling, words in LABELLINGS.items():
+        out += [f"## Clock: {labelling} ({words})", ""] + tables(rows, labelling)
+    return "\n".join(out)
+
+
+def plot(kept: dict, path: Path, dataset_id: str, split: str = "val") -> Path:
+    """ROC curves of every cue for ``dataset_id``'s ``split``, one panel per labelling."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    sig = kept[(dataset_id, split)]
+    fig, axes = plt.subplots(1, len(LABELLINGS), figsize=(5 * len(LABELLINGS), 4.6), squeeze=False)
+    for ax, labelling in zip(axes[0], LABELLINGS):
+        error = sig[f"error {labelling}"]
+        for cue in CUES:
+            score = sig[f"cue {cue}"]
+            keep = np.isfinite(error) & np.isfinite(score)
+            bad = np.abs(error[keep]) > BAD_M
+            if bad.any() and not bad.all():
+                fpr, tpr = roc_curve(score[keep], bad)
+                ax.plot(fpr, tpr, lw=1.2, label=f"{cue} ({roc_auc(score[keep], bad):.3f})")
+        ax.plot([0, 1], [0, 1], color="k", lw=0.8, ls=":")
+        ax.set_title(f"{dataset_id} {split}, clock: {labelling}")
+        ax.set_xlabel("good signals flagged (false positive rate)")
+        ax.set_ylabel(f"bad (> {BAD_M:g} m) signals flagged")
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=7, loc="lower right")
+    return save_figure(fig, path)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run, print, and with ``--write`` write the Markdown page and the figure."""
+    p = script_parser(__doc__, f"write {DOC.relative_to(REPO)} and {FIGURE.name}")
+    p.set_defaults(datasets=list(DATASETS))
+    p.add_argument("--splits", nargs="+", default=list(SPLITS), choices=SPLITS)
+    args = p.parse_args(argv)
+    warnings.simplefilter("ignore", FutureWarning)
+    sys.path.insert(0, str(REPO))
+    if unknown_datasets("bad_pseudoranges.py", args.datasets):
+        return 2
+    rows, kept = run(args.datasets, tuple(args.splits))
+    if not rows:
+        print("bad_pseudoranges.py: no dataset with its files: nothing to score", file=sys.stderr)
+        return 2
+    text = markdown(rows, command_line("bad_pseudoranges.py", argv))
+    first = rows[0]["dataset"]
+    figure = (lambda: plot(kept, FIGURE, first, "val")) if (first, "val") in kept else None
+    return publish(text, DOC, args.write, figure)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

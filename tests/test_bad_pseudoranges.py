@@ -1,0 +1,130 @@
+"""benchmarks/bad_pseudoranges.py: the ROC area, the two truth labellings and the tables, on the bundled drive."""
+from __future__ import annotations
+
+import dataclasses
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lfgnss import datasets
+from lfgnss.corrections import geometric_range_m
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+import bad_pseudoranges as bp  # noqa: E402
+
+
+@pytest.mark.parametrize("score, positive, want", [
+    ([1, 2, 3, 4], [0, 0, 1, 1], 1.0),                 # perfect
+    ([1, 2, 3, 4], [1, 1, 0, 0], 0.0),                 # reversed
+    ([5, 5, 5, 5], [0, 1, 0, 1], 0.5),                 # all tied: chance
+    ([1, 2, 2, 3], [0, 1, 0, 1], 3.5 / 4),             # pairs (2,1) (2,2) (3,1) (3,2): 1 + 0.5 + 1 + 1
+    ([0.3, -1.0, 2.0], [1, 0, 0], 0.5),                # one of two negatives below the positive
+])
+def test_roc_auc_on_hand_cases(score, positive, want):
+    assert bp.roc_auc(np.array(score, float), np.array(positive, bool)) == pytest.approx(want)
+
+
+def test_roc_auc_without_one_class_is_nan_and_bad_input_is_refused():
+    assert np.isnan(bp.roc_auc([1.0, 2.0], [True, True]))
+    assert np.isnan(bp.roc_auc([1.0, 2.0], [False, False]))
+    assert np.isnan(bp.roc_auc([], []))
+    with pytest.raises(ValueError, match="finite"):
+        bp.roc_auc([1.0, np.nan], [True, False])
+    with pytest.raises(ValueError, match="3 scores for 2 labels"):
+        bp.roc_auc([1.0, 2.0, 3.0], [True, False])
+
+
+def test_roc_auc_is_the_pairwise_share_and_the_curve_s_area():
+    rng = np.random.default_rng(0)
+    score = rng.integers(0, 6, 300).astype(float)                  # many ties
+    positive = rng.random(300) < 0.3 + 0.1 * score
+    diff = score[positive][:, None] - score[~positive][None, :]
+    want = ((diff > 0) + 0.5 * (diff == 0)).mean()
+    assert bp.roc_auc(score, positive) == pytest.approx(want)
+    fpr, tpr = bp.roc_curve(score, positive)
+    assert (fpr[0], tpr[0], fpr[-1], tpr[-1]) == (0.0, 0.0, 1.0, 1.0)
+    assert np.sum(np.diff(fpr) * (tpr[1:] + tpr[:-1]) / 2) == pytest.approx(want)
+
+
+def test_the_strongest_clock_is_that_of_the_three_strongest_with_five_satellites_or_more():
+    # constellation 0: three strong clean signals, three weak ones 40 m late; constellation 1: only four satellites
+    error = np.array([[0.0, 1.0, 2.0, 40.0, 41.0, 42.0, 1.0, 2.0, 3.0, 4.0]])
+    cn0 = np.array([[45.0, 44.0, 43.0, 30.0, 29.0, 28.0, 40.0, 40.0, 40.0, 40.0]])
+    system = np.array([[0, 0, 0, 0, 0, 0, 1, 1, 1, 1]])
+    ok = np.ones_like(error, bool)
+    clock = bp.strongest_clock_m(error, cn0, ok, system, 2)
+    assert np.array_equal(clock[0, :6], np.ones(6)) and np.isnan(clock[0, 6:]).all()
+    ok[0, 0] = False                                # the strongest left out: the next three, 1, 2 and 40 m
+    clock = bp.strongest_clock_m(error, cn0, ok, system, 2)
+    assert np.isnan(clock[0, 0]) and np.array_equal(clock[0, 1:6], np.full(5, 2.0))
+    ok[0, 1] = False                                # four left: no clock
+    assert np.isnan(bp.strongest_clock_m(error, cn0, ok, system, 2)).all()
+
+
+@pytest.fixture
+def clean_sequence(my_drive):
+    """The drive's train split with every pseudorange replaced by its true range plus a clock per constellation
+    and 1 m of noise, and the slot given +30 m: (sequence, (epoch, slot))."""
+    seq = datasets.load_split(my_drive, "train")[0]
+    rng = np.random.default_rng(1)
+    clock = np.array([1.0e5, 1.0e5 + 37.0])[np.maximum(seq.system_index, 0)]
+    true_range = geometric_range_m(seq.sat_pos_ecef_m, np.nan_to_num(seq.truth_ecef_m)[:, None, :])
+    pr = np.where(seq.mask, true_range + clock + rng.normal(0.0, 1.0, seq.mask.shape), 0.0)
+    ok = seq.mask & seq.labelled[:, None]
+    in_gps = ok & (seq.system_index == 0)
+    epoch = int(np.flatnonzero(in_gps.sum(axis=1) >= 6)[0])
+    slot = int(np.flatnonzero(in_gps[epoch])[0])
+    pr[epoch, slot] += 30.0
+    return dataclasses.replace(seq, pr_m=pr), (epoch, slot)
+
+
+def test_an_injected_30_m_delay_is_bad_and_late_under_both_clocks_and_clean_slots_are_not(clean_sequence):
+    seq, (epoch, slot) = clean_sequence
+    ok = seq.mask & seq.labelled[:, None]
+    errors = bp.truth_errors_m(seq)
+    assert set(errors) == set(bp.LABELLINGS)
+    for name, error in errors.items():
+        assert error[epoch, slot] == pytest.approx(30.0, abs=6.0), name
+        assert error[epoch, slot] > bp.BAD_M, name                    # bad and late
+        others = ok.copy()
+        others[epoch, slot] = False
+        labelled = others & np.isfinite(error)
+        assert labelled.sum() > 0.5 * others.sum(), name
+        assert np.abs(error[labelled]).max() < bp.BAD_M, name
+        assert np.isnan(error[~ok]).all(), name
+    row = bp.summary({f"error {k}": e[ok] for k, e in errors.items()} | {
+        "cn0": seq.cn0_dbhz[ok], "vc own model": np.zeros(ok.sum()),
+        **{f"cue {c}": -seq.cn0_dbhz[ok] for c in bp.CUES}}, "strongest 3")
+    assert (row["n_bad"], row["late"]) == (1, 1.0)
+
+
+def test_the_tables_run_on_a_registered_dataset(my_drive, tmp_path):
+    rows, kept = bp.run([my_drive], ("train", "val"))
+    assert [(r["split"], r["labelling"]) for r in rows] == [
+        (s, k) for s in ("train", "val", "train+val") for k in bp.LABELLINGS]
+    assert all(r["models"] == {"own model": "lfgnss-default.npz", "joint model": "lfgnss-default.npz"} for r in rows)
+    pooled = [r for r in rows if r["split"] == "train+val"]
+    assert [r["labelled"] for r in pooled] == [sum(r["labelled"] for r in rows if r["labelling"] == p["labelling"]
+                                                   and r["split"] != "train+val") for p in pooled]
+    train = rows[0]
+    assert 0 < train["bad"] < 1 and train["n_bad"] > 0 and 0 <= train["late"] <= 1
+    assert all(0 <= train["auc"][c] <= 1 for c in bp.CUES)
+    assert train["strong"]["labelled"] < train["labelled"]
+
+    page = bp.markdown(rows, "cmd")
+    assert page.count("### All signals") == 2 and "my-drive train+val" in page and "nan" not in page
+    assert bp.plot(kept, tmp_path / "roc.png", my_drive).stat().st_size > 0
+
+
+def test_the_test_split_is_never_read(my_drive):
+    with pytest.raises(ValueError, match="test split"):
+        bp.run([my_drive], ("train", "test"))
+    with pytest.raises(SystemExit):
+        bp.main(["--datasets", my_drive, "--splits", "test"])
+
+
+def test_unknown_datasets_are_refused_in_one_line(capsys):
+    assert bp.main(["--datasets", "nope"]) == 2
+    assert capsys.readouterr().err.strip().startswith("bad_pseudoranges.py: unknown dataset nope; known:")
