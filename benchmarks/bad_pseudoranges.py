@@ -230,8 +230,9 @@ def tables(rows: list[dict], labelling: str) -> list[str]:
     return out + [""]
 
 
-def markdown(rows: list[dict], command: str) -> str:
-    """The page: a header paragraph and, per labelling, the two tables of ``tables``."""
+def markdown(rows: list[dict], command: str, figure: bool = True) -> str:
+    """The page: a header paragraph (naming the figure where one is drawn) and, per labelling, the two tables of
+    ``tables``."""
     models = "; ".join(f"{d}: `{r['models']['own model']}`" for d, r in
                        {r["dataset"]: r for r in rows}.items())
     out = ["# Telling bad pseudoranges apart", "",
@@ -248,9 +249,9 @@ def markdown(rows: list[dict], command: str) -> str:
            "fix (features `residual`, `residual_weighted`), and the learned R of the dataset's own bundled model "
            f"({models}) and of the joint one (`lfgnss-default.npz`); the models were trained on the train splits, so "
            "only the validation rows are out of sample for them. corr(v^c, -error): Pearson correlation of the own "
-           "model's v^c with minus the error. Over a handful of bad signals (the counts) an area is noise. "
-           f"Figure: `figures/{FIGURE.name}` (ROC curves, first dataset's "
-           "validation split).", ""]
+           "model's v^c with minus the error. Over a handful of bad signals (the counts) an area is noise."
+           + (f" Figure: `figures/{FIGURE.name}` (ROC curves, first dataset's validation split)." if figure else ""),
+           ""]
     for labelling, words in LABELLINGS.items():
         out += [f"## Clock: {labelling} ({words})", ""] + tables(rows, labelling)
     return "\n".join(out)
@@ -296,10 +297,10 @@ def main(argv: list[str] | None = None) -> int:
     if not rows:
         print("bad_pseudoranges.py: no dataset with its files: nothing to score", file=sys.stderr)
         return 2
-    text = markdown(rows, command_line("bad_pseudoranges.py", argv))
     first = rows[0]["dataset"]
     figure = (lambda: plot(kept, FIGURE, first, "val")) if (first, "val") in kept else None
-    return publish(text, DOC, args.write, figure)
+    return publish(markdown(rows, command_line("bad_pseudoranges.py", argv), figure is not None), DOC, args.write,
+                   figure)
 
 
 if __name__ == "__main__":

@@ -115,6 +115,8 @@ def test_the_tables_run_on_a_registered_dataset(my_drive, tmp_path):
 
     page = bp.markdown(rows, "cmd")
     assert page.count("### All signals") == 2 and "my-drive train+val" in page and "nan" not in page
+    assert "Figure: `figures/bad_pseudoranges.png`" in page
+    assert "Figure:" not in bp.markdown(rows, "cmd", figure=False)      # --splits train draws none: none named
     assert bp.plot(kept, tmp_path / "roc.png", my_drive).stat().st_size > 0
 
 
