@@ -15,7 +15,8 @@ from lfgnss.spp import SppConfig
 from lfgnss.weighted_fix import weighted_least_squares
 
 from .base import STATUS_NONE, STATUS_UPDATED, Solution, check_sequence, keep_slots, register, usable_sequence
-from .noise import HeuristicNoise, NoiseModel, checked_noise, noise_output, resolve_noise, switched_on_warned
+from .noise import (HeuristicNoise, NoiseModel, checked_noise, noise_output, resolve_noise, switched_on_warned,
+                    warn_implausible_r)
 
 
 @dataclass
@@ -46,6 +47,7 @@ class LeastSquaresBaseline:
         else:
             r, _ = checked_noise(self.name, sequence.name, sequence.mask,
                                  *noise_output(self.name, self.noise(sequence), self.noise), self.noise)
+            warn_implausible_r(self.name, sequence, sequence.mask, r)
             # R > R_OFF_M2: satellite off
             sequence = keep_slots(sequence, switched_on_warned(self.name, sequence.name, sequence.mask, r))
         fix = weighted_least_squares(sequence.pr_m, sequence.sat_pos_ecef_m, sequence.system_index, sequence.mask,

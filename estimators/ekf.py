@@ -222,11 +222,11 @@ class LfgnssEkf:
         """(r_m2, vc_m), each (T, N), from the noise model, checked on the usable slots."""
         return self._checked(sequence, usable, *noise_output(type(self).__name__, self.noise(sequence), self.noise))
 
-    def _checked(self, sequence: Sequence, usable: np.ndarray, r: object, vc: object, judge_scale: bool = True
+    def _checked(self, sequence: Sequence, usable: np.ndarray, r: object, vc: object
                  ) -> tuple[np.ndarray, np.ndarray]:
         """``(r, vc)`` with positive finite R and finite v^c on the usable slots (v^c 0 without compensation)."""
         r, vc = checked_noise(type(self).__name__, sequence.name, usable, r,
-                              vc if self.use_compensation else np.zeros(np.shape(r)), self.noise, judge_scale)
+                              vc if self.use_compensation else np.zeros(np.shape(r)), self.noise)
         return r, vc
 
     def solve(self, sequence: Sequence) -> Solution:
@@ -253,6 +253,7 @@ class LfgnssEkf:
             r_noise = np.ones(usable.shape)          # every epoch asks (ask_noise) before anything reads it
         else:
             r_all, vc_all = self.noise_arrays(sequence, usable)
+            warn_implausible_r(type(self).__name__, sequence, usable, r_all)
             r_noise = r_all.copy()
             usable = switched_on_warned(type(self).__name__, sequence.name, usable, r_all)
             vc_all = np.where(usable, vc_all, 0.0)
@@ -340,7 +341,7 @@ class LfgnssEkf:
             if prior_x is not None:
                 innovation[idx] = models.prior_innovation_m(prior_x, sat_all[k, idx], sys_all[k, idx], pr_all[k, idx])
             r, vc = self._checked(sequence, usable[k], *noise_output(type(self).__name__, self.noise.predict(
-                features[k], sequence.mask[k], innovation_feature(innovation)), self.noise), judge_scale=False)
+                features[k], sequence.mask[k], innovation_feature(innovation)), self.noise))
             r_noise[k] = r
             on = switched_on(usable[k], r)
             if not np.array_equal(on, usable[k]):       # as if masked out: redo what the epoch's slots decided
@@ -422,7 +423,7 @@ class LfgnssEkf:
 
         if online:
             warn_switched_off(type(self).__name__, sequence.name, usable_before_noise, usable)
-            warn_implausible_r(type(self).__name__, sequence.name, usable_before_noise, r_noise)
+            warn_implausible_r(type(self).__name__, sequence, usable_before_noise, r_noise)
         info = {"n_gated": n_gated, "n_usable": usable.sum(1), "n_doppler": n_doppler, "stationary": still,
                 "clock_realigned": clock_realigned, "config": cfg, "filtered_state": state, "r_m2": r_all,
                 "noise_r_m2": r_noise,

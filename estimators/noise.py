@@ -183,35 +183,39 @@ def switched_on_warned(owner: str, sequence_name: str, usable: np.ndarray, r_m2:
     return on
 
 
-#: Median pseudorange variance [m^2] of a run outside which ``warn_implausible_r`` says R looks given in another
-#: unit: a code pseudorange's sd lies between 10 cm and 100 m (in cm^2 or km^2 the bundled models' R falls outside).
-R_PLAUSIBLE_M2 = (1e-2, 1e4)
+#: Range of the median ratio of a noise model's R to the hand-set C/N0-elevation variance (``HeuristicNoise``'s) on
+#: the same pseudoranges outside which ``warn_implausible_r`` says R looks given in another unit. The bundled models
+#: and TruthNoise lie at 0.04-5.3 on the benchmark splits; R in cm^2 is 1e4 times, in km^2 1e-6 times its m^2 value.
+R_RATIO_PLAUSIBLE = (1e-4, 1e2)
 
 
-def warn_implausible_r(owner: str, sequence_name: str, usable: np.ndarray, r_m2: np.ndarray) -> None:
-    """Warn when the median R [m^2] over the switched-on usable slots lies outside ``R_PLAUSIBLE_M2``: a variance in
-    cm^2 or km^2 runs without error, but weighs the pseudoranges otherwise than meant."""
-    on = switched_on(np.asarray(usable, bool), r_m2)
+def warn_implausible_r(owner: str, sequence: Sequence, usable: np.ndarray, r_m2: np.ndarray) -> None:
+    """Warn once when the median of R [m^2] over the hand-set C/N0-elevation variance, on the switched-on usable slots
+    of ``sequence``, lies outside ``R_RATIO_PLAUSIBLE``: a variance in cm^2 or km^2 runs without error, but weighs the
+    pseudoranges otherwise than meant. Judged against the signals' own strength, so weak-signal data does not trip it."""
+    r_m2 = np.asarray(r_m2, float)
+    on = switched_on(np.asarray(usable, bool), r_m2) & np.isfinite(sequence.cn0_dbhz) & np.isfinite(sequence.el_rad)
     if not on.any():
         return
-    median = float(np.median(r_m2[on]))
-    low, high = R_PLAUSIBLE_M2
-    if not low <= median <= high:
-        warnings.warn(f"{owner}: the noise model's median R over the usable pseudoranges of {sequence_name!r} is "
-                      f"{median:.3g} m^2 (sd {np.sqrt(median):.3g} m), outside a code pseudorange's "
-                      f"{low:g}-{high:g} m^2: R is a variance in m^2 (the sd squared); is it in another unit?",
-                      UserWarning, stacklevel=caller_stacklevel())
+    ratio = float(np.median(r_m2[on] / weighted_fix.cn0_elevation_variance_m2(sequence.cn0_dbhz[on],
+                                                                                  sequence.el_rad[on])))
+    low, high = R_RATIO_PLAUSIBLE
+    if not low <= ratio <= high:
+        median = float(np.median(r_m2[on]))
+        warnings.warn(f"{owner}: the noise model's R over the usable pseudoranges of {sequence.name!r} is a median "
+                      f"{ratio:.3g} times the hand-set C/N0-elevation variance (median R {median:.3g} m^2, sd "
+                      f"{np.sqrt(median):.3g} m), outside {low:g}-{high:g}: R is a variance in m^2 (the sd squared); is "
+                      f"it in another unit?", UserWarning, stacklevel=caller_stacklevel())
 
 
 def checked_noise(owner: str, sequence_name: str, usable: np.ndarray, r_m2: object, vc_m: object,
-                  noise: object = None, judge_scale: bool = True) -> tuple[np.ndarray, np.ndarray]:
+                  noise: object = None) -> tuple[np.ndarray, np.ndarray]:
     """A noise model's ``(r_m2, vc_m)`` as float arrays shaped like ``usable``; ValueError naming the first bad epoch.
 
     R must be finite and > 0 [m^2] and v^c finite [m] on the usable slots; other slots may hold anything. An R above
     ``R_OFF_M2`` (1e30, say) switches the satellite off (``switched_on``): the estimators leave it out as if masked.
-    With ``judge_scale``, a median R outside ``R_PLAUSIBLE_M2`` is a warning (``warn_implausible_r``; an online model
-    asked epoch by epoch is judged once, on the whole run). Values that are not numbers are a TypeError naming
-    ``owner`` and the model ``noise`` (``float_array``).
+    Values that are not numbers are a TypeError naming ``owner`` and the model ``noise`` (``float_array``). Whether
+    R's scale is plausible is ``warn_implausible_r``'s, which the estimators call once per run.
     """
     r = float_array(owner, "r_m2", r_m2, noise)
     vc = float_array(owner, "vc_m", vc_m, noise)
@@ -224,8 +228,6 @@ def checked_noise(owner: str, sequence_name: str, usable: np.ndarray, r_m2: obje
         if bad.any():
             where = f" (first at epoch {int(np.argwhere(bad)[0, 0])})" if bad.ndim == 2 else ""
             raise ValueError(f"{owner}: noise model gave {what} on usable satellites of {sequence_name!r}{where}")
-    if judge_scale:
-        warn_implausible_r(owner, sequence_name, usable, r)
     return r, vc
 
 

@@ -194,31 +194,36 @@ def saved_fold(reuse_dir: str | Path, fold: int, config: dict, held: list[Sequen
 def _same_data_elsewhere(saved: dict, config: dict, held: list[Sequence], trained: list[Sequence] | None
                          ) -> str | None:
     """None when a fold checkpoint whose held-out fingerprints differ from ``held``'s was trained on this data all the
-    same, on another machine: the same input files (SHA-256), pieces and epochs, registered from the same dataset
-    TOML settings, and (unless ``train.init`` fixed it) a normaliser within rounding (``Normaliser.same_as``) of the
-    one the fold's training pieces ``trained`` give here. Else the reason in words."""
-    from .train import dataset_toml_change, source_file_hashes
+    same, on another machine: the same pieces and epochs (held out and trained on), input files (SHA-256) and dataset
+    TOML data settings, and a normaliser within rounding (``Normaliser.same_as``) of the one the fold's training
+    pieces ``trained`` give here (or, with ``train.init``, of that model's). Else the reason in words."""
+    from .train import dataset_toml_change, init_model, source_file_hashes
 
-    files = {ds: source_file_hashes(ds) for ds in config["data"]["datasets"]}
     val = config["data"]["val_split"]
-    if not any(files.values()) or saved.get("source_files") != files:
-        return "its input files are not this run's, or the data changed since it was trained"
-    if ([(p["sequence"], p.get("epochs")) for p in saved["data_fingerprints"] if p["split"] == val] !=
-            [(s.name, len(s)) for s in held]):
+    pieces = [(p["sequence"], p.get("epochs")) for p in saved["data_fingerprints"]]
+    if ([q for q, p in zip(pieces, saved["data_fingerprints"]) if p["split"] == val] != [(s.name, len(s)) for s in held]
+            or (trained is not None and [q for q, p in zip(pieces, saved["data_fingerprints"]) if p["split"] != val]
+                != [(s.name, len(s)) for s in trained])):
         return ("another --folds, the data changed since it was trained, or an older learning.crossval cut it, which "
                 "broke folds at the train/validation boundary")
+    files = {ds: source_file_hashes(ds) for ds in config["data"]["datasets"]}
+    if not any(files.values()) or saved.get("source_files") != files:
+        return "its input files differ from this run's (or it recorded none)"
     for toml, text in ((saved.get("provenance") or {}).get("dataset_tomls") or {}).items():
+        if not isinstance(text, str) or text.startswith("(not readable:"):     # not read when it was trained
+            continue
         try:
-            change = dataset_toml_change(text, Path(toml).read_text()) if isinstance(text, str) else None
+            change = dataset_toml_change(text, Path(toml).read_text())
         except (OSError, UnicodeDecodeError):
             change = "it cannot be read now"
         if change is not None:
             return f"{toml}: {change} when it was trained"
-    if trained and not config["train"].get("init"):
-        here = Normaliser.fit(trained, saved["feature_names"])
+    if trained is not None:
+        init = init_model(config)
+        here = init.normaliser if init is not None else Normaliser.fit(trained, saved["feature_names"])
         if not here.same_as(Normaliser.from_dict(saved["normaliser"])):
-            return ("its training blocks' features differ from this run's beyond rounding: another version of "
-                    "lfgnss's front end")
+            return ("its features are normalised otherwise than this run's beyond rounding: another train.init file, "
+                    "or another version of lfgnss's front end")
     return None
 
 

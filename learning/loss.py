@@ -163,15 +163,19 @@ STRONGEST_K, STRONGEST_MIN_SATS = 3, 5
 def strongest_centred(d: torch.Tensor, cn0_dbhz: torch.Tensor, usable: torch.Tensor, system_index: torch.Tensor,
                       n_systems: int) -> tuple[torch.Tensor, torch.Tensor]:
     """(centred, kept): ``d`` less the median of its constellation's ``STRONGEST_K`` highest-C/N0 usable slots in the
-    epoch, and where that clock exists (``STRONGEST_MIN_SATS`` usable satellites or more); 0 / False elsewhere."""
+    epoch (equal C/N0: the lower slot first, as benchmarks/bad_pseudoranges.py; a C/N0 that is not finite counts as
+    the weakest), and where that clock exists (``STRONGEST_MIN_SATS`` usable satellites or more); 0 / False
+    elsewhere."""
     centred, kept = torch.zeros_like(d), torch.zeros_like(usable)
     for k in range(n_systems):
         in_sys = usable & (system_index == k)
         enough = in_sys.sum(dim=-1, keepdim=True) >= STRONGEST_MIN_SATS
         if not enough.any():
             continue
-        score = torch.where(in_sys, cn0_dbhz.to(d.dtype), torch.full_like(d, -torch.inf))
-        top = torch.topk(score, min(STRONGEST_K, d.shape[-1]), dim=-1).indices
+        cn0 = cn0_dbhz.to(d.dtype)
+        score = torch.where(in_sys, torch.nan_to_num(cn0, nan=-1e9, posinf=-1e9, neginf=-1e9),
+                            torch.full_like(d, -torch.inf))
+        top = torch.sort(score, dim=-1, descending=True, stable=True).indices[..., :STRONGEST_K]
         clock = torch.median(torch.gather(d, -1, top), dim=-1, keepdim=True).values
         keep = in_sys & enough
         centred = torch.where(keep, d - clock, centred)

@@ -161,18 +161,21 @@ def test_reuse_scores_the_saved_fold_models_again_under_new_filter_settings(trai
         rescore("t")
     assert exit_info.value.code == 2 and f"its held-out block is not this run's ({toml}: truth.time_offset_s is 18 " \
         "now, unset when it was trained)" in capsys.readouterr().err
-    saved["provenance"]["dataset_tomls"] = {}
+    saved["provenance"]["dataset_tomls"] = {str(toml): "(not readable: PermissionError)"}   # not read then: not judged
+    torch.save(saved, tampered / "last.pt")
+    assert rescore("q") == 0
+    capsys.readouterr()
     saved["normaliser"] = dict(saved["normaliser"], mean=[m + 1.0 for m in saved["normaliser"]["mean"]])
     torch.save(saved, tampered / "last.pt")
     with pytest.raises(SystemExit) as exit_info:                     # its training blocks normalise otherwise
         rescore("s")
-    assert exit_info.value.code == 2 and "its training blocks' features differ from this run's beyond rounding" \
+    assert exit_info.value.code == 2 and "its features are normalised otherwise than this run's beyond rounding" \
         in capsys.readouterr().err
     saved["source_files"] = {"synthetic": {"drive.obs": "5678"}}     # other input files: refused as before
     torch.save(saved, tampered / "last.pt")
     with pytest.raises(SystemExit) as exit_info:
         rescore("r")
-    assert exit_info.value.code == 2 and "its held-out block is not this run's (its input files are not this " \
+    assert exit_info.value.code == 2 and "its held-out block is not this run's (its input files differ from this " \
         "run's" in capsys.readouterr().err
     (tampered / "last.pt").write_text("not a checkpoint")
     with pytest.raises(SystemExit) as exit_info:

@@ -142,8 +142,9 @@ def test_every_estimator_warns_when_the_noise_model_switches_a_whole_epoch_off(c
 
 
 def test_every_estimator_warns_when_r_looks_given_in_another_unit(case):
-    """A median R given in cm^2 or km^2 (the hand-set one x 1e4 or x 1e-6) runs, with one warning naming the median
-    and its sd, an online model's too (judged on the whole run, not epoch by epoch); the hand-set R says nothing."""
+    """A median R given in cm^2 or km^2 (the hand-set one x 1e4 or x 1e-6) runs, with one warning naming its ratio to
+    the hand-set variance, the median and its sd, an online model's too (judged on the whole run, not epoch by
+    epoch); the hand-set R says nothing, on weak signals (sd over 100 m) too."""
     pytest.importorskip("gtsam")
     from estimators.fgo import LfgnssFgo
 
@@ -160,5 +161,12 @@ def test_every_estimator_warns_when_r_looks_given_in_another_unit(case):
             lines = [str(w.message) for w in caught if "R is a variance in m^2" in str(w.message)]
             assert len(lines) == said, (estimator, lines)
             median = float(np.median(given[seq.mask]))
-            assert all(f"is {median:.3g} m^2 (sd {np.sqrt(median):.3g} m), outside a code pseudorange's 0.01-10000 "
-                       f"m^2" in x for x in lines), lines
+            assert all(f"is a median {scale:.3g} times the hand-set C/N0-elevation variance (median R {median:.3g} "
+                       f"m^2, sd {np.sqrt(median):.3g} m), outside 0.0001-100" in x for x in lines), lines
+    weak = replace(seq, cn0_dbhz=np.where(seq.mask, seq.cn0_dbhz - 20.0, seq.cn0_dbhz))      # 20 dB weaker signals
+    r_weak, _ = HeuristicNoise()(weak)
+    assert np.median(r_weak[weak.mask]) > 1e4                       # hand-set R of sd > 100 m, in m^2 all the same
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        create("wls-weighted", noise=FixedNoise(r_weak, vc)).solve(weak)
+    assert not [w for w in caught if "R is a variance in m^2" in str(w.message)]

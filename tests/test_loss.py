@@ -168,6 +168,14 @@ def test_the_strongest_clock_centres_on_the_three_strongest_of_five_or_more():
     bp = importlib.import_module("bad_pseudoranges")
     clock = bp.strongest_clock_m(d.numpy(), cn0.numpy(), usable.numpy(), system.numpy(), 2)
     assert np.allclose((d.numpy() - clock)[kept.numpy()], centred[kept].numpy())
+    tied = torch.tensor([[45.0] * 8], dtype=torch.float64)            # equal C/N0: the lower slots, as the script
+    centred_tied, _ = strongest_centred(d, tied, usable, system, 2)
+    clock_tied = bp.strongest_clock_m(d.numpy(), tied.numpy(), usable.numpy(), system.numpy(), 2)
+    assert np.allclose((d.numpy() - clock_tied)[kept.numpy()], centred_tied[kept].numpy())
+    assert centred_tied[0, 0] == d[0, 0] - 2.0                         # slots 0, 1, 2: median of 1, 25, 2
+    blind, low = cn0.clone(), d.clone()
+    blind[0, 5], low[0, 5] = float("nan"), -100.0                      # an unknown C/N0 is the weakest, not chosen
+    assert float(strongest_centred(low, blind, usable, system, 2)[0][0, 0]) == -1.0       # clock still 2
     r = torch.full_like(d, 4.0)
     want = 0.5 * torch.mean(torch.log(r[kept]) + centred[kept] ** 2 / r[kept])
     assert float(variance_loss(r, torch.zeros_like(d), d, usable, system, 2, cn0)) == pytest.approx(float(want))
