@@ -130,3 +130,64 @@ def test_the_test_split_is_never_read(my_drive):
 def test_unknown_datasets_are_refused_in_one_line(capsys):
     assert bp.main(["--datasets", "nope"]) == 2
     assert capsys.readouterr().err.strip().startswith("bad_pseudoranges.py: unknown dataset nope; known:")
+
+
+def test_the_windowed_mean_follows_a_slot_that_drops_out_and_comes_back():
+    # slot 0 usable at 0 and 1 s, out at 2 and 3 s, back from 3.996 s (a 1 Hz clock's jitter); slot 1 always 5 m
+    time = np.array([0.0, 1.0, 2.0, 3.0, 3.996, 5.0, 6.004])
+    values = np.stack([[1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0], np.full(7, 5.0)], axis=1)
+    usable = np.stack([[True, True, False, False, True, True, True], np.ones(7, bool)], axis=1)
+    two = bp.windowed_mean(time, values, usable, 2.0)
+    # 3.996 s: the 3 s epoch is in the window but unusable, the 1 and 2 s ones are out: the value alone;
+    # 6.004 s: the 3.996 s epoch is 2.008 s back, out of the last 2 s (jitter does not widen the window)
+    assert np.array_equal(two[:, 0], [1.0, 1.5, np.nan, np.nan, 16.0, 24.0, 48.0], equal_nan=True)
+    assert np.array_equal(two[:, 1], np.full(7, 5.0))
+    assert np.array_equal(bp.windowed_mean(time, values, usable, 1.0), np.where(usable, values, np.nan),
+                          equal_nan=True)                             # 1 s at 1 Hz: the epoch itself
+    assert bp.windowed_mean(time, values, usable, 10.0)[-1, 0] == pytest.approx((1 + 2 + 16 + 32 + 64) / 5)
+    with pytest.raises(ValueError, match="must not decrease"):
+        bp.windowed_mean(time[::-1], values, usable, 2.0)
+
+
+def test_the_cauchy_weight_and_the_robust_scale_on_hand_cases():
+    assert bp.cauchy_weight(np.array([0.0, bp.CAUCHY_C, -3 * bp.CAUCHY_C])) == pytest.approx([1.0, 0.5, 0.1])
+    u = np.array([[0.0, 3.0, -3.0, 30.0, 99.0], [0.1, -0.1, 0.0, 0.2, 99.0], [0.0, 0.0, 0.0, 0.0, 0.0]])
+    mask = np.array([[True] * 4 + [False], [True] * 4 + [False], [False] * 5])
+    # row 0: |u - 1.5| = 1.5, 1.5, 4.5, 28.5: MAD 3; row 1: tiny, floored; row 2: no slot, the floor
+    assert bp.robust_scale(u, mask) == pytest.approx([bp.MAD_TO_SIGMA * 3.0, bp.SCALE_FLOOR, bp.SCALE_FLOOR])
+
+
+def test_the_robust_fix_down_weights_an_injected_50_m_outlier(my_drive):
+    seq = datasets.load_split(my_drive, "train")[0]
+    rng = np.random.default_rng(2)
+    clock = np.array([1.0e5, 1.0e5 + 37.0])[np.maximum(seq.system_index, 0)]
+    true_range = geometric_range_m(seq.sat_pos_ecef_m, np.nan_to_num(seq.truth_ecef_m)[:, None, :])
+    pr = np.where(seq.mask, true_range + clock + rng.normal(0.0, 1.0, seq.mask.shape), 0.0)
+    in_gps = seq.mask & seq.labelled[:, None] & (seq.system_index == 0)
+    epoch = int(np.flatnonzero(in_gps.sum(axis=1) >= 6)[0])
+    # the strongest signal: the variance law trusts it most, so the weighted fix follows it furthest
+    slot = int(np.argmax(np.where(in_gps[epoch], seq.cn0_dbhz[epoch], -np.inf)))
+    pr[epoch, slot] += 50.0
+    seq = dataclasses.replace(seq, pr_m=pr)
+    weighted, _ = bp.robust_fix(seq, iterations=0)
+    fix, weight = bp.robust_fix(seq)
+    others = seq.mask[epoch].copy()
+    others[slot] = False
+    assert fix.ok[epoch] and weight[epoch, slot] < 0.05 and weight[epoch, others].min() > 0.9
+    assert fix.residual_m[epoch, slot] == pytest.approx(50.0, abs=3.0)
+    assert np.abs(fix.residual_m[epoch, others]).max() < 5.0 < np.abs(weighted.residual_m[epoch, others]).max()
+    error_m = [np.linalg.norm(f.pos_ecef_m[epoch] - seq.truth_ecef_m[epoch]) for f in (weighted, fix)]
+    assert error_m[1] < 3.0 < 10.0 < error_m[0]
+
+
+def test_the_far_table_counts_and_scores_signals_more_than_20_m_off():
+    error = np.array([0.0, 5.0, -15.0, 25.0, -30.0, np.nan])
+    score = np.array([0.0, 1.0, 2.0, 4.0, 3.0, 9.0])
+    sig = {f"error {k}": error for k in bp.LABELLINGS} | {"cn0": np.full(6, 40.0), "vc own model": np.zeros(6),
+                                                         **{f"cue {c}": score for c in bp.CUES}}
+    row = bp.summary(sig, "median")
+    assert (row["n_bad"], row["far"]["n_bad"]) == (3, 2) and row["far"]["bad"] == pytest.approx(0.4)
+    assert all(row["far"]["auc"][c] == 1.0 for c in bp.CUES) and row["auc"]["C/N0"] == 1.0
+    lines = bp.tables([{"dataset": "d", "split": "s", "labelling": "median", **row}], "median")
+    assert "### More than 20 m off: all signals" in lines and "| d s | 5 | 2 (40 %) | " + " | ".join(
+        ["1.000"] * len(bp.CUES)) + " |" in lines
