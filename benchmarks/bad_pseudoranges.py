@@ -39,8 +39,6 @@ SPLITS = ("train", "val")                 # never the test split
 BAD_M = 10.0
 FAR_M = 20.0                              # the second threshold's table
 STRONG_DBHZ = 38.0
-STRONGEST_K = 3
-STRONGEST_MIN_SATS = 5
 LABELLINGS = {"median": "each constellation's epoch median", "strongest 3": "median of its 3 strongest signals"}
 WINDOWS_S = (1.0, 3.0, 10.0)
 CUES = ("C/N0", "elevation", "coarse |residual|", "weighted-fix |residual|", "robust-fix |residual|",
@@ -88,17 +86,18 @@ def roc_curve(score: np.ndarray, positive: np.ndarray) -> tuple[np.ndarray, np.n
 
 
 def strongest_clock_m(error_m: np.ndarray, cn0_dbhz: np.ndarray, ok: np.ndarray, system_index: np.ndarray,
-                      n_systems: int, k: int = STRONGEST_K, min_sats: int = STRONGEST_MIN_SATS) -> np.ndarray:
-    """(T, N) each slot's epoch median of ``error_m`` [m] over the ``k`` highest-C/N0 ``ok`` slots of its
-    constellation (equal C/N0: the lower slot first); NaN where that constellation has under ``min_sats`` ok slots."""
-    out = np.full(np.shape(error_m), np.nan)
-    for c in range(n_systems):
-        in_sys = ok & (system_index == c)
-        strongest = np.argsort(np.where(in_sys, -np.asarray(cn0_dbhz, float), np.inf), axis=1, kind="stable")[:, :k]
-        clock = np.median(np.take_along_axis(np.asarray(error_m, float), strongest, axis=1), axis=1)
-        enough = in_sys.sum(axis=1) >= max(min_sats, k)
-        out = np.where(in_sys & enough[:, None], clock[:, None], out)
-    return out
+                      n_systems: int) -> np.ndarray:
+    """(T, N) each slot's epoch median of ``error_m`` [m] over the three highest-C/N0 ``ok`` slots of its
+    constellation (equal C/N0: the lower slot first); NaN where that constellation has under five ok slots. The clock
+    ``loss.r_clock = "strongest"`` trains against (``learning.loss.strongest_clock``), so the two cannot part."""
+    import torch
+
+    from learning.loss import strongest_clock
+
+    clock, kept = strongest_clock(torch.as_tensor(np.where(ok, error_m, 0.0), dtype=torch.float64),
+                                  torch.as_tensor(cn0_dbhz, dtype=torch.float64), torch.as_tensor(ok, dtype=torch.bool),
+                                  torch.as_tensor(system_index, dtype=torch.int64), n_systems)
+    return np.where(kept.numpy(), clock.numpy(), np.nan)
 
 
 def truth_errors_m(sequence: "Sequence") -> dict[str, np.ndarray]:
@@ -128,16 +127,10 @@ def robust_scale(u: np.ndarray, mask: np.ndarray, floor: float = SCALE_FLOOR) ->
     return np.maximum(np.nan_to_num(MAD_TO_SIGMA * mad, nan=floor), floor)
 
 
-def start_positions_m(sequence: "Sequence") -> np.ndarray:
-    """(T, 3) the coarse fix, or for epochs without one the last earlier (else first later) one [m]; NaN if none."""
-    from lfgnss.features import fill_from_nearest_epoch
-
-    return fill_from_nearest_epoch(sequence.coarse_ecef_m)
-
-
 def robust_fix(sequence: "Sequence", iterations: int = ROBUST_ITERATIONS) -> tuple["WeightedFix", np.ndarray]:
     """The C/N0-elevation weighted fix reweighted ``iterations`` times with Cauchy weights of its residuals normalised
     by the variance law's sigma and each epoch's ``robust_scale``: (fix, (T, N) last Cauchy weights [-])."""
+    from lfgnss.features import fill_from_nearest_epoch
     from lfgnss.weighted_fix import cn0_elevation_variance_m2, weighted_least_squares
 
     mask, n_sys = sequence.mask, len(sequence.systems)
@@ -148,7 +141,7 @@ def robust_fix(sequence: "Sequence", iterations: int = ROBUST_ITERATIONS) -> tup
                                       start, r_m2 / weight)
 
     weight = np.ones(mask.shape)
-    fix = solve(start_positions_m(sequence), weight)
+    fix = solve(fill_from_nearest_epoch(sequence.coarse_ecef_m), weight)
     for _ in range(iterations):
         u = fix.residual_m / np.sqrt(r_m2)
         weight = np.where(mask, cauchy_weight(u / robust_scale(u, mask)[:, None]), 1.0)
@@ -326,6 +319,8 @@ def tables(rows: list[dict], labelling: str) -> list[str]:
 def markdown(rows: list[dict], command: str, figure: bool = True) -> str:
     """The page: a header paragraph (naming the figure where one is drawn) and, per labelling, the two tables of
     ``tables``."""
+    from learning.loss import STRONGEST_MIN_SATS
+
     models = "; ".join(f"{d}: `{r['models']['own model']}`" for d, r in
                        {r["dataset"]: r for r in rows}.items())
     out = ["# Telling bad pseudoranges apart", "",

@@ -15,8 +15,7 @@ from lfgnss.spp import SppConfig
 from lfgnss.weighted_fix import weighted_least_squares
 
 from .base import STATUS_NONE, STATUS_UPDATED, Solution, check_sequence, keep_slots, register, usable_sequence
-from .noise import (HeuristicNoise, NoiseModel, checked_noise, noise_output, resolve_noise, switched_on_warned,
-                    warn_implausible_r)
+from .noise import HeuristicNoise, NoiseModel, checked_noise, noise_output, resolve_noise, switched_on_warned
 
 
 @dataclass
@@ -47,9 +46,8 @@ class LeastSquaresBaseline:
         else:
             r, _ = checked_noise(self.name, sequence.name, sequence.mask,
                                  *noise_output(self.name, self.noise(sequence), self.noise), self.noise)
-            warn_implausible_r(self.name, sequence, sequence.mask, r)
             # R > R_OFF_M2: satellite off
-            sequence = keep_slots(sequence, switched_on_warned(self.name, sequence.name, sequence.mask, r))
+            sequence = keep_slots(sequence, switched_on_warned(self.name, sequence, sequence.mask, r))
         fix = weighted_least_squares(sequence.pr_m, sequence.sat_pos_ecef_m, sequence.system_index, sequence.mask,
                                      len(sequence.systems), fill_from_nearest_epoch(sequence.coarse_ecef_m), r,
                                      scale_by_residuals=self.noise is None)

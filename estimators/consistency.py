@@ -31,8 +31,8 @@ def residual_variance_factor(sequence: Sequence, pos_ecef_m: np.ndarray, r_m2: n
                              ) -> np.ndarray:
     """(T,) ``g_k``, the mean of e^2 / r [-] over each epoch's usable pseudoranges at ``pos_ecef_m`` (T, 3) [m].
 
-    ``r_m2`` (T, N) [m^2] is the R the estimator weighs with (module docstring); NaN where an epoch has no position, or no constellation with two
-    usable pseudoranges (a position-blind epoch: nothing to compare).
+    ``r_m2`` (T, N) [m^2] is the R the estimator weighs with (module docstring); NaN where an epoch has no position,
+    or no constellation with two usable pseudoranges (a position-blind epoch: nothing to compare).
     """
     pos = np.asarray(pos_ecef_m, float)
     ok = np.asarray(usable, bool) & np.isfinite(pos).all(-1)[:, None]

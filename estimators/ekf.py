@@ -55,8 +55,7 @@ from .base import (STATUS_COASTED, STATUS_NONE, STATUS_RESET, STATUS_UPDATED, So
 from .consistency import covariance_inflation, residual_variance_factor
 from .models import EkfConfig
 from .noise import (HeuristicNoise, NoiseModel, checked_noise, default_noise, describe_noise, noise_output,
-                    resolve_noise, switched_on, switched_on_warned, warn_implausible_r, warn_no_filter_settings,
-                    warn_switched_off)
+                    resolve_noise, switched_on, switched_on_warned, warn_no_filter_settings, warn_noise)
 from .smoother import lag_horizon, rts_smooth
 
 
@@ -253,12 +252,12 @@ class LfgnssEkf:
             r_noise = np.ones(usable.shape)          # every epoch asks (ask_noise) before anything reads it
         else:
             r_all, vc_all = self.noise_arrays(sequence, usable)
-            warn_implausible_r(type(self).__name__, sequence, usable, r_all)
             r_noise = r_all.copy()
-            usable = switched_on_warned(type(self).__name__, sequence.name, usable, r_all)
+            usable = switched_on_warned(type(self).__name__, sequence, usable, r_all)
             vc_all = np.where(usable, vc_all, 0.0)
         z_all = compensated_pseudorange(pr_all, vc_all)
-        r_factor = models.pseudorange_variance_factor(models.glonass_slots(sequence.system_index, sequence.systems), cfg)
+        glonass = models.glonass_slots(sequence.system_index, sequence.systems)
+        r_factor = models.pseudorange_variance_factor(glonass, cfg)
         r_all = np.where(usable, r_all * r_factor, 1.0)
         doppler_ok = usable & doppler_ok if cfg.doppler_sigma_m_s > 0 else np.zeros_like(usable)
         prr_all = np.where(doppler_ok, sequence.prr_m_s, 0.0)
@@ -422,8 +421,7 @@ class LfgnssEkf:
             cov[k] = ekf.P
 
         if online:
-            warn_switched_off(type(self).__name__, sequence.name, usable_before_noise, usable)
-            warn_implausible_r(type(self).__name__, sequence, usable_before_noise, r_noise)
+            warn_noise(type(self).__name__, sequence, usable_before_noise, usable, r_noise)
         info = {"n_gated": n_gated, "n_usable": usable.sum(1), "n_doppler": n_doppler, "stationary": still,
                 "clock_realigned": clock_realigned, "config": cfg, "filtered_state": state, "r_m2": r_all,
                 "noise_r_m2": r_noise,

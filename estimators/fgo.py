@@ -79,7 +79,7 @@ from .consistency import covariance_inflation, residual_variance_factor
 from .ekf import config_of
 from .models import EkfConfig, still_fixes, used_doppler_variance_m2_s2
 from .noise import (HeuristicNoise, NoiseModel, checked_noise, default_noise, describe_noise, noise_output,
-                    resolve_noise, switched_on_warned, warn_implausible_r, warn_no_filter_settings)
+                    resolve_noise, switched_on_warned, warn_no_filter_settings)
 
 MODES = ("batch", "fixed-lag")
 ROBUST_KERNELS = ("huber", "cauchy")
@@ -549,8 +549,7 @@ class LfgnssFgo:
             raise ValueError(f"LfgnssFgo: {seq.name!r}: time not increasing at epoch {k + 1}")
         r_m2, vc_m = checked_noise(type(self).__name__, seq.name, seq.mask,
                                    *noise_output(type(self).__name__, self.noise(seq), self.noise), self.noise)
-        warn_implausible_r(type(self).__name__, seq, seq.mask, r_m2)
-        seq = keep_slots(seq, switched_on_warned(type(self).__name__, seq.name, seq.mask, r_m2))
+        seq = keep_slots(seq, switched_on_warned(type(self).__name__, seq, seq.mask, r_m2))
         z_m = np.where(seq.mask, seq.pr_m + vc_m, 0.0)
         sigma_m = np.sqrt(np.where(seq.mask, r_m2, 1.0))
 

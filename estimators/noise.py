@@ -176,25 +176,19 @@ def warn_switched_off(owner: str, sequence_name: str, usable: np.ndarray, on: np
                       f"places a position there", UserWarning, stacklevel=caller_stacklevel())
 
 
-def switched_on_warned(owner: str, sequence_name: str, usable: np.ndarray, r_m2: np.ndarray) -> np.ndarray:
-    """``switched_on(usable, r_m2)``, with ``warn_switched_off`` when it leaves an epoch no usable pseudorange."""
-    on = switched_on(usable, r_m2)
-    warn_switched_off(owner, sequence_name, usable, on)
-    return on
-
-
 #: Range of the median ratio of a noise model's R to the hand-set C/N0-elevation variance (``HeuristicNoise``'s) on
 #: the same pseudoranges outside which ``warn_implausible_r`` says R looks given in another unit. The bundled models
 #: and TruthNoise lie at 0.04-5.3 on the benchmark splits; R in cm^2 is 1e4 times, in km^2 1e-6 times its m^2 value.
 R_RATIO_PLAUSIBLE = (1e-4, 1e2)
 
 
-def warn_implausible_r(owner: str, sequence: Sequence, usable: np.ndarray, r_m2: np.ndarray) -> None:
-    """Warn once when the median of R [m^2] over the hand-set C/N0-elevation variance, on the switched-on usable slots
-    of ``sequence``, lies outside ``R_RATIO_PLAUSIBLE``: a variance in cm^2 or km^2 runs without error, but weighs the
-    pseudoranges otherwise than meant. Judged against the signals' own strength, so weak-signal data does not trip it."""
+def warn_implausible_r(owner: str, sequence: Sequence, on: np.ndarray, r_m2: np.ndarray) -> None:
+    """Warn once when the median of R [m^2] over the hand-set C/N0-elevation variance, on the switched-on usable
+    slots ``on`` of ``sequence``, lies outside ``R_RATIO_PLAUSIBLE``: a variance in cm^2 or km^2 runs without
+    error, but weighs the pseudoranges otherwise than meant. Judged against the signals' own strength, so
+    weak-signal data does not trip it."""
     r_m2 = np.asarray(r_m2, float)
-    on = switched_on(np.asarray(usable, bool), r_m2) & np.isfinite(sequence.cn0_dbhz) & np.isfinite(sequence.el_rad)
+    on = np.asarray(on, bool) & np.isfinite(sequence.cn0_dbhz) & np.isfinite(sequence.el_rad)
     if not on.any():
         return
     ratio = float(np.median(r_m2[on] / weighted_fix.cn0_elevation_variance_m2(sequence.cn0_dbhz[on],
@@ -204,8 +198,23 @@ def warn_implausible_r(owner: str, sequence: Sequence, usable: np.ndarray, r_m2:
         median = float(np.median(r_m2[on]))
         warnings.warn(f"{owner}: the noise model's R over the usable pseudoranges of {sequence.name!r} is a median "
                       f"{ratio:.3g} times the hand-set C/N0-elevation variance (median R {median:.3g} m^2, sd "
-                      f"{np.sqrt(median):.3g} m), outside {low:g}-{high:g}: R is a variance in m^2 (the sd squared); is "
-                      f"it in another unit?", UserWarning, stacklevel=caller_stacklevel())
+                      f"{np.sqrt(median):.3g} m), outside {low:g}-{high:g}: R is a variance in m^2 (the sd "
+                      "squared); is it in another unit?", UserWarning, stacklevel=caller_stacklevel())
+
+
+def warn_noise(owner: str, sequence: Sequence, usable: np.ndarray, on: np.ndarray, r_m2: np.ndarray) -> None:
+    """A run's warnings on its noise model's R [m^2]: ``usable`` and ``on`` (T, N) the slots before and after it
+    switched some off (``switched_on``): ``warn_implausible_r``, then ``warn_switched_off``."""
+    warn_implausible_r(owner, sequence, on, r_m2)
+    warn_switched_off(owner, sequence.name, usable, on)
+
+
+def switched_on_warned(owner: str, sequence: Sequence, usable: np.ndarray, r_m2: np.ndarray) -> np.ndarray:
+    """``switched_on(usable, r_m2)``, with the run's warnings on R (``warn_noise``): R in another unit, an epoch left
+    no usable pseudorange."""
+    on = switched_on(usable, r_m2)
+    warn_noise(owner, sequence, usable, on, r_m2)
+    return on
 
 
 def checked_noise(owner: str, sequence_name: str, usable: np.ndarray, r_m2: object, vc_m: object,
@@ -215,7 +224,7 @@ def checked_noise(owner: str, sequence_name: str, usable: np.ndarray, r_m2: obje
     R must be finite and > 0 [m^2] and v^c finite [m] on the usable slots; other slots may hold anything. An R above
     ``R_OFF_M2`` (1e30, say) switches the satellite off (``switched_on``): the estimators leave it out as if masked.
     Values that are not numbers are a TypeError naming ``owner`` and the model ``noise`` (``float_array``). Whether
-    R's scale is plausible is ``warn_implausible_r``'s, which the estimators call once per run.
+    R's scale is plausible is ``warn_implausible_r``'s, which the estimators call once per run (``warn_noise``).
     """
     r = float_array(owner, "r_m2", r_m2, noise)
     vc = float_array(owner, "vc_m", vc_m, noise)

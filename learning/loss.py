@@ -160,13 +160,13 @@ def compensation_loss(vc_m: torch.Tensor, error_m: torch.Tensor, usable: torch.T
 STRONGEST_K, STRONGEST_MIN_SATS = 3, 5
 
 
-def strongest_centred(d: torch.Tensor, cn0_dbhz: torch.Tensor, usable: torch.Tensor, system_index: torch.Tensor,
-                      n_systems: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """(centred, kept): ``d`` less the median of its constellation's ``STRONGEST_K`` highest-C/N0 usable slots in the
-    epoch (equal C/N0: the lower slot first, as benchmarks/bad_pseudoranges.py; a C/N0 that is not finite counts as
-    the weakest), and where that clock exists (``STRONGEST_MIN_SATS`` usable satellites or more); 0 / False
-    elsewhere."""
-    centred, kept = torch.zeros_like(d), torch.zeros_like(usable)
+def strongest_clock(d: torch.Tensor, cn0_dbhz: torch.Tensor, usable: torch.Tensor, system_index: torch.Tensor,
+                    n_systems: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(clock, kept): each usable slot's median of ``d`` over its constellation's ``STRONGEST_K`` highest-C/N0 usable
+    slots in the epoch (equal C/N0: the lower slot first; a C/N0 that is not finite counts as the weakest), and where
+    that clock exists (``STRONGEST_MIN_SATS`` usable satellites or more); 0 / False elsewhere. The clock of
+    benchmarks/bad_pseudoranges.py's "strongest 3" labelling too."""
+    clock, kept = torch.zeros_like(d), torch.zeros_like(usable)
     for k in range(n_systems):
         in_sys = usable & (system_index == k)
         enough = in_sys.sum(dim=-1, keepdim=True) >= STRONGEST_MIN_SATS
@@ -176,11 +176,17 @@ def strongest_centred(d: torch.Tensor, cn0_dbhz: torch.Tensor, usable: torch.Ten
         score = torch.where(in_sys, torch.nan_to_num(cn0, nan=-1e9, posinf=-1e9, neginf=-1e9),
                             torch.full_like(d, -torch.inf))
         top = torch.sort(score, dim=-1, descending=True, stable=True).indices[..., :STRONGEST_K]
-        clock = torch.median(torch.gather(d, -1, top), dim=-1, keepdim=True).values
         keep = in_sys & enough
-        centred = torch.where(keep, d - clock, centred)
+        clock = torch.where(keep, torch.median(torch.gather(d, -1, top), dim=-1, keepdim=True).values, clock)
         kept = kept | keep
-    return centred, kept
+    return clock, kept
+
+
+def strongest_centred(d: torch.Tensor, cn0_dbhz: torch.Tensor, usable: torch.Tensor, system_index: torch.Tensor,
+                      n_systems: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(centred, kept): ``d`` less its ``strongest_clock`` where that exists; 0 / False elsewhere."""
+    clock, kept = strongest_clock(d, cn0_dbhz, usable, system_index, n_systems)
+    return torch.where(kept, d - clock, torch.zeros_like(d)), kept
 
 
 def variance_loss(r_m2: torch.Tensor, vc_m: torch.Tensor, error_m: torch.Tensor, usable: torch.Tensor,

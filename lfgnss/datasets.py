@@ -810,13 +810,14 @@ def align_truth(time_gps_s: np.ndarray, spec: DatasetSpec) -> tuple[np.ndarray, 
         # smartloc truth is stamped at the receiver's epochs: a right origin matches nearly every epoch it spans
         warnings.warn(f"{spec.truth}: only {int(ok[inside].sum())} of {int(inside.sum())} epochs within the truth's "
                       f"time span match a truth time when its t = 0 is taken as the first epoch given (GPS "
-                      f"{spec.time_origin_gps_s:.1f} s){_offset_words(spec.time_offset_s)}; if these epochs do not "
-                      "start where the truth does, give the GPS time of its t = 0 (time_origin_gps_s, --truth-origin)",
+                      f"{spec.time_origin_gps_s:.1f} s){_given_shift_words(spec.time_offset_s)}; if these epochs do "
+                      "not start where the truth does, give the GPS time of its t = 0 (time_origin_gps_s, "
+                      "--truth-origin)",
                       stacklevel=3)
     return truth, bad
 
 
-def _offset_words(time_offset_s: float) -> str:
+def _given_shift_words(time_offset_s: float) -> str:
     """The truth's shift [s] in words, `` and its times shifted by +2 s (time_offset_s, ...)``; empty for 0."""
     return f" and its times shifted by {time_offset_s:+g} s (time_offset_s, --truth-offset)" if time_offset_s else ""
 

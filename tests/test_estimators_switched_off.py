@@ -116,27 +116,38 @@ def test_a_large_but_finite_variance_still_counts(case):
     np.testing.assert_allclose(weak.pos_ecef_m, removed.pos_ecef_m, rtol=0, atol=1e-3)
 
 
+def _every_estimator(r_m2: np.ndarray, vc_m: np.ndarray) -> tuple:
+    """Each estimator given fixed noise (R [m^2], v^c [m]): EKF forward, smoothed and with an online model, the batch
+    and fixed-lag graph, the weighted fix."""
+    from estimators.fgo import LfgnssFgo
+
+    return (LfgnssEkf(noise=FixedNoise(r_m2, vc_m), config=EkfConfig()),
+            LfgnssEkf(noise=FixedNoise(r_m2, vc_m), config=EkfConfig(), smooth=True),
+            LfgnssEkf(noise=_OnlineNoise(r_m2, vc_m), config=EkfConfig()),
+            LfgnssFgo(noise=FixedNoise(r_m2, vc_m)),
+            LfgnssFgo(noise=FixedNoise(r_m2, vc_m), mode="fixed-lag"),
+            create("wls-weighted", noise=FixedNoise(r_m2, vc_m)))
+
+
+def _warned(estimator, seq, words: str) -> list[str]:
+    """The warnings containing ``words`` that solving ``seq`` gives."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        estimator.solve(seq)
+    return [str(w.message) for w in caught if words in str(w.message)]
+
+
 def test_every_estimator_warns_when_the_noise_model_switches_a_whole_epoch_off(case):
     """Epochs whose every pseudorange the noise model switches off place no position: said once, with the count and
     the first epoch; switching single satellites off (the other tests) says nothing."""
     pytest.importorskip("gtsam")
-    from estimators.fgo import LfgnssFgo
-
     seq, r, vc, off = case
     dark = np.zeros_like(seq.mask)
     dark[20:25] = True
     said = "at 5 of 80 epochs of 'synthetic' (first at epoch 20): no satellite places a position there"
     for r_given, expected in ((np.where(dark | off, 1e30, r), 1), (np.where(off, 1e30, r), 0)):
-        for estimator in (LfgnssEkf(noise=FixedNoise(r_given, vc), config=EkfConfig()),
-                          LfgnssEkf(noise=FixedNoise(r_given, vc), config=EkfConfig(), smooth=True),
-                          LfgnssEkf(noise=_OnlineNoise(r_given, vc), config=EkfConfig()),
-                          LfgnssFgo(noise=FixedNoise(r_given, vc)),
-                          LfgnssFgo(noise=FixedNoise(r_given, vc), mode="fixed-lag"),
-                          create("wls-weighted", noise=FixedNoise(r_given, vc))):
-            with warnings.catch_warnings(record=True) as caught:
-                warnings.simplefilter("always")
-                estimator.solve(seq)
-            lines = [str(w.message) for w in caught if "switched off every usable pseudorange" in str(w.message)]
+        for estimator in _every_estimator(r_given, vc):
+            lines = _warned(estimator, seq, "switched off every usable pseudorange")
             assert len(lines) == expected, (estimator, lines)
             assert all(said in line for line in lines), lines
 
@@ -146,19 +157,11 @@ def test_every_estimator_warns_when_r_looks_given_in_another_unit(case):
     the hand-set variance, the median and its sd, an online model's too (judged on the whole run, not epoch by
     epoch); the hand-set R says nothing, on weak signals (sd over 100 m) too."""
     pytest.importorskip("gtsam")
-    from estimators.fgo import LfgnssFgo
-
     seq, r, vc, _ = case
     for scale, said in ((1e4, True), (1e-6, True), (1.0, False)):
         given = r * scale
-        for estimator in (LfgnssEkf(noise=FixedNoise(given, vc), config=EkfConfig()),
-                          LfgnssEkf(noise=_OnlineNoise(given, vc), config=EkfConfig()),
-                          LfgnssFgo(noise=FixedNoise(given, vc)),
-                          create("wls-weighted", noise=FixedNoise(given, vc))):
-            with warnings.catch_warnings(record=True) as caught:
-                warnings.simplefilter("always")
-                estimator.solve(seq)
-            lines = [str(w.message) for w in caught if "R is a variance in m^2" in str(w.message)]
+        for estimator in _every_estimator(given, vc):
+            lines = _warned(estimator, seq, "R is a variance in m^2")
             assert len(lines) == said, (estimator, lines)
             median = float(np.median(given[seq.mask]))
             assert all(f"is a median {scale:.3g} times the hand-set C/N0-elevation variance (median R {median:.3g} "
@@ -166,7 +169,4 @@ def test_every_estimator_warns_when_r_looks_given_in_another_unit(case):
     weak = replace(seq, cn0_dbhz=np.where(seq.mask, seq.cn0_dbhz - 20.0, seq.cn0_dbhz))      # 20 dB weaker signals
     r_weak, _ = HeuristicNoise()(weak)
     assert np.median(r_weak[weak.mask]) > 1e4                       # hand-set R of sd > 100 m, in m^2 all the same
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        create("wls-weighted", noise=FixedNoise(r_weak, vc)).solve(weak)
-    assert not [w for w in caught if "R is a variance in m^2" in str(w.message)]
+    assert not _warned(create("wls-weighted", noise=FixedNoise(r_weak, vc)), weak, "R is a variance in m^2")
