@@ -30,12 +30,13 @@ if TYPE_CHECKING:
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from smoothing_lag import command_line, publish, save_figure, script_parser, unknown_datasets  # noqa: E402
+from page import command_line, nothing, parse, publish, save_figure, script_parser  # noqa: E402  (a sibling module)
 
 DOC = REPO / "docs" / "bad_pseudoranges.md"
 FIGURE = REPO / "docs" / "figures" / "bad_pseudoranges.png"
 DATASETS = ("berlin-pp", "hk-tst-2019")
 SPLITS = ("train", "val")                 # never the test split
+SPLIT_WORDS = {"train": "train", "val": "validation"}
 BAD_M = 10.0
 FAR_M = 20.0                              # the second threshold's table
 STRONG_DBHZ = 38.0
@@ -316,9 +317,9 @@ def tables(rows: list[dict], labelling: str) -> list[str]:
     return out + [""]
 
 
-def markdown(rows: list[dict], command: str, figure: bool = True) -> str:
-    """The page: a header paragraph (naming the figure where one is drawn) and, per labelling, the two tables of
-    ``tables``."""
+def markdown(rows: list[dict], command: str, shown: tuple[str, str] | None = None) -> str:
+    """The page: a header paragraph (naming the figure's dataset and split ``shown``, where one is drawn) and, per
+    labelling, the two tables of ``tables``."""
     from learning.loss import STRONGEST_MIN_SATS
 
     models = "; ".join(f"{d}: `{r['models']['own model']}`" for d, r in
@@ -346,7 +347,8 @@ def markdown(rows: list[dict], command: str, figure: bool = True) -> str:
            "only the validation rows are out of sample for them. corr(v^c, -error): Pearson correlation of the own "
            "model's v^c with minus the error. A third table per labelling scores the cues against a pseudorange "
            f"more than {FAR_M:g} m off instead. Over a handful of bad signals (the counts) an area is noise."
-           + (f" Figure: `figures/{FIGURE.name}` (ROC curves, first dataset's validation split)." if figure else ""),
+           + (f" Figure: `figures/{FIGURE.name}` (ROC curves, {shown[0]}'s {SPLIT_WORDS[shown[1]]} split)."
+              if shown else ""),
            ""]
     for labelling, words in LABELLINGS.items():
         out += [f"## Clock: {labelling} ({words})", ""] + tables(rows, labelling)
@@ -384,19 +386,15 @@ def main(argv: list[str] | None = None) -> int:
     p = script_parser(__doc__, f"write {DOC.relative_to(REPO)} and {FIGURE.name}")
     p.set_defaults(datasets=list(DATASETS))
     p.add_argument("--splits", nargs="+", default=list(SPLITS), choices=SPLITS)
-    args = p.parse_args(argv)
-    warnings.simplefilter("ignore", FutureWarning)
-    sys.path.insert(0, str(REPO))
-    if unknown_datasets("bad_pseudoranges.py", args.datasets):
+    args = parse(p, argv, "bad_pseudoranges.py")
+    if args is None:
         return 2
     rows, kept = run(args.datasets, tuple(args.splits))
     if not rows:
-        print("bad_pseudoranges.py: no dataset with its files: nothing to score", file=sys.stderr)
-        return 2
-    first = rows[0]["dataset"]
-    figure = (lambda: plot(kept, FIGURE, first, "val")) if (first, "val") in kept else None
-    return publish(markdown(rows, command_line("bad_pseudoranges.py", argv), figure is not None), DOC, args.write,
-                   figure)
+        return nothing("bad_pseudoranges.py", "no dataset with its files: nothing to score")
+    shown = next((key for key in kept if key[1] == "val"), next(iter(kept), None))     # a validation split first
+    draw = (lambda path: plot(kept, path, *shown)) if shown else None
+    return publish(markdown(rows, command_line("bad_pseudoranges.py", argv), shown), DOC, args.write, FIGURE, draw)
 
 
 if __name__ == "__main__":

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import dataclasses
 import sys
-import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -29,8 +28,8 @@ if TYPE_CHECKING:
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from smoothing_lag import (command_line, estimators_for, publish, save_figure, script_parser,  # noqa: E402
-                           unknown_datasets)
+from page import command_line, nothing, parse, publish, save_figure, script_parser  # noqa: E402  (a sibling module)
+from smoothing_lag import estimators_for  # noqa: E402  (a sibling script)
 
 DOC = REPO / "docs" / "cold_start.md"
 FIGURE = REPO / "docs" / "figures" / "cold_start.png"
@@ -165,17 +164,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--splits", nargs="+", default=list(SPLITS), choices=SPLITS)
     p.add_argument("--head", type=float, default=HEAD_S, help=f"seconds scored apart at each split's start "
                                                               f"(default {HEAD_S:g})")
-    args = p.parse_args(argv)
-    warnings.simplefilter("ignore", FutureWarning)
-    sys.path.insert(0, str(REPO))
-    if unknown_datasets("cold_start.py", args.datasets):
+    args = parse(p, argv, "cold_start.py")
+    if args is None:
         return 2
     rows, traces = run(args.datasets, tuple(args.splits), args.head)
     if not rows:
-        print("cold_start.py: no dataset with its files: nothing to compare", file=sys.stderr)
-        return 2
+        return nothing("cold_start.py", "no dataset with its files: nothing to compare")
     text = markdown(rows, command_line("cold_start.py", argv), args.head)
-    return publish(text, DOC, args.write, (lambda: plot(traces, FIGURE, args.head)) if traces else None)
+    return publish(text, DOC, args.write, FIGURE, (lambda path: plot(traces, path, args.head)) if traces else None)
 
 
 if __name__ == "__main__":

@@ -19,7 +19,7 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from smoothing_lag import command_line, publish, save_figure, script_parser  # noqa: E402  (a sibling script)
+from page import command_line, parse, publish, save_figure, script_parser  # noqa: E402  (a sibling module)
 
 DOC = REPO / "docs" / "doppler_noise.md"
 FIGURE = REPO / "docs" / "figures" / "doppler_noise.png"
@@ -136,12 +136,12 @@ def main(argv: list[str] | None = None) -> int:
     """Run, print, and with ``--write`` write the Markdown page and the figure."""
     p = script_parser(__doc__, f"write {DOC.relative_to(REPO)} and {FIGURE.name}")
     p.add_argument("--split", default="train", choices=("train", "val", "test"))
-    args = p.parse_args(argv)
-    warnings.simplefilter("ignore", FutureWarning)
-    sys.path.insert(0, str(REPO))
+    args = parse(p, argv, "doppler_noise.py")
+    if args is None:
+        return 2
     rows = run(args.datasets, args.split)
     text = markdown(rows, command_line("doppler_noise.py", argv))
-    return publish(text, DOC, args.write, lambda: plot(rows, FIGURE))
+    return publish(text, DOC, args.write, FIGURE, lambda path: plot(rows, path))
 
 
 if __name__ == "__main__":

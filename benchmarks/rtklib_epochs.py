@@ -15,15 +15,14 @@ from __future__ import annotations
 
 import sys
 import tempfile
-import warnings
 from pathlib import Path
 
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from smoothing_lag import (command_line, estimators_for, publish, script_parser,  # noqa: E402  (a sibling script)
-                           unknown_datasets)
+from page import command_line, nothing, parse, publish, script_parser  # noqa: E402  (a sibling module)
+from smoothing_lag import estimators_for  # noqa: E402  (a sibling script)
 
 DOC = REPO / "docs" / "rtklib_epochs.md"
 SPLITS = ("train", "val", "test")
@@ -109,15 +108,12 @@ def main(argv: list[str] | None = None) -> int:
     """Run, print, and with ``--write`` write the Markdown page."""
     p = script_parser(__doc__, "write the page, docs/rtklib_epochs.md")
     p.add_argument("--splits", nargs="+", default=list(SPLITS), choices=SPLITS)
-    args = p.parse_args(argv)
-    warnings.simplefilter("ignore", FutureWarning)
-    sys.path.insert(0, str(REPO))
-    if unknown_datasets("rtklib_epochs.py", args.datasets):
+    args = parse(p, argv, "rtklib_epochs.py")
+    if args is None:
         return 2
     rows = run(args.datasets, tuple(args.splits))
     if not rows:
-        print("rtklib_epochs.py: no dataset with its files and RTKLIB's rnx2rtkp: nothing to compare", file=sys.stderr)
-        return 2
+        return nothing("rtklib_epochs.py", "no dataset with its files and RTKLIB's rnx2rtkp: nothing to compare")
     return publish(markdown(rows, command_line("rtklib_epochs.py", argv)), DOC, args.write)
 
 

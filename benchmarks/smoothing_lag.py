@@ -9,19 +9,18 @@ the choice of a lag is never made on the test split.
 """
 from __future__ import annotations
 
-import argparse
 import math
-import shlex
 import sys
-import warnings
 from pathlib import Path
 
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from page import command_line, parse, publish, save_figure, script_parser  # noqa: E402  (a sibling module)
+
 DOC = REPO / "docs" / "smoothing_lag.md"
 FIGURE = REPO / "docs" / "figures" / "smoothing_lag.png"
-DATASETS = ("hk-tst-2019", "berlin-pp", "hk-tst-static-2020")
 LAGS_S = (0.0, 1.0, 2.0, 5.0, 10.0, 30.0, math.inf)
 
 
@@ -79,50 +78,6 @@ def markdown(rows: list[dict], split: str, command: str) -> str:
     return "\n".join(out)
 
 
-def save_figure(fig, path: Path) -> Path:
-    """Lay ``fig`` out, write it to ``path`` (making its folder) and close it; returns ``path``."""
-    import matplotlib.pyplot as plt
-
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
-
-
-def script_parser(doc: str, write_help: str) -> argparse.ArgumentParser:
-    """The benchmark scripts' command line: ``--datasets`` and ``--write``; each adds its split option."""
-    p = argparse.ArgumentParser(description=doc.split("\n\n")[0])
-    p.add_argument("--datasets", nargs="+", default=list(DATASETS), help="benchmark dataset ids (default: the three)")
-    p.add_argument("--write", action="store_true", help=write_help)
-    return p
-
-
-def unknown_datasets(script: str, dataset_ids: list[str]) -> bool:
-    """True, with a one-line error naming them, if any of ``dataset_ids`` is not a registered dataset."""
-    from lfgnss import datasets
-
-    unknown = [d for d in dataset_ids if d not in datasets.registered()]
-    if unknown:
-        print(f"{script}: unknown dataset {', '.join(unknown)}; known: {', '.join(datasets.registered())}",
-              file=sys.stderr)
-    return bool(unknown)
-
-
-def publish(text: str, doc: Path, write: bool, figure=None) -> int:
-    """Print the page; with ``write`` also write it to ``doc`` and draw ``figure()`` (-> its path). Exit status 0."""
-    print(text)
-    if write:
-        doc.write_text(text)
-        print(f"written: {doc}" + (f", {figure()}" if figure is not None else ""))
-    return 0
-
-
-def command_line(script: str, argv: list[str] | None) -> str:
-    """The command as typed, for the page's header."""
-    return shlex.join(["python", f"benchmarks/{script}", *(sys.argv[1:] if argv is None else argv)])
-
-
 def plot(rows: list[dict], path: Path, split: str) -> Path:
     """3D RMSE against lag, one panel per dataset (the whole-run smoother drawn at the right edge)."""
     import matplotlib
@@ -148,14 +103,12 @@ def main(argv: list[str] | None = None) -> int:
     """Run, print, and with ``--write`` write the Markdown page and the figure."""
     p = script_parser(__doc__, f"write {DOC.relative_to(REPO)} and {FIGURE.name}")
     p.add_argument("--split", default="val", choices=("train", "val", "test"))
-    args = p.parse_args(argv)
-    warnings.simplefilter("ignore", FutureWarning)
-    sys.path.insert(0, str(REPO))
-    if unknown_datasets("smoothing_lag.py", args.datasets):
+    args = parse(p, argv, "smoothing_lag.py")
+    if args is None:
         return 2
     rows = run(args.datasets, args.split)
     text = markdown(rows, args.split, command_line("smoothing_lag.py", argv))
-    return publish(text, DOC, args.write, lambda: plot(rows, FIGURE, args.split))
+    return publish(text, DOC, args.write, FIGURE, lambda path: plot(rows, path, args.split))
 
 
 if __name__ == "__main__":

@@ -15,14 +15,14 @@ from __future__ import annotations
 import dataclasses
 import math
 import sys
-import warnings
 from pathlib import Path
 
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from smoothing_lag import command_line, estimators_for, publish, save_figure, script_parser  # noqa: E402  (a sibling script)
+from page import command_line, parse, publish, save_figure, script_parser  # noqa: E402  (a sibling module)
+from smoothing_lag import estimators_for  # noqa: E402  (a sibling script)
 
 DOC = REPO / "docs" / "truth_weights.md"
 FIGURE = REPO / "docs" / "figures" / "truth_weights.png"
@@ -129,13 +129,13 @@ def main(argv: list[str] | None = None) -> int:
     """Run, print, and with ``--write`` write the Markdown page and the figure."""
     p = script_parser(__doc__, f"write {DOC.relative_to(REPO)} and {FIGURE.name}")
     p.add_argument("--splits", nargs="+", default=list(SPLITS), choices=SPLITS)
-    args = p.parse_args(argv)
-    warnings.simplefilter("ignore", FutureWarning)
-    sys.path.insert(0, str(REPO))
+    args = parse(p, argv, "truth_weights.py")
+    if args is None:
+        return 2
     rows = run(args.datasets, args.splits)
     text = markdown(rows, command_line("truth_weights.py", argv))
     split = "test" if "test" in args.splits else args.splits[-1]
-    return publish(text, DOC, args.write, lambda: plot(rows, FIGURE, split))
+    return publish(text, DOC, args.write, FIGURE, lambda path: plot(rows, path, split))
 
 
 if __name__ == "__main__":

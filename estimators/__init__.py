@@ -12,7 +12,7 @@ given ``config=config_of(model)`` (the EKF warns, as does the FGO where it takes
 from .base import (STATUS_COASTED, STATUS_NAMES, STATUS_NONE, STATUS_RESET, STATUS_UPDATED, Estimator, Solution,
                    available, backend_options, create, register)
 from .models import EkfConfig
-from .noise import FixedNoise, HeuristicNoise, NoiseModel, TruthNoise
+from .noise import FixedNoise, HeuristicNoise, NoiseModel, NoiseWarning, TruthNoise
 from .ekf import LfgnssEkf, PlainEkf, config_of
 from .baselines import LeastSquaresBaseline  # registers "wls" and "wls-weighted"
 
@@ -32,5 +32,5 @@ def __dir__() -> list[str]:
 
 __all__ = ["Estimator", "Solution", "available", "backend_options", "create", "register", "STATUS_NONE",
            "STATUS_UPDATED", "STATUS_COASTED", "STATUS_RESET", "STATUS_NAMES", "EkfConfig", "NoiseModel",
-           "HeuristicNoise", "FixedNoise", "TruthNoise", "LfgnssEkf", "LfgnssFgo", "PlainEkf", "LeastSquaresBaseline",
-           "config_of"]
+           "HeuristicNoise", "FixedNoise", "TruthNoise", "NoiseWarning", "LfgnssEkf", "LfgnssFgo", "PlainEkf",
+           "LeastSquaresBaseline", "config_of"]

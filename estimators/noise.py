@@ -165,6 +165,12 @@ def switched_on(usable: np.ndarray, r_m2: np.ndarray) -> np.ndarray:
     return usable & (r_m2 <= R_OFF_M2)
 
 
+class NoiseWarning(UserWarning):
+    """An estimator's warning about its noise model's R: every usable pseudorange of an epoch switched off, or R
+    looking given in another unit (``warn_noise``). Its own category, so that a noise model that runs an estimator
+    to make its R (an online model file given to the factor graph) can leave the judging to the estimator it serves."""
+
+
 def warn_switched_off(owner: str, sequence_name: str, usable: np.ndarray, on: np.ndarray) -> None:
     """Warn when the noise model switched off (``switched_on``) every usable pseudorange of an epoch: ``usable`` and
     ``on`` (T, N) before and after. Such an epoch has nothing to place a position; a filter only coasts through it."""
@@ -173,7 +179,7 @@ def warn_switched_off(owner: str, sequence_name: str, usable: np.ndarray, on: np
         warnings.warn(f"{owner}: the noise model switched off every usable pseudorange (R above "
                       f"estimators.noise.R_OFF_M2, {R_OFF_M2:.0e} m^2) at {int(emptied.sum())} of {emptied.size} "
                       f"epochs of {sequence_name!r} (first at epoch {int(np.flatnonzero(emptied)[0])}): no satellite "
-                      f"places a position there", UserWarning, stacklevel=caller_stacklevel())
+                      f"places a position there", NoiseWarning, stacklevel=caller_stacklevel())
 
 
 #: Range of the median ratio of a noise model's R to the hand-set C/N0-elevation variance (``HeuristicNoise``'s) on
@@ -199,7 +205,7 @@ def warn_implausible_r(owner: str, sequence: Sequence, on: np.ndarray, r_m2: np.
         warnings.warn(f"{owner}: the noise model's R over the usable pseudoranges of {sequence.name!r} is a median "
                       f"{ratio:.3g} times the hand-set C/N0-elevation variance (median R {median:.3g} m^2, sd "
                       f"{np.sqrt(median):.3g} m), outside {low:g}-{high:g}: R is a variance in m^2 (the sd "
-                      "squared); is it in another unit?", UserWarning, stacklevel=caller_stacklevel())
+                      "squared); is it in another unit?", NoiseWarning, stacklevel=caller_stacklevel())
 
 
 def warn_noise(owner: str, sequence: Sequence, usable: np.ndarray, on: np.ndarray, r_m2: np.ndarray) -> None:

@@ -44,6 +44,7 @@ import hashlib
 import json
 import shlex
 import sys
+import warnings
 import zipfile
 from pathlib import Path
 from typing import Iterable
@@ -517,11 +518,15 @@ class LfgnssModel:
 
     def __call__(self, sequence: Sequence) -> tuple[np.ndarray, np.ndarray]:
         """(r_m2, vc_m), each (T, N), for ``sequence``: a NoiseModel (``online``: those its EKF run asked the network
-        for, R as the network gave it: switched-off slots stay off, and the filter's GLONASS factor is not in it)."""
+        for, R as the network gave it: switched-off slots stay off, and the filter's GLONASS factor is not in it; that
+        run's warnings on R are left to the estimator given it, which judges the same R under its own name)."""
         if self.online:
             from estimators.ekf import LfgnssEkf
+            from estimators.noise import NoiseWarning
 
-            info = LfgnssEkf(self).solve(sequence).info
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", NoiseWarning)
+                info = LfgnssEkf(self).solve(sequence).info
             return info["noise_r_m2"], info["vc_m"]
         return self.predict(self.features(sequence), sequence.mask)
 

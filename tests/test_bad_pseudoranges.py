@@ -113,10 +113,10 @@ def test_the_tables_run_on_a_registered_dataset(my_drive, tmp_path):
     assert all(0 <= train["auc"][c] <= 1 for c in bp.CUES)
     assert train["strong"]["labelled"] < train["labelled"]
 
-    page = bp.markdown(rows, "cmd")
+    page = bp.markdown(rows, "cmd", (my_drive, "train"))
     assert page.count("### All signals") == 2 and "my-drive train+val" in page and "nan" not in page
-    assert "Figure: `figures/bad_pseudoranges.png`" in page
-    assert "Figure:" not in bp.markdown(rows, "cmd", figure=False)      # --splits train draws none: none named
+    assert "Figure: `figures/bad_pseudoranges.png` (ROC curves, my-drive's train split)." in page
+    assert "Figure:" not in bp.markdown(rows, "cmd")                    # no split to draw: none named
     assert bp.plot(kept, tmp_path / "roc.png", my_drive).stat().st_size > 0
 
 

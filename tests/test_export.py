@@ -1,5 +1,6 @@
 """Model file: numpy forward == torch forward, round trip, corrupt files, feature checks."""
 import json
+import warnings
 import zipfile
 
 import numpy as np
@@ -226,3 +227,26 @@ def test_online_model_file_needs_innovations(exported, tmp_path):
     np.savez(tmp_path / "bad.npz", **arrays)
     with pytest.raises(ModelFileError, match="embedding takes 9 inputs but 8"):
         load_model(tmp_path / "bad.npz")
+
+
+@pytest.mark.parametrize("backend", ["fgo", "wls-weighted"])
+def test_online_model_given_to_another_estimator_warns_once_under_its_name(exported, tmp_path, backend):
+    """An online model makes its R by an EKF run; given to the factor graph or the weighted fix, R in another unit is
+    said once, by the estimator given it, not again under the EKF's name."""
+    if backend == "fgo":
+        pytest.importorskip("gtsam")
+    from estimators import create
+
+    _, _, norm, seq = exported
+    ckpt, net = tmp_path / "online.pt", LfgnssNet(len(DEFAULT_FEATURES), innovation=True)
+    torch.save({"model": net.state_dict(), "model_hparams": net.hyperparameters(), "normaliser": norm.to_dict(),
+                "config": {}, "epoch": 1, "history": []}, ckpt)
+    model = load_model(export_model(ckpt, tmp_path / "online.npz"))
+    given = model.predict
+    model.predict = lambda *args, **kw: (lambda r, vc: (r * 1e4, vc))(*given(*args, **kw))     # R in cm^2
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        estimator = create(backend, noise=model)
+        estimator.solve(seq)
+    said = [str(w.message) for w in caught if "R is a variance in m^2" in str(w.message)]
+    assert len(said) == 1 and not said[0].startswith("LfgnssEkf"), said
