@@ -355,6 +355,11 @@ def markdown(rows: list[dict], command: str, shown: tuple[str, str] | None = Non
     return "\n".join(out)
 
 
+def shown_split(kept: dict) -> tuple[str, str] | None:
+    """The (dataset, split) of ``kept`` the figure draws: the first validation split, else the first split kept."""
+    return next((key for key in kept if key[1] == "val"), next(iter(kept), None))
+
+
 def plot(kept: dict, path: Path, dataset_id: str, split: str = "val") -> Path:
     """ROC curves of every cue for ``dataset_id``'s ``split``, one panel per labelling."""
     import matplotlib
@@ -383,8 +388,7 @@ def plot(kept: dict, path: Path, dataset_id: str, split: str = "val") -> Path:
 
 def main(argv: list[str] | None = None) -> int:
     """Run, print, and with ``--write`` write the Markdown page and the figure."""
-    p = script_parser(__doc__, f"write {DOC.relative_to(REPO)} and {FIGURE.name}")
-    p.set_defaults(datasets=list(DATASETS))
+    p = script_parser(__doc__, f"write {DOC.relative_to(REPO)} and {FIGURE.name}", DATASETS)
     p.add_argument("--splits", nargs="+", default=list(SPLITS), choices=SPLITS)
     args = parse(p, argv, "bad_pseudoranges.py")
     if args is None:
@@ -392,7 +396,7 @@ def main(argv: list[str] | None = None) -> int:
     rows, kept = run(args.datasets, tuple(args.splits))
     if not rows:
         return nothing("bad_pseudoranges.py", "no dataset with its files: nothing to score")
-    shown = next((key for key in kept if key[1] == "val"), next(iter(kept), None))     # a validation split first
+    shown = shown_split(kept)
     draw = (lambda path: plot(kept, path, *shown)) if shown else None
     return publish(markdown(rows, command_line("bad_pseudoranges.py", argv), shown), DOC, args.write, FIGURE, draw)
 

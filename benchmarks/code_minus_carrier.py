@@ -7,8 +7,9 @@ A diagnostic, not a method: the observation files' L1 carrier phases (read here 
 code, C/N0 and Doppler only) are turned into metres (GPS, Galileo and QZSS: the 1575.42 MHz wavelength; GLONASS: its
 FDMA wavelength from the navigation files' frequency channel numbers), matched to the sequence's epochs by GPS time to
 0.1 s and subtracted from the corrected pseudorange: code minus carrier (CMC). Per satellite arc (broken at a
-loss-of-lock flag, a gap over 0.6 s or a CMC jump over 100 m), CMC less its lowest value so far in the arc is the
-"excess", the delay a signal gained since its cleanest moment; less the arc's lowest value over the whole arc, its
+loss-of-lock flag, a gap over 0.6 s, or 1.5 epoch intervals where that is longer, or a CMC jump over 100 m), CMC less
+its lowest value so far in the arc is the "excess", the delay a signal gained since its cleanest moment; less the
+arc's lowest value over the whole arc, its
 non-causal version; CMC less its running arc mean, the deviation. Each is scored, with minus C/N0, by the area under
 the ROC curve for a pseudorange more than 10 m off under the two truth labellings of benchmarks/bad_pseudoranges.py.
 The arcs run over the train and validation epochs together (a validation arc may begin in train); the test split is
@@ -18,6 +19,7 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
+from collections.abc import Iterable
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -27,12 +29,13 @@ if TYPE_CHECKING:
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bad_pseudoranges import BAD_M, LABELLINGS, SPLIT_WORDS, SPLITS, roc_auc, truth_errors_m  # noqa: E402
+from bad_pseudoranges import BAD_M, LABELLINGS, SPLIT_WORDS, SPLITS, _f, roc_auc, truth_errors_m  # noqa: E402
 from page import command_line, nothing, parse, publish, script_parser  # noqa: E402  (sibling modules)
 
 DOC = REPO / "docs" / "code_minus_carrier.md"
 DATASETS = ("berlin-pp",)
 GAP_S = 0.6                               # an arc breaks where a satellite's usable phases are further apart [s]
+GAP_INTERVALS = 1.5                       # ... or further apart than this many epoch intervals, where that is longer
 JUMP_M = 100.0                            # ... or where its CMC jumps by more [m]
 TIME_KEY_S = 0.1                          # epochs and phases are matched by GPS time to 0.1 s
 PHASE_TYPES = ("L1", "L1C")               # RINEX 2 and 3 names of the L1 (C/A) carrier phase
@@ -41,7 +44,7 @@ CUES = ("C/N0", "excess", "whole-arc excess", "|deviation from arc mean|")
 RMS_AGES_S = (0.0, 20.0)                  # RMS of the error before / after the excess: slots of arcs this old [s]
 
 
-def glonass_channels(nav_paths) -> dict[str, int]:
+def glonass_channels(nav_paths: Iterable[str | Path]) -> dict[str, int]:
     """{GLONASS satellite id: its frequency channel number k [-]} from the navigation files (the latest record's)."""
     from lfgnss.navigation import load_nav
 
@@ -55,10 +58,11 @@ def l1_wavelengths_m(sv: np.ndarray, channels: dict[str, int]) -> np.ndarray:
     from lfgnss.constants import GLO_L1_BASE_HZ, GLO_L1_STEP_HZ, GPS_L1_HZ, SPEED_OF_LIGHT_M_S
 
     sv = np.asarray(sv, dtype="<U3")
-    flat = [SPEED_OF_LIGHT_M_S / GPS_L1_HZ if s[:1] in ("G", "E", "J")
+    ids, where = np.unique(sv, return_inverse=True)                 # a few dozen satellites over many slots
+    each = [SPEED_OF_LIGHT_M_S / GPS_L1_HZ if s[:1] in ("G", "E", "J")
             else SPEED_OF_LIGHT_M_S / (GLO_L1_BASE_HZ + GLO_L1_STEP_HZ * channels[s]) if s[:1] == "R" and s in channels
-            else np.nan for s in sv.ravel()]
-    return np.array(flat, float).reshape(sv.shape)
+            else np.nan for s in ids]
+    return np.array(each, float)[where].reshape(sv.shape)
 
 
 def read_l1_phases(obs_path: str | Path, systems: tuple[str, ...] = L1_SYSTEMS
@@ -69,7 +73,7 @@ def read_l1_phases(obs_path: str | Path, systems: tuple[str, ...] = L1_SYSTEMS
 
     import georinex
 
-    from lfgnss.rinex import _scale_to_gps_s
+    from lfgnss.rinex import scale_to_gps_s
     from lfgnss.time import datetime64_to_gps_s
 
     use = {s for s in systems if s in L1_SYSTEMS}
@@ -81,7 +85,7 @@ def read_l1_phases(obs_path: str | Path, systems: tuple[str, ...] = L1_SYSTEMS
     name = next((n for n in PHASE_TYPES if n in ds), None)
     if name is None or ds.sizes.get("time", 0) == 0:
         return np.zeros(0), np.zeros(0, "<U3"), np.zeros((0, 0)), np.zeros((0, 0), bool)
-    times = _scale_to_gps_s(datetime64_to_gps_s(ds.time.values), ds.attrs.get("time_system", "GPS") or "GPS")
+    times = scale_to_gps_s(datetime64_to_gps_s(ds.time.values), ds.attrs.get("time_system", "GPS") or "GPS")
     cycles = ds[name].values.astype(float)
     lli = ds[f"{name}lli"].values if f"{name}lli" in ds else np.zeros(cycles.shape)
     slip = (np.nan_to_num(lli).astype(int) & 1).astype(bool)
@@ -108,13 +112,21 @@ def phases_at_epochs_m(time_gps_s: np.ndarray, sv: np.ndarray, phases: tuple, ch
     row_ok = row < keys.size
     row = order[np.minimum(row, keys.size - 1)]
     row_ok &= keys[row] == _time_key(time_gps_s)
+    ids, where = np.unique(np.asarray(sv, dtype="<U3"), return_inverse=True)
     col_of = {s: j for j, s in enumerate(p_sv)}
-    col = np.array([col_of.get(s, -1) for s in np.asarray(sv).ravel()]).reshape(T, N)
+    col = np.array([col_of.get(s, -1) for s in ids], int)[where].reshape(T, N)
     ok = row_ok[:, None] & (col >= 0)
     r, c = np.broadcast_to(row[:, None], (T, N))[ok], col[ok]
     out[ok] = cycles[r, c] * l1_wavelengths_m(np.asarray(sv)[ok], channels)
     flag[ok] = slip[r, c]
     return out, flag
+
+
+def arc_gap_s(time_s: np.ndarray) -> float:
+    """The gap [s] that breaks an arc: ``GAP_S``, or ``GAP_INTERVALS`` median epoch intervals of ``time_s`` [s] where
+    that is longer (at 1 Hz every epoch is 1 s after the last, which a 0.6 s gap would break every time)."""
+    steps = np.diff(np.asarray(time_s, float))
+    return max(GAP_S, GAP_INTERVALS * float(np.median(steps))) if steps.size else GAP_S
 
 
 def arc_cues(time_s: np.ndarray, sv: np.ndarray, usable: np.ndarray, cmc_m: np.ndarray, slip: np.ndarray,
@@ -173,18 +185,23 @@ def dataset_signals(dataset_id: str, splits: tuple[str, ...] = SPLITS) -> dict[s
         print(f"{dataset_id}: skipped, no L1 carrier phase in {', '.join(p.name for p in spec.obs)}", file=sys.stderr)
         return None
     channels = glonass_channels(spec.nav) if any(s[:1] == "R" for ph in phases for s in ph[1]) else {}
-    seq = _stack(datasets.load_split(dataset_id, "+".join(SPLITS)))
+    pieces = {split: datasets.load_split(dataset_id, split) for split in SPLITS}
+    seq = _stack([p for split in SPLITS for p in pieces[split]])
+    unknown = sorted({s for s in seq["sv"][seq["mask"]] if s[:1] == "R" and s not in channels})
+    if unknown:
+        print(f"{dataset_id}: {', '.join(unknown)} without a frequency channel in the navigation files: their phases "
+              "are left out", file=sys.stderr)
     phase_m, slip = np.full(seq["mask"].shape, np.nan), np.zeros(seq["mask"].shape, bool)
     for ph in phases:                                               # several files: each fills the epochs it has
         m, f = phases_at_epochs_m(seq["time"], seq["sv"], ph, channels)
         fill = np.isnan(phase_m) & np.isfinite(m)
         phase_m[fill], slip[fill] = m[fill], f[fill]
-    cues = arc_cues(seq["time"], seq["sv"], seq["mask"], seq["pr"] - phase_m, slip)
+    cues = arc_cues(seq["time"], seq["sv"], seq["mask"], seq["pr"] - phase_m, slip, arc_gap_s(seq["time"]))
     out = {}
     for split in splits:
-        times = np.concatenate([p.time_gps_s for p in datasets.load_split(dataset_id, split)] or [np.zeros(0)])
+        times = np.concatenate([p.time_gps_s for p in pieces[split]] or [np.zeros(0)])
         usable = seq["mask"] & np.isin(_time_key(seq["time"]), _time_key(times))[:, None]
-        on = usable & np.isfinite(phase_m)
+        on = usable & np.isfinite(cues["excess"])                 # a phase, and a finite pseudorange
         if not on.any():
             print(f"{dataset_id}: no labelled epoch with phases in its {split} split: left out", file=sys.stderr)
             continue
@@ -245,10 +262,6 @@ def run(dataset_ids: list[str], splits: tuple[str, ...] = SPLITS) -> list[dict]:
     return rows
 
 
-def _f(x: float, fmt: str = ".3f") -> str:
-    return "-" if not np.isfinite(x) else format(x, fmt)
-
-
 def _split_words(split: str) -> str:
     return " + ".join(SPLIT_WORDS.get(s, s) for s in split.split("+"))
 
@@ -290,7 +303,8 @@ def markdown(rows: list[dict], command: str) -> str:
            "satellites or more). Code minus carrier (CMC): the corrected pseudorange less the L1 phase in metres "
            "(read with georinex; GPS / Galileo / QZSS wavelength at 1575.42 MHz, GLONASS at 1602 + 0.5625 k MHz, k "
            "from the navigation files; matched to the epochs by GPS time to 0.1 s). Per satellite arc, over the "
-           f"train and validation epochs together (an arc breaks at a loss-of-lock flag, a gap over {GAP_S:g} s or a "
+           f"train and validation epochs together (an arc breaks at a loss-of-lock flag, a gap over {GAP_S:g} s, or "
+           f"{GAP_INTERVALS:g} epoch intervals where that is longer, or a "
            f"CMC jump over {JUMP_M:g} m): *excess*, CMC less its lowest value so far in the arc, the delay the "
            "signal gained since its cleanest moment (causal); *whole-arc excess*, less the arc's lowest value "
            "(non-causal); *|deviation from arc mean|*, |CMC less its running arc mean|; and minus C/N0. Arc age: "
@@ -310,8 +324,7 @@ def markdown(rows: list[dict], command: str) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """Run, print, and with ``--write`` write the Markdown page."""
-    p = script_parser(__doc__, f"write {DOC.relative_to(REPO)}")
-    p.set_defaults(datasets=list(DATASETS))
+    p = script_parser(__doc__, f"write {DOC.relative_to(REPO)}", DATASETS)
     p.add_argument("--splits", nargs="+", default=list(SPLITS), choices=SPLITS)
     args = parse(p, argv, "code_minus_carrier.py")
     if args is None:

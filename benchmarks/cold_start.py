@@ -112,15 +112,16 @@ def _cell(pair: tuple[float, float]) -> str:
     return "-" if not np.isfinite(pair[0]) else f"{pair[0]:.2f} / {pair[1]:.2f}"
 
 
-def markdown(rows: list[dict], command: str, head_s: float = HEAD_S) -> str:
-    """One table per dataset: filter and start as rows, split x (all, head, rest) as columns, 3D / 2D RMSE [m]."""
+def markdown(rows: list[dict], command: str, head_s: float = HEAD_S, figure: bool = True) -> str:
+    """One table per dataset: filter and start as rows, split x (all, head, rest) as columns, 3D / 2D RMSE [m]; the
+    header names the figure where one is drawn (``figure``: the test split was run)."""
     out = ["# How much of the error is the cold start", "",
            f"Produced by `{command}` (3D / 2D RMSE in metres over each split's labelled epochs, all of them, the first "
            f"{head_s:g} s and the rest; 100 % availability). Cold: as the benchmark runs the filters. At the truth: "
            f"the same filter started at the true position with a {TRUE_START_SD_M:g} m sd per axis: what a "
            "perfect first fix would give, not a method (it reads the truth). The models were trained on the train "
-           "split: its columns are in-sample. Resets counts the filter's (re-)initialisations, the start included. "
-           f"Figure: `figures/{FIGURE.name}` (test split).", ""]
+           "split: its columns are in-sample. Resets counts the filter's (re-)initialisations, the start included."
+           + (f" Figure: `figures/{FIGURE.name}` (test split)." if figure else ""), ""]
     for dataset in dict.fromkeys(r["dataset"] for r in rows):
         mine = [r for r in rows if r["dataset"] == dataset]
         splits = list(dict.fromkeys(r["split"] for r in mine))
@@ -170,7 +171,7 @@ def main(argv: list[str] | None = None) -> int:
     rows, traces = run(args.datasets, tuple(args.splits), args.head)
     if not rows:
         return nothing("cold_start.py", "no dataset with its files: nothing to compare")
-    text = markdown(rows, command_line("cold_start.py", argv), args.head)
+    text = markdown(rows, command_line("cold_start.py", argv), args.head, figure=bool(traces))
     return publish(text, DOC, args.write, FIGURE, (lambda path: plot(traces, path, args.head)) if traces else None)
 
 

@@ -23,10 +23,12 @@ REPO = Path(__file__).resolve().parents[1]
 DATASETS = ("hk-tst-2019", "berlin-pp", "hk-tst-static-2020")
 
 
-def script_parser(doc: str, write_help: str) -> argparse.ArgumentParser:
-    """The benchmark scripts' command line: ``--datasets`` and ``--write``; each adds its split option."""
+def script_parser(doc: str, write_help: str, datasets: tuple[str, ...] = DATASETS) -> argparse.ArgumentParser:
+    """The benchmark scripts' command line: ``--datasets`` (default ``datasets``) and ``--write``; each adds its split
+    option."""
     p = argparse.ArgumentParser(description=doc.split("\n\n")[0])
-    p.add_argument("--datasets", nargs="+", default=list(DATASETS), help="benchmark dataset ids (default: the three)")
+    p.add_argument("--datasets", nargs="+", default=list(datasets),
+                   help=f"benchmark dataset ids (default: {' '.join(datasets)})")
     p.add_argument("--write", action="store_true", help=write_help)
     return p
 
@@ -60,7 +62,10 @@ def nothing(script: str, why: str) -> int:
 def publish(text: str, doc: Path, write: bool, figure: Path | None = None,
             draw: Callable[[Path], Path] | None = None) -> int:
     """Print the page; with ``write`` also write it to ``doc`` and draw the ``figure`` (``draw(figure)``), or, when
-    this run has no figure to draw, remove the one an earlier run left (the page no longer names it). Exit status 0."""
+    this run has no figure to draw, remove the one an earlier run left (the caller's page must then not name it). Exit
+    status 0."""
+    if draw is not None and figure is None:
+        raise ValueError("publish: a figure to draw needs its path")
     print(text)
     if write:
         doc.write_text(text)

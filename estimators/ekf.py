@@ -173,6 +173,9 @@ class LfgnssEkf:
 
     #: The backend's name, the start of ``name`` (``smoothed_name``).
     default_name = "ekf"
+    #: Whether an online model's run ends with the warnings on its R (``warn_noise``); off only where an online model
+    #: runs this filter to make its R for another estimator, which judges that R under its own name.
+    _judges_noise = True
 
     def __init__(self, noise: NoiseModel | str | os.PathLike | None = None, config: EkfConfig | None = None,
                  name: str | None = None, use_compensation: bool = True, smooth: bool = False,
@@ -420,7 +423,7 @@ class LfgnssEkf:
             state[k] = ekf.x
             cov[k] = ekf.P
 
-        if online:
+        if online and self._judges_noise:
             warn_noise(type(self).__name__, sequence, usable_before_noise, usable, r_noise)
         info = {"n_gated": n_gated, "n_usable": usable.sum(1), "n_doppler": n_doppler, "stationary": still,
                 "clock_realigned": clock_realigned, "config": cfg, "filtered_state": state, "r_m2": r_all,

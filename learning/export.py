@@ -44,7 +44,6 @@ import hashlib
 import json
 import shlex
 import sys
-import warnings
 import zipfile
 from pathlib import Path
 from typing import Iterable
@@ -522,11 +521,10 @@ class LfgnssModel:
         run's warnings on R are left to the estimator given it, which judges the same R under its own name)."""
         if self.online:
             from estimators.ekf import LfgnssEkf
-            from estimators.noise import NoiseWarning
 
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", NoiseWarning)
-                info = LfgnssEkf(self).solve(sequence).info
+            ekf = LfgnssEkf(self)
+            ekf._judges_noise = False
+            info = ekf.solve(sequence).info
             return info["noise_r_m2"], info["vc_m"]
         return self.predict(self.features(sequence), sequence.mask)
 

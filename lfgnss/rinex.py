@@ -294,10 +294,10 @@ def _choose_codes(fields, version: float, path: Path, problems: list[str]) -> di
 
 def _to_gps_s(year: int, month: int, day: int, hour: int, minute: int, sec: float, time_system: str) -> float:
     t = (dt.datetime(year, month, day, hour, minute) - _GPS_EPOCH).total_seconds() + sec
-    return float(_scale_to_gps_s(t, time_system))
+    return float(scale_to_gps_s(t, time_system))
 
 
-def _scale_to_gps_s(t, time_system: str):
+def scale_to_gps_s(t: np.ndarray | float, time_system: str) -> np.ndarray:
     """GPS seconds from epoch time tags counted since 1980-01-06 on the file's time scale [s].
 
     ``BDT``: + 14 s. ``GLO``: the tags are UTC(SU) (RINEX; not GLONASS system time, which is 3 h ahead),
@@ -641,7 +641,7 @@ def _parse_georinex(text, path, info, codes, problems) -> Observations:
         except Exception as err:
             raise RinexError(path, f"georinex could not read the file ({type(err).__name__}: {err})") from None
     times = (ds.time.values.astype("datetime64[ns]") - np.datetime64("1980-01-06", "ns")).astype("int64") * 1e-9
-    times = _scale_to_gps_s(times, info["time_system"])
+    times = scale_to_gps_s(times, info["time_system"])
     svs = [str(s) for s in ds.sv.values if str(s)[0] in codes]
     order = {s: i for i, s in enumerate(SYSTEMS)}
     svs = sorted(svs, key=lambda s: (order.get(s[0], 99), s))

@@ -120,6 +120,12 @@ def test_the_tables_run_on_a_registered_dataset(my_drive, tmp_path):
     assert bp.plot(kept, tmp_path / "roc.png", my_drive).stat().st_size > 0
 
 
+def test_the_figure_draws_a_validation_split_where_one_was_run():
+    assert bp.shown_split({("a", "train"): 0, ("b", "train"): 0, ("b", "val"): 0}) == ("b", "val")
+    assert bp.shown_split({("a", "train"): 0, ("b", "train"): 0}) == ("a", "train")     # --splits train
+    assert bp.shown_split({}) is None
+
+
 def test_the_test_split_is_never_read(my_drive):
     with pytest.raises(ValueError, match="test split"):
         bp.run([my_drive], ("train", "test"))

@@ -2,6 +2,8 @@
 import sys
 from pathlib import Path
 
+import pytest
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import page  # noqa: E402
 
@@ -32,8 +34,14 @@ def test_a_run_without_a_figure_removes_the_one_an_earlier_run_left(tmp_path, ca
     assert capsys.readouterr().out.endswith(f"written: {doc}\n")
 
 
+def test_a_figure_to_draw_without_its_path_is_refused(tmp_path):
+    with pytest.raises(ValueError, match="needs its path"):
+        page.publish("# page", tmp_path / "x.md", True, None, lambda path: path)
+
+
 def test_parse_refuses_an_unknown_dataset_in_one_line(capsys):
     p = page.script_parser("A script.\n\nMore.", "write it")
     assert page.parse(p, ["--datasets", "nope"], "x.py") is None
     assert capsys.readouterr().err.startswith("x.py: unknown dataset nope; known: ")
     assert page.parse(p, ["--datasets", "berlin-pp", "--write"], "x.py").write
+    assert page.parse(page.script_parser("A script.", "write it", ("berlin-pp",)), [], "x.py").datasets == ["berlin-pp"]

@@ -67,6 +67,15 @@ def test_arcs_break_at_a_gap_a_loss_of_lock_flag_and_a_jump_and_follow_the_satel
     assert np.isnan(out["excess"][1, 1]) and np.allclose(out["age"][3], [0.6, 0.6])
 
 
+def test_a_1_hz_receiver_s_arcs_do_not_break_at_every_epoch():
+    assert cm.arc_gap_s(np.arange(0.0, 10.0, 0.2)) == cm.GAP_S                  # 5 Hz: the 0.6 s gap
+    assert cm.arc_gap_s(np.array([0.0, 1.0, 1.996, 3.0, 4.004])) == pytest.approx(1.5, abs=0.01)     # 1 Hz, jitter
+    time = np.arange(6.0)
+    cues = cm.arc_cues(time, np.full((6, 1), "G01"), np.ones((6, 1), bool), np.arange(6.0)[:, None],
+                       np.zeros((6, 1), bool), cm.arc_gap_s(time))
+    assert np.all(cues["arc"] == 0) and cues["age"][-1, 0] == 5.0
+
+
 def test_the_excess_is_cmc_above_the_arc_s_lowest_value_so_far_and_over_the_whole_arc():
     out = _arc_cues([5.0, 3.0, 4.0, 1.0, 2.0])
     assert out["excess"][:, 0].tolist() == [0.0, 0.0, 1.0, 0.0, 1.0]

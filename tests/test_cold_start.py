@@ -59,7 +59,8 @@ def test_rows_score_both_starts_at_the_head_and_after(my_drive, tmp_path):
     assert t.shape == err.shape and np.isfinite(err).all() and t[0] == 0.0
 
     page = cold_start.markdown(rows, "cmd", head_s=10.0)
-    assert "nan" not in page and "| train first 10 s (" in page
+    assert "nan" not in page and "| train first 10 s (" in page and "Figure: `figures/cold_start.png`" in page
+    assert "Figure:" not in cold_start.markdown(rows, "cmd", figure=False)
     assert cold_start.plot(traces, tmp_path / "cold.png", head_s=10.0).stat().st_size > 0
 
 
@@ -67,6 +68,19 @@ def test_a_split_shorter_than_the_head_has_no_rest(my_drive):
     rows, _ = cold_start.run([my_drive], ("val",), head_s=35.0)
     assert all(r["head_epochs"] == r["epochs"] and np.isnan(r["rest"][0]) for r in rows)
     assert cold_start.markdown(rows, "cmd").count(" | - |") == len(rows)
+
+
+def test_a_written_page_and_its_figure_agree(my_drive, tmp_path, monkeypatch):
+    """--write without the test split draws no figure: the page names none and an earlier run's figure goes; with
+    it, the page names the figure drawn."""
+    monkeypatch.setattr(cold_start, "REPO", tmp_path)
+    monkeypatch.setattr(cold_start, "DOC", tmp_path / "cold_start.md")
+    monkeypatch.setattr(cold_start, "FIGURE", tmp_path / "cold_start.png")
+    cold_start.FIGURE.write_bytes(b"an earlier run's")
+    assert cold_start.main(["--datasets", my_drive, "--splits", "val", "--write"]) == 0
+    assert not cold_start.FIGURE.exists() and "Figure:" not in cold_start.DOC.read_text()
+    assert cold_start.main(["--datasets", my_drive, "--splits", "test", "--write"]) == 0
+    assert cold_start.FIGURE.stat().st_size > 0 and "Figure: `figures/cold_start.png`" in cold_start.DOC.read_text()
 
 
 def test_unknown_datasets_are_refused_in_one_line(capsys):

@@ -12,7 +12,7 @@ from scipy.linalg import LinAlgWarning
 from estimators import create
 from estimators.ekf import LfgnssEkf
 from estimators.models import EkfConfig
-from estimators.noise import R_OFF_M2, FixedNoise, HeuristicNoise
+from estimators.noise import R_OFF_M2, FixedNoise, HeuristicNoise, NoiseWarning
 from lfgnss.simulate import simulate_sequence
 
 
@@ -130,11 +130,11 @@ def _every_estimator(r_m2: np.ndarray, vc_m: np.ndarray) -> tuple:
 
 
 def _warned(estimator, seq, words: str) -> list[str]:
-    """The warnings containing ``words`` that solving ``seq`` gives."""
+    """The noise warnings (``NoiseWarning``) containing ``words`` that solving ``seq`` gives."""
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         estimator.solve(seq)
-    return [str(w.message) for w in caught if words in str(w.message)]
+    return [str(w.message) for w in caught if issubclass(w.category, NoiseWarning) and words in str(w.message)]
 
 
 def test_every_estimator_warns_when_the_noise_model_switches_a_whole_epoch_off(case):
