@@ -269,13 +269,14 @@ def report(results: list[dict], backends: list[str], base: dict[str, float], inf
              "sensitive than wall time to other load on the machine, but it counts every thread numpy or gtsam "
              "runs in parallel:\n\n" + speed_table(results, backends, "cpu"))
     text += (f"\nFixed costs (median of {repeat}): bare `python -c pass` {base['python -c pass']:.2f} s; "
-             f"`python -m lfgnss.solve --help` (interpreter + the CLI's imports: lfgnss, estimators with filterpy "
-             f"and scipy; gtsam and pandas load only when used) {base['lfgnss.solve --help']:.2f} s.\n")
+             f"`python -m lfgnss.solve --help` (interpreter + the CLI's imports: lfgnss and estimators; filterpy with "
+             f"scipy, gtsam and pandas load only when used) {base['lfgnss.solve --help']:.2f} s.\n")
     stages = stages_table(results, backends)
     if stages:
         text += ("\nIn-process steps of `lfgnss.solve.run` [s], each timed alone in a fresh interpreter (median of "
                  f"{repeat}); `cold` = empty cache, `warm` = the cache the cold run left. `imports`: every module "
-                 "`solve.run` imports (lfgnss, estimators, filterpy/scipy; gtsam comes with the fgo estimator); `read obs` "
+                 "`solve.run` imports (lfgnss, estimators; filterpy and scipy come with the ekf estimator, gtsam with the fgo "
+                 "one); `read obs` "
                  "/ `read nav`: `load_obs` / `load_nav` (parse and write the cache, or read it back; parsing imports "
                  "pandas); `sat states + QC`: `load` on "
                  "the parsed objects; `spp`: the least-squares coarse fix; `model load`: `solve._noise` (the bundled "
@@ -301,7 +302,7 @@ What is counted, per dataset, in the same run (repeats interleaved; each figure 
   constellations), writing its `.pos` file.
 * **solve B**: wall time of the whole `python -m lfgnss.solve --backend B --obs OBS --nav NAV... --systems SYS
   --out DIR --no-plots` subprocess on the same files and constellations, as a user runs it: interpreter start,
-  imports (numpy, scipy via filterpy; gtsam only for fgo; pandas only to parse RINEX, georinex/xarray only to
+  imports (numpy; filterpy with scipy only for ekf, gtsam only for fgo; pandas only to parse RINEX, georinex/xarray only to
   parse navigation files), RINEX
   reading, satellite states and QC, the least-squares coarse fix, features, the bundled model
   (`lfgnss/data/model/lfgnss-default.npz`, loaded and run with numpy), the estimator (`fgo` in batch mode), and

@@ -43,7 +43,6 @@ import warnings
 from dataclasses import fields
 
 import numpy as np
-from filterpy.kalman import ExtendedKalmanFilter
 
 from lfgnss.features import innovation_feature
 from lfgnss.sequence import Sequence
@@ -277,6 +276,10 @@ class LfgnssEkf:
         a = models.transition_generator(n_sys)
         eye = np.eye(n)
         cache: dict[float, tuple[np.ndarray, np.ndarray]] = {}
+
+        # imported here: filterpy.kalman's package pulls scipy.stats, half a second that `import estimators` (the
+        # command line's --help and its error messages, the graph and least-squares back ends) need not pay
+        from filterpy.kalman import ExtendedKalmanFilter
 
         ekf = ExtendedKalmanFilter(dim_x=n, dim_z=1)
         state = np.full((t_len, n), np.nan)
