@@ -275,8 +275,8 @@ def report(results: list[dict], backends: list[str], base: dict[str, float], inf
     if stages:
         text += ("\nIn-process steps of `lfgnss.solve.run` [s], each timed alone in a fresh interpreter (median of "
                  f"{repeat}); `cold` = empty cache, `warm` = the cache the cold run left. `imports`: every module "
-                 "`solve.run` imports (lfgnss, estimators; filterpy and scipy come with the ekf estimator, gtsam with the fgo "
-                 "one); `read obs` "
+                 "`solve.run` imports (lfgnss, estimators; filterpy and scipy come with the ekf estimator, gtsam "
+                 "with the fgo one); `read obs` "
                  "/ `read nav`: `load_obs` / `load_nav` (parse and write the cache, or read it back; parsing imports "
                  "pandas); `sat states + QC`: `load` on "
                  "the parsed objects; `spp`: the least-squares coarse fix; `model load`: `solve._noise` (the bundled "
@@ -302,8 +302,8 @@ What is counted, per dataset, in the same run (repeats interleaved; each figure 
   constellations), writing its `.pos` file.
 * **solve B**: wall time of the whole `python -m lfgnss.solve --backend B --obs OBS --nav NAV... --systems SYS
   --out DIR --no-plots` subprocess on the same files and constellations, as a user runs it: interpreter start,
-  imports (numpy; filterpy with scipy only for ekf, gtsam only for fgo; pandas only to parse RINEX, georinex/xarray only to
-  parse navigation files), RINEX
+  imports (numpy; filterpy with scipy only for ekf, gtsam only for fgo; pandas only to parse RINEX,
+  georinex/xarray only to parse navigation files), RINEX
   reading, satellite states and QC, the least-squares coarse fix, features, the bundled model
   (`lfgnss/data/model/lfgnss-default.npz`, loaded and run with numpy), the estimator (`fgo` in batch mode), and
   writing `.pos`, `.csv`, `.geojson` and `.kml`. No truth is given, so no accuracy table and no plots.
