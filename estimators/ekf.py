@@ -131,6 +131,15 @@ def _given(_x: np.ndarray, value: np.ndarray) -> np.ndarray:
     return value
 
 
+def extended_kalman_filter() -> type:
+    """filterpy's ``ExtendedKalmanFilter`` class, imported on first use: filterpy.kalman's package pulls scipy.stats,
+    half a second that ``import estimators`` (the command line's --help and its errors, the graph and least-squares
+    back ends) need not pay. An EKF imports it when built, so that timing a solve does not count it."""
+    from filterpy.kalman import ExtendedKalmanFilter
+
+    return ExtendedKalmanFilter
+
+
 class LfgnssEkf:
     """EKF with per-satellite noise ``R`` and innovation compensation ``v^c`` from a noise model.
 
@@ -207,6 +216,7 @@ class LfgnssEkf:
         self.name = smoothed_name(self.default_name, smooth, self.smooth_lag_s) if name is None else name
         self.use_compensation = use_compensation
         self.progress = progress
+        extended_kalman_filter()
 
     def __repr__(self) -> str:
         """The settings: name, noise model, config changes from the defaults, and options off their defaults."""
@@ -277,11 +287,7 @@ class LfgnssEkf:
         eye = np.eye(n)
         cache: dict[float, tuple[np.ndarray, np.ndarray]] = {}
 
-        # imported here: filterpy.kalman's package pulls scipy.stats, half a second that `import estimators` (the
-        # command line's --help and its error messages, the graph and least-squares back ends) need not pay
-        from filterpy.kalman import ExtendedKalmanFilter
-
-        ekf = ExtendedKalmanFilter(dim_x=n, dim_z=1)
+        ekf = extended_kalman_filter()(dim_x=n, dim_z=1)
         state = np.full((t_len, n), np.nan)
         cov = np.full((t_len, n, n), np.nan)
         kept = t_len if self.smooth else 0           # priors and transitions: only the RTS smoother reads them
