@@ -61,6 +61,7 @@ import numbers
 import os
 import re
 import time
+import warnings
 
 import gtsam
 import numpy as np
@@ -73,8 +74,8 @@ from lfgnss.frames import ecef_to_lla, enu_rotation
 from lfgnss.sequence import Sequence
 from lfgnss.velocity import DopplerVelocity, doppler_velocity
 
-from .base import (STATUS_COASTED, STATUS_NONE, STATUS_UPDATED, Solution, check_flag, check_sequence, epoch_range,
-                   keep_slots, options_of, register, usable_sequence)
+from .base import (STATUS_COASTED, STATUS_NONE, STATUS_UPDATED, Solution, caller_stacklevel, check_flag, check_sequence,
+                   epoch_range, keep_slots, options_of, register, usable_sequence)
 from .consistency import covariance_inflation, residual_variance_factor
 from .ekf import config_of
 from .models import EkfConfig, still_fixes, used_doppler_variance_m2_s2
@@ -93,6 +94,8 @@ DOPPLER_HUBER_K = 1.5
 DEFAULT_ZUPT_MAX_SPEED_M_S = EkfConfig().zupt_max_speed_m_s
 #: Default fixed-lag window [s] (``lag_s``).
 DEFAULT_LAG_S = 10.0
+#: iSAM2's relinearisation threshold [m] of the positions and velocities (m/s), and of the clocks as a range.
+RELINEARIZE_M = 0.01
 #: Bounds beyond which ``likely_cause`` blames an input for an ill-conditioned graph: a pseudorange sigma under 1 cm
 #: or over 1 km [m^2], an acceleration density under 1e-6 m^2/s^3 (on the bundled drive R = 1e-12 or >= 1e8 m^2 and
 #: a density of 1e-9 made the fixed-lag solve fail; 1e-8 to 1e6 m^2 and 1e-7 did not).
@@ -685,15 +688,34 @@ class LfgnssFgo:
                         if result.exists(clock_key(k, 0, n_sys)) else np.nan for k in range(k0, n_t)])
         cov = None
         if self.covariances:
-            marginals = gtsam.Marginals(graph, result)
-            cov = np.array([marginals.marginalCovariance(X(k)) for k in range(k0, n_t)])
+            try:
+                marginals = gtsam.Marginals(graph, result)
+                cov = np.array([marginals.marginalCovariance(X(k)) for k in range(k0, n_t)])
+            except RuntimeError as err:
+                self._warn_no_marginals(seq, err)
         return pos, vel, clk, n_used, cov
+
+    def _warn_no_marginals(self, seq: Sequence, err: RuntimeError) -> None:
+        """Warn that gtsam could not give the solved graph's marginal covariances: the positions stand, with the
+        stand-in covariance of ``covariances=False``."""
+        found = symbol_epoch(str(err), len(seq.systems))
+        why = (f"an indeterminate linear system near variable {found[0]}" if found
+               else (str(err).strip().splitlines() or [type(err).__name__])[0])
+        warnings.warn(f"{type(self).__name__}: gtsam could not compute the marginal covariances of {seq.name!r} "
+                      f"(gtsam: {why}); the positions are kept, with the stand-in covariance of covariances=False",
+                      UserWarning, stacklevel=caller_stacklevel())
 
     def _solve_fixed_lag(self, seq, k0, z_m, sigma_m, psd_ecef, dv, still, info, ranges):
         n_t, n_sys = len(seq), len(seq.systems)
         t = seq.time_gps_s - seq.time_gps_s[k0]
         isam = gtsam.ISAM2Params()
-        isam.setRelinearizeThreshold(0.01)
+        # per variable type: one threshold for all would be 0.01 s on the clocks (3000 km), whose linearisation
+        # point would then never move, and the robust kernel would weigh every pseudorange by its first clock guess
+        thresholds = gtsam.ISAM2ThresholdMap()
+        for letter, size, threshold in (("x", 3, RELINEARIZE_M), ("v", 3, RELINEARIZE_M),
+                                        ("b", 1, RELINEARIZE_M / SPEED_OF_LIGHT_M_S)):
+            thresholds.insert((letter, np.full((size, 1), threshold)))
+        isam.setRelinearizeThreshold(thresholds)
         isam.relinearizeSkip = 1
         isam.findUnusedFactorSlots = True          # else every marginalised factor's slot stays: O(T^2) time
         smoother = gtsam.IncrementalFixedLagSmoother(self.lag_s, isam)
@@ -717,9 +739,13 @@ class LfgnssFgo:
                 vel[i] = vel[last - k0]
                 clk[i] = self._clock_only(k, seq, z_m, pos[i])
                 if cov is not None:
-                    if joint is None:
-                        joint = smoother.getISAM2().jointMarginalCovariance([X(last), V(last)])
-                    cov[i] = _coasted_position_covariance(joint, X(last), V(last), dt, psd_ecef)
+                    try:
+                        if joint is None:
+                            joint = smoother.getISAM2().jointMarginalCovariance([X(last), V(last)])
+                        cov[i] = _coasted_position_covariance(joint, X(last), V(last), dt, psd_ecef)
+                    except RuntimeError as err:
+                        self._warn_no_marginals(seq, err)
+                        cov = None
                 continue
             graph = gtsam.NonlinearFactorGraph()
             values = gtsam.Values()
@@ -750,7 +776,11 @@ class LfgnssFgo:
             if est.exists(clock_key(k, 0, n_sys)):
                 clk[i] = est.atDouble(clock_key(k, 0, n_sys)) * SPEED_OF_LIGHT_M_S
             if cov is not None:
-                cov[i] = smoother.marginalCovariance(X(k))
+                try:
+                    cov[i] = smoother.marginalCovariance(X(k))
+                except RuntimeError as err:
+                    self._warn_no_marginals(seq, err)
+                    cov = None
             last, joint = k, None
         info["coasted_outside_graph"] = int(np.count_nonzero(blind[k0 + 1:]))
         return pos, vel, clk, n_used, cov

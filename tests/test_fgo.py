@@ -141,6 +141,57 @@ def test_marginal_covariances_optional():
         assert np.all(np.sqrt(np.trace(cov, axis1=1, axis2=2)) < 20.0)
 
 
+def test_marginal_covariances_leave_the_positions_as_they_are():
+    seq = simulate_sequence(40, seed=2)
+    for mode in ("batch", "fixed-lag"):
+        with_cov = LfgnssFgo(mode=mode, covariances=True).solve(seq)
+        np.testing.assert_array_equal(with_cov.pos_ecef_m, LfgnssFgo(mode=mode).solve(seq).pos_ecef_m)
+
+
+def test_positions_stand_when_gtsam_cannot_give_the_marginals():
+    """A graph gtsam solves but cannot invert (one satellite slot with a 0.1 mm sigma): the solved positions are kept
+    with the stand-in covariance and one warning, not lost to an error."""
+    seq = simulate_sequence(60, seed=4)
+    r, vc = HeuristicNoise()(seq)
+    noise = FixedNoise(np.where(np.arange(r.shape[1]) == 0, 1e-8, r), vc)
+    plain = LfgnssFgo(noise=noise).solve(seq)
+    with pytest.warns(UserWarning, match=r"could not compute the marginal covariances of 'synthetic' \(gtsam: an "
+                      r"indeterminate linear system near variable x\d+\); the positions are kept") as caught:
+        sol = LfgnssFgo(noise=noise, covariances=True).solve(seq)
+    assert sum("marginal covariances" in str(w.message) for w in caught) == 1
+    np.testing.assert_array_equal(sol.pos_ecef_m, plain.pos_ecef_m)
+    np.testing.assert_allclose(sol.cov_ecef_m2, plain.cov_ecef_m2)
+
+
+def test_fixed_lag_relinearises_the_clocks(monkeypatch):
+    """iSAM2 moves every variable's linearisation point, the clocks' (in seconds) too: with one threshold for all
+    they stayed at their first guess, and the robust kernel weighed the pseudoranges by it."""
+    smoothers = []
+
+    def keep(lag_s, params):
+        smoothers.append(real(lag_s, params))
+        return smoothers[-1]
+
+    real = gtsam.IncrementalFixedLagSmoother
+    first: dict[int, float] = {}
+    update = real.update
+
+    def recording(self, *args):
+        if args:
+            for key in args[1].keys():
+                if chr(gtsam.Symbol(key).chr()) == "b":
+                    first.setdefault(key, args[1].atDouble(key))
+        return update(self, *args)
+
+    monkeypatch.setattr(gtsam, "IncrementalFixedLagSmoother", keep)
+    monkeypatch.setattr(real, "update", recording, raising=False)
+    LfgnssFgo(mode="fixed-lag").solve(simulate_sequence(60, seed=5, nlos_fraction=0.3))
+    point = smoothers[-1].getISAM2().getLinearizationPoint()
+    moved_m = [abs(point.atDouble(key) - first[key]) * SPEED_OF_LIGHT_M_S for key in point.keys()
+               if chr(gtsam.Symbol(key).chr()) == "b"]
+    assert len(moved_m) > 10 and max(moved_m) > 0.1, moved_m
+
+
 # ---------------------------------------------------------------- availability and robustness
 @pytest.mark.parametrize("mode", ["batch", "fixed-lag"])
 def test_full_availability_with_empty_epochs(mode):
