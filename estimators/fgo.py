@@ -459,6 +459,7 @@ class LfgnssFgo:
     # ------------------------------------------------------------------ building blocks
     def _measurement_model(self, sigma_m: float, kernel: tuple[str | None, float] | None = None
                            ) -> gtsam.noiseModel.Base:
+        """A pseudorange's noise model: sigma ``sigma_m`` [m] in the robust ``kernel`` (default: the graph's)."""
         robust, k = (self.robust, self.robust_k) if kernel is None else kernel
         base = gtsam.noiseModel.Diagonal.Sigmas(np.array([sigma_m]))
         if robust == "huber":
@@ -532,11 +533,13 @@ class LfgnssFgo:
                                               gtsam.noiseModel.Isotropic.Sigma(3, self.zupt_sigma_m_s)))
 
     def _accel_psd_ecef(self, ref_ecef_m: np.ndarray) -> np.ndarray:
+        """The ENU acceleration density [m^2/s^3] as a 3x3 ECEF matrix at ``ref_ecef_m`` [m]."""
         lat, lon, _ = ecef_to_lla(ref_ecef_m)
         rot = enu_rotation(lat, lon)
         return rot.T @ np.diag(self.accel_psd_enu_m2_s3) @ rot
 
     def _priors(self, k0: int, pos: np.ndarray, vel: np.ndarray, graph: gtsam.NonlinearFactorGraph) -> None:
+        """Priors on the first epoch's position ``pos`` [m] and velocity ``vel`` [m/s] (``prior_*_sigma``)."""
         graph.add(gtsam.PriorFactorPoint3(X(k0), pos, gtsam.noiseModel.Isotropic.Sigma(3, self.prior_pos_sigma_m)))
         graph.add(gtsam.PriorFactorPoint3(V(k0), vel, gtsam.noiseModel.Isotropic.Sigma(3, self.prior_vel_sigma_m_s)))
 
@@ -639,6 +642,8 @@ class LfgnssFgo:
         return p, v
 
     def _solve_batch(self, seq, k0, z_m, sigma_m, psd_ecef, dv, still, info, ranges):
+        """The whole graph from epoch ``k0`` on, solved by Levenberg-Marquardt: (positions [m], velocities [m/s],
+        clocks [m], satellites used, marginal covariances [m^2] or None), one row per epoch from ``k0``."""
         n_t, n_sys = len(seq), len(seq.systems)
         t = seq.time_gps_s
         p0, v0 = self._initial_trajectory(seq, k0, dv)
@@ -706,6 +711,8 @@ class LfgnssFgo:
                       UserWarning, stacklevel=caller_stacklevel())
 
     def _solve_fixed_lag(self, seq, k0, z_m, sigma_m, psd_ecef, dv, still, info, ranges):
+        """Epoch by epoch in iSAM2 over a ``lag_s`` window (causal): ``_solve_batch``'s tuple, each epoch's state as
+        estimated when it arrived."""
         n_t, n_sys = len(seq), len(seq.systems)
         t = seq.time_gps_s - seq.time_gps_s[k0]
         isam = gtsam.ISAM2Params()
