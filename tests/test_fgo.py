@@ -141,6 +141,15 @@ def test_marginal_covariances_optional():
         assert np.all(np.sqrt(np.trace(cov, axis1=1, axis2=2)) < 20.0)
 
 
+@pytest.mark.parametrize("mode", ["batch", "fixed-lag"])
+def test_the_reported_clock_is_the_receiver_clock_in_metres(mode):
+    """The graph's clocks are in seconds: the Solution's clock_m must be them times c, of the first constellation,
+    with its sign (the simulation's coarse clock is its true clock)."""
+    seq = simulate_sequence(120, seed=3)
+    error = LfgnssFgo(mode=mode).solve(seq).clock_m - seq.coarse_clock_m[:, 0]
+    assert abs(np.median(error)) < 0.5 and np.median(np.abs(error)) < 1.5, (np.median(error), np.abs(error).max())
+
+
 def test_marginal_covariances_leave_the_positions_as_they_are():
     seq = simulate_sequence(40, seed=2)
     for mode in ("batch", "fixed-lag"):
