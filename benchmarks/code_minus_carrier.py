@@ -29,7 +29,8 @@ if TYPE_CHECKING:
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bad_pseudoranges import BAD_M, LABELLINGS, SPLIT_WORDS, SPLITS, _f, roc_auc, truth_errors_m  # noqa: E402
+from bad_pseudoranges import (BAD_M, LABELLINGS, SPLIT_WORDS, SPLITS, _concat, _f, roc_auc,  # noqa: E402
+                              truth_errors_m)
 from page import command_line, nothing, parse, publish, script_parser  # noqa: E402  (sibling modules)
 
 DOC = REPO / "docs" / "code_minus_carrier.md"
@@ -73,8 +74,7 @@ def read_l1_phases(obs_path: str | Path, systems: tuple[str, ...] = L1_SYSTEMS
 
     import georinex
 
-    from lfgnss.rinex import scale_to_gps_s
-    from lfgnss.time import datetime64_to_gps_s
+    from lfgnss.rinex import tags_to_gps_s
 
     use = {s for s in systems if s in L1_SYSTEMS}
     if not use:                                                     # georinex would read every constellation
@@ -85,7 +85,7 @@ def read_l1_phases(obs_path: str | Path, systems: tuple[str, ...] = L1_SYSTEMS
     name = next((n for n in PHASE_TYPES if n in ds), None)
     if name is None or ds.sizes.get("time", 0) == 0:
         return np.zeros(0), np.zeros(0, "<U3"), np.zeros((0, 0)), np.zeros((0, 0), bool)
-    times = scale_to_gps_s(datetime64_to_gps_s(ds.time.values), ds.attrs.get("time_system", "GPS") or "GPS")
+    times = tags_to_gps_s(ds.time.values, ds.attrs.get("time_system", "GPS") or "GPS")
     cycles = ds[name].values.astype(float)
     lli = ds[f"{name}lli"].values if f"{name}lli" in ds else np.zeros(cycles.shape)
     slip = (np.nan_to_num(lli).astype(int) & 1).astype(bool)
@@ -162,20 +162,17 @@ def arc_cues(time_s: np.ndarray, sv: np.ndarray, usable: np.ndarray, cmc_m: np.n
     return out
 
 
-def _stack(pieces: list["Sequence"]) -> dict[str, np.ndarray]:
-    """The pieces' epochs in one set of arrays (time, ids, mask, pseudorange, C/N0, each labelling's error)."""
-    out = {"time": np.concatenate([p.time_gps_s for p in pieces]), "sv": np.concatenate([p.sv for p in pieces]),
-           "mask": np.concatenate([p.mask for p in pieces]), "pr": np.concatenate([p.pr_m for p in pieces]),
-           "cn0": np.concatenate([p.cn0_dbhz for p in pieces])}
-    errors = [truth_errors_m(p) for p in pieces]
-    out.update({f"error {k}": np.concatenate([e[k] for e in errors]) for k in LABELLINGS})
-    return out
+def _arrays(piece: "Sequence") -> dict[str, np.ndarray]:
+    """A piece's epochs as the arrays read here (time, ids, mask, pseudorange, C/N0, each labelling's error)."""
+    return {"time": piece.time_gps_s, "sv": piece.sv, "mask": piece.mask, "pr": piece.pr_m, "cn0": piece.cn0_dbhz,
+            **{f"error {k}": e for k, e in truth_errors_m(piece).items()}}
 
 
 def dataset_signals(dataset_id: str, splits: tuple[str, ...] = SPLITS) -> dict[str, dict[str, np.ndarray]] | None:
     """{split: flat arrays over its labelled usable slots with an L1 phase: each labelling's error [m], "age" [s],
-    "cue ..." (higher = worse), "excess" and "whole-arc excess" [m]}, the arcs built over the train and validation
-    epochs together; None, with a one-line note on stderr, when the observation files hold no L1 phase."""
+    "cue ..." (higher = worse), "excess" and "whole-arc excess" [m]; "usable": (1,) the split's usable slot count},
+    the arcs built over the train and validation epochs together; None, with a one-line note on stderr, when the
+    observation files hold no L1 phase."""
     from lfgnss import datasets
 
     spec = datasets.get(dataset_id)
@@ -186,7 +183,7 @@ def dataset_signals(dataset_id: str, splits: tuple[str, ...] = SPLITS) -> dict[s
         return None
     channels = glonass_channels(spec.nav) if any(s[:1] == "R" for ph in phases for s in ph[1]) else {}
     pieces = {split: datasets.load_split(dataset_id, split) for split in SPLITS}
-    seq = _stack([p for split in SPLITS for p in pieces[split]])
+    seq = _concat([_arrays(p) for split in SPLITS for p in pieces[split]])
     unknown = sorted({s for s in seq["sv"][seq["mask"]] if s[:1] == "R" and s not in channels})
     if unknown:
         print(f"{dataset_id}: {', '.join(unknown)} without a frequency channel in the navigation files: their phases "
@@ -227,7 +224,7 @@ def summary(sig: dict[str, np.ndarray], labelling: str) -> dict:
     on = np.isfinite(error)
     bad = np.abs(np.nan_to_num(error)) > BAD_M
     nan = float("nan")
-    row = {"usable": int(sig["usable"][0]), "labelled": int(on.sum()), "n_bad": int(bad[on].sum()),
+    row = {"usable": int(sig["usable"].sum()), "labelled": int(on.sum()), "n_bad": int(bad[on].sum()),
            "bad": float(bad[on].mean()) if on.any() else nan, "arcs": int(np.unique(sig["arc"][on]).size),
            "age_s": float(np.median(sig["age"][on])) if on.any() else nan,
            "auc": {c: roc_auc(sig[f"cue {c}"][on], bad[on]) for c in CUES},
@@ -252,10 +249,7 @@ def run(dataset_ids: list[str], splits: tuple[str, ...] = SPLITS) -> list[dict]:
         if not per_split:
             continue
         if len(per_split) > 1:
-            parts = list(per_split.values())
-            pooled = {k: np.concatenate([p[k] for p in parts]) for k in parts[0] if k != "usable"}
-            pooled["usable"] = np.array([sum(int(p["usable"][0]) for p in parts)])
-            per_split["+".join(per_split)] = pooled
+            per_split["+".join(per_split)] = _concat(list(per_split.values()))
         for split, sig in per_split.items():
             for labelling in LABELLINGS:
                 rows.append({"dataset": dataset_id, "split": split, "labelling": labelling, **summary(sig, labelling)})

@@ -167,14 +167,13 @@ def strongest_clock(d: torch.Tensor, cn0_dbhz: torch.Tensor, usable: torch.Tenso
     that clock exists (``STRONGEST_MIN_SATS`` usable satellites or more); 0 / False elsewhere. The clock of
     benchmarks/bad_pseudoranges.py's "strongest 3" labelling too."""
     clock, kept = torch.zeros_like(d), torch.zeros_like(usable)
+    cn0 = torch.nan_to_num(cn0_dbhz.to(d.dtype), nan=-1e9, posinf=-1e9, neginf=-1e9)
     for k in range(n_systems):
         in_sys = usable & (system_index == k)
         enough = in_sys.sum(dim=-1, keepdim=True) >= STRONGEST_MIN_SATS
         if not enough.any():
             continue
-        cn0 = cn0_dbhz.to(d.dtype)
-        score = torch.where(in_sys, torch.nan_to_num(cn0, nan=-1e9, posinf=-1e9, neginf=-1e9),
-                            torch.full_like(d, -torch.inf))
+        score = torch.where(in_sys, cn0, torch.full_like(d, -torch.inf))
         top = torch.sort(score, dim=-1, descending=True, stable=True).indices[..., :STRONGEST_K]
         keep = in_sys & enough
         clock = torch.where(keep, torch.median(torch.gather(d, -1, top), dim=-1, keepdim=True).values, clock)

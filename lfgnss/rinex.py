@@ -26,7 +26,7 @@ from .constants import SYSTEMS
 from .errors import RinexError
 from .observations import Observations
 from .paths import cache_file, load_cached, store_cached
-from .time import utc_to_gps_s
+from .time import datetime64_to_gps_s, utc_to_gps_s
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -294,10 +294,16 @@ def _choose_codes(fields, version: float, path: Path, problems: list[str]) -> di
 
 def _to_gps_s(year: int, month: int, day: int, hour: int, minute: int, sec: float, time_system: str) -> float:
     t = (dt.datetime(year, month, day, hour, minute) - _GPS_EPOCH).total_seconds() + sec
-    return float(scale_to_gps_s(t, time_system))
+    return float(_scale_to_gps_s(t, time_system))
 
 
-def scale_to_gps_s(t: np.ndarray | float, time_system: str) -> np.ndarray:
+def tags_to_gps_s(times: np.ndarray, time_system: str) -> np.ndarray:
+    """GPS seconds since 1980-01-06 [s] from an observation file's datetime64 epoch tags on its ``time_system``
+    (georinex's ``ds.time``; ``_scale_to_gps_s``)."""
+    return _scale_to_gps_s(datetime64_to_gps_s(times), time_system)
+
+
+def _scale_to_gps_s(t: np.ndarray | float, time_system: str) -> np.ndarray:
     """GPS seconds from epoch time tags counted since 1980-01-06 on the file's time scale [s].
 
     ``BDT``: + 14 s. ``GLO``: the tags are UTC(SU) (RINEX; not GLONASS system time, which is 3 h ahead),
@@ -640,8 +646,7 @@ def _parse_georinex(text, path, info, codes, problems) -> Observations:
             ds = georinex.load(io.StringIO(text), use=list(codes), meas=meas)
         except Exception as err:
             raise RinexError(path, f"georinex could not read the file ({type(err).__name__}: {err})") from None
-    times = (ds.time.values.astype("datetime64[ns]") - np.datetime64("1980-01-06", "ns")).astype("int64") * 1e-9
-    times = scale_to_gps_s(times, info["time_system"])
+    times = tags_to_gps_s(ds.time.values, info["time_system"])
     svs = [str(s) for s in ds.sv.values if str(s)[0] in codes]
     order = {s: i for i, s in enumerate(SYSTEMS)}
     svs = sorted(svs, key=lambda s: (order.get(s[0], 99), s))
