@@ -30,9 +30,10 @@ implements exactly this logic, batched and differentiable.
 A noise model that is ``online`` (a model trained with ``model.innovation``) is asked epoch by epoch, after
 the predict step: ``noise.predict(features_k, mask_k, innovation_feature(pr - h(x^-) - median))``, with zero
 innovations where the epoch has no prior (start, re-initialisation after a gap). ``info["r_m2"]`` and
-``info["vc_m"]`` keep the noise every epoch used: R as the filter used it, the noise model's times
-``EkfConfig.glonass_sigma_factor`` squared on GLONASS satellites (``models.pseudorange_variance_factor``), and 1 on
-slots left out or switched off; ``info["noise_r_m2"]`` the noise model's R itself, as it gave it.
+``info["vc_m"]`` keep the noise every epoch used: R as the filter weighed it before its gate, the noise model's
+times ``EkfConfig.glonass_sigma_factor`` squared on GLONASS satellites (``models.pseudorange_variance_factor``; a
+``huber_k`` update further scales a far-off satellite's R by t / k, which is not kept), and 1 on slots left out or
+switched off; ``info["noise_r_m2"]`` the noise model's R itself, as it gave it.
 """
 from __future__ import annotations
 
@@ -340,10 +341,16 @@ class LfgnssEkf:
                 h, H, z, r = (np.concatenate(part) for part in zip(*blocks))
                 try:
                     ekf.update(z, _given, _given, R=np.diag(r), args=(H,), hx_args=(h,))
+                    # filterpy inverts S with scipy's inv, which raises nothing for an S too ill-conditioned to
+                    # invert and returns a wrong inverse, hence a wrong state: at a reset's P0 on a simulated drive,
+                    # R = 1e-4 m^2 gave |S S^-1 - I| = 1.8 and a 13 m error, 1e-3 m^2 0.012 and 0.1 m
+                    singular = not np.allclose(ekf.S @ ekf.SI, np.eye(len(r)), rtol=0.0, atol=0.05)
                 except np.linalg.LinAlgError:
+                    singular = True
+                if singular:
                     raise ValueError(f"{type(self).__name__}: the update at epoch {k} of {sequence.name!r} is "
                                      f"numerically singular (its smallest R is {r.min():.3g} m^2): R must be a "
-                                     f"pseudorange variance in m^2, not near 0") from None
+                                     f"pseudorange variance in m^2, not near 0")
 
         def ask_noise(k: int, idx: np.ndarray, prior_x: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
             """Epoch k's R and v^c from an online noise model, given the prior state (None: no prior); returns the
@@ -370,7 +377,9 @@ class LfgnssEkf:
             return idx.size - int(gated[0][-1].sum()) > cfg.reset_gated_fraction * idx.size
 
         def reset(k: int, idx: np.ndarray, jdx: np.ndarray) -> None:
-            x0 = models.initial_state(sequence.coarse_ecef_m[k], coarse_clock[k])
+            drift = models.coarse_drift_m_s(prr_all[k], doppler_ok[k], sat_all[k], satvel_all[k],
+                                            sequence.coarse_ecef_m[k])
+            x0 = models.initial_state(sequence.coarse_ecef_m[k], coarse_clock[k], float(drift))
             ekf.x, ekf.P = x0, p0.copy()
             update(k, gate(k, idx, jdx))
             if gate_sigma > 0:
@@ -408,17 +417,21 @@ class LfgnssEkf:
                     idx, jdx = ask_noise(k, idx, ekf.x)
                 gated = gate(k, idx, jdx)
                 inconsistent = False
-                if (gate_sigma > 0 and coarse_ok[k] and idx.size >= cfg.reset_min_sats
+                if (gate_sigma > 0 and idx.size >= cfg.reset_min_sats
                         and status[k - 1] != STATUS_RESET and mostly_gated(gated, idx)):
                     # Most satellites disagree with the prior by a clock-jump-sized median: realign the
                     # clock; reset if that does not help. A smaller median is street-canyon multipath:
                     # the update goes on with the kept satellites (the coarse fix is usually worse).
                     shift = models.lower_median(gated[0][2] - gated[0][0])
                     if abs(shift) >= cfg.clock_jump_min_m:
+                        before = ekf.x
                         ekf.x = models.realign_clock(ekf.x, shift)
-                        gated = gate(k, idx, jdx)
-                        clock_realigned[k] = True
-                        inconsistent = mostly_gated(gated, idx)
+                        regated = gate(k, idx, jdx)
+                        inconsistent = mostly_gated(regated, idx)
+                        if inconsistent and not coarse_ok[k]:
+                            ekf.x, inconsistent = before, False     # no fix to reset to: the prior goes on
+                        else:
+                            gated, clock_realigned[k] = regated, True
                 if kept:
                     prior[k], prior_cov[k] = ekf.x, ekf.P
                 if inconsistent:

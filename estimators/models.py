@@ -130,8 +130,9 @@ class EkfConfig:
     reset_gated_fraction : float
         If at least ``reset_min_sats`` satellites are usable, more than this fraction of them is gated
         and their median innovation is at least ``clock_jump_min_m``, the receiver clock jumped: the
-        clock is realigned (``realign_clock``); if that fraction still fails the gate, re-initialise
-        from the coarse fix. Values >= 1 disable both. Not applied in the epoch right after a reset.
+        clock is realigned (``realign_clock``; no coarse fix needed); if that fraction still fails the gate,
+        re-initialise from the coarse fix (at an epoch without one, the prior goes on unrealigned). Values >= 1
+        disable both. Not applied in the epoch right after a reset.
     reset_min_sats : int
         Minimum number of usable satellites before ``reset_gated_fraction`` applies.
     reset_distance_m : float
@@ -335,20 +336,44 @@ def initial_covariance(n_systems: int, config: EkfConfig) -> np.ndarray:
     return np.diag(d)
 
 
-def initial_state(coarse_ecef_m: np.ndarray, coarse_clock_m: np.ndarray) -> np.ndarray:
-    """State (n,) from a coarse fix: position, zero velocity, clock, zero drift, ISBs (NaN ISB -> 0).
+def initial_state(coarse_ecef_m: np.ndarray, coarse_clock_m: np.ndarray, drift_m_s: float = 0.0) -> np.ndarray:
+    """State (n,) from a coarse fix: position, zero velocity, clock, drift, ISBs (NaN ISB -> 0).
 
     Parameters
     ----------
     coarse_ecef_m : (3,) position [m]
     coarse_clock_m : (C,) receiver clock of systems[0] then ISBs of systems[1:] [m]
+    drift_m_s : receiver clock drift [m/s] (``coarse_drift_m_s``)
     """
     c = np.asarray(coarse_clock_m, float)
     x = np.zeros(n_states(c.shape[0]))
     x[POS] = coarse_ecef_m
     x[CLOCK] = c[0]
+    x[DRIFT] = drift_m_s
     x[ISB0:] = np.nan_to_num(c[1:], nan=0.0)
     return x
+
+
+def coarse_drift_m_s(prr_m_s: np.ndarray, doppler_ok: np.ndarray, sat_pos_ecef_m: np.ndarray,
+                     sat_vel_ecef_m_s: np.ndarray, rcv_ecef_m: np.ndarray) -> np.ndarray:
+    """(...,) receiver clock drift [m/s] from each epoch's Dopplers at ``rcv_ecef_m`` and zero velocity; 0 without any.
+
+    The lower median of ``prr - a`` (``doppler_design``'s offsets) over the epoch's ``doppler_ok`` satellites: the
+    drift give or take the receiver's speed. A (re)start takes it as the coarse fix gives the clock: from zero, a drift
+    beyond 3 sd of ``p0_drift_m2_s2`` (300 m/s, a 1 ppm oscillator) failed every Doppler's gate and, unobservable
+    from one epoch's pseudoranges, pushed them out of the gate too. Shapes: ``prr_m_s``, ``doppler_ok`` (..., N);
+    satellites (..., N, 3) [m], [m/s]; ``rcv_ecef_m`` (..., 3) [m].
+    """
+    ok = np.asarray(doppler_ok, bool)
+    a, _ = doppler_design(sat_pos_ecef_m, sat_vel_ecef_m_s, rcv_ecef_m)
+    v = np.where(ok, np.asarray(prr_m_s, float) - a, np.nan)
+    ok &= np.isfinite(v)
+    n = ok.sum(-1)
+    if v.shape[-1] == 0:                                         # no satellite slot at all
+        return np.zeros(n.shape)
+    v = np.sort(np.where(ok, v, np.inf), axis=-1)               # unusable slots last
+    lower = np.take_along_axis(v, np.maximum(n - 1, 0)[..., None] // 2, axis=-1)[..., 0]
+    return np.where(n > 0, lower, 0.0)
 
 
 def pseudorange_clock_m(pr_m: np.ndarray, sat_pos_ecef_m: np.ndarray, system_index: np.ndarray,
@@ -560,7 +585,7 @@ def doppler_measurement(x: np.ndarray, sat_pos_ecef_m: np.ndarray, sat_vel_ecef_
 
 
 __all__ = ["EkfConfig", "n_states", "clock_column", "initial_covariance", "initial_state", "pseudorange_clock_m",
-           "transition_generator",
+           "transition_generator", "coarse_drift_m_s",
            "transition", "process_noise_coefficients", "process_noise", "vertical_noise_increment", "measurement",
            "doppler_measurement", "doppler_variance_m2_s2", "used_doppler_variance_m2_s2", "prior_innovation_m",
            "lower_median", "realign_clock", "stationary_epochs", "still_fixes", "zero_velocity_measurement",

@@ -14,10 +14,10 @@ sequences where the held-out block cuts them) and evaluates on block ``j``, once
 ``learning.train`` evaluates its validation split. Each fold also runs the plain EKF (hand-set C/N0-elevation R, no
 v^c, the same EKF settings) on its held-out block, the bar the learned model has to clear.
 
-Reported per fold and pooled over folds (RMSE pooled by epochs): the plain EKF, the untrained network
-(epoch 0), the last epoch (the honest figure of a fixed schedule) and the best epoch (optimistic: it
-is picked on the held-out block itself); and the plain EKF and the last epoch with the RTS smoother
-(``estimators.smoother``; training itself reads smoothed positions only with ``train.smooth``); and the 2D
+Reported per fold and pooled over folds (RMSE pooled by the labelled epochs each fold scored, ``scored_epochs``):
+the plain EKF, the untrained network (epoch 0), the last epoch (the honest figure of a fixed schedule) and the best
+epoch (optimistic: it is picked on the held-out block itself); and the plain EKF and the last epoch with the RTS
+smoother (``estimators.smoother``; training itself reads smoothed positions only with ``train.smooth``); and the 2D
 (horizontal) RMSE of the plain EKF and of the last epoch.
 "untrained" has a random output head, so it is near, not equal to, the plain EKF even for a recipe with
 the hand-set R prior; with ``train.init`` it is that starting model, the one fine-tuning has to beat (crossval.md
@@ -77,8 +77,8 @@ from .train import (DEFAULT_CONFIG, _flat, _merge_free, adopt_init, config_path,
                     init_model, load_config, load_sequences, prepare, read_checkpoint, torch_threads, train,
                     trained_datasets)
 
-COLUMNS = ["fold", "held_out_epochs", "plain_ekf_rmse_3d_m", "untrained_rmse_3d_m", "last_rmse_3d_m",
-           "best_rmse_3d_m", "best_epoch", "plain_ekf_smoothed_rmse_3d_m", "last_smoothed_rmse_3d_m",
+COLUMNS = ["fold", "held_out_epochs", "scored_epochs", "plain_ekf_rmse_3d_m", "untrained_rmse_3d_m",
+           "last_rmse_3d_m", "best_rmse_3d_m", "best_epoch", "plain_ekf_smoothed_rmse_3d_m", "last_smoothed_rmse_3d_m",
            "plain_ekf_rmse_2d_m", "last_rmse_2d_m"]
 
 
@@ -285,7 +285,8 @@ def _check_weights(path: Path, saved: dict) -> None:
 def _fold_row(fold: int, held: list[Sequence], config: dict, learned: dict) -> dict:
     """A crossval row: the ``learned`` model's columns, and the plain EKF's on the same held-out pieces."""
     plain_3d, plain_2d = plain_ekf_rmse_m(held, config)
-    return {"fold": fold, "held_out_epochs": sum(len(s) for s in held), "plain_ekf_rmse_3d_m": plain_3d,
+    return {"fold": fold, "held_out_epochs": sum(len(s) for s in held),
+            "scored_epochs": int(sum(np.count_nonzero(s.labelled) for s in held)), "plain_ekf_rmse_3d_m": plain_3d,
             "plain_ekf_smoothed_rmse_3d_m": plain_ekf_rmse_m(held, config, smooth=True)[0],
             "plain_ekf_rmse_2d_m": plain_2d, **learned}
 
@@ -421,8 +422,9 @@ def pooled_rows(rows: list[dict], datasets: list[str]) -> list[dict]:
     keys = [k for k in COLUMNS if k.endswith("_m")]
 
     def pooled(label: str, group: list[dict]) -> dict:
-        counts = [r["held_out_epochs"] for r in group]
-        return {"fold": label, "held_out_epochs": sum(counts),
+        counts = [r["scored_epochs"] for r in group]           # each fold's RMSEs are over its labelled epochs
+        return {"fold": label, "held_out_epochs": sum(r["held_out_epochs"] for r in group),
+                "scored_epochs": sum(counts),
                 **{k: pooled_rmse([r[k] for r in group], counts) for k in keys}, "best_epoch": "-"}
 
     return ([pooled("pooled", [r for r in rows if isinstance(r["fold"], int)])]
@@ -485,9 +487,11 @@ def pool(run_dirs: list[str | Path], folds: int, out_dir: str | Path, command: s
 
 def _csv_row(row: dict) -> dict:
     """A crossval.csv row as crossval made it: the fold an int where it is one, RMSEs and counts as numbers."""
-    out = {k: row[k] for k in COLUMNS}
+    out = {k: row.get(k, "") for k in COLUMNS}
     out["fold"] = int(row["fold"]) if row["fold"].isdigit() else row["fold"]
     out["held_out_epochs"] = int(row["held_out_epochs"])
+    # a crossval.csv from before session 54 has no scored_epochs: its datasets were labelled at every epoch
+    out["scored_epochs"] = int(row.get("scored_epochs") or row["held_out_epochs"])
     for k in COLUMNS:
         if k.endswith("_m"):
             out[k] = float(row[k]) if row[k] != "" else math.nan

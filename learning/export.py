@@ -643,10 +643,17 @@ def load_model(path: str | Path, expected_features: Iterable[str] | None = None)
             with np.load(path, allow_pickle=False) as z:
                 arrays = {k: np.asarray(z[k]) for k in z.files}
     except FileNotFoundError as exc:
-        names = list(bundled_models())
-        close = closest_name(Path(path).name, names)
-        hint = f" or bundled model ({', '.join(names)}){f'; did you mean {close!r}?' if close else ''}" \
-            if may_name_a_bundled_model(path) else ""
+        bundled = bundled_models()
+        names = list(bundled)
+        # a bundled model's file name (docs/results.md lists them) is not where that file is
+        by_file = {f.name: name for name, f in bundled.items()} | {f.stem: name for name, f in bundled.items()}
+        if Path(path).name in by_file:
+            hint = f"; the bundled {bundled[by_file[Path(path).name]].name} is named {by_file[Path(path).name]!r}"
+        elif may_name_a_bundled_model(path):
+            close = closest_name(Path(path).name, names)
+            hint = f" or bundled model ({', '.join(names)}){f'; did you mean {close!r}?' if close else ''}"
+        else:
+            hint = ""
         raise ModelFileError(path, f"no such model file{hint}") from exc
     except IsADirectoryError as exc:
         raise ModelFileError(path, "a folder, not a model file") from exc

@@ -74,6 +74,14 @@ def hem_weights(L: torch.Tensor, *, gamma: float, lam: float) -> torch.Tensor:
     return torch.where(positive, safe ** power, torch.zeros_like(base))
 
 
+def root_mean_square(x: torch.Tensor) -> torch.Tensor:
+    """sqrt(mean(x ** 2)) with a zero gradient where that is 0: sqrt'(0) is infinite, and times the zero
+    errors it would make every gradient NaN (HEM weighs a batch's single or all-equal errors 0)."""
+    m = torch.mean(x ** 2)
+    positive = m > 0
+    return torch.where(positive, torch.sqrt(torch.where(positive, m, torch.ones_like(m))), torch.zeros_like(m))
+
+
 def hem_loss(pos_m: torch.Tensor, truth_m: torch.Tensor, *, alpha: float = 0.75, gamma: float = 1.5,
              lam: float = 1.0, up_weight: float = 1.0) -> torch.Tensor:
     """Dynamic hard-example-mining loss over all labelled samples.
@@ -92,7 +100,7 @@ def hem_loss(pos_m: torch.Tensor, truth_m: torch.Tensor, *, alpha: float = 0.75,
     if L.numel() == 0:
         raise ValueError("hem_loss: no labelled sample with a finite estimate in the batch")
     sample = alpha * hem_weights(L, gamma=gamma, lam=lam) * L
-    return torch.sqrt(torch.mean(sample ** 2))
+    return root_mean_square(sample)
 
 
 def rmse_loss(pos_m: torch.Tensor, truth_m: torch.Tensor, *, up_weight: float = 1.0) -> torch.Tensor:
@@ -100,7 +108,7 @@ def rmse_loss(pos_m: torch.Tensor, truth_m: torch.Tensor, *, up_weight: float = 
     L, _ = error_norm_m(pos_m, truth_m, up_weight=up_weight)
     if L.numel() == 0:
         raise ValueError("rmse_loss: no labelled sample with a finite estimate in the batch")
-    return torch.sqrt(torch.mean(L ** 2))
+    return root_mean_square(L)
 
 
 def pseudorange_error_m(pr_m: torch.Tensor, sat_ecef_m: torch.Tensor, truth_m: torch.Tensor,

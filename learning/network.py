@@ -46,9 +46,11 @@ class LfgnssNet(nn.Module):
     r_floor_m2 : float
         Floor added to the variance [m^2].
     r_scale_m2 : float
-        Constant unit scale of the softplus output [m^2] (1.0 = the paper's ``softplus(o_R)``).
+        Constant unit scale of the softplus output [m^2] (1.0 = the paper's ``softplus(o_R)``); not read with
+        ``r_prior``.
     r_init_m2 : float or None
-        If given, the R output bias is initialised so an all-zero input gives about this variance.
+        If given, the R output bias is initialised so an all-zero input gives about this variance (without
+        ``r_prior`` only: a ValueError with it, whose untrained network gives about the prior).
     compensation : bool
         Output the innovation compensation ``v^c`` (False: ``v^c = 0``, the network learns R only).
     innovation : bool
@@ -66,6 +68,8 @@ class LfgnssNet(nn.Module):
         super().__init__()
         if n_features < 1 or d_model % n_heads != 0:
             raise ValueError(f"need n_features >= 1 and d_model % n_heads == 0, got {n_features}, {d_model}, {n_heads}")
+        if r_init_m2 is not None and r_prior is not None:
+            raise ValueError("r_init_m2 has no meaning with r_prior: an untrained network gives about the prior")
         self.n_features = int(n_features)
         self.d_model = int(d_model)
         self.n_heads = int(n_heads)

@@ -223,6 +223,19 @@ def prior_innovation(x: torch.Tensor, sat: torch.Tensor, clock_rows: torch.Tenso
     return torch.where(usable & has_prior[:, None], v, torch.zeros((), dtype=x.dtype, device=x.device))
 
 
+def _check_noise(r_m2: torch.Tensor, vc_m: torch.Tensor, usable: torch.Tensor) -> None:
+    """FloatingPointError where a usable slot has an R [m^2] that is not finite and > 0 or a non-finite v^c [m].
+
+    The plug-in refuses such noise (``estimators.noise.checked_noise``); here a NaN R would fail every gate test and
+    drop its satellite in silence, so a diverged network would still score finite positions.
+    """
+    with torch.no_grad():
+        bad = usable & ~(torch.isfinite(r_m2) & (r_m2 > 0) & torch.isfinite(vc_m))
+        if bool(bad.any()):
+            raise FloatingPointError(f"learning/torch_ekf.py: the noise gave {int(bad.sum())} usable pseudorange(s) "
+                                     f"an R that is not finite and > 0 or a non-finite v^c (a diverged network?)")
+
+
 def _measurement_noise(pr: torch.Tensor, r_m2: torch.Tensor, vc_m: torch.Tensor, usable: torch.Tensor
                        ) -> tuple[torch.Tensor, torch.Tensor]:
     """(z, R) float64, shaped like ``pr``: ``z = pr + v^c`` (the one place v^c enters) and R; 0 and 1 where unusable."""
@@ -259,11 +272,11 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor | None, vc_m: torch.Tensor 
     batch : WindowBatch
         Geometry, pseudoranges, masks, times and coarse fixes (float64).
     r_m2 : (B, T, N)
-        Pseudorange variances R [m^2], > 0 on usable slots (any value elsewhere). Above ``R_OFF_M2`` a slot is
-        switched off, pseudorange and Doppler, as in the plug-in (not with ``noise_step``: the network cannot
-        reach it).
+        Pseudorange variances R [m^2], finite and > 0 on usable slots (any value elsewhere; else a
+        FloatingPointError). Above ``R_OFF_M2`` a slot is switched off, pseudorange and Doppler, as in the plug-in
+        (not with ``noise_step``: the network cannot reach it).
     vc_m : (B, T, N)
-        Innovation compensations v^c [m] (any finite value on unusable slots).
+        Innovation compensations v^c [m], finite (a non-finite one on a usable slot is a FloatingPointError).
     n_systems : int
         Constellations C in the state (clock + C - 1 ISBs).
     config : EkfConfig
@@ -296,7 +309,7 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor | None, vc_m: torch.Tensor 
     sat_ok = torch.isfinite(batch.sat_pos_ecef_m).all(-1)
     usable_all = (batch.mask & torch.isfinite(batch.pr_m) & sat_ok & (batch.system_index >= 0)
                   & (batch.system_index < n_systems))
-    if r_m2 is not None:                 # switched off as in the plug-in (estimators.noise.switched_on); NaN stays on
+    if r_m2 is not None:                 # switched off as in the plug-in (estimators.noise.switched_on); NaN: refused
         usable_all = usable_all & ~(r_m2.detach() > R_OFF_M2)
     far = torch.tensor(_FAR_SAT_ECEF_M, dtype=f64, device=dev)
     sat_all = torch.where(usable_all[..., None], batch.sat_pos_ecef_m.to(f64), far)
@@ -307,6 +320,7 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor | None, vc_m: torch.Tensor 
     glonass = torch.zeros_like(usable_all) if batch.glonass is None else batch.glonass.to(dev).bool()
     r_factor_all = models.pseudorange_variance_factor(glonass & usable_all, config)
     if noise_step is None:
+        _check_noise(r_m2, vc_m, usable_all)
         z_all, r_all = _measurement_noise(pr, r_m2, vc_m, usable_all)
         r_all = r_all * r_factor_all
     clock_rows_all = _clock_rows(batch.system_index.long(), usable_all, n)
@@ -336,6 +350,9 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor | None, vc_m: torch.Tensor 
     x0_all = torch.zeros(b_len, t_len, n, dtype=f64, device=dev)
     x0_all[..., :3] = coarse_pos_all
     x0_all[..., models.CLOCK] = torch.where(coarse_ok_all, clk[..., 0], zero)
+    x0_all[..., models.DRIFT] = torch.as_tensor(models.coarse_drift_m_s(   # from the data, as the plug-in's
+        *(a.detach().cpu().numpy() for a in (prr_all, dop_all, batch.sat_pos_ecef_m.to(f64), satvel_all,
+                                             coarse_pos_all))), dtype=f64, device=dev)
     x0_all[..., models.ISB0:] = clk[..., 1:]
 
     P0 = torch.as_tensor(models.initial_covariance(n_systems, config), dtype=f64, device=dev)
@@ -363,7 +380,9 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor | None, vc_m: torch.Tensor 
             z_k, r_k = z_all[:, k], r_all[:, k]
         else:
             innov = prior_innovation(x_pred, sat_all[:, k], clock_rows_all[:, k], pr[:, k], usable_all[:, k], normal)
-            z_k, r_k = _measurement_noise(pr[:, k], *noise_step(k, innovation_feature(innov)), usable_all[:, k])
+            r_step, vc_step = noise_step(k, innovation_feature(innov))
+            _check_noise(r_step, vc_step, usable_all[:, k])
+            z_k, r_k = _measurement_noise(pr[:, k], r_step, vc_step, usable_all[:, k])
             r_k = r_k * r_factor_all[:, k]
 
         # Both branches in one batched call: rows [0, B) normal prior, [B, 2B) reset prior.
@@ -379,7 +398,8 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor | None, vc_m: torch.Tensor 
         P_n, P_r = Pu[:b_len], Pu[b_len:]
         with torch.no_grad():
             n_usable = n_usable2[:b_len]
-            reset_g = (normal & coarse_ok & (prev_status != STATUS_RESET) & (n_usable >= config.reset_min_sats)
+            # the realignment needs no coarse fix, only the reset after a failed one (reset_g & coarse_ok below)
+            reset_g = (normal & (prev_status != STATUS_RESET) & (n_usable >= config.reset_min_sats)
                        & (n_rej2[:b_len].to(f64) > config.reset_gated_fraction * n_usable.to(f64)))
             if not config.gate_sigma > 0:
                 reset_g = torch.zeros_like(reset_g)
@@ -403,7 +423,7 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor | None, vc_m: torch.Tensor 
             n_used_n = torch.where(realigned, n_used_c, n_used_n)
             n_rej_n = torch.where(realigned, n_rej_c, n_rej_n)
             n_dop_n = torch.where(realigned, n_dop_c, n_dop_n)
-            reset_g = try_jump & ~realigned       # a smaller median: multipath, no reset
+            reset_g = try_jump & ~realigned & coarse_ok     # a smaller median: multipath, no reset
         with torch.no_grad():
             far_off = torch.linalg.norm(x_n[:, :3] - coarse_pos_all[:, k], dim=-1) > config.reset_distance_m
             reset_d = normal & ~reset_g & judges_all[:, k] & far_off

@@ -24,8 +24,8 @@ The test split is never loaded here: asking for it raises.
 ``--set`` that differs from the checkpoint's is refused, and so is a ``--config`` other than the unchanged file the run
 was started from. Every file is written to a temporary file and renamed (atomic): a kill mid-write keeps the last one.
 Exit status: 0 done; 2 bad input (a one-line error naming the file or setting; nothing is written for a bad
-setting); 3 the training loss became non-finite (one line; ``last.pt``/``best.pt`` of the epochs before are kept);
-130 Ctrl-C (one line naming the epoch ``last.pt`` holds and the ``--resume`` command that goes on).
+setting); 3 the training loss or its gradient became non-finite (one line; ``last.pt``/``best.pt`` of the epochs
+before are kept); 130 Ctrl-C (one line naming the epoch ``last.pt`` holds and the ``--resume`` command that goes on).
 Output: one line per epoch on stdout (epoch 0 is the starting model, untrained or ``train.init``'s: the one training
 has to beat), ``--no-progress`` or not; a progress bar on stderr only where it is a terminal; last, the best epoch,
 the model file and how to use it. ``--resume`` of a run already at ``train.epochs`` says so (and trains nothing).
@@ -335,6 +335,14 @@ def check_config(config: dict) -> dict:
     _check_number(config, "data.synthetic.nlos_fraction", 0, 1)
     if _setting(config, "model.r_init_m2") is not None:
         _check_number(config, "model.r_init_m2", 0, above=True)
+    if _setting(config, "model.r_prior") == "heuristic":
+        # r = prior * softplus(o_R) / ln 2 + floor: no unit scale, and an untrained network already gives the prior
+        if _setting(config, "model.r_init_m2") is not None:
+            raise ValueError("model.r_init_m2 has no meaning with model.r_prior = 'heuristic' (an untrained network "
+                             "gives about the C/N0-elevation prior); leave it out")
+        if _setting(config, "model.r_scale_m2") != 1.0:
+            raise ValueError(f"model.r_scale_m2 = {_setting(config, 'model.r_scale_m2')!r} is not read with "
+                             f"model.r_prior = 'heuristic' (R is a factor on the prior); leave it at 1.0")
     frozen = _setting(config, "train.freeze")
     if isinstance(frozen, str):
         config["train"]["freeze"] = frozen = [frozen]
@@ -1265,6 +1273,10 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
                 raise FloatingPointError(f"epoch {epoch}: non-finite training loss {float(loss.detach())}")
             optimiser.zero_grad(set_to_none=True)
             loss.backward()
+            # a finite loss can still have NaN gradients, and one Adam step with them makes every weight NaN
+            if not all(bool(torch.isfinite(p.grad).all()) for p in model.parameters() if p.grad is not None):
+                raise FloatingPointError(f"epoch {epoch}: non-finite gradient of a finite training loss "
+                                         f"{float(loss.detach()):g}")
             if float(tr["grad_clip"]) > 0:
                 torch.nn.utils.clip_grad_norm_(model.parameters(), float(tr["grad_clip"]))
             optimiser.step()
@@ -1315,8 +1327,8 @@ def _resume_hint(exc: BaseException, out: Path) -> str:
 def main(argv: list[str] | None = None) -> int:
     """Command-line entry point.
 
-    Exit status 0; 2 for bad input (one line ``PROG: error: ...``); 3 for a non-finite training loss; 130 for Ctrl-C
-    (one line naming the epoch ``last.pt`` holds, and how to resume).
+    Exit status 0; 2 for bad input (one line ``PROG: error: ...``); 3 for a non-finite training loss or gradient;
+    130 for Ctrl-C (one line naming the epoch ``last.pt`` holds, and how to resume).
     """
     p = argparse.ArgumentParser(prog="python -m learning.train", description=__doc__.split("\n")[0])
     p.add_argument("--config", type=config_path, help="TOML configuration: a file, or the name of a shipped one ("

@@ -110,3 +110,8 @@ def test_bundled_models_are_picked_by_name_everywhere_a_model_file_is(tmp_path, 
         load_model("hk-tst")
     with pytest.raises(ModelFileError, match=r"^mine\.npz: no such model file$"):
         load_model("mine.npz")
+    # docs/results.md lists the bundled files by file name: that name leads to the model's
+    for given in ("lfgnss-default.npz", "lfgnss-default", "elsewhere/lfgnss-default.npz"):
+        with pytest.raises(ModelFileError, match=rf"^{given}: no such model file; the bundled lfgnss-default\.npz "
+                                                 rf"is named 'default'$"):
+            load_model(given)

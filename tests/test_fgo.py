@@ -201,6 +201,80 @@ def test_fixed_lag_relinearises_the_clocks(monkeypatch):
     assert len(moved_m) > 10 and max(moved_m) > 0.1, moved_m
 
 
+def test_the_first_epoch_gets_one_position_prior(monkeypatch):
+    """A first epoch with fewer than 3 position ranges has the coarse fix's prior; a second, identical loose prior
+    on it would make the 100 m prior a 71 m one."""
+    clean = simulate_sequence(20, dt_s=0.2, seed=5)
+    mask = np.zeros_like(clean.mask)
+    for k in range(len(clean)):
+        for j in range(len(clean.systems)):
+            mask[k, np.flatnonzero(clean.mask[k] & (clean.system_index[k] == j))[:2]] = True
+    graphs = []
+    real = gtsam.LevenbergMarquardtOptimizer
+
+    def keep(graph, values, params):
+        graphs.append(graph)
+        return real(graph, values, params)
+
+    monkeypatch.setattr(gtsam, "LevenbergMarquardtOptimizer", keep)
+    LfgnssFgo().solve(replace(clean, mask=mask))
+
+    def position_priors(graph, k):
+        return sum(isinstance(graph.at(i), gtsam.PriorFactorPoint3) and list(graph.at(i).keys()) == [X(k)]
+                   for i in range(graph.size()))
+
+    assert [position_priors(graphs[-1], k) for k in range(3)] == [1, 1, 1]
+
+
+def test_batch_solve_reports_whether_it_converged(seq):
+    """Levenberg-Marquardt cut off at max_iterations keeps its last iterate, says so once, and info records it."""
+    assert LfgnssFgo().solve(seq).info["converged"]
+    with pytest.warns(UserWarning, match=r"batch solve of 'synthetic' did not converge: Levenberg-Marquardt stopped "
+                      r"at max_iterations=1 before its error settled") as caught:
+        sol = LfgnssFgo(max_iterations=1).solve(seq)
+    assert sum("did not converge" in str(w.message) for w in caught) == 1
+    assert sol.info["converged"] is False and sol.info["iterations"] == 2        # Huber start + Cauchy, one each
+    assert np.isfinite(sol.pos_ecef_m).all() and np.all(sol.status == STATUS_UPDATED)
+
+
+def test_batch_give_up_without_an_odd_input_is_a_warning(seq, monkeypatch):
+    """Levenberg-Marquardt giving up at its largest damping, with no extreme R or density to blame, keeps the
+    positions with a warning naming the worst-fitting epoch (it used to pass in silence)."""
+    real = gtsam.LevenbergMarquardtParams
+
+    def stiff():
+        params = real()
+        params.setlambdaInitial(1e12)           # above the upper bound: no step is tried
+        params.setlambdaUpperBound(1e5)
+        return params
+
+    monkeypatch.setattr(gtsam, "LevenbergMarquardtParams", stiff)
+    with pytest.warns(UserWarning, match=r"did not converge: Levenberg-Marquardt could not lower the error at its "
+                      r"largest damping \(worst fit at epoch \d+\); the positions are its last iterate"):
+        sol = LfgnssFgo().solve(seq)
+    assert sol.info["converged"] is False and np.isfinite(sol.pos_ecef_m).all()
+
+
+@pytest.mark.parametrize("mode", ["batch", "fixed-lag"])
+def test_non_finite_states_from_gtsam_are_no_solution(seq, mode, monkeypatch):
+    """Should gtsam return NaN states, those epochs have no position (one warning), and the others stand."""
+    name = "_solve_batch" if mode == "batch" else "_solve_fixed_lag"
+    real = getattr(LfgnssFgo, name)
+
+    def poisoned(self, *args):
+        pos, vel, clk, n_used, cov = real(self, *args)
+        pos[[5, 9]] = np.nan
+        return pos, vel, clk, n_used, cov
+
+    monkeypatch.setattr(LfgnssFgo, name, poisoned)
+    with pytest.warns(UserWarning, match=r"non-finite position at 2 epoch\(s\) of 'synthetic' \(first: epoch 5\)"):
+        sol = LfgnssFgo(mode=mode, covariances=True).solve(seq)
+    lost = np.isin(np.arange(len(seq)), [5, 9])
+    assert np.all(sol.status[lost] == STATUS_NONE) and np.all(sol.n_used[lost] == 0)
+    assert np.isnan(sol.pos_ecef_m[lost]).all() and np.isnan(sol.cov_ecef_m2[lost]).all()
+    assert np.isfinite(sol.pos_ecef_m[~lost]).all() and np.all(sol.status[~lost] == STATUS_UPDATED)
+
+
 # ---------------------------------------------------------------- availability and robustness
 @pytest.mark.parametrize("mode", ["batch", "fixed-lag"])
 def test_full_availability_with_empty_epochs(mode):

@@ -50,6 +50,19 @@ def test_gradients_finite_including_max_and_zero_error():
     assert pos.grad.abs().sum() > 0
 
 
+@pytest.mark.parametrize("errors_m", [[5.0], [3.0, 3.0, 3.0]])
+def test_a_batch_hem_weighs_zero_has_a_zero_loss_and_zero_gradients(errors_m):
+    """One labelled sample, or all errors equal, is the maximum everywhere: every HEM weight is 0, so the loss is 0;
+    its gradient must be 0 too, not the NaN of sqrt'(0) times 0 (one Adam step with it made every weight NaN)."""
+    pos = torch.tensor([[e, 0.0, 0.0] for e in errors_m], dtype=torch.float64, requires_grad=True)
+    loss = hem_loss(pos, torch.zeros_like(pos))
+    loss.backward()
+    assert float(loss) == 0.0 and torch.equal(pos.grad, torch.zeros_like(pos))
+    perfect = torch.zeros(2, 3, dtype=torch.float64, requires_grad=True)
+    rmse_loss(perfect, torch.zeros(2, 3, dtype=torch.float64)).backward()
+    assert torch.equal(perfect.grad, torch.zeros_like(perfect))
+
+
 def test_max_detached_and_batched_shapes():
     pos = torch.randn(2, 5, 3, dtype=torch.float64, requires_grad=True)
     loss = make_loss("hem")(pos, torch.zeros(2, 5, 3, dtype=torch.float64))

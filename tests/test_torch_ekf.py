@@ -258,6 +258,66 @@ def test_clock_jump_realigns_only_the_clock(cases):
     assert sol.info["clock_realigned"][40] and sol.status[40] == STATUS_RESET   # tried first, then reset
 
 
+def test_a_clock_jump_without_a_coarse_fix_is_realigned_in_both_filters():
+    """The realignment needs no coarse fix, only the reset after a failed one: a 1 ms jump at an epoch without a
+    fix used to drop every pseudorange until the next fix (a review). An inconsistency no realignment mends goes on
+    from the prior when there is no fix to reset to, in both filters alike."""
+    s = simulate_sequence(120, seed=3)
+    jump = 1e-3 * SPEED_OF_LIGHT_M_S
+    pr, clock, coarse = s.pr_m.copy(), s.coarse_clock_m.copy(), s.coarse_ecef_m.copy()
+    pr[60:] += jump
+    clock[60:, 0] += jump
+    pr[90] += np.where(s.mask[90], np.resize([3000.0, -5000.0, 9000.0], s.mask.shape[1]), 0.0)   # no clock mends
+    coarse[[60, 61, 62, 90]], clock[[60, 61, 62, 90]] = np.nan, np.nan
+    s = replace(s, pr_m=np.where(s.mask, pr, 0.0), coarse_ecef_m=coarse, coarse_clock_m=clock)
+    r, vc = np.where(s.mask, 25.0, 0.0)[None], np.zeros((1,) + s.mask.shape)
+    sol = LfgnssEkf(noise=FixedNoise(r[0], vc[0]), config=CONFIG).solve(s)
+    assert np.flatnonzero(sol.info["clock_realigned"]).tolist() == [60]
+    assert sol.status[60] == STATUS_UPDATED and sol.n_used[60] == s.mask[60].sum()
+    assert sol.status[90] == STATUS_UPDATED and sol.n_used[90] < s.mask[90].sum() / 2     # no reset, nothing to it
+    assert np.linalg.norm(sol.pos_ecef_m[60] - s.truth_ecef_m[60]) < 20.0
+    out = batch_ekf(to_batch([s]), torch.as_tensor(r), torch.as_tensor(vc), n_systems=len(s.systems), config=CONFIG)
+    _assert_matches_plugin(out, [s], r, vc, CONFIG)
+
+
+def test_a_drift_beyond_the_initial_covariance_is_taken_from_the_dopplers_in_both_filters():
+    """A 1.3 ppm oscillator (400 m/s of drift): from a zero drift at the start every Doppler failed the gate and,
+    one epoch's pseudoranges not seeing the drift, they followed; 65 % of epochs coasted (a review). The start takes
+    the drift from the Dopplers as it takes the clock from the coarse fix."""
+    s = base = simulate_sequence(120, seed=3)
+    extra = 350.0                                       # on top of the simulation's own drift
+    t = s.time_gps_s - s.time_gps_s[0]
+    clock = s.coarse_clock_m.copy()
+    clock[:, 0] += extra * t
+    s = replace(s, pr_m=np.where(s.mask, s.pr_m + extra * t[:, None], 0.0), coarse_clock_m=clock,
+                prr_m_s=np.where(s.prr_mask, s.prr_m_s + extra, 0.0))
+    assert models.coarse_drift_m_s(s.prr_m_s[0], s.mask[0] & s.prr_mask[0], s.sat_pos_ecef_m[0],
+                                   s.sat_vel_ecef_m_s[0], s.coarse_ecef_m[0]) > 3 * np.sqrt(CONFIG.p0_drift_m2_s2)
+    r, vc = np.where(s.mask, 25.0, 0.0)[None], np.zeros((1,) + s.mask.shape)
+    sol = LfgnssEkf(noise=FixedNoise(r[0], vc[0]), config=CONFIG).solve(s)
+    assert np.all(sol.status[1:] == STATUS_UPDATED) and np.all(sol.info["n_doppler"] > 0)
+    plain = LfgnssEkf(noise=FixedNoise(r[0], vc[0]), config=CONFIG).solve(base)      # the simulation's drift only
+    np.testing.assert_array_equal(sol.n_used, plain.n_used)
+    np.testing.assert_allclose(sol.pos_ecef_m, plain.pos_ecef_m, rtol=0, atol=1e-3)
+    out = batch_ekf(to_batch([s]), torch.as_tensor(r), torch.as_tensor(vc), n_systems=len(s.systems), config=CONFIG)
+    _assert_matches_plugin(out, [s], r, vc, CONFIG)
+
+
+def test_coarse_drift_is_the_lower_median_of_the_dopplers_at_zero_velocity():
+    """Vectorised over epochs; 0 where an epoch has no usable Doppler."""
+    from lfgnss.velocity import doppler_design
+
+    s = simulate_sequence(5, seed=4)
+    ok = s.mask & s.prr_mask
+    ok[3] = False
+    got = models.coarse_drift_m_s(s.prr_m_s, ok, s.sat_pos_ecef_m, s.sat_vel_ecef_m_s, s.coarse_ecef_m)
+    for k in range(5):
+        a, _ = doppler_design(s.sat_pos_ecef_m[k], s.sat_vel_ecef_m_s[k], s.coarse_ecef_m[k])
+        want = models.lower_median((s.prr_m_s[k] - a)[ok[k]]) if ok[k].any() else 0.0
+        assert got[k] == pytest.approx(want, abs=1e-9)
+    assert got[3] == 0.0
+
+
 @pytest.mark.parametrize("min_redundancy, resets", [(2, False), (0, True)])
 def test_a_coarse_fix_without_redundancy_resets_neither_filter(cases, min_redundancy, resets):
     """A far-off coarse fix at an epoch of 4 GPS + 1 BeiDou satellites (redundancy 0) cannot say it is the one that
@@ -337,6 +397,27 @@ def test_shape_errors_raise(cases):
     seqs, r, vc = cases
     with pytest.raises(ValueError, match="must be"):
         batch_ekf(to_batch(seqs), torch.as_tensor(r[:, :5]), torch.as_tensor(vc), n_systems=2, config=CONFIG)
+
+
+def test_non_finite_noise_on_a_usable_slot_is_refused(cases):
+    """As the plug-in refuses it: a NaN R failed every gate test and dropped its satellite in silence, so a diverged
+    network still scored finite positions. Unusable slots may hold anything."""
+    seqs, r, vc = cases
+    batch = to_batch(seqs)
+    slot = np.argwhere(seqs[0].mask[50])[0, 0]
+    for bad_r, bad_vc in ((np.nan, 0.0), (0.0, 0.0), (-1.0, 0.0), (1.0, np.inf)):
+        r2, vc2 = r.copy(), vc.copy()
+        r2[0, 50, slot], vc2[0, 50, slot] = bad_r, bad_vc
+        with pytest.raises(FloatingPointError, match=r"gave 1 usable pseudorange\(s\) an R that is not finite"):
+            batch_ekf(batch, torch.as_tensor(r2), torch.as_tensor(vc2), n_systems=2, config=CONFIG)
+        with pytest.raises(FloatingPointError, match="diverged network"):
+            batch_ekf(batch, None, None, n_systems=2, config=CONFIG,
+                      noise_step=lambda k, inn: (torch.as_tensor(r2[:, k]), torch.as_tensor(vc2[:, k])))
+    r2, vc2 = r.copy(), vc.copy()
+    r2[~np.stack([q.mask for q in seqs])], vc2[~np.stack([q.mask for q in seqs])] = np.nan, np.nan
+    out = batch_ekf(batch, torch.as_tensor(r2), torch.as_tensor(vc2), n_systems=2, config=CONFIG)
+    ref = batch_ekf(batch, torch.as_tensor(r), torch.as_tensor(vc), n_systems=2, config=CONFIG)
+    assert torch.equal(torch.nan_to_num(out.pos_ecef_m), torch.nan_to_num(ref.pos_ecef_m))
 
 
 def test_noise_step_given_fixed_noise_equals_the_arrays(cases):

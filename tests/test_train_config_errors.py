@@ -120,9 +120,43 @@ def test_single_names_are_one_item_lists():
     assert config["data"]["datasets"] == ["synthetic"] and config["data"]["drop_features"] == ["dpc"]
 
 
+@pytest.mark.parametrize("setting, expected", [
+    ("model.r_init_m2=5.0", "model.r_init_m2 has no meaning with model.r_prior = 'heuristic'"),
+    ("model.r_scale_m2=3.0", "model.r_scale_m2 = 3.0 is not read with model.r_prior = 'heuristic'")])
+def test_settings_the_prior_makes_meaningless_are_refused(setting, expected):
+    """With the prior, R = prior softplus(o_R) / ln 2 + floor: r_init_m2 set the bias as if R were r_scale_m2
+    softplus(o_R) + floor (a review: 263 m^2 for r_init_m2 = 1), and r_scale_m2 was read nowhere."""
+    assert load_config(None, [setting])["model"]                          # fine without the prior
+    with pytest.raises(ValueError, match=expected):
+        load_config(None, ["model.r_prior='heuristic'", setting])
+    from learning.network import LfgnssNet
+
+    with pytest.raises(ValueError, match="r_init_m2 has no meaning with r_prior"):
+        LfgnssNet(8, r_init_m2=5.0, r_prior={"cn0_index": 0, "el_index": 1})
+
+
 def test_every_shipped_config_passes_the_checks():
     for path in sorted(Path("learning/configs").glob("*.toml")):
         load_config(path)
+
+
+def test_a_non_finite_gradient_of_a_finite_loss_stops_training(tmp_path, capsys, monkeypatch):
+    """A finite loss with NaN gradients (sqrt at 0) must not reach Adam: exit 3 as a non-finite loss, not a run that
+    goes on with NaN weights and logs a loss of 0."""
+    import torch
+
+    import learning.train
+
+    monkeypatch.setattr(learning.train, "make_loss", lambda *a, **k: lambda pos, truth: torch.sqrt(
+        (torch.nan_to_num(pos - truth) * 0.0).pow(2).sum()))
+    out = tmp_path / "run"
+    argv = [x for s in TINY for x in ("--set", s)] + ["--out", str(out), "--no-progress"]
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    assert exit_info.value.code == 3
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "epoch 1: non-finite gradient of a finite training loss 0" in err
+    assert (out / "last.pt").exists() and not (out / "model.npz").exists()
 
 
 def test_a_non_finite_training_loss_is_one_line_and_keeps_the_checkpoints(tmp_path, capsys):
