@@ -1,4 +1,5 @@
-"""LF-GNSS extended Kalman filter as an estimator plug-in, on filterpy's ``ExtendedKalmanFilter``.
+"""LF-GNSS extended Kalman filter as an estimator plug-in, on filterpy's ``ExtendedKalmanFilter`` (its gain from a
+Cholesky solve: ``extended_kalman_filter``).
 
 Per epoch ``k`` (models in ``estimators.models``)::
 
@@ -37,6 +38,7 @@ switched off; ``info["noise_r_m2"]`` the noise model's R itself, as it gave it.
 """
 from __future__ import annotations
 
+import functools
 import math
 import numbers
 import os
@@ -132,13 +134,41 @@ def _given(_x: np.ndarray, value: np.ndarray) -> np.ndarray:
     return value
 
 
+@functools.cache
 def extended_kalman_filter() -> type:
-    """filterpy's ``ExtendedKalmanFilter`` class, imported on first use: filterpy.kalman's package pulls scipy.stats,
-    half a second that ``import estimators`` (the command line's --help and its errors, the graph and least-squares
-    back ends) need not pay. An EKF imports it when built, so that timing a solve does not count it."""
+    """filterpy's ``ExtendedKalmanFilter`` with its gain from a Cholesky solve (``CholeskyGainEkf``), imported on first
+    use: filterpy.kalman's package pulls scipy.stats, half a second that ``import estimators`` (the command line's
+    --help and its errors, the graph and least-squares back ends) need not pay. An EKF imports it when built, so that
+    timing a solve does not count it."""
+    import scipy.linalg
     from filterpy.kalman import ExtendedKalmanFilter
 
-    return ExtendedKalmanFilter
+    class CholeskyGainEkf(ExtendedKalmanFilter):
+        """filterpy's EKF; ``update`` is filterpy's (Joseph form) with ``K = P H^T S^-1`` from a Cholesky solve.
+
+        filterpy takes ``S^-1`` from ``scipy.linalg.inv``, whose inverse of an ill-conditioned S is far off where
+        numpy's and a Cholesky solve are not: at a reset's P0 (1e4 m^2) beside R = 1e-4 m^2, |S S^-1 - I| = 1.8 and a
+        13 m error on a simulated drive, 0.27 m at 1e-3 m^2, 6 mm at 0.01 m^2 (a network's default floor). The
+        Cholesky solve is also what ``learning.torch_ekf`` does, so the two filters agree there too. An S that is not
+        positive definite raises ``numpy.linalg.LinAlgError``.
+        """
+
+        def update(self, z, HJacobian, Hx, R, args=(), hx_args=()):
+            H = HJacobian(self.x, *args)
+            PHT = self.P @ H.T
+            self.S = H @ PHT + R
+            factor = scipy.linalg.cho_factor(self.S, lower=True, check_finite=True)
+            self.SI = scipy.linalg.cho_solve(factor, np.eye(len(self.S)))
+            self.K = scipy.linalg.cho_solve(factor, PHT.T).T
+            self.y = z - Hx(self.x, *hx_args)
+            self.x = self.x + self.K @ self.y
+            I_KH = self._I - self.K @ H
+            self.P = I_KH @ self.P @ I_KH.T + self.K @ R @ self.K.T
+            self._log_likelihood = self._likelihood = self._mahalanobis = None
+            self.z = np.array(z, copy=True)
+            self.x_post, self.P_post = self.x.copy(), self.P.copy()
+
+    return CholeskyGainEkf
 
 
 class LfgnssEkf:
@@ -341,11 +371,10 @@ class LfgnssEkf:
                 h, H, z, r = (np.concatenate(part) for part in zip(*blocks))
                 try:
                     ekf.update(z, _given, _given, R=np.diag(r), args=(H,), hx_args=(h,))
-                    # filterpy inverts S with scipy's inv, which raises nothing for an S too ill-conditioned to
-                    # invert and returns a wrong inverse, hence a wrong state: at a reset's P0 on a simulated drive,
-                    # R = 1e-4 m^2 gave |S S^-1 - I| = 1.8 and a 13 m error, 1e-3 m^2 0.012 and 0.1 m
+                    # a Cholesky factor can exist where S is numerically singular (R of 1e-12 m^2): its inverse
+                    # then fails this check, and the state would be garbage
                     singular = not np.allclose(ekf.S @ ekf.SI, np.eye(len(r)), rtol=0.0, atol=0.05)
-                except np.linalg.LinAlgError:
+                except (np.linalg.LinAlgError, ValueError):     # not positive definite; non-finite
                     singular = True
                 if singular:
                     raise ValueError(f"{type(self).__name__}: the update at epoch {k} of {sequence.name!r} is "

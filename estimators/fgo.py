@@ -291,8 +291,9 @@ class LfgnssFgo:
         1 sd came 8.5 points closer to 68 % on average (berlin-pp's mean NEES 632-731 -> 20-30, hk unchanged); the
         stand-in, already wider, gained 1 point and grew too wide on berlin-pp (2D sd 15 m for 9.7 m errors).
     max_iterations : int
-        Levenberg-Marquardt iterations (batch), per stage. A final stage that reaches them before its error settles,
-        or gives up at its largest damping with no extreme input to blame, keeps its last iterate with one warning and
+        Levenberg-Marquardt iterations (batch), per stage. A final stage that reaches them before its error settles
+        (one more iteration, not used, would still lower it beyond the tolerances), or gives up at its largest
+        damping with no extreme input to blame, keeps its last iterate with one warning and
         ``info["converged"] = False``. Of the train and validation solves with the shipped models only berlin-pp's
         train split with the default model stops at 50; run to convergence (200) its 3D RMSE went 13.52 -> 17.51 m
         (the Cauchy kernel is not convex), the other eleven did not move: 50 stays (docs/fgo_convergence.md).
@@ -690,10 +691,11 @@ class LfgnssFgo:
             if values is None:
                 info["initial_error"] = float(graph.error(start))
             optimizer = gtsam.LevenbergMarquardtOptimizer(graph, start, params)
-            values = optimizer.optimize()
+            values = gtsam.Values(optimizer.optimize())     # a copy: _settled's iterate() frees the optimizer's own
             iterations = int(optimizer.iterations())
             info["iterations"] += iterations
             gave_up = optimizer.lambda_() >= params.getlambdaUpperBound()
+            settled = not gave_up and (iterations < self.max_iterations or self._settled(optimizer, params))
             if gave_up:
                 # Levenberg-Marquardt gave up: no step lowered the error even at its largest damping
                 worst = self._worst_epoch(graph, values, n_sys)
@@ -704,7 +706,7 @@ class LfgnssFgo:
                     raise failure
         # the last stage's optimum; earlier stages only start it, so only its end is judged
         result = values
-        info["converged"] = not gave_up and iterations < self.max_iterations
+        info["converged"] = settled
         if gave_up:
             self._warn_not_converged(seq, f"Levenberg-Marquardt could not lower the error at its largest damping "
                                           f"(worst fit at epoch {worst}); the positions are its last iterate")
@@ -726,6 +728,15 @@ class LfgnssFgo:
             except RuntimeError as err:
                 self._warn_no_marginals(seq, err)
         return pos, vel, clk, n_used, cov
+
+    @staticmethod
+    def _settled(optimizer: gtsam.LevenbergMarquardtOptimizer, params: gtsam.LevenbergMarquardtParams) -> bool:
+        """Whether an optimizer stopped at its last allowed iteration had converged: one more iteration (whose result
+        is not used) lowers the error by less than the tolerances."""
+        before = optimizer.error()
+        optimizer.iterate()
+        return bool(gtsam.checkConvergence(params.getRelativeErrorTol(), params.getAbsoluteErrorTol(),
+                                           params.getErrorTol(), before, optimizer.error()))
 
     def _warn_not_converged(self, seq: Sequence, why: str) -> None:
         """Warn that the batch solve of ``seq`` ended unconverged for reason ``why`` (its positions are kept)."""

@@ -354,26 +354,36 @@ def initial_state(coarse_ecef_m: np.ndarray, coarse_clock_m: np.ndarray, drift_m
     return x
 
 
+#: Spread [m/s] of an epoch's Doppler rates about the drift at zero velocity that ``coarse_drift_m_s`` allows: the
+#: receiver's speed along the lines of sight (180 km/h).
+COARSE_DRIFT_SPREAD_M_S = 50.0
+
+
 def coarse_drift_m_s(prr_m_s: np.ndarray, doppler_ok: np.ndarray, sat_pos_ecef_m: np.ndarray,
                      sat_vel_ecef_m_s: np.ndarray, rcv_ecef_m: np.ndarray) -> np.ndarray:
-    """(...,) receiver clock drift [m/s] from each epoch's Dopplers at ``rcv_ecef_m`` and zero velocity; 0 without any.
+    """(...,) receiver clock drift [m/s] from each epoch's Dopplers at ``rcv_ecef_m`` and zero velocity; 0 where they
+    do not agree on one.
 
     The lower median of ``prr - a`` (``doppler_design``'s offsets) over the epoch's ``doppler_ok`` satellites: the
     drift give or take the receiver's speed. A (re)start takes it as the coarse fix gives the clock: from zero, a drift
     beyond 3 sd of ``p0_drift_m2_s2`` (300 m/s, a 1 ppm oscillator) failed every Doppler's gate and, unobservable
-    from one epoch's pseudoranges, pushed them out of the gate too. Shapes: ``prr_m_s``, ``doppler_ok`` (..., N);
-    satellites (..., N, 3) [m], [m/s]; ``rcv_ecef_m`` (..., 3) [m].
+    from one epoch's pseudoranges, pushed them out of the gate too. Taken only from 3 Dopplers or more, more than
+    half of them within ``COARSE_DRIFT_SPREAD_M_S`` of it: a drift fitted to an outlier would keep every later
+    Doppler out of the gate, where one started from 0 lets the gate drop the outlier. Shapes: ``prr_m_s``,
+    ``doppler_ok`` (..., N); satellites (..., N, 3) [m], [m/s]; ``rcv_ecef_m`` (..., 3) [m].
     """
     ok = np.asarray(doppler_ok, bool)
-    a, _ = doppler_design(sat_pos_ecef_m, sat_vel_ecef_m_s, rcv_ecef_m)
-    v = np.where(ok, np.asarray(prr_m_s, float) - a, np.nan)
+    with np.errstate(invalid="ignore", divide="ignore"):          # unused slots or receivers at the origin
+        a, _ = doppler_design(sat_pos_ecef_m, sat_vel_ecef_m_s, rcv_ecef_m)
+        v = np.where(ok, np.asarray(prr_m_s, float) - a, np.nan)
     ok &= np.isfinite(v)
     n = ok.sum(-1)
     if v.shape[-1] == 0:                                         # no satellite slot at all
         return np.zeros(n.shape)
-    v = np.sort(np.where(ok, v, np.inf), axis=-1)               # unusable slots last
-    lower = np.take_along_axis(v, np.maximum(n - 1, 0)[..., None] // 2, axis=-1)[..., 0]
-    return np.where(n > 0, lower, 0.0)
+    lower = np.take_along_axis(np.sort(np.where(ok, v, np.inf), axis=-1),   # unusable slots last
+                               np.maximum(n - 1, 0)[..., None] // 2, axis=-1)
+    near = (ok & (np.abs(np.where(ok, v, 0.0) - lower) <= COARSE_DRIFT_SPREAD_M_S)).sum(-1)
+    return np.where((n >= 3) & (2 * near > n), lower[..., 0], 0.0)
 
 
 def pseudorange_clock_m(pr_m: np.ndarray, sat_pos_ecef_m: np.ndarray, system_index: np.ndarray,
@@ -589,4 +599,4 @@ __all__ = ["EkfConfig", "n_states", "clock_column", "initial_covariance", "initi
            "transition", "process_noise_coefficients", "process_noise", "vertical_noise_increment", "measurement",
            "doppler_measurement", "doppler_variance_m2_s2", "used_doppler_variance_m2_s2", "prior_innovation_m",
            "lower_median", "realign_clock", "stationary_epochs", "still_fixes", "zero_velocity_measurement",
-           "CHI2_3DOF_99", "POS", "VEL", "CLOCK", "DRIFT", "ISB0"]
+           "CHI2_3DOF_99", "COARSE_DRIFT_SPREAD_M_S", "POS", "VEL", "CLOCK", "DRIFT", "ISB0"]

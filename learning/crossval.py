@@ -14,7 +14,8 @@ sequences where the held-out block cuts them) and evaluates on block ``j``, once
 ``learning.train`` evaluates its validation split. Each fold also runs the plain EKF (hand-set C/N0-elevation R, no
 v^c, the same EKF settings) on its held-out block, the bar the learned model has to clear.
 
-Reported per fold and pooled over folds (RMSE pooled by the labelled epochs each fold scored, ``scored_epochs``):
+Reported per fold and pooled over folds (RMSE pooled by each fold's labelled epochs, ``labelled_epochs``, which its
+RMSEs are over; an epoch before a piece's first fix, unsolved, still counts):
 the plain EKF, the untrained network (epoch 0), the last epoch (the honest figure of a fixed schedule) and the best
 epoch (optimistic: it is picked on the held-out block itself); and the plain EKF and the last epoch with the RTS
 smoother (``estimators.smoother``; training itself reads smoothed positions only with ``train.smooth``); and the 2D
@@ -77,7 +78,7 @@ from .train import (DEFAULT_CONFIG, _flat, _merge_free, adopt_init, config_path,
                     init_model, load_config, load_sequences, prepare, read_checkpoint, torch_threads, train,
                     trained_datasets)
 
-COLUMNS = ["fold", "held_out_epochs", "scored_epochs", "plain_ekf_rmse_3d_m", "untrained_rmse_3d_m",
+COLUMNS = ["fold", "held_out_epochs", "labelled_epochs", "plain_ekf_rmse_3d_m", "untrained_rmse_3d_m",
            "last_rmse_3d_m", "best_rmse_3d_m", "best_epoch", "plain_ekf_smoothed_rmse_3d_m", "last_smoothed_rmse_3d_m",
            "plain_ekf_rmse_2d_m", "last_rmse_2d_m"]
 
@@ -286,7 +287,7 @@ def _fold_row(fold: int, held: list[Sequence], config: dict, learned: dict) -> d
     """A crossval row: the ``learned`` model's columns, and the plain EKF's on the same held-out pieces."""
     plain_3d, plain_2d = plain_ekf_rmse_m(held, config)
     return {"fold": fold, "held_out_epochs": sum(len(s) for s in held),
-            "scored_epochs": int(sum(np.count_nonzero(s.labelled) for s in held)), "plain_ekf_rmse_3d_m": plain_3d,
+            "labelled_epochs": int(sum(np.count_nonzero(s.labelled) for s in held)), "plain_ekf_rmse_3d_m": plain_3d,
             "plain_ekf_smoothed_rmse_3d_m": plain_ekf_rmse_m(held, config, smooth=True)[0],
             "plain_ekf_rmse_2d_m": plain_2d, **learned}
 
@@ -422,9 +423,9 @@ def pooled_rows(rows: list[dict], datasets: list[str]) -> list[dict]:
     keys = [k for k in COLUMNS if k.endswith("_m")]
 
     def pooled(label: str, group: list[dict]) -> dict:
-        counts = [r["scored_epochs"] for r in group]           # each fold's RMSEs are over its labelled epochs
+        counts = [r["labelled_epochs"] for r in group]         # each fold's RMSEs are over its labelled epochs
         return {"fold": label, "held_out_epochs": sum(r["held_out_epochs"] for r in group),
-                "scored_epochs": sum(counts),
+                "labelled_epochs": sum(counts),
                 **{k: pooled_rmse([r[k] for r in group], counts) for k in keys}, "best_epoch": "-"}
 
     return ([pooled("pooled", [r for r in rows if isinstance(r["fold"], int)])]
@@ -490,8 +491,8 @@ def _csv_row(row: dict) -> dict:
     out = {k: row.get(k, "") for k in COLUMNS}
     out["fold"] = int(row["fold"]) if row["fold"].isdigit() else row["fold"]
     out["held_out_epochs"] = int(row["held_out_epochs"])
-    # a crossval.csv from before session 54 has no scored_epochs: its datasets were labelled at every epoch
-    out["scored_epochs"] = int(row.get("scored_epochs") or row["held_out_epochs"])
+    # a crossval.csv from before session 54 has no labelled_epochs: its datasets were labelled at every epoch
+    out["labelled_epochs"] = int(row.get("labelled_epochs") or row["held_out_epochs"])
     for k in COLUMNS:
         if k.endswith("_m"):
             out[k] = float(row[k]) if row[k] != "" else math.nan

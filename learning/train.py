@@ -1274,7 +1274,8 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
             optimiser.zero_grad(set_to_none=True)
             loss.backward()
             # a finite loss can still have NaN gradients, and one Adam step with them makes every weight NaN
-            if not all(bool(torch.isfinite(p.grad).all()) for p in model.parameters() if p.grad is not None):
+            grads = [p.grad for p in model.parameters() if p.grad is not None]
+            if grads and not bool(torch.stack([torch.isfinite(g).all() for g in grads]).all()):   # one device sync
                 raise FloatingPointError(f"epoch {epoch}: non-finite gradient of a finite training loss "
                                          f"{float(loss.detach()):g}")
             if float(tr["grad_clip"]) > 0:

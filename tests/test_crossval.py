@@ -341,17 +341,17 @@ def test_several_datasets_get_a_row_each_per_fold_and_pooled(monkeypatch, tmp_pa
         assert a["last_rmse_3d_m"] == pytest.approx(b["last_rmse_3d_m"]), a["fold"]
 
 
-def test_folds_pool_by_the_epochs_they_scored():
+def test_folds_pool_by_their_labelled_epochs():
     """A fold's RMSE is over its labelled epochs: pooling by all held-out epochs gave a fold with truth gaps the
     weight of the epochs it never scored (a review's case: 35.5 m for 15.8 m)."""
     from learning.crossval import COLUMNS, pooled_rows
 
     def row(fold, held, scored, rmse):
         return {k: rmse for k in COLUMNS if k.endswith("_m")} | {"fold": fold, "held_out_epochs": held,
-                                                                 "scored_epochs": scored, "best_epoch": 1}
+                                                                 "labelled_epochs": scored, "best_epoch": 1}
 
     pooled = pooled_rows([row(0, 100, 10, 50.0), row(1, 100, 90, 10.0)], [])[0]
-    assert pooled["held_out_epochs"] == 200 and pooled["scored_epochs"] == 100
+    assert pooled["held_out_epochs"] == 200 and pooled["labelled_epochs"] == 100
     assert pooled["last_rmse_3d_m"] == pytest.approx(math.sqrt((10 * 50.0 ** 2 + 90 * 10.0 ** 2) / 100))
 
 
@@ -379,16 +379,16 @@ def test_pool_puts_parallel_fold_runs_in_one_table_with_the_pooled_rows(trained_
     assert [r["fold"] for r in pooled] == ["0", "1", "pooled"]
     for a, b in zip(pooled, whole):
         for key, value in b.items():
-            assert value == a[key] if key in ("fold", "held_out_epochs", "scored_epochs", "best_epoch") else \
+            assert value == a[key] if key in ("fold", "held_out_epochs", "labelled_epochs", "best_epoch") else \
                 float(a[key]) == pytest.approx(float(value), rel=1e-12), key
     assert "| pooled | 180 | 180 | " in capsys.readouterr().out
-    for j in (0, 1):                                    # a part written before scored_epochs: all its epochs scored
+    for j in (0, 1):                                    # a part written before labelled_epochs: all its epochs scored
         with open(tmp_path / f"part{j}" / "crossval.csv", "w", newline="") as fh:
-            w = csv.DictWriter(fh, fieldnames=[k for k in whole[0] if k != "scored_epochs"], extrasaction="ignore")
+            w = csv.DictWriter(fh, fieldnames=[k for k in whole[0] if k != "labelled_epochs"], extrasaction="ignore")
             w.writeheader()
             w.writerow(whole[j])
     assert main(["--folds", "2", *parts, "--out", str(tmp_path / "old")]) == 0
-    assert [r["scored_epochs"] for r in _rows(tmp_path / "old")] == [r["held_out_epochs"] for r in whole]
+    assert [r["labelled_epochs"] for r in _rows(tmp_path / "old")] == [r["held_out_epochs"] for r in whole]
     capsys.readouterr()
     for argv, message in (
             (["--folds", "3", *parts], "fold(s) 2 of --folds 3 are in none of the --pool folders"),

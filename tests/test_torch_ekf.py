@@ -303,19 +303,46 @@ def test_a_drift_beyond_the_initial_covariance_is_taken_from_the_dopplers_in_bot
     _assert_matches_plugin(out, [s], r, vc, CONFIG)
 
 
-def test_coarse_drift_is_the_lower_median_of_the_dopplers_at_zero_velocity():
-    """Vectorised over epochs; 0 where an epoch has no usable Doppler."""
+def test_coarse_drift_is_the_lower_median_of_agreeing_dopplers_at_zero_velocity():
+    """Vectorised over epochs; 0 where an epoch has fewer than 3 Dopplers or no majority within
+    COARSE_DRIFT_SPREAD_M_S of the median (a drift fitted to an outlier kept every later Doppler out of the gate)."""
     from lfgnss.velocity import doppler_design
 
-    s = simulate_sequence(5, seed=4)
-    ok = s.mask & s.prr_mask
-    ok[3] = False
-    got = models.coarse_drift_m_s(s.prr_m_s, ok, s.sat_pos_ecef_m, s.sat_vel_ecef_m_s, s.coarse_ecef_m)
-    for k in range(5):
-        a, _ = doppler_design(s.sat_pos_ecef_m[k], s.sat_vel_ecef_m_s[k], s.coarse_ecef_m[k])
-        want = models.lower_median((s.prr_m_s[k] - a)[ok[k]]) if ok[k].any() else 0.0
-        assert got[k] == pytest.approx(want, abs=1e-9)
-    assert got[3] == 0.0
+    s = simulate_sequence(6, seed=4)
+    a, _ = doppler_design(s.sat_pos_ecef_m, s.sat_vel_ecef_m_s, s.coarse_ecef_m)
+    cases = {0: [400.0, 410.0, 395.0, 2000.0],      # one outlier: the lower median of the rest
+             1: [400.0],                             # one Doppler, or two: not enough to tell an outlier
+             2: [400.0, -600.0],
+             3: [-1000.0, -999.0, 48.0, 49.0],       # the median among outliers: no majority near it
+             4: [30.0, -20.0, 10.0, 5.0, -35.0],     # a moving receiver's spread about a drift of 0
+             5: []}
+    ok = np.zeros_like(s.mask)
+    prr = np.zeros(s.mask.shape)
+    for k, rates in cases.items():
+        slots = np.flatnonzero(s.mask[k])[:len(rates)]
+        ok[k, slots] = True
+        prr[k, slots] = a[k, slots] + np.array(rates)
+    got = models.coarse_drift_m_s(prr, ok, s.sat_pos_ecef_m, s.sat_vel_ecef_m_s, s.coarse_ecef_m)
+    np.testing.assert_allclose(got, [400.0, 0.0, 0.0, 0.0, 5.0, 0.0], rtol=0, atol=1e-6)
+
+
+def test_a_drift_from_one_bad_doppler_is_not_taken():
+    """The review's case: one Doppler 1000 m/s low at the first epoch, the only one there besides a second: the
+    filter starts from drift 0 and gates it, as before (a drift fitted to it coasted half the drive)."""
+    s = simulate_sequence(120, seed=3)
+    prr_mask = s.prr_mask.copy()
+    keep = np.flatnonzero(s.mask[0] & prr_mask[0])[:2]
+    prr_mask[0] = False
+    prr_mask[0, keep] = True
+    prr = s.prr_m_s.copy()
+    prr[0, keep[0]] -= 1000.0                     # the lower of two: their lower median
+    s = replace(s, prr_mask=prr_mask, prr_m_s=prr)
+    r, vc = np.where(s.mask, 25.0, 0.0)[None], np.zeros((1,) + s.mask.shape)
+    sol = LfgnssEkf(noise=FixedNoise(r[0], vc[0]), config=CONFIG).solve(s)
+    assert np.all(sol.status[1:] == STATUS_UPDATED) and not sol.info["clock_realigned"].any()
+    assert np.all(sol.info["n_doppler"][1:] > 0)
+    out = batch_ekf(to_batch([s]), torch.as_tensor(r), torch.as_tensor(vc), n_systems=len(s.systems), config=CONFIG)
+    _assert_matches_plugin(out, [s], r, vc, CONFIG)
 
 
 @pytest.mark.parametrize("min_redundancy, resets", [(2, False), (0, True)])
