@@ -1,5 +1,5 @@
-"""LF-GNSS extended Kalman filter as an estimator plug-in, on filterpy's ``ExtendedKalmanFilter`` (its gain from a
-Cholesky solve: ``extended_kalman_filter``).
+"""LF-GNSS extended Kalman filter as an estimator plug-in, on filterpy's ``ExtendedKalmanFilter`` (with numpy's
+inverse of S: ``extended_kalman_filter``).
 
 Per epoch ``k`` (models in ``estimators.models``)::
 
@@ -136,30 +136,28 @@ def _given(_x: np.ndarray, value: np.ndarray) -> np.ndarray:
 
 @functools.cache
 def extended_kalman_filter() -> type:
-    """filterpy's ``ExtendedKalmanFilter`` with its gain from a Cholesky solve (``CholeskyGainEkf``), imported on first
-    use: filterpy.kalman's package pulls scipy.stats, half a second that ``import estimators`` (the command line's
-    --help and its errors, the graph and least-squares back ends) need not pay. An EKF imports it when built, so that
-    timing a solve does not count it."""
-    import scipy.linalg
+    """filterpy's ``ExtendedKalmanFilter`` with an accurate ``S^-1`` (``NumpyInverseEkf``), imported on first use:
+    filterpy.kalman's package pulls scipy.stats, half a second that ``import estimators`` (the command line's --help
+    and its errors, the graph and least-squares back ends) need not pay. An EKF imports it when built, so that timing
+    a solve does not count it."""
     from filterpy.kalman import ExtendedKalmanFilter
 
-    class CholeskyGainEkf(ExtendedKalmanFilter):
-        """filterpy's EKF; ``update`` is filterpy's (Joseph form) with ``K = P H^T S^-1`` from a Cholesky solve.
+    class NumpyInverseEkf(ExtendedKalmanFilter):
+        """filterpy's EKF; ``update`` is filterpy's (``K = P H^T S^-1``, Joseph form) with ``S^-1`` from numpy.
 
         filterpy takes ``S^-1`` from ``scipy.linalg.inv``, whose inverse of an ill-conditioned S is far off where
-        numpy's and a Cholesky solve are not: at a reset's P0 (1e4 m^2) beside R = 1e-4 m^2, |S S^-1 - I| = 1.8 and a
-        13 m error on a simulated drive, 0.27 m at 1e-3 m^2, 6 mm at 0.01 m^2 (a network's default floor). The
-        Cholesky solve is also what ``learning.torch_ekf`` does, so the two filters agree there too. An S that is not
-        positive definite raises ``numpy.linalg.LinAlgError``.
+        numpy's (LU with a solve) and a Cholesky solve are not: at a reset's P0 (1e4 m^2) beside R = 1e-4 m^2,
+        |S S^-1 - I| = 1.8 and a 13 m error on a simulated drive, 0.27 m at 1e-3 m^2, 6 mm at 0.01 m^2 (a network's
+        default floor) against ``learning.torch_ekf``'s Cholesky solve, which numpy's inverse agrees with. It is also
+        faster here than scipy's (and than a Cholesky solve through scipy, which runs BLAS threads).
         """
 
         def update(self, z, HJacobian, Hx, R, args=(), hx_args=()):
             H = HJacobian(self.x, *args)
             PHT = self.P @ H.T
             self.S = H @ PHT + R
-            factor = scipy.linalg.cho_factor(self.S, lower=True, check_finite=True)
-            self.SI = scipy.linalg.cho_solve(factor, np.eye(len(self.S)))
-            self.K = scipy.linalg.cho_solve(factor, PHT.T).T
+            self.SI = np.linalg.inv(self.S)
+            self.K = PHT @ self.SI
             self.y = z - Hx(self.x, *hx_args)
             self.x = self.x + self.K @ self.y
             I_KH = self._I - self.K @ H
@@ -168,7 +166,7 @@ def extended_kalman_filter() -> type:
             self.z = np.array(z, copy=True)
             self.x_post, self.P_post = self.x.copy(), self.P.copy()
 
-    return CholeskyGainEkf
+    return NumpyInverseEkf
 
 
 class LfgnssEkf:
@@ -371,10 +369,13 @@ class LfgnssEkf:
                 h, H, z, r = (np.concatenate(part) for part in zip(*blocks))
                 try:
                     ekf.update(z, _given, _given, R=np.diag(r), args=(H,), hx_args=(h,))
-                    # a Cholesky factor can exist where S is numerically singular (R of 1e-12 m^2): its inverse
-                    # then fails this check, and the state would be garbage
-                    singular = not np.allclose(ekf.S @ ekf.SI, np.eye(len(r)), rtol=0.0, atol=0.05)
-                except (np.linalg.LinAlgError, ValueError):     # not positive definite; non-finite
+                    # an S numerically singular but not exactly inverts to garbage, and so would the state:
+                    # |S S^-1 - I| tells (at a reset on a simulated drive: 1e-11 for R = 1 m^2, 6e-6 for 1e-6 m^2,
+                    # 0.07 for 1e-10 m^2; 1e-12 m^2 is exactly singular to numpy)
+                    check = ekf.S @ ekf.SI
+                    check.flat[::len(r) + 1] -= 1.0
+                    singular = not np.abs(check).max() <= 0.05
+                except np.linalg.LinAlgError:
                     singular = True
                 if singular:
                     raise ValueError(f"{type(self).__name__}: the update at epoch {k} of {sequence.name!r} is "

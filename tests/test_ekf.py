@@ -487,7 +487,7 @@ def test_a_noise_model_of_near_zero_variance_is_one_line_naming_the_epoch(seq):
 @pytest.mark.parametrize("r_m2", [1e-6, 1e-4])
 def test_a_tiny_r_beside_a_resets_covariance_keeps_an_accurate_gain(seq, r_m2):
     """R of 1e-4 m^2 (1 cm) beside a reset's P0 (1e4 m^2): filterpy's S^-1 from scipy's inv was far off (|S S^-1 - I|
-    = 1.8, a 13 m error on a simulated drive); the gain from a Cholesky solve gives the first fix R = 1e-3 m^2 gives."""
+    = 1.8, a 13 m error on a simulated drive); numpy's S^-1 gives the first fix R = 1e-3 m^2 gives."""
     import warnings
 
     def first_fix(r):
