@@ -74,7 +74,8 @@ def markdown(rows: list[dict], command: str) -> str:
     pooled = ", ".join(f"{pooled_rmse_m(rows, n):.2f} m at {n}" for n in its)
     return (f"# Does the batch factor graph converge?\n\nProduced by `{command}` (batch `LfgnssFgo`, the shipped "
             f"models; iterations over the Huber start and the Cauchy stage; converged: the last stage ended before "
-            f"max_iterations and did not give up; 3D RMSE in metres over the labelled epochs, 100 % availability; "
+            f"max_iterations, or there one more iteration lowered its error by less than the tolerances, and did not "
+            f"give up; 3D RMSE in metres over the labelled epochs, 100 % availability; "
             f"train and validation splits only).\n\n" + "\n".join(lines)
             + f"\n\nPooled 3D RMSE: {pooled}. How the default was chosen from this table: docs/findings.md "
               f"(session 54).\n")

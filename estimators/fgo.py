@@ -695,7 +695,9 @@ class LfgnssFgo:
             iterations = int(optimizer.iterations())
             info["iterations"] += iterations
             gave_up = optimizer.lambda_() >= params.getlambdaUpperBound()
-            settled = not gave_up and (iterations < self.max_iterations or self._settled(optimizer, params))
+            # only the last stage is judged (earlier ones start it), so only it pays the probe's extra iteration
+            settled = not gave_up and (iterations < self.max_iterations or kernel is not stages[-1]
+                                       or self._settled(optimizer, params))
             if gave_up:
                 # Levenberg-Marquardt gave up: no step lowered the error even at its largest damping
                 worst = self._worst_epoch(graph, values, n_sys)

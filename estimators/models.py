@@ -372,7 +372,7 @@ def coarse_drift_m_s(prr_m_s: np.ndarray, doppler_ok: np.ndarray, sat_pos_ecef_m
     Doppler out of the gate, where one started from 0 lets the gate drop the outlier. Shapes: ``prr_m_s``,
     ``doppler_ok`` (..., N); satellites (..., N, 3) [m], [m/s]; ``rcv_ecef_m`` (..., 3) [m].
     """
-    ok = np.asarray(doppler_ok, bool)
+    ok = np.array(doppler_ok, dtype=bool)                         # a copy: the caller's mask stays as it is
     with np.errstate(invalid="ignore", divide="ignore"):          # unused slots or receivers at the origin
         a, _ = doppler_design(sat_pos_ecef_m, sat_vel_ecef_m_s, rcv_ecef_m)
         v = np.where(ok, np.asarray(prr_m_s, float) - a, np.nan)

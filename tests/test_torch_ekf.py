@@ -322,8 +322,13 @@ def test_coarse_drift_is_the_lower_median_of_agreeing_dopplers_at_zero_velocity(
         slots = np.flatnonzero(s.mask[k])[:len(rates)]
         ok[k, slots] = True
         prr[k, slots] = a[k, slots] + np.array(rates)
+    given = ok.copy()
     got = models.coarse_drift_m_s(prr, ok, s.sat_pos_ecef_m, s.sat_vel_ecef_m_s, s.coarse_ecef_m)
     np.testing.assert_allclose(got, [400.0, 0.0, 0.0, 0.0, 5.0, 0.0], rtol=0, atol=1e-6)
+    prr[4, np.flatnonzero(ok[4])[0]] = np.nan              # skipped (-20 of the other four), the caller's mask kept
+    got = models.coarse_drift_m_s(prr, ok, s.sat_pos_ecef_m, s.sat_vel_ecef_m_s, s.coarse_ecef_m)
+    assert got[4] == pytest.approx(-20.0, abs=1e-6)
+    np.testing.assert_array_equal(ok, given)
 
 
 def test_a_drift_from_one_bad_doppler_is_not_taken():
