@@ -388,8 +388,7 @@ def plot(kept: dict, path: Path, dataset_id: str, split: str = "val") -> Path:
 
 def main(argv: list[str] | None = None) -> int:
     """Run, print, and with ``--write`` write the Markdown page and the figure."""
-    p = script_parser(__doc__, f"write {DOC.relative_to(REPO)} and {FIGURE.name}", DATASETS)
-    p.add_argument("--splits", nargs="+", default=list(SPLITS), choices=SPLITS)
+    p = script_parser(__doc__, f"write {DOC.relative_to(REPO)} and {FIGURE.name}", DATASETS, SPLITS)
     args = parse(p, argv, "bad_pseudoranges.py")
     if args is None:
         return 2

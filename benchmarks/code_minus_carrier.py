@@ -318,8 +318,7 @@ def markdown(rows: list[dict], command: str) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """Run, print, and with ``--write`` write the Markdown page."""
-    p = script_parser(__doc__, f"write {DOC.relative_to(REPO)}", DATASETS)
-    p.add_argument("--splits", nargs="+", default=list(SPLITS), choices=SPLITS)
+    p = script_parser(__doc__, f"write {DOC.relative_to(REPO)}", DATASETS, SPLITS)
     args = parse(p, argv, "code_minus_carrier.py")
     if args is None:
         return 2

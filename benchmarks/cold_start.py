@@ -161,8 +161,7 @@ def plot(traces: dict, path: Path, head_s: float = HEAD_S) -> Path:
 
 def main(argv: list[str] | None = None) -> int:
     """Run, print, and with ``--write`` write the Markdown page and the figure."""
-    p = script_parser(__doc__, f"write {DOC.relative_to(REPO)} and {FIGURE.name}")
-    p.add_argument("--splits", nargs="+", default=list(SPLITS), choices=SPLITS)
+    p = script_parser(__doc__, f"write {DOC.relative_to(REPO)} and {FIGURE.name}", splits=SPLITS)
     p.add_argument("--head", type=float, default=HEAD_S, help=f"seconds scored apart at each split's start "
                                                               f"(default {HEAD_S:g})")
     args = parse(p, argv, "cold_start.py")

@@ -83,8 +83,7 @@ def markdown(rows: list[dict], command: str) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """Run, print, and with ``--write`` write the Markdown page."""
-    p = script_parser(__doc__, f"write {DOC.relative_to(REPO)}")
-    p.add_argument("--splits", nargs="+", default=list(SPLITS), choices=SPLITS)
+    p = script_parser(__doc__, f"write {DOC.relative_to(REPO)}", splits=SPLITS)
     args = parse(p, argv, "fgo_convergence.py")
     if args is None:
         return 2

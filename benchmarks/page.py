@@ -3,7 +3,7 @@
 A script parses with ``script_parser`` + ``parse``, computes its rows, and ends with ``publish`` (or ``nothing`` when
 no dataset had its files):
 
-    p = script_parser(__doc__, "write docs/x.md and x.png")
+    p = script_parser(__doc__, "write docs/x.md and x.png", splits=("train", "val"))
     args = parse(p, argv, "x.py")
     if args is None:
         return 2
@@ -23,13 +23,16 @@ REPO = Path(__file__).resolve().parents[1]
 DATASETS = ("hk-tst-2019", "berlin-pp", "hk-tst-static-2020")
 
 
-def script_parser(doc: str, write_help: str, datasets: tuple[str, ...] = DATASETS) -> argparse.ArgumentParser:
-    """The benchmark scripts' command line: ``--datasets`` (default ``datasets``) and ``--write``; each adds its split
-    option."""
+def script_parser(doc: str, write_help: str, datasets: tuple[str, ...] = DATASETS,
+                  splits: tuple[str, ...] | None = None) -> argparse.ArgumentParser:
+    """The benchmark scripts' command line: ``--datasets`` (default ``datasets``), ``--write`` and, given ``splits``,
+    ``--splits`` (one or more of them, all by default)."""
     p = argparse.ArgumentParser(description=doc.split("\n\n")[0])
     p.add_argument("--datasets", nargs="+", default=list(datasets),
                    help=f"benchmark dataset ids (default: {' '.join(datasets)})")
     p.add_argument("--write", action="store_true", help=write_help)
+    if splits is not None:
+        p.add_argument("--splits", nargs="+", default=list(splits), choices=splits)
     return p
 
 

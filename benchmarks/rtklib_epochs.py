@@ -106,8 +106,7 @@ def markdown(rows: list[dict], command: str) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     """Run, print, and with ``--write`` write the Markdown page."""
-    p = script_parser(__doc__, "write the page, docs/rtklib_epochs.md")
-    p.add_argument("--splits", nargs="+", default=list(SPLITS), choices=SPLITS)
+    p = script_parser(__doc__, "write the page, docs/rtklib_epochs.md", splits=SPLITS)
     args = parse(p, argv, "rtklib_epochs.py")
     if args is None:
         return 2

@@ -127,8 +127,7 @@ def plot(rows: list[dict], path: Path, split: str = "test") -> Path:
 
 def main(argv: list[str] | None = None) -> int:
     """Run, print, and with ``--write`` write the Markdown page and the figure."""
-    p = script_parser(__doc__, f"write {DOC.relative_to(REPO)} and {FIGURE.name}")
-    p.add_argument("--splits", nargs="+", default=list(SPLITS), choices=SPLITS)
+    p = script_parser(__doc__, f"write {DOC.relative_to(REPO)} and {FIGURE.name}", splits=SPLITS)
     args = parse(p, argv, "truth_weights.py")
     if args is None:
         return 2

@@ -701,17 +701,16 @@ class LfgnssFgo:
             if gave_up:
                 # Levenberg-Marquardt gave up: no step lowered the error even at its largest damping
                 worst = self._worst_epoch(graph, values, n_sys)
-                what = (f"the batch solve of {seq.name!r} failed: Levenberg-Marquardt could not lower the error at its "
-                        f"largest damping (worst fit at epoch {worst})")
-                failure = self._failure(seq, sigma_m ** 2, worst, what)
+                stuck = (f"Levenberg-Marquardt could not lower the error at its largest damping (worst fit at epoch "
+                         f"{worst})")
+                failure = self._failure(seq, sigma_m ** 2, worst, f"the batch solve of {seq.name!r} failed: {stuck}")
                 if failure is not None:
                     raise failure
         # the last stage's optimum; earlier stages only start it, so only its end is judged
         result = values
         info["converged"] = settled
         if gave_up:
-            self._warn_not_converged(seq, f"Levenberg-Marquardt could not lower the error at its largest damping "
-                                          f"(worst fit at epoch {worst}); the positions are its last iterate")
+            self._warn_not_converged(seq, f"{stuck}; the positions are its last iterate")
         elif not info["converged"]:
             self._warn_not_converged(seq, f"Levenberg-Marquardt stopped at max_iterations={self.max_iterations} "
                                           f"before its error settled; the positions are its last iterate (a larger "

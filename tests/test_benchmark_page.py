@@ -45,3 +45,13 @@ def test_parse_refuses_an_unknown_dataset_in_one_line(capsys):
     assert capsys.readouterr().err.startswith("x.py: unknown dataset nope; known: ")
     assert page.parse(p, ["--datasets", "berlin-pp", "--write"], "x.py").write
     assert page.parse(page.script_parser("A script.", "write it", ("berlin-pp",)), [], "x.py").datasets == ["berlin-pp"]
+
+
+def test_splits_given_to_the_parser_are_its_default_and_its_only_choices(capsys):
+    p = page.script_parser("A script.", "write it", splits=("train", "val"))
+    assert page.parse(p, [], "x.py").splits == ["train", "val"]
+    assert page.parse(p, ["--splits", "val"], "x.py").splits == ["val"]
+    with pytest.raises(SystemExit):
+        page.parse(p, ["--splits", "test"], "x.py")
+    assert "invalid choice: 'test'" in capsys.readouterr().err
+    assert not hasattr(page.parse(page.script_parser("A script.", "write it"), [], "x.py"), "splits")

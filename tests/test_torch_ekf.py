@@ -131,10 +131,13 @@ def test_cn0_dependent_doppler_variance_matches_the_plugin(cases):
     assert not np.allclose(out.pos_ecef_m.numpy(), flat.pos_ecef_m.numpy(), rtol=0, atol=1e-3, equal_nan=True)
 
 
-def _assert_matches_plugin(out, seqs, r, vc, cfg) -> None:
-    """The torch filter's statuses, counts, positions and covariances equal the filterpy plug-in's under ``cfg``."""
+def _assert_matches_plugin(out, seqs, r, vc, cfg) -> list:
+    """The torch filter's statuses, counts, positions and covariances equal the filterpy plug-in's under ``cfg``;
+    returns the plug-in's Solutions."""
+    sols = []
     for i, s in enumerate(seqs):
         sol = LfgnssEkf(noise=FixedNoise(r[i], vc[i]), config=cfg).solve(s)
+        sols.append(sol)
         np.testing.assert_array_equal(out.status[i].numpy(), sol.status)
         np.testing.assert_array_equal(out.n_used[i].numpy(), sol.n_used)
         np.testing.assert_array_equal(out.n_gated[i].numpy(), sol.info["n_gated"])
@@ -142,6 +145,15 @@ def _assert_matches_plugin(out, seqs, r, vc, cfg) -> None:
         live = sol.status != STATUS_NONE
         np.testing.assert_allclose(out.pos_ecef_m[i].numpy(), sol.pos_ecef_m, rtol=0, atol=1e-6, equal_nan=True)
         np.testing.assert_allclose(out.cov[i].numpy()[live], sol.info["cov"][live], rtol=1e-6, atol=1e-6)
+    return sols
+
+
+def _both_filters(s):
+    """The plug-in's Solution of ``s`` with R = 25 m^2 on every usable slot and no v^c, asserted equal to the torch
+    filter's run of it (``_assert_matches_plugin``)."""
+    r, vc = np.where(s.mask, 25.0, 0.0)[None], np.zeros((1,) + s.mask.shape)
+    out = batch_ekf(to_batch([s]), torch.as_tensor(r), torch.as_tensor(vc), n_systems=len(s.systems), config=CONFIG)
+    return _assert_matches_plugin(out, [s], r, vc, CONFIG)[0]
 
 
 def test_switched_off_slots_match_the_plugin(cases):
@@ -270,14 +282,11 @@ def test_a_clock_jump_without_a_coarse_fix_is_realigned_in_both_filters():
     pr[90] += np.where(s.mask[90], np.resize([3000.0, -5000.0, 9000.0], s.mask.shape[1]), 0.0)   # no clock mends
     coarse[[60, 61, 62, 90]], clock[[60, 61, 62, 90]] = np.nan, np.nan
     s = replace(s, pr_m=np.where(s.mask, pr, 0.0), coarse_ecef_m=coarse, coarse_clock_m=clock)
-    r, vc = np.where(s.mask, 25.0, 0.0)[None], np.zeros((1,) + s.mask.shape)
-    sol = LfgnssEkf(noise=FixedNoise(r[0], vc[0]), config=CONFIG).solve(s)
+    sol = _both_filters(s)
     assert np.flatnonzero(sol.info["clock_realigned"]).tolist() == [60]
     assert sol.status[60] == STATUS_UPDATED and sol.n_used[60] == s.mask[60].sum()
     assert sol.status[90] == STATUS_UPDATED and sol.n_used[90] < s.mask[90].sum() / 2     # no reset, nothing to it
     assert np.linalg.norm(sol.pos_ecef_m[60] - s.truth_ecef_m[60]) < 20.0
-    out = batch_ekf(to_batch([s]), torch.as_tensor(r), torch.as_tensor(vc), n_systems=len(s.systems), config=CONFIG)
-    _assert_matches_plugin(out, [s], r, vc, CONFIG)
 
 
 def test_a_drift_beyond_the_initial_covariance_is_taken_from_the_dopplers_in_both_filters():
@@ -293,14 +302,12 @@ def test_a_drift_beyond_the_initial_covariance_is_taken_from_the_dopplers_in_bot
                 prr_m_s=np.where(s.prr_mask, s.prr_m_s + extra, 0.0))
     assert models.coarse_drift_m_s(s.prr_m_s[0], s.mask[0] & s.prr_mask[0], s.sat_pos_ecef_m[0],
                                    s.sat_vel_ecef_m_s[0], s.coarse_ecef_m[0]) > 3 * np.sqrt(CONFIG.p0_drift_m2_s2)
-    r, vc = np.where(s.mask, 25.0, 0.0)[None], np.zeros((1,) + s.mask.shape)
-    sol = LfgnssEkf(noise=FixedNoise(r[0], vc[0]), config=CONFIG).solve(s)
+    sol = _both_filters(s)
     assert np.all(sol.status[1:] == STATUS_UPDATED) and np.all(sol.info["n_doppler"] > 0)
-    plain = LfgnssEkf(noise=FixedNoise(r[0], vc[0]), config=CONFIG).solve(base)      # the simulation's drift only
+    plain = LfgnssEkf(noise=FixedNoise(np.where(base.mask, 25.0, 0.0), np.zeros(base.mask.shape)),
+                      config=CONFIG).solve(base)                                     # the simulation's drift only
     np.testing.assert_array_equal(sol.n_used, plain.n_used)
     np.testing.assert_allclose(sol.pos_ecef_m, plain.pos_ecef_m, rtol=0, atol=1e-3)
-    out = batch_ekf(to_batch([s]), torch.as_tensor(r), torch.as_tensor(vc), n_systems=len(s.systems), config=CONFIG)
-    _assert_matches_plugin(out, [s], r, vc, CONFIG)
 
 
 def test_coarse_drift_is_the_lower_median_of_agreeing_dopplers_at_zero_velocity():
@@ -342,12 +349,9 @@ def test_a_drift_from_one_bad_doppler_is_not_taken():
     prr = s.prr_m_s.copy()
     prr[0, keep[0]] -= 1000.0                     # the lower of two: their lower median
     s = replace(s, prr_mask=prr_mask, prr_m_s=prr)
-    r, vc = np.where(s.mask, 25.0, 0.0)[None], np.zeros((1,) + s.mask.shape)
-    sol = LfgnssEkf(noise=FixedNoise(r[0], vc[0]), config=CONFIG).solve(s)
+    sol = _both_filters(s)
     assert np.all(sol.status[1:] == STATUS_UPDATED) and not sol.info["clock_realigned"].any()
     assert np.all(sol.info["n_doppler"][1:] > 0)
-    out = batch_ekf(to_batch([s]), torch.as_tensor(r), torch.as_tensor(vc), n_systems=len(s.systems), config=CONFIG)
-    _assert_matches_plugin(out, [s], r, vc, CONFIG)
 
 
 @pytest.mark.parametrize("min_redundancy, resets", [(2, False), (0, True)])
