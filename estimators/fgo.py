@@ -348,56 +348,57 @@ class LfgnssFgo:
                  doppler_sigma_m_s: float = 0.5, doppler_cn0_ref_dbhz: float | None = None,
                  zupt_sigma_m_s: float | str | None = None, zupt_max_speed_m_s: float | None = None,
                  progress: bool = False, name: str | None = None) -> None:
-        covariances = check_flag(covariances, "covariances", type(self).__name__)
-        inflate_cov = check_flag(inflate_cov, "inflate_cov", type(self).__name__)
+        owner = type(self).__name__
+        covariances = check_flag(covariances, "covariances", owner)
+        inflate_cov = check_flag(inflate_cov, "inflate_cov", owner)
         if name is not None and not isinstance(name, str):
-            raise TypeError(f"{type(self).__name__}: name must be a string, got {type(name).__name__}")
-        progress = check_flag(progress, "progress", type(self).__name__)
+            raise TypeError(f"{owner}: name must be a string, got {type(name).__name__}")
+        progress = check_flag(progress, "progress", owner)
         if mode not in MODES:
-            raise ValueError(f"LfgnssFgo: mode {mode!r} not in {MODES}")
+            raise ValueError(f"{owner}: mode {mode!r} not in {MODES}")
         for key, value in (("lag_s", lag_s), ("robust_k", robust_k), ("prior_pos_sigma_m", prior_pos_sigma_m),
                            ("prior_vel_sigma_m_s", prior_vel_sigma_m_s), ("max_iterations", max_iterations),
                            ("fixed_lag_iterations", fixed_lag_iterations), ("doppler_sigma_m_s", doppler_sigma_m_s)):
             if value is None and key == "robust_k":
                 continue
             if isinstance(value, bool) or not isinstance(value, numbers.Real) or not np.isfinite(value):
-                raise ValueError(f"LfgnssFgo: {key} must be a finite number, got {value!r}")
+                raise ValueError(f"{owner}: {key} must be a finite number, got {value!r}")
         for key, value in (("prior_pos_sigma_m", prior_pos_sigma_m), ("prior_vel_sigma_m_s", prior_vel_sigma_m_s)):
             if not value > 0:
-                raise ValueError(f"LfgnssFgo: {key} must be > 0, got {value}")
+                raise ValueError(f"{owner}: {key} must be > 0, got {value}")
         for key, value in (("max_iterations", max_iterations), ("fixed_lag_iterations", fixed_lag_iterations)):
             if not (value >= 1 and float(value).is_integer()):
-                raise ValueError(f"LfgnssFgo: {key} must be a whole number >= 1, got {value}")
+                raise ValueError(f"{owner}: {key} must be a whole number >= 1, got {value}")
         if doppler_cn0_ref_dbhz is not None and (isinstance(doppler_cn0_ref_dbhz, bool)
                                                  or not isinstance(doppler_cn0_ref_dbhz, numbers.Real)
                                                  or not np.isfinite(doppler_cn0_ref_dbhz)):
-            raise ValueError(f"LfgnssFgo: doppler_cn0_ref_dbhz must be finite: a number of dB-Hz or None, "
+            raise ValueError(f"{owner}: doppler_cn0_ref_dbhz must be finite: a number of dB-Hz or None, "
                              f"got {doppler_cn0_ref_dbhz!r}")
         if not lag_s > 0:
-            raise ValueError(f"LfgnssFgo: lag_s must be > 0, got {lag_s}")
+            raise ValueError(f"{owner}: lag_s must be > 0, got {lag_s}")
         if mode == "batch" and lag_s != DEFAULT_LAG_S:
-            raise ValueError(f"LfgnssFgo: lag_s={float(lag_s):g} needs mode='fixed-lag' (the batch mode uses every "
+            raise ValueError(f"{owner}: lag_s={float(lag_s):g} needs mode='fixed-lag' (the batch mode uses every "
                              f"epoch, with no window)")
         if robust is None and robust_k is not None:
-            raise ValueError(f"LfgnssFgo: robust_k={float(robust_k):g} needs a robust kernel (robust='auto', 'huber' "
+            raise ValueError(f"{owner}: robust_k={float(robust_k):g} needs a robust kernel (robust='auto', 'huber' "
                              f"or 'cauchy'); robust=None uses none")
         if robust == "auto":
             robust, default_k = DEFAULT_KERNEL[mode]
             robust_k = default_k if robust_k is None else robust_k
         robust_k = 1.5 if robust_k is None else robust_k
         if robust is not None and robust not in ROBUST_KERNELS:
-            raise ValueError(f"LfgnssFgo: robust {robust!r} not in {('auto', *ROBUST_KERNELS)} or None")
+            raise ValueError(f"{owner}: robust {robust!r} not in {('auto', *ROBUST_KERNELS)} or None")
         if not doppler_sigma_m_s >= 0:
-            raise ValueError(f"LfgnssFgo: doppler_sigma_m_s must be >= 0, got {doppler_sigma_m_s}")
+            raise ValueError(f"{owner}: doppler_sigma_m_s must be >= 0, got {doppler_sigma_m_s}")
         if not robust_k > 0:
-            raise ValueError(f"LfgnssFgo: robust_k must be > 0, got {robust_k}")
+            raise ValueError(f"{owner}: robust_k must be > 0, got {robust_k}")
         psd = checked_accel_psd(accel_psd_enu_m2_s3)
-        noise = resolve_noise(noise, type(self).__name__)
+        noise = resolve_noise(noise, owner)
         self.noise = noise if noise is not None else HeuristicNoise()
         self.zupt_sigma_m_s, self.zupt_max_speed_m_s = self._zupt_settings(zupt_sigma_m_s, zupt_max_speed_m_s,
                                                                            doppler_sigma_m_s > 0)
         if self.zupt_sigma_m_s is not None and not doppler_sigma_m_s > 0:
-            raise ValueError("LfgnssFgo: zupt_sigma_m_s needs Dopplers to detect a standstill; "
+            raise ValueError(f"{owner}: zupt_sigma_m_s needs Dopplers to detect a standstill; "
                              "doppler_sigma_m_s is 0")
         self.mode = mode
         self.name = (self.default_name + ("-fixed-lag" if mode == "fixed-lag" else "")) if name is None else name
@@ -423,6 +424,7 @@ class LfgnssFgo:
         "model" without ``dopplers`` to find a standstill is off. Read for noise that carries no filter (a function
         wrapping a learned model), it is the default EkfConfig, which a warning says, as the EKF's does."""
         read: dict[str, float | None] = {}          # the settings taken from the model's filter, with their values
+        owner = type(self).__name__
         if isinstance(sigma, str) and sigma == "model":
             sigma = None
             if dopplers:
@@ -433,7 +435,7 @@ class LfgnssFgo:
                 max_speed = read["zupt_max_speed_m_s"] = config_of(self.noise).zupt_max_speed_m_s
         if read:
             warn_no_filter_settings(
-                self.noise, type(self).__name__,
+                self.noise, owner,
                 "it gets the default EkfConfig's " + ", ".join(f"{key}={value!r}" for key, value in read.items()),
                 ", ".join(f"{key}=estimators.config_of(model).{key}" for key in read))
         for key, value in (("zupt_sigma_m_s", sigma), ("zupt_max_speed_m_s", max_speed)):
@@ -442,7 +444,7 @@ class LfgnssFgo:
             if (isinstance(value, bool) or not isinstance(value, numbers.Real) or not np.isfinite(value)
                     or not value > 0):
                 extra = ', None or "model"' if key == "zupt_sigma_m_s" else ""
-                raise ValueError(f"LfgnssFgo: {key} must be a positive number of m/s{extra}, got {value!r}")
+                raise ValueError(f"{owner}: {key} must be a positive number of m/s{extra}, got {value!r}")
         return (None if sigma is None else float(sigma)), float(max_speed)
 
     def __repr__(self) -> str:
@@ -511,7 +513,7 @@ class LfgnssFgo:
             return None
         used = seq.prr_mask & seq.mask
         law = EkfConfig(doppler_sigma_m_s=self.doppler_sigma_m_s, doppler_cn0_ref_dbhz=self.doppler_cn0_ref_dbhz)
-        sigma = np.sqrt(used_doppler_variance_m2_s2(seq.cn0_dbhz, used, law, "LfgnssFgo", seq.name))
+        sigma = np.sqrt(used_doppler_variance_m2_s2(seq.cn0_dbhz, used, law, type(self).__name__, seq.name))
         return doppler_velocity(seq.prr_m_s, used, seq.sat_pos_ecef_m, seq.sat_vel_ecef_m_s,
                                 seq.coarse_ecef_m, sigma_m_s=sigma)
 
@@ -552,16 +554,17 @@ class LfgnssFgo:
     # ------------------------------------------------------------------ solve
     def solve(self, sequence: Sequence) -> Solution:
         """Estimate every epoch of ``sequence`` (positions [m]); epochs before the first coarse fix get STATUS_NONE."""
-        seq = usable_sequence(check_sequence(sequence, type(self).__name__), type(self).__name__,   # same on valid input
+        owner = type(self).__name__
+        seq = usable_sequence(check_sequence(sequence, owner), owner,         # the same Sequence on valid input
                               dopplers=self.doppler_sigma_m_s > 0)
         t = np.asarray(seq.time_gps_s, float)
         n_t = len(seq)
         if n_t > 1 and np.any(np.diff(t) <= 0):
             k = int(np.flatnonzero(np.diff(t) <= 0)[0])
-            raise ValueError(f"LfgnssFgo: {seq.name!r}: time not increasing at epoch {k + 1}")
-        r_m2, vc_m = checked_noise(type(self).__name__, seq.name, seq.mask,
-                                   *noise_output(type(self).__name__, self.noise(seq), self.noise), self.noise)
-        seq = keep_slots(seq, switched_on_warned(type(self).__name__, seq, seq.mask, r_m2))
+            raise ValueError(f"{owner}: {seq.name!r}: time not increasing at epoch {k + 1}")
+        r_m2, vc_m = checked_noise(owner, seq.name, seq.mask, *noise_output(owner, self.noise(seq), self.noise),
+                                   self.noise)
+        seq = keep_slots(seq, switched_on_warned(owner, seq, seq.mask, r_m2))
         z_m = np.where(seq.mask, seq.pr_m + vc_m, 0.0)
         sigma_m = np.sqrt(np.where(seq.mask, r_m2, 1.0))
 

@@ -320,8 +320,11 @@ def _features_for(plugins) -> tuple[str, ...]:
     return tuple(names)
 
 
-def rtklib_solution(spec, workdir: Path):
+def rtklib_solution(spec, workdir: Path, systems: tuple[str, ...] | None = None):
     """RTKLIB's SPP solution of the dataset's obs file with the benchmark's settings and its run time [s], or (None, None).
+
+    Constellations: the dataset's ``systems``, else ``systems`` (those its sequence has: the other rows' satellites),
+    else GPS.
 
     None without ``rnx2rtkp``, or (with a line on stderr) for a dataset of several obs files.
     """
@@ -333,7 +336,7 @@ def rtklib_solution(spec, workdir: Path):
         print(f"{spec.id}: RTKLIB row left out: the dataset has {len(spec.obs)} obs files", file=sys.stderr)
         return None, None
     try:
-        return spp_solution(spec.obs[0], list(spec.nav), workdir / f"{spec.id}.pos", systems=spec.systems or ("G",))
+        return spp_solution(spec.obs[0], list(spec.nav), workdir / f"{spec.id}.pos", systems=spec.systems or systems or ("G",))
     except (RtklibError, ValueError) as err:  # rnx2rtkp failed, hung or wrote an unreadable .pos: an optional row
         # cut: an rnx2rtkp command line names every file of the dataset
         print(f"warning: {spec.id}: RTKLIB row left out: {shortened(one_line(err), 300)}", file=sys.stderr)
@@ -344,7 +347,7 @@ def _rtklib_on(seq, spec, workdir: Path):
     """RTKLIB's solution matched to the sequence's epochs (NaN where it gave none), and its run time."""
     from .outputs import align_to
 
-    sol, seconds = rtklib_solution(spec, workdir)
+    sol, seconds = rtklib_solution(spec, workdir, tuple(seq.systems))
     return (None, None) if sol is None else (align_to(seq.time_gps_s, sol), seconds)
 
 

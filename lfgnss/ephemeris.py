@@ -17,8 +17,17 @@ from .glonass import propagate
 from .navigation import KeplerEphemerides, Navigation
 from .time import BDT_MINUS_GPST_S, SECONDS_PER_WEEK
 
-#: Largest |t - toe| [s] at which an ephemeris is used (RTKLIB MAXDTOE, MAXDTOE_GAL/_CMP/_GLO).
-MAX_AGE_S = {"G": 7200.0, "J": 7200.0, "E": 10800.0, "C": 21600.0, "R": 1800.0}
+#: Largest |t - toe| [s] at which an ephemeris is used (RTKLIB 2.4.3 MAXDTOE, MAXDTOE_QZS/_GAL/_CMP/_GLO; Galileo's
+#: 4 h is 2.4.3's, 2.4.2 had 3 h).
+MAX_AGE_S = {"G": 7200.0, "J": 7200.0, "E": 14400.0, "C": 21600.0, "R": 1800.0}
+#: Largest broadcast accuracy [m] (URA of GPS, QZSS, BeiDou) at which an ephemeris is used: RTKLIB maps a URA to the
+#: next value of its table (2.4, 3.4, ..., 192, 384, ...) and excludes variances above 300^2 m^2 (MAX_VAR_EPH), so
+#: from 384 m on, a URA above 192 m.
+MAX_URA_M = 192.0
+#: Galileo SISA [m] beyond which RTKLIB takes "no accuracy prediction available" (500 m, excluded): -1 or above 6.
+MAX_SISA_M = 6.0
+#: QZSS health bits that concern L1 C/A users: RTKLIB masks the lowest (L6/LEX) bit (``svh &= 0xFE``, satexclude).
+QZSS_HEALTH_MASK = 0xFE
 _GM = {"G": GM_GPS_M3_S2, "J": GM_GPS_M3_S2, "E": GM_GAL_M3_S2, "C": GM_BDS_M3_S2}
 _OMEGA_E = {"G": OMEGA_EARTH_RAD_S, "J": OMEGA_EARTH_RAD_S, "E": OMEGA_EARTH_RAD_S, "C": OMEGA_EARTH_BDS_RAD_S}
 _SIN_M5, _COS_M5 = np.sin(np.deg2rad(-5.0)), np.cos(np.deg2rad(-5.0))
@@ -46,7 +55,7 @@ class SatelliteStates:
     toe_gps_s: np.ndarray        #: (M,) toe of the selected ephemeris (NaN if none)
     health: np.ndarray           #: (M,) int health word of the selected ephemeris (-1 if none)
     ok: np.ndarray               #: (M,) bool
-    reason: np.ndarray           #: (M,) str: '' | 'no ephemeris' | 'ephemeris expired' | 'unhealthy' | 'invalid time' | 'invalid ephemeris' (a non-finite state)
+    reason: np.ndarray           #: (M,) str: '' | 'no ephemeris' | 'ephemeris expired' | 'unhealthy' | 'inaccurate ephemeris' (its URA / SISA) | 'invalid time' | 'invalid ephemeris' (a non-finite state)
 
     def __len__(self) -> int:
         return len(self.sv)
@@ -94,6 +103,7 @@ def ephemeris_states(nav: Navigation, sv: np.ndarray, t_gps_s: np.ndarray, *,
     tgd = np.full(m, np.nan)
     toe = np.full(m, np.nan)
     health = np.full(m, -1, dtype=int)
+    accuracy = np.zeros(m)
     reason = np.full(m, "no ephemeris", dtype="<U20")
     finite = np.isfinite(t) & np.isfinite(ts)
     reason[~finite] = "invalid time"
@@ -115,6 +125,7 @@ def ephemeris_states(nav: Navigation, sv: np.ndarray, t_gps_s: np.ndarray, *,
             p, v, c, cd = _kepler_states(kep, sel, t[rows], s)                # gives NaN; it is never used
         pos[rows], vel[rows], clk[rows], drift[rows] = p, v, c, cd
         tgd[rows], toe[rows], health[rows] = kep.tgd_s[sel], kep.toe_gps_s[sel], kep.health[sel]
+        accuracy[rows] = kep.accuracy_m[sel]
 
     glo = nav.glonass
     rows = np.flatnonzero((system == "R") & finite)
@@ -131,13 +142,22 @@ def ephemeris_states(nav: Navigation, sv: np.ndarray, t_gps_s: np.ndarray, *,
             drift[rows] = glo.gamma_n[sel]
             tgd[rows], toe[rows], health[rows] = 0.0, glo.toe_gps_s[sel], glo.health[sel]
 
-    unhealthy = (reason == "") & (health != 0)
+    unhealthy = (reason == "") & (np.where(system == "J", health & QZSS_HEALTH_MASK, health) != 0)
     reason[unhealthy] = "unhealthy"
+    reason[(reason == "") & inaccurate(system, accuracy)] = "inaccurate ephemeris"
     broken = (reason == "") & ~(np.isfinite(pos).all(axis=1) & np.isfinite(clk))
     reason[broken] = "invalid ephemeris"
     return SatelliteStates(sv=sv, t_tx_gps_s=t, pos_ecef_m=pos, vel_ecef_m_s=vel, clock_s=clk,
                            clock_drift_s_s=drift, group_delay_s=tgd, toe_gps_s=toe, health=health,
                            ok=reason == "", reason=reason)
+
+
+def inaccurate(system: np.ndarray, accuracy_m: np.ndarray) -> np.ndarray:
+    """Whether a broadcast accuracy [m] excludes its ephemeris, as RTKLIB's satexclude (var > 300^2 m^2): a URA above
+    ``MAX_URA_M`` (GPS, QZSS, BeiDou), a Galileo SISA below 0 (no accuracy prediction) or above ``MAX_SISA_M``."""
+    system = np.asarray(system)
+    a = np.asarray(accuracy_m, dtype=float)
+    return np.where(system == "E", (a < 0) | (a > MAX_SISA_M), np.isin(system, ("G", "J", "C")) & (a > MAX_URA_M))
 
 
 def satellite_states(nav: Navigation, sv: np.ndarray, t_rx_gps_s: np.ndarray, pr_m: np.ndarray) -> SatelliteStates:
@@ -287,9 +307,9 @@ def _clock_polynomial_s(nav: Navigation, sv: np.ndarray, t_sv: np.ndarray, t_sel
             idx, _ = _select(glo.sv, glo.toe_gps_s, sv[rows], t_select[rows], MAX_AGE_S[s])
             good = idx >= 0
             sel = idx[good]
-            dt = t_sv[rows[good]] - glo.toe_gps_s[sel]
-            for _ in range(2):
-                dt = dt - (-glo.tau_n_s[sel] + glo.gamma_n[sel] * dt)
+            dt = ts0 = t_sv[rows[good]] - glo.toe_gps_s[sel]
+            for _ in range(2):                                       # RTKLIB geph2clk: t = ts - dts(t)
+                dt = ts0 - (-glo.tau_n_s[sel] + glo.gamma_n[sel] * dt)
             out[rows[good]] = -glo.tau_n_s[sel] + glo.gamma_n[sel] * dt
             continue
         recs = np.flatnonzero(kep.system == s)
@@ -297,9 +317,9 @@ def _clock_polynomial_s(nav: Navigation, sv: np.ndarray, t_sv: np.ndarray, t_sel
                          past_only=s == "E")
         good = idx >= 0
         sel = recs[idx[good]]
-        dt = t_sv[rows[good]] - kep.toc_gps_s[sel]
+        dt = ts0 = t_sv[rows[good]] - kep.toc_gps_s[sel]
         f0, f1, f2 = kep.af0_s[sel], kep.af1_s_s[sel], kep.af2_s_s2[sel]
-        for _ in range(2):
-            dt = dt - (f0 + f1 * dt + f2 * dt * dt)
+        for _ in range(2):                                           # RTKLIB eph2clk: t = ts - dts(t)
+            dt = ts0 - (f0 + f1 * dt + f2 * dt * dt)
         out[rows[good]] = f0 + f1 * dt + f2 * dt * dt
     return out

@@ -77,6 +77,7 @@ class KeplerEphemerides:
     tgd_s: np.ndarray
     health: np.ndarray          #: (K,) int, 0 = healthy
     iode: np.ndarray            #: (K,) int (Galileo IODnav, BeiDou AODE)
+    accuracy_m: np.ndarray      #: (K,) URA (GPS, QZSS, BeiDou) or SISA (Galileo; -1: no prediction) [m]; 0 if absent
 
     def __len__(self) -> int:
         return len(self.sv)
@@ -120,7 +121,7 @@ class Navigation:
     warnings: tuple[str, ...] = ()
 
 
-_CACHE_VERSION = 4
+_CACHE_VERSION = 5       # 5: KeplerEphemerides.accuracy_m
 
 
 def load_nav(paths: str | Path | Iterable[str | Path], *, cache: bool = True) -> Navigation:
@@ -529,6 +530,7 @@ def _kepler_frame(raw: pd.DataFrame) -> pd.DataFrame:
         m = system == s
         iode[m] = _col(df, _IODE_NAME[s])[m]
         health[m] = _col(df, _HEALTH_NAME[s])[m]
+    accuracy = np.where(is_e, _col(df, "SISA"), _col(df, "SVacc"))
     out = pd.DataFrame({
         "sv": df["sv"].to_numpy(), "system": system,
         "toe_gps_s": toe_sys + shift, "toc_gps_s": toc_sys + shift, "ttr_gps_s": ttr_sys + shift,
@@ -539,7 +541,7 @@ def _kepler_frame(raw: pd.DataFrame) -> pd.DataFrame:
         "crc_m": _col(df, "Crc"), "crs_m": _col(df, "Crs"), "cic_rad": _col(df, "Cic"),
         "cis_rad": _col(df, "Cis"), "af0_s": _col(df, "SVclockBias"), "af1_s_s": _col(df, "SVclockDrift"),
         "af2_s_s2": _col(df, "SVclockDriftRate"), "tgd_s": np.nan_to_num(tgd),
-        "health": np.nan_to_num(health), "iode": np.nan_to_num(iode),
+        "health": np.nan_to_num(health), "iode": np.nan_to_num(iode), "accuracy_m": np.nan_to_num(accuracy),
         "_fnav_only": fnav_only,
     })
     core = ["toe_gps_s", "toc_gps_s", "sqrt_a_sqrt_m", "e", "m0_rad", "af0_s"]

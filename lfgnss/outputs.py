@@ -36,7 +36,7 @@ from . import __version__
 from .frames import check_near_surface, ecef_to_lla, lla_to_ecef
 from .metrics import enu_errors, enu_rotations
 from .paths import write_output
-from .time import GPS_EPOCH, SECONDS_PER_WEEK, gps_s_to_week_tow, utc_to_gps_s
+from .time import GPS_EPOCH, SECONDS_PER_WEEK, utc_to_gps_s
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -113,7 +113,9 @@ def write_pos(path: str | Path, solution: Solution, *, time_format: str = "calen
     path : str or Path
         Output file.
     solution : Solution
-        Estimator output; epochs without a position are left out.
+        Estimator output; epochs without a position are left out. An epoch with a position but no finite
+        covariance gets six sds of 0, as RTKLIB writes an unknown one (its ``SQRT``); :func:`read_pos` reads that
+        back as unknown.
     time_format : {"calendar", "tow"}
         ``yyyy/mm/dd hh:mm:ss.sss`` GPST (``rnx2rtkp -t``) or ``week tow`` (RTKLIB default).
     coasted_q : int
@@ -206,7 +208,7 @@ def read_pos(path: str | Path, backend: str | None = None) -> Solution:
     -------
     Solution
         One row per line. ``status``: ``coasted`` for Q = 7, ``updated`` otherwise; ``cov_ecef_m2``
-        rebuilt from the six standard deviations; ``clock_m`` NaN (not in the file);
+        rebuilt from the six standard deviations (NaN where all six are 0: unknown); ``clock_m`` NaN (not in the file);
         ``info`` holds ``q``, ``age_s``, ``ratio`` (T,; 0 for lines without those columns, 13 fields instead of
         RTKLIB's 15) and ``source`` (the path).
     """
@@ -220,6 +222,13 @@ def read_pos(path: str | Path, backend: str | None = None) -> Solution:
                 continue
             if line.startswith("%"):
                 body = line[1:].strip()
+                frame = re.match(r"\((lat/lon/height|x/y/z-ecef)=([^,/]*)/?([^,]*),", body)
+                if frame and (frame[2] != "WGS84" or frame[3] not in ("", "ellipsoidal")):
+                    # rnx2rtkp's out-datum / out-height: Tokyo or PZ90.02 coordinates, or heights above the
+                    # geoid ("geodetic", tens of metres off), would be read as WGS84 ellipsoidal ones
+                    raise ValueError(f"read_pos {path}:{lineno}: positions are {frame[2]}/{frame[3] or '-'}; only "
+                                     f"WGS84 with ellipsoidal heights is read (rnx2rtkp: out-datum=wgs84, "
+                                     f"out-height=ellipsoidal)")
                 if body.startswith("program"):
                     program = body.split(":", 1)[1].strip()
                 elif body.startswith(("GPST", "UTC", "JST")):
@@ -252,6 +261,7 @@ def read_pos(path: str | Path, backend: str | None = None) -> Solution:
     n = len(times)
     pos = np.asarray(pos, dtype=float).reshape(n, 3)
     sds = np.asarray(sds, dtype=float).reshape(n, 6)
+    sds[(sds == 0).all(axis=1)] = np.nan      # RTKLIB (and write_pos) write an unknown covariance as sds of 0
     if posf is None:  # no column header: ECEF coordinates are millions of metres
         posf = "xyz" if n and np.abs(pos[:, 0]).max() > 1e4 else "llh"
     if posf == "llh":
@@ -305,12 +315,11 @@ def write_csv(path: str | Path, solution: Solution, truth_ecef_m: np.ndarray | N
     t = len(solution.time_gps_s)
     if truth_ecef_m is not None and np.shape(truth_ecef_m) != (t, 3):
         raise ValueError(f"write_csv {path}: truth_ecef_m has shape {np.shape(truth_ecef_m)}, expected ({t}, 3)")
-    frame = solution_frame(solution, truth_ecef_m)
+    columns = _solution_columns(f"write_csv {path}", solution, truth_ecef_m)
     ok = solution.has_position()
     digits = {"time_gps_s": 3, "tow_s": 3, "lat_deg": 9, "lon_deg": 9}      # the others: 4 (0.1 mm)
     text = {}
-    for col in frame.columns:
-        values = frame[col].to_numpy()
+    for col, values in columns.items():
         if col in ("time_gpst", "status"):
             text[col] = values
         elif col in ("week", "n_used"):
@@ -319,7 +328,7 @@ def write_csv(path: str | Path, solution: Solution, truth_ecef_m: np.ndarray | N
             text[col] = [_fmt(v, digits.get(col, 4)) for v in values]
     buffer = io.StringIO(newline="")
     writer = csv.writer(buffer)
-    writer.writerow(frame.columns)
+    writer.writerow(columns)
     writer.writerows(zip(*text.values()))
     _write_text(path, buffer.getvalue())
     return path
@@ -333,18 +342,23 @@ def solution_frame(solution: Solution, truth_ecef_m: np.ndarray | None = None) -
     """
     import pandas as pd
 
+    return pd.DataFrame(_solution_columns("solution_frame", solution, truth_ecef_m))
+
+
+def _solution_columns(owner: str, solution: Solution, truth_ecef_m: np.ndarray | None) -> dict[str, object]:
+    """:func:`solution_frame`'s columns as arrays (and lists of text), without pandas: ``write_csv`` writes them."""
     if not isinstance(solution, Solution):
-        raise TypeError(f"solution_frame: expected an estimators.Solution, got {type(solution).__name__}")
+        raise TypeError(f"{owner}: expected an estimators.Solution, got {type(solution).__name__}")
     t = len(solution.time_gps_s)
     ok = solution.has_position()
     pos = np.where(ok[:, None], np.asarray(solution.pos_ecef_m, float), np.nan)
-    week, tow = gps_s_to_week_tow(solution.time_gps_s)
+    ms = _gpst_ms(solution.time_gps_s)      # week and TOW from the milliseconds time_gpst shows: the same instant
     llh = solution.geodetic()
     sd = solution.sd_enu_m()
     status = np.asarray(solution.status)
-    columns = {"time_gpst": _calendar(_gpst_ms(solution.time_gps_s)) if t else [],
-               "time_gps_s": np.asarray(solution.time_gps_s, float), "week": np.asarray(week, int),
-               "tow_s": np.asarray(tow, float), "x_m": pos[:, 0], "y_m": pos[:, 1], "z_m": pos[:, 2],
+    columns = {"time_gpst": _calendar(ms) if t else [],
+               "time_gps_s": np.asarray(solution.time_gps_s, float), "week": ms // _MS_PER_WEEK,
+               "tow_s": (ms % _MS_PER_WEEK) / 1000.0, "x_m": pos[:, 0], "y_m": pos[:, 1], "z_m": pos[:, 2],
                "lat_deg": llh[:, 0], "lon_deg": llh[:, 1], "h_m": llh[:, 2], "sd_e_m": sd[:, 0], "sd_n_m": sd[:, 1],
                "sd_u_m": sd[:, 2], "n_used": np.where(ok, np.asarray(solution.n_used), 0).astype(int),
                "status": [STATUS_NAMES.get(int(v), str(int(v))) if has else STATUS_NAMES[STATUS_NONE]
@@ -352,13 +366,13 @@ def solution_frame(solution: Solution, truth_ecef_m: np.ndarray | None = None) -
     if truth_ecef_m is not None:
         truth = np.asarray(truth_ecef_m, dtype=float)
         if truth.shape != (t, 3):
-            raise ValueError(f"solution_frame: truth_ecef_m has shape {truth.shape}, expected ({t}, 3)")
-        check_near_surface("solution_frame", "truth_ecef_m", truth)
+            raise ValueError(f"{owner}: truth_ecef_m has shape {truth.shape}, expected ({t}, 3)")
+        check_near_surface(owner, "truth_ecef_m", truth)
         e = enu_errors(pos, truth).reshape(-1, 3)
         for key, value in zip(CSV_TRUTH_COLUMNS, (e[:, 0], e[:, 1], e[:, 2], np.hypot(e[:, 0], e[:, 1]),
                                                   np.linalg.norm(e, axis=1))):
             columns[key] = value
-    return pd.DataFrame(columns)
+    return columns
 
 
 # ---------------------------------------------------------------- GeoJSON / KML
@@ -372,16 +386,18 @@ def _track(solution: Solution) -> tuple[np.ndarray, np.ndarray]:
 def write_geojson(path: str | Path, solution: Solution, *, points: bool = False) -> Path:
     """GeoJSON FeatureCollection (RFC 7946: WGS84 ``[lon, lat, h]``) of the epochs with a position.
 
-    A ``LineString`` feature of the track (when at least two positions), and with ``points=True``
-    one ``Point`` feature per epoch with ``time_gps_s``, ``status`` and ``n_used`` properties.
+    A ``LineString`` feature of the track (a ``Point`` where only one epoch has a position), and with
+    ``points=True`` one ``Point`` feature per epoch with ``time_gps_s``, ``status`` and ``n_used`` properties.
     """
     _check_args("write_geojson", path, solution)
     path = Path(path)
     idx, lonlath = _track(solution)
     coords = [[round(float(a), 9), round(float(b), 9), round(float(c), 4)] for a, b, c in lonlath]
     features = []
-    if len(coords) >= 2:
-        features.append({"type": "Feature", "geometry": {"type": "LineString", "coordinates": coords},
+    if coords:              # a LineString needs two positions: one is a Point
+        geometry = ({"type": "LineString", "coordinates": coords} if len(coords) >= 2
+                    else {"type": "Point", "coordinates": coords[0]})
+        features.append({"type": "Feature", "geometry": geometry,
                          "properties": {"backend": solution.backend, "n_epochs": len(coords)}})
     if points:
         status = np.asarray(solution.status)
@@ -396,7 +412,7 @@ def write_geojson(path: str | Path, solution: Solution, *, points: bool = False)
 
 
 def write_kml(path: str | Path, solution: Solution, *, points: bool = False) -> Path:
-    """KML track of the epochs with a position (``lon,lat,h``), clamped to the ground.
+    """KML track of the epochs with a position (``lon,lat,h``; a point where only one has), clamped to the ground.
 
     Heights are ellipsoidal while KML altitudes are above mean sea level, so the track uses
     ``altitudeMode clampToGround``. With ``points=True`` one Placemark per epoch as well.
@@ -413,6 +429,9 @@ def write_kml(path: str | Path, solution: Solution, *, points: bool = False) -> 
         parts += [f"<Placemark><name>{name} track</name><styleUrl>#track</styleUrl><LineString>",
                   "<tessellate>1</tessellate><altitudeMode>clampToGround</altitudeMode>",
                   f"<coordinates>{coord_text}</coordinates>", "</LineString></Placemark>"]
+    elif len(idx) == 1:     # a LineString needs two positions
+        parts += [f"<Placemark><name>{name} fix</name><Point><altitudeMode>clampToGround</altitudeMode>",
+                  f"<coordinates>{coord_text}</coordinates></Point></Placemark>"]
     if points:
         status = np.asarray(solution.status)
         for k, (a, b, c) in zip(idx, lonlath):
@@ -427,20 +446,27 @@ def write_kml(path: str | Path, solution: Solution, *, points: bool = False) -> 
 
 # ---------------------------------------------------------------- plots
 def align_to(time_gps_s: np.ndarray, other: Solution) -> np.ndarray:
-    """Positions (T, 3) of ``other`` at the epochs ``time_gps_s``, matched by GPS time rounded to 0.1 s.
+    """Positions (T, 3) of ``other`` at the epochs ``time_gps_s`` [s]: each epoch takes ``other``'s nearest epoch
+    within 0.05 s (the benchmark's 0.1 s time match), or within half the spacing of ``time_gps_s`` where that is
+    shorter (a receiver faster than 10 Hz), so no epoch of ``other`` serves two.
 
     NaN where ``other`` has no position at that epoch (benchmark rule for matching epochs).
     """
-    key = np.round(np.asarray(time_gps_s, dtype=float) * 10.0).astype(np.int64)
-    okey = np.round(np.asarray(other.time_gps_s, dtype=float) * 10.0).astype(np.int64)
+    t = np.asarray(time_gps_s, dtype=float)
+    ot = np.asarray(other.time_gps_s, dtype=float)
     opos = np.where(other.has_position()[:, None], other.pos_ecef_m, np.nan)
-    order = np.argsort(okey, kind="stable")
-    sk = okey[order]
-    j = np.clip(np.searchsorted(sk, key), 0, max(len(sk) - 1, 0))
-    out = np.full((len(key), 3), np.nan)
-    if len(sk):
-        hit = sk[j] == key
-        out[hit] = opos[order[j[hit]]]
+    out = np.full((len(t), 3), np.nan)
+    if not len(ot) or not len(t):
+        return out
+    spacing = np.diff(np.unique(t))
+    tol = min(0.05, 0.5 * spacing.min()) if spacing.size else 0.05
+    order = np.argsort(ot, kind="stable")
+    st = ot[order]
+    right = np.clip(np.searchsorted(st, t), 0, len(st) - 1)
+    left = np.clip(right - 1, 0, len(st) - 1)
+    j = np.where(np.abs(st[left] - t) <= np.abs(st[right] - t), left, right)
+    hit = np.abs(st[j] - t) <= tol + 1e-9       # times are rounded to ms in .pos files: a float's last bits aside
+    out[hit] = opos[order[j[hit]]]
     return out
 
 

@@ -17,13 +17,15 @@ GROSS_RESIDUAL = 8
 SYSTEM_EXCLUDED = 9
 NOT_OBSERVED = 10
 INVALID_EPHEMERIS = 11
+INACCURATE_EPHEMERIS = 12
 
 REASONS = {OK: "ok", NO_EPHEMERIS: "no ephemeris", EPHEMERIS_EXPIRED: "ephemeris expired", UNHEALTHY: "unhealthy",
            PR_OUT_OF_RANGE: "pseudorange out of range", LOW_CN0: "C/N0 below threshold", NO_CN0: "no C/N0",
            LOW_ELEVATION: "below elevation mask", GROSS_RESIDUAL: "gross residual", SYSTEM_EXCLUDED: "system excluded",
-           NOT_OBSERVED: "not observed", INVALID_EPHEMERIS: "invalid ephemeris"}
+           NOT_OBSERVED: "not observed", INVALID_EPHEMERIS: "invalid ephemeris",
+           INACCURATE_EPHEMERIS: "inaccurate ephemeris"}
 _EPHEMERIS_REASON = {"": OK, "no ephemeris": NO_EPHEMERIS, "ephemeris expired": EPHEMERIS_EXPIRED, "unhealthy": UNHEALTHY,
-                     "invalid ephemeris": INVALID_EPHEMERIS}
+                     "invalid ephemeris": INVALID_EPHEMERIS, "inaccurate ephemeris": INACCURATE_EPHEMERIS}
 
 
 @dataclass(frozen=True)

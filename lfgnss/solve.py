@@ -39,6 +39,7 @@ DEFAULT_MODEL = default_model_path()
 LEARNED_BACKENDS = ("ekf", "fgo")
 SMOOTHABLE_BACKENDS = ("ekf", "plain-ekf")
 PROGRESS_BACKENDS = ("ekf", "plain-ekf", "fgo")   # a tqdm bar over the epochs on a terminal
+COMPRESSION_SUFFIXES = (".gz", ".z", ".bz2", ".xz", ".zip")    # lower case; .Z (compress) among them
 #: The elevation mask of the coarse fix, quality control and features [deg], and of the bundled models' training data.
 DEFAULT_ELEVATION_MASK_DEG = SppConfig().elevation_mask_deg
 #: --start/--end take epochs this close outside the window [s] (RTKLIB's DTTOL: receivers tag epochs ms early).
@@ -340,7 +341,7 @@ def _solve(args) -> _Solved:
     estimator.name = label
     solution = estimator.solve(seq)
 
-    name = f"{Path(obs).name.split('.')[0]}_{_run_tag(args, options, ''.join(seq.systems))}"
+    name = f"{obs_stem(obs)}_{_run_tag(args, options, ''.join(seq.systems))}"
     stem = args.out / name
     # a file that cannot be written (a folder in its place, a full disk) costs that file only: the solution, the
     # other files and the accuracy table are kept, and the run ends with exit code 2
@@ -554,6 +555,16 @@ def _run_tag(args: argparse.Namespace, options: dict, systems: str = "") -> str:
         tag += f"-{option}{_week_tow_text(t).replace(':', '_')}" if t is not None else ""
     tag += f"-mask{args.elevation_mask:g}" if args.elevation_mask != DEFAULT_ELEVATION_MASK_DEG else ""
     return tag + (f"-sys{systems or args.systems}" if args.systems else "")
+
+
+def obs_stem(obs: str | Path) -> str:
+    """The start of a run's output names: the observation file's name without its compression and RINEX suffixes
+    (``Berlin_Potsdamer_Platz.obs.gz``: ``Berlin_Potsdamer_Platz``; ``drive.day1.obs`` and ``drive.day2.obs`` keep
+    ``day1`` and ``day2``, so their runs in one ``--out`` do not overwrite each other's files)."""
+    path = Path(Path(obs).name)
+    if path.suffix.lower() in COMPRESSION_SUFFIXES:
+        path = Path(path.stem)
+    return path.stem or path.name
 
 
 def _own_model(args: argparse.Namespace) -> bool:

@@ -431,3 +431,19 @@ def test_an_empty_rtklib_table_says_why():
     assert _no_rtklib_rows(ran) == ("RTKLIB solved no labelled test epoch of my-drive (its chi-square test rejected "
                                     "them all): no rows.")
     assert _no_rtklib_rows(ran[1:]) == "RTKLIB not installed (or it failed on every dataset): no rows."
+
+
+def test_rtklib_runs_on_the_constellations_the_other_rows_use(tmp_path, monkeypatch):
+    """A dataset without ``systems`` gives RTKLIB the sequence's constellations (it ran GPS alone, while every other
+    row used all of them); a dataset's own ``systems`` come first."""
+    import lfgnss.rtklib
+    from lfgnss.benchmark import rtklib_solution
+
+    asked = []
+    monkeypatch.setattr(lfgnss.rtklib, "rtklib_available", lambda: True)
+    monkeypatch.setattr(lfgnss.rtklib, "spp_solution", lambda *a, systems, **k: asked.append(systems) or (None, 0.0))
+    spec = SimpleNamespace(id="own", obs=[tmp_path / "a.obs"], nav=[tmp_path / "a.nav"], systems=None)
+    rtklib_solution(spec, tmp_path, ("G", "R", "E"))
+    rtklib_solution(SimpleNamespace(**{**vars(spec), "systems": ("G", "C")}), tmp_path, ("G", "R", "E"))
+    rtklib_solution(spec, tmp_path)
+    assert asked == [("G", "R", "E"), ("G", "C"), ("G",)]

@@ -284,6 +284,18 @@ def test_galileo_uses_past_toe_only(shared_data):
     assert st.toe_gps_s[1] == toe[3] and st.toe_gps_s[2] == toe[3]      # not the nearer toe[4]
 
 
+@pytest.mark.shared_data
+def test_broadcast_accuracies_are_read_and_exclude_nothing_in_the_data(shared_data):
+    """URA (GPS, BeiDou ``SVacc``) and SISA (Galileo) come from the files; none of the benchmark data's records is
+    excluded by them."""
+    root = shared_data(STATIC)
+    nav = load_nav([root / "hksc155c.20n", root / "hksc155c.20l", root / "hksc155c.20b"])
+    k = nav.kepler
+    assert set(k.accuracy_m[k.system == "G"]) <= {2.0, 2.8} and set(k.accuracy_m[k.system == "E"]) == {3.12}
+    assert set(k.accuracy_m[k.system == "C"]) == {2.0}
+    assert not ephemeris_states(nav, k.sv, k.toe_gps_s + 1.0).reason.tolist().count("inaccurate ephemeris")
+
+
 def test_order_invariance_and_shapes(bundled_nav):
     sv = np.array(["G02", "R01", "G02", "E11", "R01"])
     t = _t("2016-06-06T11:12:00") + np.array([0.0, 1.0, 600.0, 5.0, -900.0])
@@ -324,6 +336,65 @@ def test_qzss_is_computed_like_gps(bundled_nav):
     b = ephemeris_states(qzss, np.array(["J02"]), t)
     np.testing.assert_array_equal(a.pos_ecef_m, b.pos_ecef_m)
     assert b.ok[0] and b.clock_s[0] == a.clock_s[0]
+
+
+def _relabelled(nav: Navigation, sv: str, **fields) -> Navigation:
+    """The bundled GPS record as satellite ``sv`` with ``fields`` replaced (one value each)."""
+    k = nav.kepler
+    changes = {"sv": np.array([sv]), "system": np.array([sv[0]])} | {
+        key: np.array([value]) for key, value in fields.items()}
+    return dataclasses.replace(nav, kepler=dataclasses.replace(k, **changes))
+
+
+def test_qzss_health_ignores_the_l6_bit(bundled_nav):
+    """RTKLIB masks QZSS health bit 0 (L6/LEX, not L1 C/A: ``svh &= 0xFE``); any other bit still excludes."""
+    t = np.array([_t("2016-06-06T11:12:00")])
+    for health, reason in ((1, ""), (0x21, "unhealthy"), (0x20, "unhealthy")):
+        assert ephemeris_states(_relabelled(bundled_nav, "J02", health=health), np.array(["J02"]), t).reason[0] == reason
+    assert ephemeris_states(_relabelled(bundled_nav, "G02", health=1), np.array(["G02"]), t).reason[0] == "unhealthy"
+
+
+@pytest.mark.parametrize("sv, accuracy_m, reason", [
+    ("G02", 192.0, ""), ("G02", 193.0, "inaccurate ephemeris"), ("G02", 384.0, "inaccurate ephemeris"),
+    ("C11", 6144.0, "inaccurate ephemeris"), ("J02", 2.0, ""), ("G02", 0.0, ""),      # 0: the field was absent
+    ("E11", 3.12, ""), ("E11", 6.0, ""), ("E11", -1.0, "inaccurate ephemeris"), ("E11", 6.5, "inaccurate ephemeris"),
+])
+def test_broadcast_accuracy_excludes_as_rtklib_does(bundled_nav, sv, accuracy_m, reason):
+    """RTKLIB excludes an ephemeris whose variance exceeds 300^2 m^2: a URA of 384 m or more in its table (above 192
+    m), a Galileo SISA with no accuracy prediction (-1) or above 6 m (both 500 m)."""
+    nav = _relabelled(bundled_nav, sv, accuracy_m=accuracy_m)
+    st = ephemeris_states(nav, np.array([sv]), nav.kepler.toe_gps_s + 60.0)
+    assert st.reason[0] == reason and st.ok[0] == (reason == "") and np.isfinite(st.pos_ecef_m).all()
+
+
+def test_galileo_ephemerides_serve_four_hours(bundled_nav):
+    """rnx2rtkp 2.4.3 b34 takes a Galileo record up to 4 h after its toe (MAXDTOE_GAL 14400 s; 2.4.2 had 3 h)."""
+    nav = _relabelled(bundled_nav, "E11")
+    toe = nav.kepler.toe_gps_s[0]
+    st = ephemeris_states(nav, np.array(["E11"] * 3), toe + np.array([3.5 * 3600, MAX_AGE_S["E"], MAX_AGE_S["E"] + 1]))
+    assert MAX_AGE_S["E"] == 14400.0 and st.reason.tolist() == ["", "", "ephemeris expired"]
+
+
+def test_clock_polynomial_is_rtklibs_fixed_point(bundled_nav):
+    """t = ts - dts(t), twice from ts (RTKLIB eph2clk, geph2clk); a large af1 shows a step from the wrong start."""
+    from lfgnss.ephemeris import _clock_polynomial_s
+
+    nav = _relabelled(bundled_nav, "G02", af0_s=1e-3, af1_s_s=1e-6, af2_s_s2=1e-12)
+    nav = dataclasses.replace(nav, glonass=dataclasses.replace(nav.glonass, tau_n_s=np.full(len(nav.glonass.sv), 1e-3),
+                                                               gamma_n=np.full(len(nav.glonass.sv), 1e-6)))
+    k, g = nav.kepler, nav.glonass
+    t_sv = np.array([k.toc_gps_s[0] + 1000.0, g.toe_gps_s[0] + 100.0])
+    got = _clock_polynomial_s(nav, np.array(["G02", g.sv[0]]), t_sv, t_sv)
+    ts = t_sv[0] - k.toc_gps_s[0]
+    t = ts
+    for _ in range(2):
+        t = ts - (1e-3 + 1e-6 * t + 1e-12 * t * t)
+    assert got[0] == pytest.approx(1e-3 + 1e-6 * t + 1e-12 * t * t, abs=1e-14)
+    ts = t_sv[1] - g.toe_gps_s[0]
+    t = ts
+    for _ in range(2):
+        t = ts - (-1e-3 + 1e-6 * t)
+    assert got[1] == pytest.approx(-1e-3 + 1e-6 * t, abs=1e-14)
 
 
 # ---------------------------------------------------------------- GLONASS integrator

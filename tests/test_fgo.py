@@ -416,6 +416,19 @@ def test_registry_and_arguments():
         LfgnssFgo().solve(replace(seq, time_gps_s=np.r_[seq.time_gps_s[:5], seq.time_gps_s[:5]]))
 
 
+def test_a_subclass_names_itself_in_its_errors():
+    """A user's subclass is named in what its settings and its solve refuse, as the EKF's subclasses are."""
+    class MyGraph(LfgnssFgo):
+        pass
+
+    for bad in ({"mode": "smoother"}, {"lag_s": 0.0}, {"zupt_sigma_m_s": -1.0}, {"robust_k": 2.0, "robust": None}):
+        with pytest.raises(ValueError, match="^MyGraph: "):
+            MyGraph(**bad)
+    seq = simulate_sequence(10, seed=9)
+    with pytest.raises(ValueError, match="^MyGraph: .*time not increasing"):
+        MyGraph().solve(replace(seq, time_gps_s=np.r_[seq.time_gps_s[:5], seq.time_gps_s[:5]]))
+
+
 def test_doppler_sigma_can_follow_cn0():
     """``doppler_cn0_ref_dbhz`` weights each Doppler of the velocity priors by the EKF's C/N0 law: the priors'
     covariances change and stay positive; a NaN C/N0 on a used Doppler is refused in one line, and ignored

@@ -91,7 +91,8 @@ def test_pos_round_trip(tmp_path, time_format):
     np.testing.assert_array_equal(back.status == STATUS_COASTED, sol.status[keep] == STATUS_COASTED)
     cov_ok = np.isfinite(sol.cov_ecef_m2[keep]).all(axis=(1, 2))
     np.testing.assert_allclose(back.cov_ecef_m2[cov_ok], sol.cov_ecef_m2[keep][cov_ok], rtol=1e-3, atol=1e-3)
-    assert np.all(back.cov_ecef_m2[~cov_ok] == 0.0)
+    assert np.isnan(back.cov_ecef_m2[~cov_ok]).all()      # six sds of 0 (RTKLIB's unknown) read back as unknown
+    assert np.isnan(back.sd_enu_m()[~cov_ok]).all() and np.isfinite(back.sd_enu_m()[cov_ok]).all()
     assert np.isnan(back.clock_m).all()
 
 
@@ -222,6 +223,42 @@ def test_writers_with_no_position(tmp_path):
     assert plot_solution(tmp_path / "p", empty, truth)[0].exists()
 
 
+def test_map_files_of_a_single_fix(tmp_path):
+    """One epoch with a position is a Point in the GeoJSON and the KML (a LineString needs two), not an empty map."""
+    sol, _ = _solution()
+    one = sol.subset(np.arange(len(sol.time_gps_s)) == 3)
+    doc = json.loads(write_geojson(tmp_path / "one.geojson", one).read_text())
+    assert [f["geometry"]["type"] for f in doc["features"]] == ["Point"]
+    lon, lat, _h = doc["features"][0]["geometry"]["coordinates"]
+    assert 13 < lon < 14 and 52 < lat < 53
+    root = ET.parse(write_kml(tmp_path / "one.kml", one)).getroot()
+    ns = {"k": "http://www.opengis.net/kml/2.2"}
+    assert root.find(".//k:LineString", ns) is None
+    assert root.find(".//k:Point/k:coordinates", ns).text.split(",")[:2] == [f"{lon:.9f}", f"{lat:.9f}"]
+
+
+def test_csv_week_and_tow_are_the_instant_time_gpst_shows(tmp_path):
+    """Half a millisecond before a week's end prints as the next week's 00:00:00.000: week and TOW say so too."""
+    time = week_tow_to_gps_s(2050, np.array([604799.9996, 604800.2]))
+    pos = lla_to_ecef(np.radians([52.5, 52.5]), np.radians([13.4, 13.4]), np.full(2, 40.0)).reshape(2, 3)
+    sol = Solution(backend="x", time_gps_s=time, pos_ecef_m=pos, cov_ecef_m2=np.tile(np.eye(3), (2, 1, 1)),
+                   clock_m=np.zeros(2), n_used=np.full(2, 6), status=np.full(2, STATUS_UPDATED))
+    rows = list(csv.DictReader(open(write_csv(tmp_path / "w.csv", sol), newline="")))
+    assert [(r["time_gpst"][-12:], r["week"], r["tow_s"]) for r in rows] == [
+        ("00:00:00.000", "2051", "0.000"), ("00:00:00.200", "2051", "0.200")]
+
+
+def test_read_pos_refuses_other_datums_and_geoid_heights(tmp_path):
+    """rnx2rtkp's out-height=geodetic (above the geoid) or out-datum=tokyo would be read as WGS84 ellipsoidal."""
+    for frame, words in (("WGS84/geodetic", "WGS84/geodetic"), ("Tokyo/ellipsoidal", "Tokyo/ellipsoidal")):
+        path = tmp_path / "other.pos"
+        path.write_text(RTKLIB_SNIPPET.replace("WGS84/ellipsoidal", frame))
+        with pytest.raises(ValueError, match=f"other.pos:7: positions are {words}; only WGS84 with ellipsoidal"):
+            read_pos(path)
+    path.write_text(RTKLIB_SNIPPET)
+    assert len(read_pos(path).time_gps_s) == 4
+
+
 # ---------------------------------------------------------------- plots
 def test_align_to_matches_on_tenth_of_second():
     sol, _ = _solution()
@@ -231,6 +268,20 @@ def test_align_to_matches_on_tenth_of_second():
     al = align_to(sol.time_gps_s, sub)
     assert np.isfinite(al).all(axis=1).sum() == 3
     np.testing.assert_array_equal(al[[2, 4, 7]], sol.pos_ecef_m[[2, 4, 7]])
+
+
+def test_align_to_a_receiver_faster_than_10_hz():
+    """At 20 Hz each epoch gets the other solution's own epoch, not a neighbour's 0.05 s away, and an epoch the
+    other lacks stays NaN."""
+    t = 1.2e9 + 0.05 * np.arange(8)
+    pos = np.column_stack([3785166.0 + np.arange(8), np.full(8, 900013.0), np.full(8, 5037378.0)])
+    keep = np.array([0, 1, 2, 4, 5, 7])
+    other = Solution(backend="rtk", time_gps_s=t[keep] + 0.001, pos_ecef_m=pos[keep],
+                     cov_ecef_m2=np.tile(np.eye(3), (6, 1, 1)), clock_m=np.zeros(6), n_used=np.ones(6, int),
+                     status=np.full(6, STATUS_UPDATED))
+    al = align_to(t, other)
+    np.testing.assert_array_equal(al[keep], pos[keep])
+    assert np.isnan(al[[3, 6]]).all()
 
 
 def test_plot_solution(tmp_path):

@@ -192,6 +192,24 @@ def test_a_bundled_model_is_picked_by_name(tmp_path, capsys):
     assert not list(tmp_path.glob("*ekf-default*"))
 
 
+def test_observation_files_that_differ_after_a_dot_keep_their_own_outputs(tmp_path, capsys):
+    """drive.day1.obs and drive.day2.obs solved into one --out: each run's files are named after its own file (the
+    name up to the first dot made them one, and the second run replaced the first's files)."""
+    import shutil
+
+    from lfgnss.solve import obs_stem
+
+    assert [obs_stem(n) for n in ("Berlin_Potsdamer_Platz.obs.gz", "drive.day1.obs", "hksc155c.20o", "x.20d.Z",
+                                  "ABMF00GLP_R_20231230000_01D_30S_MO.crx.gz", "data")] == [
+        "Berlin_Potsdamer_Platz", "drive.day1", "hksc155c", "x", "ABMF00GLP_R_20231230000_01D_30S_MO", "data"]
+    for day in ("day1", "day2"):
+        shutil.copy(SAMPLE_OBS, tmp_path / f"drive.{day}.obs.gz")
+        assert main(["--out", str(tmp_path / "o"), "--quiet", "--no-plots", "--backend", "wls",
+                     "--obs", str(tmp_path / f"drive.{day}.obs.gz"), "--nav", *map(str, SAMPLE_NAV)]) == 0
+    for day in ("day1", "day2"):
+        assert f"% inp file  : {tmp_path / f'drive.{day}.obs.gz'}" in (tmp_path / "o" / f"drive.{day}_wls.pos").read_text()
+
+
 def test_back_ends_compared_in_one_folder_keep_their_own_outputs(tmp_path, capsys):
     """Each run's files carry its back end and variant, so a second run does not overwrite the first."""
     for extra in ([], ["--smooth", "--smooth-lag", "2"], ["--backend", "wls"]):
