@@ -58,7 +58,7 @@ from . import datasets
 from .errors import (INPUT_ERRORS, InputError, cannot_write, input_line, one_line, path_option, run_command,
                      shortened, stdout_gone)
 from .metrics import METRIC_COLUMNS, accuracy_table, format_markdown, format_text, markdown_table
-from .paths import bundled_data_dir, make_output_folder
+from .paths import bundled_data_dir, make_output_folder, write_output
 from .sequence import Sequence
 
 MODEL_DIR = bundled_data_dir() / "model"
@@ -743,7 +743,7 @@ def write_report(path: Path, all_rows: list[dict], rtk_rows: list[dict], command
         "",
     ]
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text("\n".join(text))
+    write_output(path, lambda target: target.write_text("\n".join(text)))   # whole, or the previous file stays
     return path
 
 

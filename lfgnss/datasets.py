@@ -65,7 +65,9 @@ from .time import SECONDS_PER_WEEK, gps_s_to_week_tow, week_tow_to_gps_s
 if TYPE_CHECKING:
     from .observations import Observations
 
-_BUILD_VERSION = 8                 # 8: truth interpolated between rows; 7: spp restarts from a wrong header
+# 9: no-fix epochs at the last earlier fix, cn0_std without blank C/N0; 8: truth interpolated between rows;
+# 7: spp restarts from a wrong header
+_BUILD_VERSION = 9
                                    # position; 6: several obs files joined
 SPLITS = ("train", "val", "test")
 SPLIT_AXES = ("tow", "relative_s", "epoch")

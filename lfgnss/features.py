@@ -55,18 +55,18 @@ def check_feature_names(names: tuple[str, ...] | list[str]) -> tuple[str, ...]:
 
 
 def _reference_positions(fix: CoarseFix, approx_ecef_m: np.ndarray) -> np.ndarray:
-    """(T, 3) the coarse fix, or for epochs without one the fix nearest in time [m]."""
+    """(T, 3) the coarse fix, or for epochs without one the last earlier fix [m] (the first fix before it).
+
+    Never a later fix after the first: a forward filter's features must not depend on epochs still to come (the
+    nearest fix in time did, up to 14 s ahead on hk-tst-2019). Epochs before the first fix start no estimator."""
     ok = np.flatnonzero(fix.ok)
     if ok.size == 0:
         if np.linalg.norm(approx_ecef_m) > 6e6:
             return np.broadcast_to(approx_ecef_m, fix.pos_ecef_m.shape).copy()
         raise LfgnssError("no epoch has a coarse fix and the file has no approximate position; "
                           "nothing to build features from")
-    t = fix.time_gps_s
-    right = np.clip(np.searchsorted(t[ok], t), 0, ok.size - 1)
-    left = np.clip(right - 1, 0, ok.size - 1)
-    nearest = np.where(np.abs(t[ok][left] - t) <= np.abs(t[ok][right] - t), ok[left], ok[right])
-    return fix.pos_ecef_m[nearest]
+    last = np.maximum.accumulate(np.where(fix.ok, np.arange(len(fix.ok)), -1))
+    return fix.pos_ecef_m[np.where(last >= 0, last, ok[0])]
 
 
 def fill_from_nearest_epoch(values: np.ndarray) -> np.ndarray:
@@ -143,16 +143,17 @@ def cn0_std_dbhz(time_gps_s: np.ndarray, cn0_dbhz: np.ndarray, tracked: np.ndarr
     """
     t = np.asarray(time_gps_s, float)
     start = track_start(t, tracked)
-    x = np.where(tracked, np.nan_to_num(cn0_dbhz), 0.0)
+    known = tracked & np.isfinite(cn0_dbhz)                           # a missing C/N0 is left out, not 0 dB-Hz
+    x = np.where(known, cn0_dbhz, 0.0)
     zero = np.zeros((1, x.shape[1]))
-    s1, s2 = np.vstack([zero, np.cumsum(x, axis=0)]), np.vstack([zero, np.cumsum(x * x, axis=0)])
+    s0, s1, s2 = (np.vstack([zero, np.cumsum(v, axis=0)]) for v in (known.astype(float), x, x * x))
     first = np.searchsorted(t, t - CN0_STD_WINDOW_S + 1e-6)          # first epoch inside each epoch's window
     lo = np.maximum(first[:, None], start)                            # ... and inside the current track
     hi = np.arange(len(t))[:, None] + 1
     cols = np.arange(x.shape[1])[None, :]
-    n = np.maximum(hi - lo, 1)
-    mean = (s1[hi, cols] - s1[lo, cols]) / n
-    var = (s2[hi, cols] - s2[lo, cols]) / n - mean * mean
+    n = s0[hi, cols] - s0[lo, cols]
+    mean = (s1[hi, cols] - s1[lo, cols]) / np.maximum(n, 1)
+    var = (s2[hi, cols] - s2[lo, cols]) / np.maximum(n, 1) - mean * mean
     return np.where(tracked & (n > 1), np.sqrt(np.maximum(var, 0.0)), 0.0)
 
 
@@ -267,8 +268,8 @@ def build_sequence(meas: Measurements, fix: CoarseFix, *, feature_names: tuple[s
                    spp_config: SppConfig = SppConfig()) -> Sequence:
     """Pack measurements and their coarse fix into a Sequence (one slot per satellite of the file).
 
-    Epochs without a coarse fix keep their satellites: geometry comes from the nearest fix in time and
-    the residual from a per-constellation median clock, so the estimators can still use them.
+    Epochs without a coarse fix keep their satellites: geometry comes from the last earlier fix (the first fix
+    before it) and the residual from a per-constellation median clock, so the estimators can still use them.
     """
     if not isinstance(meas, Measurements) or not isinstance(fix, CoarseFix):
         raise TypeError(f"lfgnss.build_sequence(meas, fix): expected lfgnss.load's Measurements and lfgnss.spp's "

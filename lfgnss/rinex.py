@@ -31,11 +31,18 @@ from .time import datetime64_to_gps_s, utc_to_gps_s
 if TYPE_CHECKING:
     import pandas as pd
 
-_PARSER_VERSION = 7
+_PARSER_VERSION = 8       # 8: 0.000 pseudoranges missing, event lines without a time, RTKLIB code order
 _GPS_EPOCH = dt.datetime(1980, 1, 6)
 _SV_RE = re.compile(r"^[GRECJSI][ 0-9][0-9]$")
 _V2_RECORD_LIKE = re.compile(r"^[ 0-9.\-]*[0-9][ 0-9.\-]*$")  # digits, blanks, points, signs only
 _V2_EPOCH_RE = re.compile(r"^ [ \d]\d [ \d]\d [ \d]\d [ \d]\d [ \d]\d [ \d]\d\.\d+ +[0-6][ \d]{3}")
+#: An event line whose time is left blank, as RINEX 2.11 allows for flags 2-5: 28 blanks, the flag, the count of
+#: special records (a record line never has column 27, the point of its second value, blank with a digit after it).
+_V2_EVENT_RE = re.compile(r"^ {28}([2-5])([ \d]{2}\d)")
+#: The same in RINEX 3: ">", blanks for the time, the flag and the count.
+_V3_EVENT_RE = re.compile(r"^>\s+([2-5])\s+(\d{1,3})\s*$")
+#: Header labels that redefine the observation types, found in an event's special records (flags 3 and 4).
+_TYPES_LABELS = ("# / TYPES OF OBSERV", "SYS / # / OBS TYPES")
 #: Character classes of an epoch line's first 19 characters, " yy mm dd hh mm ss.": a line that starts like
 #: them is a damaged epoch line, never a record line (whose first field is a right-aligned F14.3 or blank).
 _V2_EPOCH_START = (" ", " 0123456789", "0123456789") * 6 + (".",)
@@ -59,8 +66,10 @@ def _v2_damaged_epoch(line: str) -> bool:
 #: lists is used for the whole file (docs/input_conventions.md). BeiDou: B1I only, whatever the
 #: label: RINEX 3.01 and 3.03+ call it band 2 (C2I/C2Q/C2X), RINEX 3.02 band 1 (C1I/C1Q/C1X); in 3.03+
 #: band 1 is B1C (C1D/C1P/C1X), another signal with other group delays, which is not supported.
-CODES_V3 = {"G": ("C1C", "C1W", "C1P", "C1X"), "R": ("C1C", "C1P"), "E": ("C1C", "C1X", "C1B"),
-            "J": ("C1C", "C1X"), "C": ("C2I", "C2X", "C1I", "C2Q", "C1Q")}
+CODES_V3 = {"G": ("C1C", "C1P", "C1W", "C1X"), "R": ("C1C", "C1P"), "E": ("C1C", "C1B", "C1X"),
+            "J": ("C1C", "C1L", "C1S", "C1X"), "C": ("C2I", "C2Q", "C2X", "C1I", "C1Q")}
+# (in RTKLIB 2.4.3 b34's order, its codepris: GPS CPYWMNSL, GLONASS CPABX, Galileo CABXZ, QZSS CLSXZ, BeiDou
+# IQXDPAN; GPS C1X, L1C, is lfgnss's own last resort, which RTKLIB refuses)
 #: RINEX 3.00-3.02 BeiDou: 3.02 names B1I band 1; C2I/C2Q/C2X (the 3.01 and 3.03 labels, found in some
 #: 3.02 files; RTKLIB 2.4.3 reads them as B1I) are B1I too. C1X is B1I only in a file without band-2 codes
 #: (else it is 3.03's B1C, see ``_bds_codes``).
@@ -282,7 +291,9 @@ def _choose_codes(fields, version: float, path: Path, problems: list[str]) -> di
                                 f"its satellites are skipped")
             continue
         cn0 = ("S" + code[1:]) if ("S" + code[1:]) in types else ("S1" if "S1" in types and version < 3 else None)
-        dop = ("D" + code[1:]) if ("D" + code[1:]) in types else None
+        # the code's own Doppler, else another of its band (a carrier's Doppler does not depend on the code)
+        dop = ("D" + code[1:]) if ("D" + code[1:]) in types else next((t for t in types if t[:2] == "D" + code[1]),
+                                                                          None)
         fallback = next((c for c in prefs[prefs.index(code) + 1:] if c in types), None) if version < 3 else None
         chosen[system] = (types.index(code), types.index(cn0) if cn0 else -1, types.index(dop) if dop else -1, code,
                           types.index(fallback) if fallback else -1, fallback or "")
@@ -349,6 +360,13 @@ def _cut_v3(body, n_header, path, info, problems):
                 problems.append(f"{path}:{lineno}: line outside an epoch record, skipped")
             i += 1
             continue
+        event = _V3_EVENT_RE.match(ln)
+        if event:
+            flag, nsat = int(event[1]), int(event[2])
+            if _types_redefined(body[i + 1: i + 1 + nsat], path, lineno, problems):
+                break
+            i += 1 + nsat
+            continue
         try:
             y, mo, d, h, mi, s, flag, nsat = _epoch_fields(ln, True)
             if nsat < 0 or not 0 <= flag <= 6:  # a negative count would step backwards: endless loop
@@ -361,6 +379,8 @@ def _cut_v3(body, n_header, path, info, problems):
                 i += 1
             continue
         if flag > 1:  # event records: nsat special lines follow
+            if 2 <= flag <= 5 and _types_redefined(body[i + 1: i + 1 + nsat], path, lineno, problems):
+                break
             i += 1 + nsat
             continue
         recs = body[i + 1: i + 1 + nsat]
@@ -393,19 +413,28 @@ def _cut_v2(body, n_header, path, info, problems):
         if not ln.strip():
             i += 1
             continue
+        event = _V2_EVENT_RE.match(ln)
         try:
-            if not _V2_EPOCH_RE.match(ln):
+            if event:
+                flag, nsat = int(event[1]), int(event[2])
+            elif not _V2_EPOCH_RE.match(ln):
                 raise ValueError
-            y, mo, d, h, mi, s, flag, nsat = _epoch_fields(ln, False)
-            t = _to_gps_s(y, mo, d, h, mi, s, info["time_system"])
+            else:
+                y, mo, d, h, mi, s, flag, nsat = _epoch_fields(ln, False)
+                t = _to_gps_s(y, mo, d, h, mi, s, info["time_system"])
         except (ValueError, IndexError):
             problems.append(f"{path}:{lineno}: unreadable epoch line, skipped up to the next epoch")
             i = _next_v2_epoch(body, i + 1)
             continue
-        if flag > 1:
+        n_sv_lines = max(1, (nsat + 11) // 12)
+        if flag == 6:   # cycle slips: satellite ids and records laid out as an epoch's, not used
+            i += n_sv_lines + nsat * lines_per_sat
+            continue
+        if flag > 1:    # events: nsat special records
+            if _types_redefined(body[i + 1: i + 1 + nsat], path, lineno, problems):
+                break
             i += 1 + nsat
             continue
-        n_sv_lines = max(1, (nsat + 11) // 12)
         if any(i + k >= n or body[i + k][:32].strip() for k in range(1, n_sv_lines)):
             # a continuation line of satellite ids starts with 32 blanks; anything else means the epoch's
             # lines are shifted (a lost or repeated line) and its records would go to the wrong satellites
@@ -418,7 +447,8 @@ def _cut_v2(body, n_header, path, info, problems):
         svs = [("G" + s[1:]) if s[0] == " " and s[1:].strip() else s for s in svs]  # blank system letter: GPS
         first = i + n_sv_lines
         recs = body[first: first + nsat * lines_per_sat]
-        bad = next((k for k, r in enumerate(recs) if _V2_EPOCH_RE.match(r) or _v2_damaged_epoch(r)), len(recs))
+        bad = next((k for k, r in enumerate(recs) if _V2_EPOCH_RE.match(r) or _V2_EVENT_RE.match(r)
+                    or _v2_damaged_epoch(r)), len(recs))
         if bad < nsat * lines_per_sat:
             problems.append(f"{path}:{lineno}: epoch truncated ({bad // lines_per_sat} of {nsat} satellite "
                             f"records), skipped")
@@ -428,7 +458,7 @@ def _cut_v2(body, n_header, path, info, problems):
         while nxt < n and not body[nxt].strip():
             nxt += 1
         if (nxt < n and not _V2_EPOCH_RE.match(body[nxt]) and _V2_RECORD_LIKE.match(body[nxt])
-                and not _v2_damaged_epoch(body[nxt])):
+                and not _V2_EVENT_RE.match(body[nxt]) and not _v2_damaged_epoch(body[nxt])):
             # one record line more than announced: a record was repeated or inserted, and since RINEX 2
             # records carry no satellite id, those after it would be matched to the wrong satellites
             problems.append(f"{path}:{lineno}: epoch followed by one record line more than its {nsat} "
@@ -452,9 +482,21 @@ def _cut_v2(body, n_header, path, info, problems):
 def _next_v2_epoch(body: list[str], i: int) -> int:
     """Index of the first line from ``i`` on that is, or begins like, a RINEX 2 epoch line (``len(body)`` if
     none): a damaged epoch line is stopped at too, so that each one gets its own note (each costs an epoch)."""
-    while i < len(body) and not (_V2_EPOCH_RE.match(body[i]) or _v2_damaged_epoch(body[i])):
+    while i < len(body) and not (_V2_EPOCH_RE.match(body[i]) or _V2_EVENT_RE.match(body[i])
+                                 or _v2_damaged_epoch(body[i])):
         i += 1
     return i
+
+
+def _types_redefined(special: list[str], path: Path, lineno: int, problems: list[str]) -> bool:
+    """Whether an event's special records redefine the observation types (with a note): lfgnss reads the header's
+    types for the whole file, so the epochs after that event, whose columns may differ, are left out."""
+    label = next((lab for r in special for lab in _TYPES_LABELS if r[60:].strip().startswith(lab)), None)
+    if label:
+        problems.append(f"{path}:{lineno}: the event here redefines the observation types ({label.strip()}); lfgnss "
+                        f"reads one set of types per file, so the epochs from here on are left out (split the file "
+                        f"here to read them)")
+    return label is not None
 
 
 def _numbers(texts: pd.Series) -> tuple[np.ndarray, np.ndarray]:
@@ -549,6 +591,8 @@ def _assemble(path, info, codes, epoch_times, epoch_lines, rec_epoch, rec_sv, re
             if col < 0:
                 continue
             values, garbage = _numbers(sub.str[16 * col: 16 * col + 14])
+            if required:
+                values = np.where(values == 0.0, np.nan, values)     # 0.000 is a missing pseudorange (RTKLIB)
             out[rows] = values
             if required:
                 for k in rows[garbage]:
@@ -561,6 +605,7 @@ def _assemble(path, info, codes, epoch_times, epoch_lines, rec_epoch, rec_sv, re
         blank = rows[np.isnan(pr[rows]) & ~bad[rows]] if i_fallback >= 0 else rows[:0]
         if blank.size:  # RINEX 2: the preferred code blank, the other one there (RTKLIB does the same)
             values, garbage = _numbers(text.iloc[blank].str[16 * i_fallback: 16 * i_fallback + 14])
+            values = np.where(values == 0.0, np.nan, values)
             for k in blank[garbage]:
                 problems.append(f"{path}:{line[k]}: unreadable pseudorange {fallback} for {sv.iloc[k]} "
                                 f"({code} blank), record skipped")
@@ -662,8 +707,7 @@ def _parse_georinex(text, path, info, codes, problems) -> Observations:
                 out[:, j] = ds[name].sel(sv=s).values
         return out
 
-    pr = grab(0)
-    fallback = grab(4)
+    pr, fallback = (np.where(a == 0.0, np.nan, a) for a in (grab(0), grab(4)))     # 0.000: missing
     pr = np.where(np.isnan(pr), fallback, pr)
     keep = np.any(np.isfinite(pr), axis=0)
     svs = np.array(svs, dtype="<U3")[keep]

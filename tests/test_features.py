@@ -248,6 +248,51 @@ def test_cn0_std_is_the_spread_over_the_last_seconds_of_the_current_track():
     assert std[6] == 0.0 and np.all(std[7:] == 0.0)        # a steady new track: no spread from the old one
 
 
+def test_cn0_std_leaves_a_missing_cn0_out():
+    """A blank C/N0 inside a steady track is not read as 0 dB-Hz (which gave 18 dB-Hz of spread for 5 s)."""
+    from lfgnss.features import cn0_std_dbhz
+    t = np.arange(10.0)
+    cn0 = np.full((10, 1), 45.0)
+    cn0[4] = np.nan
+    assert np.all(cn0_std_dbhz(t, cn0, np.ones((10, 1), bool)) == 0.0)
+    cn0[5:] = 47.0                                          # the spread of the known values in the window
+    assert cn0_std_dbhz(t, cn0, np.ones((10, 1), bool))[6, 0] == pytest.approx(np.std([45.0, 45.0, 47.0, 47.0]))
+
+
+def test_epochs_without_a_fix_take_the_last_earlier_fix_never_a_later_one():
+    """Features stay causal: an epoch without a coarse fix is built at the last fix before it (the nearest in time
+    could be ahead); only epochs before the first fix, where no estimator starts, take the first."""
+    from types import SimpleNamespace
+
+    from lfgnss.features import _reference_positions
+    ok = np.array([False, True, False, False, False, True, False])
+    pos = np.column_stack([np.arange(7.0) * 1e3 + 6.4e6, np.zeros(7), np.zeros(7)])
+    fix = SimpleNamespace(ok=ok, pos_ecef_m=pos, time_gps_s=np.arange(7.0))
+    np.testing.assert_array_equal(_reference_positions(fix, np.zeros(3))[:, 0], pos[[1, 1, 1, 1, 1, 5, 5], 0])
+
+
+@pytest.mark.shared_data
+def test_features_of_a_drive_do_not_depend_on_epochs_after_them(shared_data):
+    """hk-tst-2019 cut after epoch 400 (a stretch without coarse fixes ends at 412): every feature of the epochs
+    before the cut is what the whole file gives them."""
+    from dataclasses import replace
+
+    root = shared_data("urbannav-hk-tst-20190428")
+    meas = lfgnss.load(root / "COM3_190428_124409.obs", [root / "hksc1180.19n", root / "hksc1180.19b"])
+    fix = lfgnss.spp(meas)
+    whole = lfgnss.build_sequence(meas, fix)
+    k = 400
+    obs = meas.obs
+    cut = replace(meas, obs=replace(obs, time_gps_s=obs.time_gps_s[:k], pr_m=obs.pr_m[:k], cn0_dbhz=obs.cn0_dbhz[:k],
+                                    doppler_hz=obs.doppler_hz[:k]),
+                  **{f: getattr(meas, f)[:k] for f in ("sat_pos_ecef_m", "sat_vel_ecef_m_s", "sat_clock_s",
+                                                       "group_delay_s", "reason", "sat_clock_drift_s_s")})
+    part = lfgnss.build_sequence(cut, lfgnss.spp(cut))
+    assert not fix.ok[395:400].any() and fix.ok[412]        # the nearest fix of epochs 397-399 lies ahead
+    np.testing.assert_array_equal(part.mask, whole.mask[:k])
+    np.testing.assert_allclose(part.features, whole.features[:k], rtol=0, atol=1e-9)
+
+
 def test_track_features_on_the_sample(sample):
     meas, fix, seq = sample
     names = DEFAULT_FEATURES + ("track_age", "cn0_std")

@@ -1,0 +1,125 @@
+"""RINEX observation files as RTKLIB 2.4.3 reads them: event records, a 0.000 pseudorange, which code and Doppler."""
+import gzip
+import warnings
+
+import numpy as np
+import pytest
+
+from lfgnss.rinex import _V2_EPOCH_RE, RinexWarning, load_obs
+from lfgnss.solve import SAMPLE_OBS
+
+from test_rinex import _rinex3
+
+
+def _v2_epochs(n: int) -> tuple[list[str], list[list[str]]]:
+    """The bundled RINEX 2 drive's header lines and its first ``n`` epochs' lines (C1 L1 S1 D1: one line a record)."""
+    lines = gzip.decompress(SAMPLE_OBS.read_bytes()).decode().splitlines()
+    end = next(i for i, ln in enumerate(lines) if "END OF HEADER" in ln) + 1
+    starts = [i for i in range(end, len(lines)) if _V2_EPOCH_RE.match(lines[i])][:n + 1]
+    return lines[:end], [lines[a:b] for a, b in zip(starts, starts[1:])]
+
+
+def _load(path):
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        obs = load_obs(path, cache=False)
+    return obs, [str(w.message) for w in caught if issubclass(w.category, RinexWarning)]
+
+
+@pytest.mark.parametrize("event", [["                            4  2", "ANTENNA CHANGED".ljust(60) + "COMMENT",
+                                    "SOME INFO".ljust(60) + "COMMENT"],
+                                   ["                            2  0"],
+                                   ["                            5  0"]], ids=["flag4", "flag2", "flag5"])
+def test_a_rinex2_event_without_a_time_costs_no_epoch(tmp_path, event):
+    """RINEX 2.11 lets an event line (flags 2-5) leave its time blank; it used to read as one record line too many
+    and cost the epoch before it."""
+    header, epochs = _v2_epochs(3)
+    path = tmp_path / "e.obs"
+    path.write_text("\n".join(header + epochs[0] + event + epochs[1] + epochs[2]) + "\n")
+    obs, notes = _load(path)
+    assert len(obs.time_gps_s) == 3 and not notes, notes
+    plain = tmp_path / "p.obs"
+    plain.write_text("\n".join(header + epochs[0] + epochs[1] + epochs[2]) + "\n")
+    np.testing.assert_array_equal(obs.pr_m, load_obs(plain, cache=False).pr_m)
+
+
+def test_rinex2_cycle_slip_records_are_skipped_whole(tmp_path):
+    """A flag-6 epoch's records are laid out as an epoch's (satellite-id continuation lines, then the records):
+    all of them are skipped, not read as an unreadable epoch line."""
+    header, epochs = _v2_epochs(3)
+    slips = [epochs[0][0][:28] + "6" + epochs[0][0][29:]] + epochs[0][1:]        # 19 satellites: two id lines
+    path = tmp_path / "s.obs"
+    path.write_text("\n".join(header + epochs[0] + slips + epochs[1] + epochs[2]) + "\n")
+    obs, notes = _load(path)
+    assert len(obs.time_gps_s) == 3 and not notes, notes
+
+
+def test_observation_types_redefined_by_an_event_end_the_reading_there(tmp_path):
+    """A flag-4 event may bring a new '# / TYPES OF OBSERV': columns after it may differ, and read with the header's
+    types a Doppler became a C/N0 of 464 dB-Hz. The epochs before it are kept, the rest left out with a note."""
+    header, epochs = _v2_epochs(3)
+    event = ["                            4  1", "     4    C1    L1    D1    S1".ljust(60) + "# / TYPES OF OBSERV"]
+    path = tmp_path / "t.obs"
+    path.write_text("\n".join(header + epochs[0] + event + epochs[1] + epochs[2]) + "\n")
+    obs, notes = _load(path)
+    assert len(obs.time_gps_s) == 1
+    assert any(f"{path}:{len(header) + len(epochs[0]) + 1}: the event here redefines the observation types "
+               f"(# / TYPES OF OBSERV)" in n and "left out" in n for n in notes), notes
+
+    v3 = _rinex3(tmp_path / "t.rnx", "3.04", {"G": "C1C D1C S1C"}, n_epochs=3)
+    lines = v3.read_text().splitlines()
+    second = [i for i, ln in enumerate(lines) if ln.startswith(">")][1]
+    lines[second:second] = ["> 2020 06 03 03 02  9.5000000  4  1", "G    3 C1C S1C D1C".ljust(60) + "SYS / # / OBS TYPES"]
+    v3.write_text("\n".join(lines) + "\n")
+    obs, notes = _load(v3)
+    assert len(obs.time_gps_s) == 1 and any("SYS / # / OBS TYPES" in n for n in notes), notes
+
+
+def test_a_rinex3_event_without_a_time_is_no_unreadable_epoch_line(tmp_path):
+    v3 = _rinex3(tmp_path / "e.rnx", "3.04", {"G": "C1C S1C"}, n_epochs=3)
+    lines = v3.read_text().splitlines()
+    second = [i for i, ln in enumerate(lines) if ln.startswith(">")][1]
+    lines[second:second] = [">" + " " * 30 + "4  1", "ANTENNA CHANGED".ljust(60) + "COMMENT"]
+    v3.write_text("\n".join(lines) + "\n")
+    obs, notes = _load(v3)
+    assert len(obs.time_gps_s) == 3 and not notes, notes
+
+
+def test_a_pseudorange_of_zero_is_missing(tmp_path):
+    """RTKLIB reads 0.000 as no code: in RINEX 2 P1 stands in (as for a blank C1), in RINEX 3 the satellite has no
+    pseudorange that epoch (it was kept as a measurement of 0 m)."""
+    header, epochs = _v2_epochs(2)
+    header = [("     5    C1    L1    S1    D1    P1".ljust(60) + "# / TYPES OF OBSERV") if "TYPES OF OBSERV" in h
+              else h for h in header]
+    first = [epochs[0][0], epochs[0][1]] + [r.ljust(64) + r[:16] for r in epochs[0][2:]]   # P1 = C1
+    first[2] = "        0.000  " + first[2][15:]                                              # C1 of the first sat
+    second = [epochs[1][0], epochs[1][1]] + [r.ljust(64) + r[:16] for r in epochs[1][2:]]
+    path = tmp_path / "z.obs"
+    path.write_text("\n".join(header + first + second) + "\n")
+    obs, notes = _load(path)
+    sv = first[0][32:35].replace(" ", "G")
+    assert obs.pr_m[0, list(obs.sv).index(sv)] == pytest.approx(float(epochs[0][2][:14]))      # P1's value
+    assert any("C1 blank, P1 used instead" in n for n in notes), notes
+
+    v3 = _rinex3(tmp_path / "z.rnx", "3.04", {"G": "C1C S1C"}, n_epochs=2)
+    v3.write_text(v3.read_text().replace("G01  20001000.000", "G01         0.000", 1))
+    obs = load_obs(v3, cache=False)
+    assert np.isnan(obs.pr_m[0, 0]) and obs.pr_m[1, 0] == 20001000.0
+
+
+@pytest.mark.parametrize("system, types, code", [
+    ("G", "C1W C1P S1C", "C1P"), ("E", "C1X C1B S1B", "C1B"), ("J", "C1X C1L S1L", "C1L"), ("J", "C1S S1S", "C1S"),
+    ("C", "C2X C2Q S2Q", "C2Q"), ("R", "C1P C1C S1C", "C1C"),
+])
+def test_the_code_rtklib_would_take(tmp_path, system, types, code):
+    """RTKLIB 2.4.3 b34's code priorities (codepris: GPS CPYWMNSL, GLONASS CPABX, Galileo CABXZ, QZSS CLSXZ,
+    BeiDou IQXDPAN); QZSS's L1C (C1L, C1S) is read as GPS's C1X is."""
+    obs = load_obs(_rinex3(tmp_path / "c.rnx", "3.04", {system: types}), cache=False)
+    assert obs.codes == {system: code}
+    assert obs.pr_m[0, 1] == 2e7 + 2000 + types.split().index(code)
+
+
+def test_a_code_without_its_own_doppler_takes_its_bands(tmp_path):
+    """GPS C1W (semi-codeless P(Y)) has no D1W in a file that has D1C: the carrier's Doppler is one, so D1C is read."""
+    obs = load_obs(_rinex3(tmp_path / "d.rnx", "3.04", {"G": "C1W D1C S1W"}), cache=False)
+    assert obs.codes == {"G": "C1W"} and np.all(obs.doppler_hz == 100.0)
