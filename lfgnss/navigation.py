@@ -121,7 +121,7 @@ class Navigation:
     warnings: tuple[str, ...] = ()
 
 
-_CACHE_VERSION = 5       # 5: KeplerEphemerides.accuracy_m
+_CACHE_VERSION = 5       # 5: KeplerEphemerides.accuracy_m, GLONASS channels past 128 wrapped
 
 
 def load_nav(paths: str | Path | Iterable[str | Path], *, cache: bool = True) -> Navigation:
@@ -549,6 +549,13 @@ def _kepler_frame(raw: pd.DataFrame) -> pd.DataFrame:
     return out[~bad].fillna({c: 0.0 for c in out.columns if c not in ("sv", "system", "ttr_gps_s")})
 
 
+def _glonass_channel(freq_num: np.ndarray) -> np.ndarray:
+    """Frequency channel numbers k of GLONASS records: a blank one is 0 (as RTKLIB reads blanks), one written as an
+    unsigned byte (249 for -7) is brought back to -7..13 as RTKLIB's ``decode_geph`` does (``frq -= 256``)."""
+    k = np.nan_to_num(freq_num)
+    return np.where(k > 128, k - 256, k)
+
+
 def _glonass_frame(raw: pd.DataFrame) -> pd.DataFrame:
     import pandas as pd
 
@@ -568,7 +575,7 @@ def _glonass_frame(raw: pd.DataFrame) -> pd.DataFrame:
         "x": pos[:, 0], "y": pos[:, 1], "z": pos[:, 2], "vx": vel[:, 0], "vy": vel[:, 1], "vz": vel[:, 2],
         "ax": np.nan_to_num(acc[:, 0]), "ay": np.nan_to_num(acc[:, 1]), "az": np.nan_to_num(acc[:, 2]),
         "tau_n_s": -_col(df, "SVclockBias"), "gamma_n": np.nan_to_num(_col(df, "SVrelFreqBias")),
-        "k": np.nan_to_num(_col(df, "FreqNum")), "health": np.nan_to_num(_col(df, "health")),
+        "k": _glonass_channel(_col(df, "FreqNum")), "health": np.nan_to_num(_col(df, "health")),
     })
     core = ["toe_gps_s", "x", "y", "z", "vx", "vy", "vz", "tau_n_s"]
     return out[np.isfinite(out[core].to_numpy(dtype=float)).all(axis=1)]

@@ -350,7 +350,8 @@ def test_qzss_health_ignores_the_l6_bit(bundled_nav):
     """RTKLIB masks QZSS health bit 0 (L6/LEX, not L1 C/A: ``svh &= 0xFE``); any other bit still excludes."""
     t = np.array([_t("2016-06-06T11:12:00")])
     for health, reason in ((1, ""), (0x21, "unhealthy"), (0x20, "unhealthy")):
-        assert ephemeris_states(_relabelled(bundled_nav, "J02", health=health), np.array(["J02"]), t).reason[0] == reason
+        nav = _relabelled(bundled_nav, "J02", health=health)
+        assert ephemeris_states(nav, np.array(["J02"]), t).reason[0] == reason
     assert ephemeris_states(_relabelled(bundled_nav, "G02", health=1), np.array(["G02"]), t).reason[0] == "unhealthy"
 
 
@@ -395,6 +396,14 @@ def test_clock_polynomial_is_rtklibs_fixed_point(bundled_nav):
     for _ in range(2):
         t = ts - (-1e-3 + 1e-6 * t)
     assert got[1] == pytest.approx(-1e-3 + 1e-6 * t, abs=1e-14)
+
+
+def test_a_glonass_channel_written_as_an_unsigned_byte_is_read_as_rtklib_does(tmp_path):
+    """k = 1 in the bundled record; 255 is -1 (RTKLIB decode_geph: frq > 128 -> frq - 256)."""
+    path = tmp_path / "k.16g"
+    path.write_text(GLONASS_RINEX2.replace("0.279396772385D-08 0.100000000000D+01",
+                                           "0.279396772385D-08 0.255000000000D+03"))
+    assert load_nav([path]).glonass.k.tolist() == [-1]
 
 
 # ---------------------------------------------------------------- GLONASS integrator

@@ -69,7 +69,8 @@ def test_observation_types_redefined_by_an_event_end_the_reading_there(tmp_path)
     v3 = _rinex3(tmp_path / "t.rnx", "3.04", {"G": "C1C D1C S1C"}, n_epochs=3)
     lines = v3.read_text().splitlines()
     second = [i for i, ln in enumerate(lines) if ln.startswith(">")][1]
-    lines[second:second] = ["> 2020 06 03 03 02  9.5000000  4  1", "G    3 C1C S1C D1C".ljust(60) + "SYS / # / OBS TYPES"]
+    lines[second:second] = ["> 2020 06 03 03 02  9.5000000  4  1",
+                            "G    3 C1C S1C D1C".ljust(60) + "SYS / # / OBS TYPES"]
     v3.write_text("\n".join(lines) + "\n")
     obs, notes = _load(v3)
     assert len(obs.time_gps_s) == 1 and any("SYS / # / OBS TYPES" in n for n in notes), notes

@@ -207,7 +207,8 @@ def test_observation_files_that_differ_after_a_dot_keep_their_own_outputs(tmp_pa
         assert main(["--out", str(tmp_path / "o"), "--quiet", "--no-plots", "--backend", "wls",
                      "--obs", str(tmp_path / f"drive.{day}.obs.gz"), "--nav", *map(str, SAMPLE_NAV)]) == 0
     for day in ("day1", "day2"):
-        assert f"% inp file  : {tmp_path / f'drive.{day}.obs.gz'}" in (tmp_path / "o" / f"drive.{day}_wls.pos").read_text()
+        pos = (tmp_path / "o" / f"drive.{day}_wls.pos").read_text()
+        assert f"% inp file  : {tmp_path / f'drive.{day}.obs.gz'}" in pos
 
 
 def test_back_ends_compared_in_one_folder_keep_their_own_outputs(tmp_path, capsys):
