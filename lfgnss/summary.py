@@ -53,9 +53,10 @@ def plot_features(seq: Sequence, out_dir: Path, prefix: str) -> list[Path]:
     sc = ax.scatter(seq.az_rad[m], 90.0 - np.degrees(seq.el_rad[m]), c=np.clip(np.abs(res), 0, 60), s=3,
                     cmap="viridis")
     ax.set_rlim(0, 90)
-    ax.set_yticks([0, 30, 60, 90], labels=["90", "60", "30", "0"])
-    fig.colorbar(sc, ax=ax, label="|coarse residual| [m] (clipped at 60)", shrink=0.8)
-    ax.set_title(f"{seq.name}: sky plot")
+    ax.set_yticks([0, 30, 60, 90], labels=["", "60°", "30°", ""])     # elevation; the rim (0°) holds the azimuths
+    ax.set_rlabel_position(22.5)
+    fig.colorbar(sc, ax=ax, label="|coarse residual| [m] (clipped at 60)", shrink=0.8, pad=0.1)
+    ax.set_title(f"{seq.name}: sky plot (azimuth, elevation)")
     written.append(save_figure(out_dir / f"{prefix}skyplot.png", fig, dpi=110))
 
     fig = Figure(figsize=(6, 4))
