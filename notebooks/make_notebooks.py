@@ -11,7 +11,7 @@ def nb(cells, path):
     nbf.write(n, path)
 
 nb([
-("md", "# Comparing estimators\n\nEqual-weight least squares, the plain EKF (hand-set C/N0 noise, innovation gate), and the LF-GNSS EKF (forward, and smoothed backwards with `smooth=True` for post-processing) and factor graph with the shipped model, on the bundled Berlin drive (smartLoc, CC BY-SA 4.0) and, when present, on a shared benchmark dataset's test split."),
+("md", "# Comparing estimators\n\nEqual-weight least squares, the plain EKF (hand-set C/N0 noise, innovation gate), and the LF-GNSS EKF (forward, and smoothed backwards with `smooth=True` for post-processing) and factor graph with the shipped model, on the bundled Berlin drive (smartLoc, CC BY-SA 4.0) and, when present, on a shared benchmark dataset's test split.\n\nThe bundled drive is berlin-pp's own drive, so the shipped model was trained on 724 of its epochs and selected on 148 more: its rows on it are partly in-sample, a demonstration of the API, not a result (the shared dataset's test split below is out of sample; `python -m lfgnss.benchmark` gives the results)."),
 ("code", """import tempfile, warnings
 from pathlib import Path
 warnings.simplefilter("ignore", FutureWarning)
