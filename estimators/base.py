@@ -48,7 +48,12 @@ class Solution:
     info: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        """ValueError naming the back end and the field whose shape is not (T, ...) or whose status code is unknown."""
+        """ValueError naming the back end and the field whose shape is not (T, ...) or whose status code is unknown;
+        lists become arrays (an array stays the very object given)."""
+        for name in ("time_gps_s", "pos_ecef_m", "cov_ecef_m2", "clock_m", "n_used", "status", "vel_ecef_m_s"):
+            value = getattr(self, name)
+            if value is not None and not isinstance(value, np.ndarray):
+                object.__setattr__(self, name, np.asarray(value))
         t = np.shape(self.time_gps_s)[:1]
         shapes = {"time_gps_s": (), "pos_ecef_m": (3,), "cov_ecef_m2": (3, 3), "clock_m": (), "n_used": (),
                   "status": ()} | ({} if self.vel_ecef_m_s is None else {"vel_ecef_m_s": (3,)})

@@ -20,8 +20,8 @@ Initialisation and resets take the coarse fix
 ``coarse_clocks``, which ``learning.torch_ekf`` does not do: the sequences training builds have both) with covariance
 P0 and then update with the
 epoch's satellites, twice if a satellite's post-fit residual exceeds ``gate_sigma sqrt(r)`` (the
-second time without those satellites). Resets happen when the filter has no state yet, after a gap
-longer than ``max_gap_s``, when most usable satellites fail the gate (``reset_gated_fraction``; not in the epoch
+second time without those satellites). Resets happen when the filter has no state yet, at the first coarse fix
+after a gap longer than ``max_gap_s`` (the epochs before it get no position), when most usable satellites fail the gate (``reset_gated_fraction``; not in the epoch
 right after a reset) with a median innovation of at least ``clock_jump_min_m`` and still do after the
 prior's clock was realigned to it (a receiver clock jump, ``models.realign_clock``), or when the
 updated position is farther than ``reset_distance_m`` from a coarse fix with a redundancy of at least
@@ -428,7 +428,9 @@ class LfgnssEkf:
             dt = dt_all[k - 1] if k > 0 else 0.0
             idx = np.flatnonzero(usable[k])
             jdx = np.flatnonzero(doppler_ok[k])
-            if not started or (dt > cfg.max_gap_s and coarse_ok[k]):
+            if dt > cfg.max_gap_s:
+                started = False     # the state is stale: restart at the first coarse fix from here on, as at the start
+            if not started:
                 if online:
                     idx, jdx = ask_noise(k, idx, None)
                 if not coarse_ok[k]:

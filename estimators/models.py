@@ -147,8 +147,9 @@ class EkfConfig:
         no truth there) 6- and 5-satellite GPS + BeiDou fixes 360 m below and 250 m beside the street pulled the
         filter to them. 0 restores the reset to any fix.
     max_gap_s : float
-        A time step longer than this re-initialises from the coarse fix when one is available
-        (otherwise the filter predicts across the gap).
+        A time step longer than this [s] restarts the filter from the first coarse fix at or after it; the epochs
+        before that fix get no position, as before a run's first fix (predicted across a long gap the state is one
+        the data cannot mend: a day's gap left it 52 km off, twelve days an update too ill-conditioned to compute).
     min_sats_for_update : int
         Fewer ungated satellites than this: predict only (coast). Applies to pseudoranges and Dopplers
         separately.

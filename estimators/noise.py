@@ -21,7 +21,7 @@ from lfgnss.features import system_median_m
 from lfgnss.paths import default_model_path
 from lfgnss.sequence import Sequence
 
-from .base import caller_stacklevel
+from .base import caller_stacklevel, usable_measurements
 
 
 @runtime_checkable
@@ -274,13 +274,21 @@ class HeuristicNoise:
                              f"got {self.el_min_rad!r}")
 
     def __call__(self, sequence: Sequence) -> tuple[np.ndarray, np.ndarray]:
-        """(r_m2, vc_m), each (T, N): R [m^2] from C/N0 and elevation, v^c = 0 [m]."""
-        bad = sequence.mask & ~(np.isfinite(sequence.cn0_dbhz) & np.isfinite(sequence.el_rad))
+        """(r_m2, vc_m), each (T, N): R [m^2] from C/N0 and elevation [rad], v^c = 0 [m]; slots no estimator can use
+        (``usable_measurements``: no pseudorange, say) get the zenith R of 45 dB-Hz."""
+        used = usable_measurements(sequence)
+        bad = used & ~(np.isfinite(sequence.cn0_dbhz) & np.isfinite(sequence.el_rad))
         if bad.any():
-            raise ValueError(f"HeuristicNoise: C/N0 or elevation is not finite on a masked-in satellite of "
+            raise ValueError(f"HeuristicNoise: C/N0 or elevation is not finite on a usable satellite of "
                              f"{sequence.name!r} (first at epoch {int(np.argwhere(bad)[0, 0])})")
-        cn0 = np.where(sequence.mask, sequence.cn0_dbhz, 45.0)
-        el = np.where(sequence.mask, sequence.el_rad, np.pi / 2)
+        steep = used & (np.abs(np.asarray(sequence.el_rad, float)) > np.pi / 2 + 1e-9)
+        if steep.any():
+            k, i = np.argwhere(steep)[0]
+            raise ValueError(f"HeuristicNoise: elevation {float(sequence.el_rad[k, i]):g} beyond pi/2 on a usable "
+                             f"satellite of {sequence.name!r} (epoch {int(k)}): Sequence.el_rad is in radians, "
+                             f"not degrees")
+        cn0 = np.where(used, sequence.cn0_dbhz, 45.0)
+        el = np.where(used, sequence.el_rad, np.pi / 2)
         r = weighted_fix.cn0_elevation_variance_m2(cn0, el, floor_m=self.floor_m, cn0_scale_m2=self.cn0_scale_m2,
                                                     elevation_power=self.elevation_power, el_min_rad=self.el_min_rad)
         return r, np.zeros_like(r)
@@ -337,8 +345,9 @@ class TruthNoise:
     fallback: HeuristicNoise = HeuristicNoise()
 
     def __post_init__(self) -> None:
-        if isinstance(self.floor_m, bool) or not isinstance(self.floor_m, (int, float)) or not self.floor_m > 0:
-            raise ValueError(f"TruthNoise.floor_m must be > 0 [m], got {self.floor_m!r}")
+        if (isinstance(self.floor_m, bool) or not isinstance(self.floor_m, numbers.Real)
+                or not 0 < self.floor_m < np.inf):
+            raise ValueError(f"TruthNoise.floor_m must be a finite number > 0 [m], got {self.floor_m!r}")
         what = not_a_model(self.fallback)
         if what:
             raise TypeError(f"TruthNoise: fallback must be a noise model (sequence -> (r_m2, vc_m)), got {what}")

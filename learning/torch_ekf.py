@@ -15,8 +15,8 @@ Per epoch, both possible priors are gated and updated in one batched call of siz
 
 When more than ``reset_gated_fraction`` of the usable satellites fail the gate (not right after a
 reset) and their median innovation is clock-jump sized (``clock_jump_min_m``), the prior's clock is
-realigned and gated again. The reset result is taken at the first epoch with a coarse fix, after gaps
-> ``max_gap_s``, when the realigned prior is still mostly gated, and when the normal update ends
+realigned and gated again. The reset result is taken at the first epoch with a coarse fix, at the first one
+after a gap > ``max_gap_s`` (no position before it), when the realigned prior is still mostly gated, and when the normal update ends
 farther than ``reset_distance_m`` from a coarse fix of redundancy ``reset_min_redundancy`` or more; in the
 rows that reset, satellites failing the post-fit check are dropped and the reset prior updated again. With
 ``EkfConfig.zupt_sigma_m_s``, epochs the Dopplers find standing still (``estimators.models.stationary_epochs``) add a
@@ -373,8 +373,8 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor | None, vc_m: torch.Tensor 
         if config.q_vel_up_m2_s3 is not None:
             P_pred = P_pred + _vertical_noise_increment(dt, x[:, :3].detach(), n, config)
         coarse_ok = coarse_ok_all[:, k]
-        init_needed = ~started | ((dt_all[:, k] > config.max_gap_s) & coarse_ok)
-        reset_a = init_needed & coarse_ok
+        started = started & ~(dt_all[:, k] > config.max_gap_s)     # a long gap: restart at the next coarse fix
+        reset_a = ~started & coarse_ok
         normal = started & ~reset_a
         if noise_step is None:
             z_k, r_k = z_all[:, k], r_all[:, k]

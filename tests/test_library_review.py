@@ -175,3 +175,31 @@ def test_unknown_model_settings_warning_points_at_the_callers_line():
     for call in (lambda: LfgnssEkf(noise=Trained()), lambda: estimators.create("ekf", noise=Trained())):
         caught = [w for w in _caught(call) if "unknown" in str(w.message)]
         assert len(caught) == 1 and caught[0].filename == __file__
+
+
+# ------------------------------------------------------------------ session 55: a review of the estimators' API
+def test_every_back_end_skips_a_masked_in_slot_without_a_pseudorange_alike(seq):
+    """A masked-in slot with a NaN pseudorange and a NaN C/N0: the plain EKF warns and skips it as the weighted
+    least squares and the learned EKF do (its hand-set noise model raised on the C/N0)."""
+    pr, cn0 = seq.pr_m.copy(), seq.cn0_dbhz.copy()
+    k, i = np.argwhere(seq.mask)[5]
+    pr[k, i], cn0[k, i] = np.nan, np.nan
+    bad = replace(seq, pr_m=pr, cn0_dbhz=cn0)
+    for backend in ("plain-ekf", "wls-weighted"):
+        caught = _caught(lambda: estimators.create(backend).solve(bad))
+        assert any("pseudorange" in str(w.message) for w in caught), backend
+    r, _ = HeuristicNoise()(bad)
+    assert np.isfinite(r).all() and (r > 0).all()
+
+
+def test_hand_set_noise_refuses_elevations_in_degrees(seq):
+    with pytest.raises(ValueError, match=r"elevation .* beyond pi/2 .* in radians, not degrees"):
+        HeuristicNoise()(replace(seq, el_rad=np.degrees(seq.el_rad)))
+
+
+def test_a_solution_built_from_lists_has_arrays():
+    """A user's own estimator may hand lists: availability and subsets work as with arrays."""
+    sol = estimators.Solution("mine", [0.0, 1.0], [[6.4e6, 0.0, 0.0], [np.nan] * 3], [np.eye(3), np.eye(3)],
+                              [0.0, 0.0], [5, 0], [estimators.STATUS_UPDATED, estimators.STATUS_NONE])
+    assert sol.available.tolist() == [True, False] and int(sol.available.sum()) == 1
+    assert len(sol.subset([0])) == 1 and isinstance(sol.time_gps_s, np.ndarray)

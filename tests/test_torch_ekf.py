@@ -289,6 +289,21 @@ def test_a_clock_jump_without_a_coarse_fix_is_realigned_in_both_filters():
     assert np.linalg.norm(sol.pos_ecef_m[60] - s.truth_ecef_m[60]) < 20.0
 
 
+@pytest.mark.parametrize("gap_s", [100.0, 86400.0, 1e6])
+def test_a_long_gap_restarts_at_the_next_coarse_fix_in_both_filters(gap_s):
+    """A gap beyond max_gap_s whose first epochs have no coarse fix: no position until the next fix, which resets
+    (predicted across it, a day's gap left the filter 52 km off, twelve days raised the singular-update error)."""
+    s = simulate_sequence(120, seed=4)
+    time, coarse = s.time_gps_s.copy(), s.coarse_ecef_m.copy()
+    time[60:] += gap_s
+    coarse[60:63] = np.nan
+    s = replace(s, time_gps_s=time, coarse_ecef_m=coarse)
+    sol = _both_filters(s)
+    assert (sol.status[60:63] == STATUS_NONE).all() and np.isnan(sol.pos_ecef_m[60:63]).all()
+    assert sol.status[63] == STATUS_RESET and (sol.status[64:] == STATUS_UPDATED).all()
+    assert np.linalg.norm(sol.pos_ecef_m[63:] - s.truth_ecef_m[63:], axis=1).max() < 30.0
+
+
 def test_a_drift_beyond_the_initial_covariance_is_taken_from_the_dopplers_in_both_filters():
     """A 1.3 ppm oscillator (400 m/s of drift): from a zero drift at the start every Doppler failed the gate and,
     one epoch's pseudoranges not seeing the drift, they followed; 65 % of epochs coasted (a review). The start takes

@@ -43,10 +43,14 @@ def test_truth_noise_falls_back_where_there_is_no_truth():
     assert np.all(np.isfinite(sol.pos_ecef_m))
 
 
-@pytest.mark.parametrize("floor", [0.0, -1.0, float("nan"), True, "1"])
+@pytest.mark.parametrize("floor", [0.0, -1.0, float("nan"), float("inf"), True, "1"])
 def test_truth_noise_refuses_a_floor_that_is_not_positive(floor):
-    with pytest.raises(ValueError, match="floor_m must be > 0"):
+    with pytest.raises(ValueError, match="floor_m must be a finite number > 0"):
         TruthNoise(floor_m=floor)
+
+
+def test_truth_noise_takes_a_numpy_floor():
+    assert TruthNoise(floor_m=np.float32(1.0)).floor_m == 1.0
 
 
 def test_truth_weights_beat_the_hand_set_ones_on_simulated_reflections():
