@@ -354,7 +354,7 @@ def _rtklib_on(seq, spec, workdir: Path):
 def whole_test_split(dataset_id: str, feature_names: tuple[str, ...]) -> Sequence:
     """The test split as one Sequence from its first to its last labelled epoch (InputError if it has none).
 
-    Epochs inside it without truth are solved but not scored; ``load_split`` would cut the split there.
+    Epochs inside it without truth are solved but not scored (as in ``load_split``'s pieces).
     """
     return scored_span(dataset_id, feature_names)[0]
 

@@ -3,7 +3,7 @@
 The three datasets of ``shared/BENCHMARK.md`` are registered by id; users add their own with a TOML
 file (``register_toml``)::
 
-    id = "my-drive"
+    id = "my-drive"                   # letters, digits, '.', '_', '-' (it names cache files)
     obs = ["rover.obs"]               # paths relative to this file; several files of one receiver are
                                       # joined in time order (they must not overlap in time)
     nav = ["brdc.nav"]
@@ -57,7 +57,7 @@ import numpy as np
 
 from .constants import SYSTEMS, unknown_systems
 from .errors import InputError, UnknownNameError, did_you_mean
-from .frames import NEAR_SURFACE_RADIUS_M, lla_to_ecef
+from .frames import NEAR_SURFACE_RADIUS_M, ecef_to_lla, lla_to_ecef
 from .paths import cache_file, file_digests, load_cached, names_something, shared_data_dir, store_cached
 from .sequence import DEFAULT_FEATURES, Sequence, load_sequence, save_sequence
 from .time import SECONDS_PER_WEEK, gps_s_to_week_tow, week_tow_to_gps_s
@@ -115,6 +115,9 @@ class DatasetSpec:
         def paths(value) -> tuple[Path, ...]:
             return (Path(value),) if isinstance(value, (str, Path)) else tuple(Path(p) for p in value)
 
+        if not isinstance(self.id, str) or not DATASET_ID.fullmatch(self.id):
+            raise ValueError(f"DatasetSpec: id {self.id!r} must be letters, digits, '.', '_' or '-', starting with a "
+                             f"letter or digit (it names cache files)")
         object.__setattr__(self, "obs", paths(self.obs))
         object.__setattr__(self, "nav", paths(self.nav))
         object.__setattr__(self, "truth", Path(self.truth))
@@ -132,16 +135,20 @@ class DatasetSpec:
         return [*self.obs, *self.nav, self.truth]
 
     def missing(self) -> list[Path]:
-        """Input files that do not exist."""
-        return [p for p in self.files() if not p.exists()]
+        """Input files that do not exist (or are no file: a folder)."""
+        return [p for p in self.files() if not p.is_file()]
 
     def missing_note(self) -> str:
-        """``missing FILE`` for the first missing input file ('' if none), with its key and TOML file if registered."""
+        """``missing FILE`` (``FILE is a folder, not a file``) for the first missing input file ('' if none), with its
+        key and TOML file if registered."""
         missing = self.missing()
-        if not missing or self.source is None:
-            return f"missing {missing[0]}" if missing else ""
+        if not missing:
+            return ""
+        what = f"{missing[0]} is a folder, not a file" if missing[0].is_dir() else f"missing {missing[0]}"
+        if self.source is None:
+            return what
         key = "obs" if missing[0] in self.obs else "nav" if missing[0] in self.nav else "[truth] file"
-        return f"missing {missing[0]} ({key} in {self.source})"
+        return f"{what} ({key} in {self.source})"
 
 
 def _shared(folder: str, *names: str) -> tuple[Path, ...]:
@@ -202,6 +209,10 @@ def _dataset_key(spec: DatasetSpec) -> DatasetSpec:
 #: The keys a dataset TOML may hold, at the top and in its tables (see the module docstring).
 TOML_KEYS = ("id", "obs", "nav", "systems", "description", "truth", "splits")
 TRUTH_KEYS = ("file", "format", "match_tolerance_s", "time_origin_gps_s", "time_offset_s")
+#: Truth rows of one time whose positions lie farther apart than this [m] are refused (which one is the truth?).
+TRUTH_REPEAT_M = 1.0
+#: A dataset id of one's own: it names cache files, so no path separators (``my-drive``, ``hk_2021.a``).
+DATASET_ID = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")
 SPLIT_KEYS = ("axis", *SPLITS)
 #: What ``get`` says about an unknown id: how a dataset of one's own becomes known, for every command.
 REGISTER_HINT = ("register a dataset of your own first: --register FILE.toml, data.register = [\"FILE.toml\"] in "
@@ -274,6 +285,17 @@ def register_toml(path: str | Path, *, need_splits: tuple[str, ...] = ()) -> Dat
             raise InputError(path, f"dataset config lacks {'[truth] with file = ...' if key == 'truth' else key}")
     if "file" not in cfg["truth"]:
         raise InputError(path, "dataset config lacks file in [truth] (the ground-truth file)")
+    if not isinstance(cfg["id"], str) or not DATASET_ID.fullmatch(cfg["id"]):
+        raise InputError(path, f"id {cfg['id']!r} must be a name of letters, digits, '.', '_' or '-' starting with a "
+                               f"letter or digit (it names cache files), e.g. \"my-drive\"")
+    for key in ("obs", "nav"):
+        value = cfg[key]
+        if not (isinstance(value, str) or isinstance(value, list) and value and all(isinstance(v, str) for v in value)):
+            raise InputError(path, f"{key} must be a file name or a list of file names, got {value!r}")
+        if isinstance(value, str):
+            cfg[key] = [value]
+    if not isinstance(cfg["truth"]["file"], str):
+        raise InputError(path, f"file in [truth] must be a file name, got {cfg['truth']['file']!r}")
     axis = cfg.get("splits", {}).get("axis", "tow")
     axis = axis.lower() if isinstance(axis, str) else axis          # any case, as the truth format
     if axis not in SPLIT_AXES:
@@ -626,6 +648,11 @@ def truth_fit_notes(spec: DatasetSpec, time_gps_s: np.ndarray, truth_ecef_m: np.
         if median_m > TRUTH_MISMATCH_M:
             distance = f"{median_m / 1000:.0f} km" if median_m >= 10_000 else f"{median_m / 1000:.1f} km"
             origin = f", or a wrong {_origin_words(spec)}" if spec.truth_format == "smartloc" else ""
+            lat, lon = (np.degrees(a) for a in ecef_to_lla(truth[both]).reshape(-1, 3).T[:2])
+            fix_lat, fix_lon = (np.degrees(a) for a in ecef_to_lla(fix[both]).reshape(-1, 3).T[:2])
+            if (np.abs(lat) <= 90 / 57.29).all() and (np.abs(lon) <= 360 / 57.29).all() and not (
+                    (np.abs(fix_lat) <= 90 / 57.29).all() and (np.abs(fix_lon) <= 360 / 57.29).all()):
+                origin += " (its latitudes and longitudes, all within 1.6 and 6.3, look like radians, not degrees)"
             notes.append(f"{spec.truth}: the truth lies a median {distance} from the receiver's least-squares fixes "
                          f"(on {int(both.sum())} epochs): a truth file of another drive or place{origin}? It is scored "
                          "all the same")
@@ -831,7 +858,20 @@ def _sorted_truth_rows(spec: DatasetSpec, first_epoch_gps_s: float) -> tuple[np.
     t_truth, xyz, bad = TRUTH_READERS[spec.truth_format](spec.truth, replace(spec, time_origin_gps_s=float(origin)))
     t_truth = t_truth + spec.time_offset_s
     order = np.argsort(t_truth, kind="stable")
-    return t_truth[order], xyz[order], bad
+    t_truth, xyz = t_truth[order], xyz[order]
+    repeat = np.flatnonzero(np.diff(t_truth) <= 1e-6)      # row repeat + 1 has row repeat's time
+    if repeat.size:
+        apart = np.linalg.norm(xyz[repeat + 1] - xyz[repeat], axis=1)
+        if (apart > TRUTH_REPEAT_M).any():
+            j = int(np.argmax(apart > TRUTH_REPEAT_M))
+            week, tow = gps_s_to_week_tow(t_truth[repeat[j]])
+            raise InputError(spec.truth, f"{int((apart > TRUTH_REPEAT_M).sum())} row(s) repeat another row's time with "
+                                         f"another position (first at GPS week {int(week)} {float(tow):.3f} s, "
+                                         f"{float(apart[j]):.1f} m apart): which one is the truth? Remove the repeats")
+        keep = np.ones(t_truth.size, bool)
+        keep[repeat + 1] = False                            # the same point twice: once is enough
+        t_truth, xyz = t_truth[keep], xyz[keep]
+    return t_truth, xyz, bad
 
 
 def _truth_at(time_gps_s: np.ndarray, t_truth: np.ndarray, xyz: np.ndarray, tolerance_s: float) -> np.ndarray:
@@ -1063,20 +1103,31 @@ def contiguous_runs(index: np.ndarray) -> list[np.ndarray]:
     return [r for r in np.split(index, np.flatnonzero(np.diff(index) > 1) + 1) if r.size]
 
 
+def split_pieces(seq: Sequence, spec: DatasetSpec, split: str) -> list[np.ndarray]:
+    """The split's labelled epochs of ``seq`` in pieces, each run from a labelled epoch of the split to the next one
+    unless a labelled epoch of no part of it lies between: epochs without truth inside (a gap in the truth, a truth
+    file slower than the receiver) stay in a piece, solved and not scored, rather than cutting it."""
+    inside = split_index(seq, spec, split)
+    idx = np.flatnonzero(inside)
+    others = np.cumsum(seq.labelled & ~inside)         # labelled epochs not in the split, counted up to each epoch
+    return [r for r in np.split(idx, np.flatnonzero(np.diff(others[idx]) > 0) + 1) if r.size]
+
+
 def load_split(dataset_id: str, split: str, *, feature_names: tuple[str, ...] = DEFAULT_FEATURES,
                cache: bool = True) -> list[Sequence]:
-    """The split's contiguous epochs as Sequences (one per unbroken run of epochs); "train+val": the two splits'."""
+    """The split as Sequences (one per piece, ``split_pieces``: from a first to a last labelled epoch, the epochs
+    between included); "train+val": the two splits'."""
     spec = get(dataset_id)
     check_split(spec, split)                # before the build, which can take minutes
     seq = build(dataset_id, feature_names=feature_names, cache=cache)
-    runs = contiguous_runs(np.flatnonzero(split_index(seq, spec, split)))
+    runs = split_pieces(seq, spec, split)
     return [seq.subset(slice(r[0], r[-1] + 1), name=f"{dataset_id}/{split}" + (f"#{k}" if len(runs) > 1 else ""))
             for k, r in enumerate(runs)]
 
 
 __all__ = ["DatasetSpec", "SPLITS", "align_truth", "build", "contiguous_runs", "find_dataset_toml", "get",
            "load_split", "present", "register", "register_toml", "registered", "split_index", "split_parts",
-           "static_time_note", "truth_note_summary"]
+           "split_pieces", "static_time_note", "truth_note_summary"]
 
 
 def alignment_report(dataset_ids: list[str] | None = None, problems: list[str] | None = None) -> str:

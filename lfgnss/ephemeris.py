@@ -17,9 +17,9 @@ from .glonass import propagate
 from .navigation import KeplerEphemerides, Navigation
 from .time import BDT_MINUS_GPST_S, SECONDS_PER_WEEK
 
-#: Largest |t - toe| [s] at which an ephemeris is used (RTKLIB 2.4.3 MAXDTOE, MAXDTOE_QZS/_GAL/_CMP/_GLO; Galileo's
-#: 4 h is 2.4.3's, 2.4.2 had 3 h).
-MAX_AGE_S = {"G": 7200.0, "J": 7200.0, "E": 14400.0, "C": 21600.0, "R": 1800.0}
+#: Largest |t - toe| [s] at which an ephemeris is used: RTKLIB 2.4.3's seleph / selgeph limits, MAXDTOE,
+#: MAXDTOE_QZS and MAXDTOE_CMP plus its 1 s, MAXDTOE_GAL (4 h; 2.4.2 had 3 h) and MAXDTOE_GLO as they are.
+MAX_AGE_S = {"G": 7201.0, "J": 7201.0, "E": 14400.0, "C": 21601.0, "R": 1800.0}
 #: Largest broadcast accuracy [m] (URA of GPS, QZSS, BeiDou) at which an ephemeris is used: RTKLIB maps a URA to the
 #: next value of its table (2.4, 3.4, ..., 192, 384, ...) and excludes variances above 300^2 m^2 (MAX_VAR_EPH), so
 #: from 384 m on, a URA above 192 m.

@@ -121,7 +121,7 @@ class Navigation:
     warnings: tuple[str, ...] = ()
 
 
-_CACHE_VERSION = 5       # 5: KeplerEphemerides.accuracy_m, GLONASS channels past 128 wrapped
+_CACHE_VERSION = 6       # 6: GLONASS epochs on the 15 min grid, blank trailing fields; 5: accuracy_m
 
 
 def load_nav(paths: str | Path | Iterable[str | Path], *, cache: bool = True) -> Navigation:
@@ -167,6 +167,7 @@ def load_nav(paths: str | Path | Iterable[str | Path], *, cache: bool = True) ->
 
 #: Why a file among several navigation files is left out, and the note saying so.
 NOT_NAVIGATION = "not a RINEX 2/3 navigation file"
+NO_SUPPORTED = "no GPS/Galileo/QZSS/BeiDou/GLONASS ephemeris records"
 LEFT_OUT = "left out of the navigation files"
 
 
@@ -206,8 +207,8 @@ def _parse_nav(paths: list[Path]) -> Navigation:
     for path in paths:
         try:
             datasets, skipped = _read(path)
-        except RinexError as err:       # a met or obs file among several (a glob over a station's folder)
-            if len(paths) == 1 or not err.reason.startswith(NOT_NAVIGATION):
+        except RinexError as err:       # a met, obs or SBAS file among several (a glob over a station's folder)
+            if len(paths) == 1 or not err.reason.startswith((NOT_NAVIGATION, NO_SUPPORTED)):
                 raise
             notes.append(f"{path}: {err.reason}: {LEFT_OUT}")
             continue
@@ -217,15 +218,18 @@ def _parse_nav(paths: list[Path]) -> Navigation:
         glo, glo_notes = _plausible(_glonass_frame(raw), GLONASS_LIMITS)
         impossible = kep_notes + glo_notes
         if kep.empty and glo.empty:
+            if len(paths) > 1 and not impossible:           # SBAS or IRNSS records only: of no use here
+                notes.append(f"{path}: {NO_SUPPORTED}: {LEFT_OUT}")
+                continue
             first = f": every record impossible, e.g. {impossible[0]}" if impossible else ""
-            raise RinexError(path, f"no GPS/Galileo/QZSS/BeiDou/GLONASS ephemeris records{first}")
+            raise RinexError(path, f"{NO_SUPPORTED}{first}")
         notes += [f"{path}: {note}" for note in impossible]
         kep_frames.append(kep)
         glo_frames.append(glo)
         for key, name in (("GPS", "ionospheric_corr_GPS"), ("BDS", "ionospheric_corr_BDS")):
             coef = np.asarray(datasets[0].attrs.get(name, []), dtype=float).ravel()
-            if key not in iono and coef.size == 8 and np.all(np.isfinite(coef)):
-                iono[key] = coef
+            if key not in iono and coef.size == 8 and np.all(np.isfinite(coef)) and np.any(coef != 0):
+                iono[key] = coef    # all zero: a writer's placeholder, which would hide another file's values
     if not kep_frames:
         raise RinexError(paths[0], f"{NOT_NAVIGATION}, nor is any other of the {len(paths)} files given")
     kepler = _kepler_records(pd.concat(kep_frames, ignore_index=True))
@@ -405,6 +409,8 @@ def _clean_layers(text: str, path: Path) -> tuple[list[str], list[str]]:
     record_lines = dict(_RECORD_LINES.get(version, {}))
     if version == 3 and full_version >= 3.05 - 1e-6:
         record_lines["R"] = _GLONASS_LINES_V305
+    if version == 2 and lines[0][20:21] == "H":
+        raise RinexError(path, f"{NO_SUPPORTED} (a RINEX 2 SBAS navigation file)", line=1)
     if version not in (2, 3) or not (lines[0][20:21] in ("N", "G", "E") or "NAV" in lines[0][20:40]):
         raise RinexError(path, f"{NOT_NAVIGATION} ({lines[0][:60].strip()!r})", line=1)
     start = _RECORD_START[version]
@@ -440,9 +446,7 @@ def _clean_layers(text: str, path: Path) -> tuple[list[str], list[str]]:
             sv = sv.replace(" ", "0")
             damaged.append((numbers[problem[0]], f"{problem[1]}; {sv} record of line {numbers[0]} skipped"))
             continue
-        filled = [i for i, (j, c) in enumerate(slots) if rec[j][c:c + _FIELD_W].strip()]
-        last = filled[-1] if filled else -1
-        for i, (j, c) in enumerate(slots[:last]):
+        for j, c in slots:        # every blank field, trailing ones too (a fit interval, BeiDou's AODC left out)
             if not rec[j][c:c + _FIELD_W].strip():
                 rec[j] = rec[j][:c] + _ZERO_FIELD + rec[j][c + _FIELD_W:]
         if version == 3 and rec[0][0] == "R" and n_lines == _GLONASS_LINES_V305:
@@ -460,9 +464,32 @@ def _clean_layers(text: str, path: Path) -> tuple[list[str], list[str]]:
                                f"damaged; first: {damaged[0][1]}", line=damaged[0][0])
     if not chunks:
         raise RinexError(path, "no ephemeris records")
-    head = [ln if "COMMENT" in ln[60:] else _LOWER_D.sub("D", ln) for ln in lines[: end + 1]]   # ION ALPHA 1.2d-08
+    head = [_header_line(ln) for ln in lines[: end + 1] if not ln[60:].startswith(_UNUSED_HEADER_LABELS)]
     notes += [f"{path}:{line}: {reason}" for line, reason in damaged]
     return ["\n".join(head + chunk) + "\n" for chunk in chunks.values()], notes
+
+
+#: Header lines lfgnss does not use, left out before georinex sees them: one blank number in them made it refuse the
+#: whole file (RTKLIB reads blanks as 0).
+_UNUSED_HEADER_LABELS = ("TIME SYSTEM CORR", "DELTA-UTC", "CORR TO SYSTEM TIME", "D-UTC A0,A1,T,W,S,U")
+#: Ionosphere header lines and where their 4 numbers (12 columns each) start, RINEX 3 and 2.
+_IONO_FIELDS = {"IONOSPHERIC CORR": 5, "ION ALPHA": 2, "ION BETA": 2}
+
+
+def _header_line(line: str) -> str:
+    """A header line as georinex reads it: ``d`` exponents as ``D`` (ION ALPHA 1.2d-08); a blank number of an
+    ionosphere line as 0, as RTKLIB reads it (georinex refused the file)."""
+    if "COMMENT" in line[60:]:
+        return line
+    line = _LOWER_D.sub("D", line)
+    start = next((c for label, c in _IONO_FIELDS.items() if line[60:].startswith(label)), None)
+    if start is not None:
+        line = line.ljust(80)
+        for k in range(4):
+            c = start + 12 * k
+            if not line[c:c + 12].strip():
+                line = line[:c] + "  0.0000D+00" + line[c + 12:]
+    return line
 
 
 def _adjweek(sow_s: np.ndarray, ref_s: np.ndarray) -> np.ndarray:
@@ -562,7 +589,10 @@ def _glonass_frame(raw: pd.DataFrame) -> pd.DataFrame:
     df = _frame(raw, ("R",), "X")
     if df.empty:
         return df
-    toe = utc_to_gps_s(datetime64_to_gps_s(df["time"].to_numpy()))  # GLONASS epochs are UTC
+    # GLONASS epochs are UTC, on a 15 min grid: RTKLIB's decode_geph rounds them to it (copies of a record stamped
+    # 17 s late, as brdc1580.16g has at 12:15, would else put their satellites 60 km off for 15 minutes)
+    tod_utc = datetime64_to_gps_s(df["time"].to_numpy())
+    toe = utc_to_gps_s(np.floor((tod_utc + 450.0) / 900.0) * 900.0)
     pos = np.column_stack([_col(df, c) for c in ("X", "Y", "Z")])
     vel = np.column_stack([_col(df, c) for c in ("dX", "dY", "dZ")])
     acc = np.column_stack([_col(df, c) for c in ("dX2", "dY2", "dZ2")])

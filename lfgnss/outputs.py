@@ -184,10 +184,9 @@ def _parse_pos_time(fields: list[str], scale: str) -> float:
         day = np.datetime64(date, "D")
         secs = ((day - GPS_EPOCH.astype("datetime64[D]")).astype(np.int64) * 86400
                 + h * 3600 + m * 60 + s + (float("0." + frac) if frac else 0.0))
-        if scale == "UTC":
-            secs = float(utc_to_gps_s(secs))
-        return float(secs)
-    return int(fields[0]) * SECONDS_PER_WEEK + float(fields[1])
+    else:
+        secs = int(fields[0]) * SECONDS_PER_WEEK + float(fields[1])
+    return float(utc_to_gps_s(secs)) if scale == "UTC" else float(secs)      # rnx2rtkp -u, week/TOW or calendar
 
 
 def read_pos(path: str | Path, backend: str | None = None) -> Solution:

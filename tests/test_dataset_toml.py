@@ -5,6 +5,7 @@ from __future__ import annotations
 import re
 import warnings
 
+import numpy as np
 import pytest
 
 from lfgnss import benchmark, datasets
@@ -331,3 +332,72 @@ def test_a_time_offset_moves_the_truth_and_is_refused_where_it_moves_nothing(sam
     path = _edited(sample_toml, "static-offset", 'format = "smartloc"', 'format = "static"\ntime_offset_s = 18')
     with pytest.raises(InputError, match=r"time_offset_s in \[truth\] would change nothing for a static truth"):
         datasets.register_toml(path)
+
+
+# ------------------------------------------------------------------ session 55: a user's own data (helper review)
+@pytest.mark.parametrize("old, new, message", [
+    ('id = "mine"', 'id = "../../escaped"', "id '../../escaped' must be a name of letters, digits, '.', '_' or '-'"),
+    ('id = "mine"', 'id = ""', "id '' must be a name of letters"),
+    ('id = "mine"', 'id = 3', "id 3 must be a name of letters"),
+    ("obs = [", "obs = 3\nold_obs = [", "obs must be a file name or a list of file names, got 3"),
+], ids=["path", "empty", "number", "obs-number"])
+def test_an_id_or_file_list_of_the_wrong_kind_is_one_line_naming_the_key(sample_toml, clean_registry, old, new,
+                                                                         message):
+    """An id became part of a cache path (``../../escaped`` wrote outside the cache folder); ``obs = 3`` said only
+    "'int' object is not iterable"."""
+    path = _edited(sample_toml, "mine", old, new)
+    if "old_obs" in new:
+        path.write_text(path.read_text().replace("old_obs = [", "# ["))
+    with pytest.raises(InputError, match=re.escape(f"{path}: {message}")):
+        datasets.register_toml(path)
+
+
+def test_a_folder_given_as_a_file_is_named_as_such(sample_toml, clean_registry, tmp_path):
+    path = _edited(sample_toml, "mine", f'"{SAMPLE_DIR / "brdc1580.16g.gz"}"', f'"{tmp_path}"')
+    datasets.register_toml(path)
+    assert datasets.get("mine").missing_note() == f"{tmp_path} is a folder, not a file (nav in {path})"
+
+
+def _truth_rows(tmp_path, keep_every: int = 1, repeat_shift_m: float | None = None):
+    """The bundled drive's smartLoc truth, every ``keep_every``-th row, each row twice with ``repeat_shift_m``."""
+    rows = (SAMPLE_DIR / "Berlin_Potsdamer_Platz_GT.txt").read_text().splitlines()[::keep_every]
+    if repeat_shift_m is not None:
+        twice = []
+        for row in rows:
+            f = row.split()
+            twice += [row, " ".join(f[:2] + [f"{float(f[2]) + repeat_shift_m:.7f}"] + f[3:])]
+        rows = twice
+    path = tmp_path / f"truth-{keep_every}-{repeat_shift_m}.txt"
+    path.write_text("\n".join(rows) + "\n")
+    return path
+
+
+def test_a_truth_slower_than_the_receiver_keeps_each_split_one_piece(sample_toml, clean_registry, tmp_path):
+    """A truth of every fifth row (1 Hz against 5 Hz): the epochs between stay in the split's piece, solved and not
+    scored, where each labelled epoch used to be a piece of its own (and training found no window)."""
+    datasets.register_toml(sample_toml("sparse", truth=_truth_rows(tmp_path, keep_every=5)))
+    pieces = datasets.load_split("sparse", "train")
+    assert len(pieces) == 1 and len(pieces[0]) > 600 and 100 < int(pieces[0].labelled.sum()) < 200
+    from learning.data import make_windows
+    assert make_windows(pieces, length=100, stride=50)
+
+
+def test_repeated_truth_times_are_dropped_or_refused(sample_toml, clean_registry, tmp_path):
+    """A row given twice labels as once; two positions at one time are refused (the later one used to win)."""
+    datasets.register_toml(sample_toml("twice", truth=_truth_rows(tmp_path, repeat_shift_m=0.0)))
+    once = datasets.build("twice")
+    assert int(once.labelled.sum()) == 1372
+    datasets.register_toml(sample_toml("apart", truth=_truth_rows(tmp_path, repeat_shift_m=111.0)))
+    with pytest.raises(InputError, match="row\\(s\\) repeat another row's time with another position .* 111.0 m "
+                                         "apart\\): which one is the truth"):
+        datasets.build("apart")
+
+
+def test_a_truth_in_radians_is_named_so():
+    """Latitude and longitude written in radians lie thousands of km off; the note says what they look like."""
+    from lfgnss.frames import lla_to_ecef
+    fix = lla_to_ecef(np.radians([52.5] * 3), np.radians([13.4] * 3), np.full(3, 40.0)).reshape(3, 3)
+    radians = lla_to_ecef(np.radians([0.916] * 3), np.radians([0.234] * 3), np.full(3, 40.0)).reshape(3, 3)
+    spec = datasets.DatasetSpec("rad", ["a.obs"], ["a.nav"], "t.csv", "llh")
+    notes = datasets.truth_fit_notes(spec, np.arange(3.0), radians, fix)
+    assert len(notes) == 1 and "look like radians, not degrees" in notes[0]

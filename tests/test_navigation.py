@@ -192,11 +192,12 @@ def _records_in(path: Path) -> int:
     (f"{STATIC}/hksc155c.20b", {"C"}),
 ], ids=lambda v: v if isinstance(v, str) else "")
 def test_every_record_survives(shared_data, rel, systems):
-    """No record is lost to georinex (blank BeiDou spare fields, RINEX 2 duplicate epochs)."""
+    """No record is lost to georinex (blank BeiDou spare fields, RINEX 2 duplicate epochs); brdc1580.16g's six
+    copies stamped 12:15:17 are its 12:15:00 records (GLONASS epochs on the 15 min grid, as RTKLIB takes them)."""
     path = shared_data(rel)
     nav = load_nav(path)
     assert set(nav.kepler.system) | ({"R"} if len(nav.glonass) else set()) == systems
-    assert len(nav.kepler) + len(nav.glonass) == _records_in(path)
+    assert len(nav.kepler) + len(nav.glonass) == _records_in(path) - (6 if rel.endswith("brdc1580.16g") else 0)
     assert np.all(np.isfinite(nav.kepler.sqrt_a_sqrt_m)) and np.all(np.isfinite(nav.kepler.toe_gps_s))
 
 
@@ -626,3 +627,49 @@ def test_glonass_propagation_is_bounded_and_a_non_finite_state_is_not_ok(bundled
 
     assert qc.REASONS[int(qc.ephemeris_reason(states.reason)[0])] == "invalid ephemeris"     # counted as such
     assert ephemeris_states(nav, np.array(["R01"]), g.toe_gps_s[:1] + 60.0).ok[0]
+
+
+# ---------------------------------------------------------------- session 55: a review against RTKLIB 2.4.3 b34
+def test_glonass_epochs_are_on_the_15_minute_grid(tmp_path):
+    """RTKLIB's decode_geph rounds a GLONASS epoch to 15 min of UTC: a copy stamped 17 s late (brdc1580.16g has six
+    at 12:15:17) is the same record, not one that moves its satellite 60 km for a quarter of an hour."""
+    head, rec = GLONASS_RINEX2.split("END OF HEADER\n")
+    path = tmp_path / "late.16g"
+    path.write_text(head + "END OF HEADER\n" + rec + rec.replace(" 11 15  0.0", " 11 15 17.0", 1))
+    g = load_nav(path).glonass
+    assert len(g) == 1 and g.toe_gps_s[0] == week_tow_to_gps_s(1900, 126900.0 + 17.0)    # 11:15:00 UTC
+
+
+def test_blank_trailing_fields_and_header_numbers_are_read_as_zero(tmp_path):
+    """RTKLIB reads a blank field as 0; georinex refused the file for a blank fit interval, a blank ionosphere
+    coefficient or a blank DELTA-UTC number."""
+    head, rec = GPS_RINEX2.split("END OF HEADER\n")
+    lines = rec.splitlines()
+    lines[-1] = lines[-1][:22]                                   # fit interval and spares left out
+    head = head.replace("    0.8602D+05  0.9830D+05", "    0.8602D+05            ")      # ION BETA's second
+    head = head.replace("0.799360577730D-14", " " * 18)                                 # DELTA-UTC's A1
+    path = tmp_path / "blank.16n"
+    path.write_text(head + "END OF HEADER\n" + "\n".join(lines) + "\n")
+    nav = load_nav(path)
+    assert len(nav.kepler) == 1 and nav.kepler.sqrt_a_sqrt_m[0] == pytest.approx(5153.57678223)
+    assert nav.iono["GPS"][4:6].tolist() == [86020.0, 0.0]
+
+
+def test_an_sbas_file_among_several_is_left_out_and_zero_ionosphere_hides_nothing(tmp_path):
+    head, rec = GPS_RINEX2.split("END OF HEADER\n")
+    sbas = tmp_path / "brdc1580.16h"
+    sbas.write_text("     2.10           H: GEO NAV MSG DATA                     RINEX VERSION / TYPE\n"
+                    + " " * 60 + "END OF HEADER\n")
+    zero = tmp_path / "zero.16n"
+    zero.write_text(head.replace("0.6519D-08  0.2235D-07 -0.5960D-07 -0.1192D-06",
+                                 "0.0000D+00  0.0000D+00  0.0000D+00  0.0000D+00")
+                    .replace("0.8602D+05  0.9830D+05 -0.6554D+05 -0.5243D+06",
+                             "0.0000D+00  0.0000D+00  0.0000D+00  0.0000D+00") + "END OF HEADER\n" + rec)
+    real = tmp_path / "real.16n"
+    real.write_text(GPS_RINEX2)
+    with pytest.warns(RinexWarning):
+        nav = load_nav([zero, sbas, real])
+    assert any("brdc1580.16h: no GPS/Galileo/QZSS/BeiDou/GLONASS ephemeris records" in w for w in nav.warnings)
+    assert nav.iono["GPS"][0] == pytest.approx(0.6519e-8)        # the placeholder zeros of the first file hid it
+    with pytest.raises(RinexError, match="no GPS/Galileo/QZSS/BeiDou/GLONASS ephemeris records"):
+        load_nav(sbas)

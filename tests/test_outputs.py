@@ -84,7 +84,7 @@ def test_pos_round_trip(tmp_path, time_format):
     keep = sol.status != STATUS_NONE
     assert back.backend == "ekf"
     assert len(back.time_gps_s) == keep.sum()
-    np.testing.assert_allclose(back.time_gps_s, np.round(sol.time_gps_s[keep], 3), atol=1e-6)
+    np.testing.assert_allclose(back.time_gps_s, np.round(sol.time_gps_s[keep], 3), rtol=0, atol=1e-6)
     np.testing.assert_allclose(back.pos_ecef_m, sol.pos_ecef_m[keep], atol=2e-4)
     np.testing.assert_array_equal(back.n_used, sol.n_used[keep])
     np.testing.assert_array_equal(back.info["q"], np.where(sol.status[keep] == STATUS_COASTED, 7, 5))
@@ -102,7 +102,7 @@ def test_pos_layout_matches_rtklib(tmp_path):
     src.write_bytes(RTKLIB_SNIPPET.encode())
     sol = read_pos(src)
     assert sol.backend == "rtklib" and len(sol.time_gps_s) == 4
-    np.testing.assert_allclose(sol.time_gps_s[0], week_tow_to_gps_s(1900, 126645.2), atol=1e-6)
+    np.testing.assert_allclose(sol.time_gps_s[0], week_tow_to_gps_s(1900, 126645.2), rtol=0, atol=1e-6)
     np.testing.assert_array_equal(sol.n_used, [8, 8, 4, 4])
     assert np.all(sol.status == STATUS_UPDATED)
     out = write_pos(tmp_path / "ours.pos", sol)
@@ -144,7 +144,8 @@ def test_read_pos_ecef_and_week_tow(tmp_path):
 
 @pytest.mark.shared_data
 @pytest.mark.skipif(shutil.which("rnx2rtkp") is None, reason="RTKLIB rnx2rtkp not installed")
-@pytest.mark.parametrize("opts", [["-t"], [], ["-t", "-u"], ["-e"]], ids=["gpst", "tow", "utc", "ecef"])
+@pytest.mark.parametrize("opts", [["-t"], [], ["-t", "-u"], ["-u"], ["-e"]],
+                         ids=["gpst", "tow", "utc", "utc-tow", "ecef"])         # -u: UTC, weeks and TOW too
 def test_read_pos_parses_real_rtklib_output(tmp_path, opts):
     d = shared_data_dir() / "smartloc-berlin-potsdamer-platz-rinex"
     obs, nav = d / "Berlin_Potsdamer_Platz.obs", d / "brdc1580.16n"
@@ -157,7 +158,7 @@ def test_read_pos_parses_real_rtklib_output(tmp_path, opts):
     n_lines = sum(1 for line in out.read_text().splitlines() if line and not line.startswith("%"))
     assert len(sol.time_gps_s) == n_lines > 100
     assert np.isfinite(sol.pos_ecef_m).all() and np.isfinite(sol.cov_ecef_m2).all()
-    np.testing.assert_allclose(sol.time_gps_s[0], week_tow_to_gps_s(1900, 126645.2), atol=1e-6)
+    np.testing.assert_allclose(sol.time_gps_s[0], week_tow_to_gps_s(1900, 126645.2), rtol=0, atol=1e-6)
     assert np.all(np.diff(sol.time_gps_s) > 0)
     assert np.linalg.norm(sol.pos_ecef_m - sol.pos_ecef_m[0], axis=1).max() < 5e3  # one city block drive
     if opts in (["-t"], []):
