@@ -561,7 +561,23 @@ def load_sequences(dataset_id: str, split: str, config: dict) -> list[Sequence]:
     for path in config["data"].get("register", []):        # the user's own datasets, by TOML file
         register_toml(path)
     get(dataset_id, hint=REGISTER_HINT)                     # unknown: how these commands register one
-    return list(load_split(dataset_id, split, feature_names=tuple(config["data"]["features"])))
+    pieces = list(load_split(dataset_id, split, feature_names=tuple(config["data"]["features"])))
+    _refuse_far_truth(dataset_id, split, pieces)
+    return pieces
+
+
+def _refuse_far_truth(dataset_id: str, split: str, pieces: list[Sequence]) -> None:
+    """ValueError where the truth lies a median beyond ``TRUTH_MISMATCH_M`` from the coarse fixes: a truth of
+    another drive, in radians, or shifted in time would teach the network wrong labels (building it warns why)."""
+    from lfgnss.datasets import TRUTH_MISMATCH_M
+
+    gaps = [np.linalg.norm(s.truth_ecef_m - s.coarse_ecef_m, axis=1) for s in pieces]
+    gaps = np.concatenate(gaps) if gaps else np.zeros(0)
+    gaps = gaps[np.isfinite(gaps)]
+    if gaps.size and float(np.median(gaps)) > TRUTH_MISMATCH_M:
+        raise ValueError(f"{dataset_id}/{split}: the truth lies a median {np.median(gaps) / 1000:.1f} km from the "
+                         f"receiver's coarse fixes ({gaps.size} epochs), so training would learn from wrong labels; "
+                         f"mend the truth file first (python -m lfgnss.datasets --register ... says what looks wrong)")
 
 
 def source_file_hashes(dataset_id: str) -> dict[str, str]:

@@ -419,8 +419,8 @@ def _clean_layers(text: str, path: Path) -> tuple[list[str], list[str]]:
     records: list[tuple[list[int], list[str]]] = []   # (line numbers, lines)
     orphans: list[int] = []
     for i, ln in enumerate(lines[end + 1:], start=end + 2):
-        if start.match(ln):
-            records.append(([i], [ln]))
+        if start.match(ln) or version == 3 and _RECORD_START[2].match(ln):   # a RINEX 2 epoch line in a 3.0x
+            records.append(([i], [ln]))         # file is a (damaged) record of its own, not part of the one before
         elif records and ln.strip():
             records[-1][0].append(i)
             records[-1][1].append(ln)

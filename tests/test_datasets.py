@@ -74,6 +74,22 @@ def test_training_registers_user_datasets_named_in_its_config(tmp_path, monkeypa
     assert "my-berlin" in datasets.registered() and len(val) == 1 and 90 < len(val[0]) < 110
 
 
+def test_training_refuses_a_truth_kilometres_from_the_fixes(tmp_path, monkeypatch, sample_toml):
+    """A truth of another place (here the drive's truth moved 100 km) warned when built and was trained on all the
+    same: learning.train refuses it, naming the distance."""
+    from learning.train import load_config, load_sequences
+
+    monkeypatch.setenv("LFGNSS_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setattr(datasets, "_REGISTRY", {})
+    rows = [line.split() for line in (SAMPLE_DIR / "Berlin_Potsdamer_Platz_GT.txt").read_text().splitlines()]
+    far = [" ".join(r[:2] + [f"{float(r[2]) + 1e5:.4f}"] + r[3:]) for r in rows]
+    (tmp_path / "Berlin_Potsdamer_Platz_GT.txt").write_text("\n".join(far) + "\n")
+    config = load_config(None, [f'data.register=["{_user_toml(sample_toml)}"]', 'data.datasets=["my-berlin"]'])
+    with pytest.raises(ValueError, match=r"my-berlin/val: the truth lies a median 10\d\.\d km from the receiver's "
+                                         r"coarse fixes .* training would learn from wrong labels"):
+        load_sequences("my-berlin", "val", config)
+
+
 def test_truth_file_with_bad_lines(tmp_path, sample_toml):
     lines = (SAMPLE_DIR / "Berlin_Potsdamer_Platz_GT.txt").read_text().splitlines()
     lines[2] = "point3 0.5 37851x5.7 899901.8 5037236.1 0 0 0"

@@ -673,3 +673,13 @@ def test_an_sbas_file_among_several_is_left_out_and_zero_ionosphere_hides_nothin
     assert nav.iono["GPS"][0] == pytest.approx(0.6519e-8)        # the placeholder zeros of the first file hid it
     with pytest.raises(RinexError, match="no GPS/Galileo/QZSS/BeiDou/GLONASS ephemeris records"):
         load_nav(sbas)
+
+
+def test_a_rinex2_record_in_a_rinex3_file_costs_no_record_before_it(tmp_path):
+    """A record in the RINEX 2 layout inside a 3.0x file is skipped on its own; it was glued onto the record before it,
+    which was skipped (with a note blaming it) in its place."""
+    v2_record = GPS_RINEX2.split("END OF HEADER\n")[1].strip("\n").split("\n")
+    path = _nav3(tmp_path / "m.rnx", "3.04", [GPS_REC_V3, v2_record])
+    with pytest.warns(RinexWarning, match=r"m.rnx:12: unreadable satellite number or epoch"):
+        nav = load_nav(path)
+    assert nav.kepler.sv.tolist() == ["G02"]
