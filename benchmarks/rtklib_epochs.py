@@ -62,7 +62,7 @@ def run(dataset_ids: list[str], splits: tuple[str, ...] = SPLITS) -> list[dict]:
     rows = []
     for dataset_id in datasets.present(list(dataset_ids)):
         with tempfile.TemporaryDirectory() as tmp:
-            rtk, _ = rtklib_solution(datasets.get(dataset_id), Path(tmp))
+            rtk, _ = rtklib_solution(datasets.get(dataset_id), Path(tmp), tuple(datasets.build(dataset_id).systems))
         if rtk is None:
             print(f"{dataset_id}: no RTKLIB solution (rnx2rtkp missing, or see above): left out", file=sys.stderr)
             continue

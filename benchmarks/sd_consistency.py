@@ -101,9 +101,8 @@ def main(argv: list[str] | None = None) -> int:
         table = markdown_table(rows_for(seq))
     command = shlex.join(["python", "benchmarks/sd_consistency.py", *(sys.argv[1:] if argv is None else argv)])
     text = (f"# Are the reported standard deviations calibrated?\n\nProduced by `{command}` on the bundled Berlin "
-            f"drive (lfgnss/data/berlin-potsdamer-platz, all {len(seq)} epochs, {int(seq.labelled.sum())} with truth; the "
-            "drive of shared/BENCHMARK.md's "
-            "berlin-pp, every split). Calibrated 1-sigma sds would put 68 % of the errors within 1 sd, 99.7 % within "
+            f"drive (lfgnss/data/berlin-potsdamer-platz, all {len(seq)} epochs, {int(seq.labelled.sum())} with "
+            "truth; the drive of shared/BENCHMARK.md's berlin-pp, every split). Calibrated 1-sigma sds would put 68 % of the errors within 1 sd, 99.7 % within "
             "3 sd, and give a mean NEES of 3. The EKF's rows without \"formal\" are inflated by its pseudorange "
             "residuals (`estimators.consistency`, the default: `inflate_cov=True`); its form and time constant were "
             "chosen on the validation rows below (docs/findings.md), and the test rows only report. The factor "

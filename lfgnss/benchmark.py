@@ -336,7 +336,8 @@ def rtklib_solution(spec, workdir: Path, systems: tuple[str, ...] | None = None)
         print(f"{spec.id}: RTKLIB row left out: the dataset has {len(spec.obs)} obs files", file=sys.stderr)
         return None, None
     try:
-        return spp_solution(spec.obs[0], list(spec.nav), workdir / f"{spec.id}.pos", systems=spec.systems or systems or ("G",))
+        return spp_solution(spec.obs[0], list(spec.nav), workdir / f"{spec.id}.pos",
+                            systems=spec.systems or systems or ("G",))
     except (RtklibError, ValueError) as err:  # rnx2rtkp failed, hung or wrote an unreadable .pos: an optional row
         # cut: an rnx2rtkp command line names every file of the dataset
         print(f"warning: {spec.id}: RTKLIB row left out: {shortened(one_line(err), 300)}", file=sys.stderr)

@@ -66,9 +66,8 @@ if TYPE_CHECKING:
     from .observations import Observations
 
 # 9: no-fix epochs at the last earlier fix, cn0_std without blank C/N0; 8: truth interpolated between rows;
-# 7: spp restarts from a wrong header
+# 7: spp restarts from a wrong header position; 6: several obs files joined
 _BUILD_VERSION = 9
-                                   # position; 6: several obs files joined
 SPLITS = ("train", "val", "test")
 SPLIT_AXES = ("tow", "relative_s", "epoch")
 #: Rows of a ``static`` truth file farther than this from its first row are not one point [m].
@@ -209,6 +208,8 @@ def _dataset_key(spec: DatasetSpec) -> DatasetSpec:
 #: The keys a dataset TOML may hold, at the top and in its tables (see the module docstring).
 TOML_KEYS = ("id", "obs", "nav", "systems", "description", "truth", "splits")
 TRUTH_KEYS = ("file", "format", "match_tolerance_s", "time_origin_gps_s", "time_offset_s")
+#: Truth formats that give latitude and longitude (in degrees), where a file in radians can be named as such.
+GEODETIC_TRUTH_FORMATS = ("urbannav", "static", "pos")
 #: Truth rows of one time whose positions lie farther apart than this [m] are refused (which one is the truth?).
 TRUTH_REPEAT_M = 1.0
 #: A dataset id of one's own: it names cache files, so no path separators (``my-drive``, ``hk_2021.a``).
@@ -650,8 +651,9 @@ def truth_fit_notes(spec: DatasetSpec, time_gps_s: np.ndarray, truth_ecef_m: np.
             origin = f", or a wrong {_origin_words(spec)}" if spec.truth_format == "smartloc" else ""
             lat, lon = (np.degrees(a) for a in ecef_to_lla(truth[both]).reshape(-1, 3).T[:2])
             fix_lat, fix_lon = (np.degrees(a) for a in ecef_to_lla(fix[both]).reshape(-1, 3).T[:2])
-            if (np.abs(lat) <= 90 / 57.29).all() and (np.abs(lon) <= 360 / 57.29).all() and not (
-                    (np.abs(fix_lat) <= 90 / 57.29).all() and (np.abs(fix_lon) <= 360 / 57.29).all()):
+            if spec.truth_format in GEODETIC_TRUTH_FORMATS and (np.abs(lat) <= 90 / 57.29).all() and (
+                    np.abs(lon) <= 360 / 57.29).all() and not ((np.abs(fix_lat) <= 90 / 57.29).all()
+                                                                and (np.abs(fix_lon) <= 360 / 57.29).all()):
                 origin += " (its latitudes and longitudes, all within 1.6 and 6.3, look like radians, not degrees)"
             notes.append(f"{spec.truth}: the truth lies a median {distance} from the receiver's least-squares fixes "
                          f"(on {int(both.sum())} epochs): a truth file of another drive or place{origin}? It is scored "

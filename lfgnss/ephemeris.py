@@ -14,7 +14,7 @@ import numpy as np
 from .constants import (GM_BDS_M3_S2, GM_GAL_M3_S2, GM_GPS_M3_S2, OMEGA_EARTH_BDS_RAD_S, OMEGA_EARTH_RAD_S,
                         SPEED_OF_LIGHT_M_S)
 from .glonass import propagate
-from .navigation import KeplerEphemerides, Navigation
+from .navigation import KeplerEphemerides, Navigation, effective_health
 from .time import BDT_MINUS_GPST_S, SECONDS_PER_WEEK
 
 #: Largest |t - toe| [s] at which an ephemeris is used: RTKLIB 2.4.3's seleph / selgeph limits, MAXDTOE,
@@ -26,8 +26,7 @@ MAX_AGE_S = {"G": 7201.0, "J": 7201.0, "E": 14400.0, "C": 21601.0, "R": 1800.0}
 MAX_URA_M = 192.0
 #: Galileo SISA [m] beyond which RTKLIB takes "no accuracy prediction available" (500 m, excluded): -1 or above 6.
 MAX_SISA_M = 6.0
-#: QZSS health bits that concern L1 C/A users: RTKLIB masks the lowest (L6/LEX) bit (``svh &= 0xFE``, satexclude).
-QZSS_HEALTH_MASK = 0xFE
+
 _GM = {"G": GM_GPS_M3_S2, "J": GM_GPS_M3_S2, "E": GM_GAL_M3_S2, "C": GM_BDS_M3_S2}
 _OMEGA_E = {"G": OMEGA_EARTH_RAD_S, "J": OMEGA_EARTH_RAD_S, "E": OMEGA_EARTH_RAD_S, "C": OMEGA_EARTH_BDS_RAD_S}
 _SIN_M5, _COS_M5 = np.sin(np.deg2rad(-5.0)), np.cos(np.deg2rad(-5.0))
@@ -55,7 +54,9 @@ class SatelliteStates:
     toe_gps_s: np.ndarray        #: (M,) toe of the selected ephemeris (NaN if none)
     health: np.ndarray           #: (M,) int health word of the selected ephemeris (-1 if none)
     ok: np.ndarray               #: (M,) bool
-    reason: np.ndarray           #: (M,) str: '' | 'no ephemeris' | 'ephemeris expired' | 'unhealthy' | 'inaccurate ephemeris' (its URA / SISA) | 'invalid time' | 'invalid ephemeris' (a non-finite state)
+    #: (M,) str: '' | 'no ephemeris' | 'ephemeris expired' | 'unhealthy' | 'inaccurate ephemeris' (its URA / SISA)
+    #: | 'invalid time' | 'invalid ephemeris' (a non-finite state)
+    reason: np.ndarray
 
     def __len__(self) -> int:
         return len(self.sv)
@@ -142,7 +143,7 @@ def ephemeris_states(nav: Navigation, sv: np.ndarray, t_gps_s: np.ndarray, *,
             drift[rows] = glo.gamma_n[sel]
             tgd[rows], toe[rows], health[rows] = 0.0, glo.toe_gps_s[sel], glo.health[sel]
 
-    unhealthy = (reason == "") & (np.where(system == "J", health & QZSS_HEALTH_MASK, health) != 0)
+    unhealthy = (reason == "") & (effective_health(system, health) != 0)
     reason[unhealthy] = "unhealthy"
     reason[(reason == "") & inaccurate(system, accuracy)] = "inaccurate ephemeris"
     broken = (reason == "") & ~(np.isfinite(pos).all(axis=1) & np.isfinite(clk))

@@ -55,7 +55,7 @@ def check_feature_names(names: tuple[str, ...] | list[str]) -> tuple[str, ...]:
 
 
 def _reference_positions(fix: CoarseFix, approx_ecef_m: np.ndarray) -> np.ndarray:
-    """(T, 3) the coarse fix, or for epochs without one the last earlier fix [m] (the first fix before it).
+    """(T, 3) the coarse fix, or for epochs without one the last earlier fix [m] (before the first fix: the first).
 
     Never a later fix after the first: a forward filter's features must not depend on epochs still to come (the
     nearest fix in time did, up to 14 s ahead on hk-tst-2019). Epochs before the first fix start no estimator."""

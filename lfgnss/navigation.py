@@ -121,7 +121,8 @@ class Navigation:
     warnings: tuple[str, ...] = ()
 
 
-_CACHE_VERSION = 6       # 6: GLONASS epochs on the 15 min grid, blank trailing fields; 5: accuracy_m
+_CACHE_VERSION = 7       # 7: RINEX 2 records in 3.0x files, damaged QZSS L6-flagged records; 6: GLONASS epochs on
+#                          the 15 min grid, blank trailing fields; 5: accuracy_m, GLONASS channels past 128
 
 
 def load_nav(paths: str | Path | Iterable[str | Path], *, cache: bool = True) -> Navigation:
@@ -218,7 +219,7 @@ def _parse_nav(paths: list[Path]) -> Navigation:
         glo, glo_notes = _plausible(_glonass_frame(raw), GLONASS_LIMITS)
         impossible = kep_notes + glo_notes
         if kep.empty and glo.empty:
-            if len(paths) > 1 and not impossible:           # SBAS or IRNSS records only: of no use here
+            if len(paths) > 1 and not impossible:   # no record of a system lfgnss reads (SBAS, IRNSS): of no use
                 notes.append(f"{path}: {NO_SUPPORTED}: {LEFT_OUT}")
                 continue
             first = f": every record impossible, e.g. {impossible[0]}" if impossible else ""
@@ -231,6 +232,8 @@ def _parse_nav(paths: list[Path]) -> Navigation:
             if key not in iono and coef.size == 8 and np.all(np.isfinite(coef)) and np.any(coef != 0):
                 iono[key] = coef    # all zero: a writer's placeholder, which would hide another file's values
     if not kep_frames:
+        if all(f": {NO_SUPPORTED}" in n for n in notes if n.endswith(LEFT_OUT)):    # SBAS files only
+            raise RinexError(paths[0], f"{NO_SUPPORTED} in any of the {len(paths)} files given")
         raise RinexError(paths[0], f"{NOT_NAVIGATION}, nor is any other of the {len(paths)} files given")
     kepler = _kepler_records(pd.concat(kep_frames, ignore_index=True))
     glonass = _glonass_records(pd.concat(glo_frames, ignore_index=True))
@@ -248,6 +251,16 @@ GLONASS_LIMITS = (("radius_m", 2.0e7, 3.5e7, "orbit radius [m]"), ("speed_m_s", 
                   ("tau_n_s", -0.01, 0.01, "clock offset tau_n [s]"))
 
 
+#: QZSS health bits that concern L1 C/A users: RTKLIB masks the lowest (L6/LEX) bit (``svh &= 0xFE``, satexclude).
+QZSS_HEALTH_MASK = 0xFE
+
+
+def effective_health(system: np.ndarray, health: np.ndarray) -> np.ndarray:
+    """The health words that exclude a satellite from L1 single-frequency use: QZSS's without its L6 bit."""
+    health = np.asarray(health).astype(int)
+    return np.where(np.asarray(system) == "J", health & QZSS_HEALTH_MASK, health)
+
+
 def _plausible(df: pd.DataFrame, limits: tuple) -> tuple[pd.DataFrame, list[str]]:
     """The records of ``df`` whose values are within ``limits`` (or that are flagged unhealthy, so never used),
     and one note per satellite with records skipped (without the file name)."""
@@ -256,7 +269,8 @@ def _plausible(df: pd.DataFrame, limits: tuple) -> tuple[pd.DataFrame, list[str]
     values = {"radius_m": lambda: np.linalg.norm(df[["x", "y", "z"]].to_numpy(float), axis=1),
               "speed_m_s": lambda: np.linalg.norm(df[["vx", "vy", "vz"]].to_numpy(float), axis=1)}
     bad = np.zeros(len(df), bool)
-    unhealthy = df["health"].to_numpy() != 0     # flagged unusable anyway: kept, so its flag stays in force
+    system = df["system"].to_numpy() if "system" in df else np.full(len(df), "R")
+    unhealthy = effective_health(system, df["health"].to_numpy()) != 0   # unusable anyway: kept, its flag in force
     why = np.full(len(df), "", dtype=object)
     for column, low, high, what in limits:
         v = values[column]() if column in values else df[column].to_numpy(float)
@@ -591,8 +605,8 @@ def _glonass_frame(raw: pd.DataFrame) -> pd.DataFrame:
         return df
     # GLONASS epochs are UTC, on a 15 min grid: RTKLIB's decode_geph rounds them to it (copies of a record stamped
     # 17 s late, as brdc1580.16g has at 12:15, would else put their satellites 60 km off for 15 minutes)
-    tod_utc = datetime64_to_gps_s(df["time"].to_numpy())
-    toe = utc_to_gps_s(np.floor((tod_utc + 450.0) / 900.0) * 900.0)
+    utc_s = datetime64_to_gps_s(df["time"].to_numpy())      # UTC seconds since 1980-01-06
+    toe = utc_to_gps_s(np.floor((utc_s + 450.0) / 900.0) * 900.0)
     pos = np.column_stack([_col(df, c) for c in ("X", "Y", "Z")])
     vel = np.column_stack([_col(df, c) for c in ("dX", "dY", "dZ")])
     acc = np.column_stack([_col(df, c) for c in ("dX2", "dY2", "dZ2")])

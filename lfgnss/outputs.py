@@ -393,7 +393,7 @@ def write_geojson(path: str | Path, solution: Solution, *, points: bool = False)
     idx, lonlath = _track(solution)
     coords = [[round(float(a), 9), round(float(b), 9), round(float(c), 4)] for a, b, c in lonlath]
     features = []
-    if coords:              # a LineString needs two positions: one is a Point
+    if len(coords) >= 2 or coords and not points:      # a LineString needs two positions: one is a Point
         geometry = ({"type": "LineString", "coordinates": coords} if len(coords) >= 2
                     else {"type": "Point", "coordinates": coords[0]})
         features.append({"type": "Feature", "geometry": geometry,
@@ -428,7 +428,7 @@ def write_kml(path: str | Path, solution: Solution, *, points: bool = False) -> 
         parts += [f"<Placemark><name>{name} track</name><styleUrl>#track</styleUrl><LineString>",
                   "<tessellate>1</tessellate><altitudeMode>clampToGround</altitudeMode>",
                   f"<coordinates>{coord_text}</coordinates>", "</LineString></Placemark>"]
-    elif len(idx) == 1:     # a LineString needs two positions
+    elif len(idx) == 1 and not points:      # a LineString needs two positions
         parts += [f"<Placemark><name>{name} fix</name><Point><altitudeMode>clampToGround</altitudeMode>",
                   f"<coordinates>{coord_text}</coordinates></Point></Placemark>"]
     if points:
@@ -446,8 +446,8 @@ def write_kml(path: str | Path, solution: Solution, *, points: bool = False) -> 
 # ---------------------------------------------------------------- plots
 def align_to(time_gps_s: np.ndarray, other: Solution) -> np.ndarray:
     """Positions (T, 3) of ``other`` at the epochs ``time_gps_s`` [s]: each epoch takes ``other``'s nearest epoch
-    within 0.05 s (the benchmark's 0.1 s time match), or within half the spacing of ``time_gps_s`` where that is
-    shorter (a receiver faster than 10 Hz), so no epoch of ``other`` serves two.
+    within 0.05 s (the benchmark's 0.1 s time match), or within half the time to its neighbouring epochs where that
+    is shorter (a receiver faster than 10 Hz), so an epoch of ``other`` serves two only at an exact midpoint.
 
     NaN where ``other`` has no position at that epoch (benchmark rule for matching epochs).
     """
@@ -457,15 +457,18 @@ def align_to(time_gps_s: np.ndarray, other: Solution) -> np.ndarray:
     out = np.full((len(t), 3), np.nan)
     if not len(ot) or not len(t):
         return out
-    spacing = np.diff(np.unique(t))
-    tol = min(0.05, 0.5 * spacing.min()) if spacing.size else 0.05
-    order = np.argsort(ot, kind="stable")
-    st = ot[order]
+    order = np.argsort(t, kind="stable")
+    gaps = np.diff(t[order])
+    nearest = np.minimum(np.r_[np.inf, gaps], np.r_[gaps, np.inf])       # to each epoch's nearer neighbour
+    tol = np.empty(len(t))
+    tol[order] = np.minimum(0.05, 0.5 * nearest)
+    other_order = np.argsort(ot, kind="stable")
+    st = ot[other_order]
     right = np.clip(np.searchsorted(st, t), 0, len(st) - 1)
     left = np.clip(right - 1, 0, len(st) - 1)
     j = np.where(np.abs(st[left] - t) <= np.abs(st[right] - t), left, right)
     hit = np.abs(st[j] - t) <= tol + 1e-9       # times are rounded to ms in .pos files: a float's last bits aside
-    out[hit] = opos[order[j[hit]]]
+    out[hit] = opos[other_order[j[hit]]]
     return out
 
 

@@ -31,7 +31,7 @@ from .time import datetime64_to_gps_s, utc_to_gps_s
 if TYPE_CHECKING:
     import pandas as pd
 
-_PARSER_VERSION = 8       # 8: 0.000 pseudoranges missing, event lines without a time, RTKLIB code order
+_PARSER_VERSION = 8       # 8: 0.000 pseudoranges missing, events (no time, flag 6, types), code order, Doppler
 _GPS_EPOCH = dt.datetime(1980, 1, 6)
 _SV_RE = re.compile(r"^[GRECJSI][ 0-9][0-9]$")
 _V2_RECORD_LIKE = re.compile(r"^[ 0-9.\-]*[0-9][ 0-9.\-]*$")  # digits, blanks, points, signs only
@@ -291,9 +291,11 @@ def _choose_codes(fields, version: float, path: Path, problems: list[str]) -> di
                                 f"its satellites are skipped")
             continue
         cn0 = ("S" + code[1:]) if ("S" + code[1:]) in types else ("S1" if "S1" in types and version < 3 else None)
-        # the code's own Doppler, else another of its band (a carrier's Doppler does not depend on the code)
-        dop = ("D" + code[1:]) if ("D" + code[1:]) in types else next((t for t in types if t[:2] == "D" + code[1]),
-                                                                          None)
+        # the code's own Doppler, else another of its band in the order of preference of the codes (a carrier's
+        # Doppler does not depend on the code)
+        band = sorted((t for t in types if t[:2] == "D" + code[1]),
+                      key=lambda t: prefs.index("C" + t[1:]) if "C" + t[1:] in prefs else len(prefs))
+        dop = ("D" + code[1:]) if ("D" + code[1:]) in types else (band[0] if band else None)
         fallback = next((c for c in prefs[prefs.index(code) + 1:] if c in types), None) if version < 3 else None
         chosen[system] = (types.index(code), types.index(cn0) if cn0 else -1, types.index(dop) if dop else -1, code,
                           types.index(fallback) if fallback else -1, fallback or "")
@@ -363,7 +365,7 @@ def _cut_v3(body, n_header, path, info, problems):
         event = _V3_EVENT_RE.match(ln)
         if event:
             flag, nsat = int(event[1]), int(event[2])
-            if _types_redefined(body[i + 1: i + 1 + nsat], path, lineno, problems):
+            if _types_redefined(body[i + 1: i + 1 + nsat], info, path, lineno, problems):
                 break
             i += 1 + nsat
             continue
@@ -379,7 +381,7 @@ def _cut_v3(body, n_header, path, info, problems):
                 i += 1
             continue
         if flag > 1:  # event records: nsat special lines follow
-            if 2 <= flag <= 5 and _types_redefined(body[i + 1: i + 1 + nsat], path, lineno, problems):
+            if 2 <= flag <= 5 and _types_redefined(body[i + 1: i + 1 + nsat], info, path, lineno, problems):
                 break
             i += 1 + nsat
             continue
@@ -431,7 +433,7 @@ def _cut_v2(body, n_header, path, info, problems):
             i += n_sv_lines + nsat * lines_per_sat
             continue
         if flag > 1:    # events: nsat special records
-            if _types_redefined(body[i + 1: i + 1 + nsat], path, lineno, problems):
+            if _types_redefined(body[i + 1: i + 1 + nsat], info, path, lineno, problems):
                 break
             i += 1 + nsat
             continue
@@ -488,15 +490,27 @@ def _next_v2_epoch(body: list[str], i: int) -> int:
     return i
 
 
-def _types_redefined(special: list[str], path: Path, lineno: int, problems: list[str]) -> bool:
-    """Whether an event's special records redefine the observation types (with a note): lfgnss reads the header's
-    types for the whole file, so the epochs after that event, whose columns may differ, are left out."""
-    label = next((lab for r in special for lab in _TYPES_LABELS if r[60:].strip().startswith(lab)), None)
-    if label:
+def _types_redefined(special: list[str], info: dict, path: Path, lineno: int, problems: list[str]) -> bool:
+    """Whether an event's special records give observation types other than the header's (with a note): lfgnss reads
+    the header's types for the whole file, so the epochs after that event, whose columns differ, are left out. The
+    header's own types repeated (a spliced file) change nothing."""
+    lines = [r for r in special if r[60:].strip().startswith(_TYPES_LABELS)]
+    if not lines:
+        return False
+    label = next(lab for lab in _TYPES_LABELS if lines[0][60:].strip().startswith(lab))
+    if info["version"] < 3:
+        same = " ".join(r[6:60] for r in lines).split() == list(info["fields"])
+    else:
+        given: dict[str, list[str]] = {}
+        for r in lines:
+            system = r[:1].strip() or (list(given)[-1] if given else "")   # a blank letter: a continuation line
+            given.setdefault(system, []).extend(r[6:60].split())
+        same = all(list(info["fields"].get(s, [])) == t for s, t in given.items())
+    if not same:
         problems.append(f"{path}:{lineno}: the event here redefines the observation types ({label.strip()}); lfgnss "
                         f"reads one set of types per file, so the epochs from here on are left out (split the file "
                         f"here to read them)")
-    return label is not None
+    return not same
 
 
 def _numbers(texts: pd.Series) -> tuple[np.ndarray, np.ndarray]:
@@ -614,7 +628,7 @@ def _assemble(path, info, codes, epoch_times, epoch_lines, rec_epoch, rec_sv, re
             used = blank[np.isfinite(values) & keep_epoch[epoch[blank]]]
             if used.size:
                 names = sorted(set(sv.iloc[used]))
-                problems.append(f"{path}:{line[used[0]]}: {code} blank, {fallback} used instead in {used.size} "
+                problems.append(f"{path}:{line[used[0]]}: {code} blank (or 0), {fallback} used instead in {used.size} "
                                 f"record(s) of {len(names)} satellite(s) ({' '.join(names[:8])}"
                                 f"{' ...' if len(names) > 8 else ''}); {fallback} differs from {code} by the "
                                 f"satellite's {fallback}-{code} code bias (typically decimetres), not corrected")

@@ -383,7 +383,7 @@ def test_a_truth_slower_than_the_receiver_keeps_each_split_one_piece(sample_toml
 
 
 def test_repeated_truth_times_are_dropped_or_refused(sample_toml, clean_registry, tmp_path):
-    """A row given twice labels as once; two positions at one time are refused (the later one used to win)."""
+    """A row given twice labels as once (as it did); two positions at one time are refused (the later one won)."""
     datasets.register_toml(sample_toml("twice", truth=_truth_rows(tmp_path, repeat_shift_m=0.0)))
     once = datasets.build("twice")
     assert int(once.labelled.sum()) == 1372
@@ -398,6 +398,9 @@ def test_a_truth_in_radians_is_named_so():
     from lfgnss.frames import lla_to_ecef
     fix = lla_to_ecef(np.radians([52.5] * 3), np.radians([13.4] * 3), np.full(3, 40.0)).reshape(3, 3)
     radians = lla_to_ecef(np.radians([0.916] * 3), np.radians([0.234] * 3), np.full(3, 40.0)).reshape(3, 3)
-    spec = datasets.DatasetSpec("rad", ["a.obs"], ["a.nav"], "t.csv", "llh")
+    spec = datasets.DatasetSpec("rad", ["a.obs"], ["a.nav"], "t.csv", "urbannav")
     notes = datasets.truth_fit_notes(spec, np.arange(3.0), radians, fix)
     assert len(notes) == 1 and "look like radians, not degrees" in notes[0]
+    ecef = datasets.truth_fit_notes(datasets.DatasetSpec("x", ["a.obs"], ["a.nav"], "t.csv", "ecef-csv"),
+                                    np.arange(3.0), radians, fix)
+    assert len(ecef) == 1 and "radians" not in ecef[0]          # an ECEF truth has no degrees to mistake

@@ -451,3 +451,17 @@ def test_bds_b1i_labelled_c2i_in_rinex302_gets_tgd1(shared_data, tmp_path):
     got = meas.group_delay_s[t, s]
     assert all(g in tgd1[(sv, toe)] for g, sv, toe in zip(got, meas.sv[s], states.toe_gps_s))
     assert np.any(got != 0.0)
+
+
+def test_a_damaged_qzss_record_flagged_in_its_l6_bit_alone_is_still_skipped(tmp_path):
+    """A record flagged unhealthy escapes the plausibility check (a placeholder); QZSS's L6 bit does not count as
+    unhealthy, so such a record with an impossible orbit must not escape it (it gave a satellite at 2.7e25 m)."""
+    from lfgnss.errors import RinexError
+    from test_navigation import GPS_REC_V3, _nav3
+
+    rec = [ln.replace("G02", "J02").replace("0.515357678223D+04", "0.515357678223D+13")
+           .replace(" 0.000000000000D+00-0.200234353542D-07", " 0.100000000000D+01-0.200234353542D-07")
+           for ln in GPS_REC_V3]
+    assert rec != GPS_REC_V3
+    with pytest.raises(RinexError, match="every record impossible, e.g. 1 J02 record"):
+        load_nav(_nav3(tmp_path / "j.rnx", "3.04", [rec], "J: QZSS"))

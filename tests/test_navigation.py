@@ -673,6 +673,10 @@ def test_an_sbas_file_among_several_is_left_out_and_zero_ionosphere_hides_nothin
     assert nav.iono["GPS"][0] == pytest.approx(0.6519e-8)        # the placeholder zeros of the first file hid it
     with pytest.raises(RinexError, match="no GPS/Galileo/QZSS/BeiDou/GLONASS ephemeris records"):
         load_nav(sbas)
+    other = tmp_path / "brdc1590.16h"
+    other.write_text(sbas.read_text())
+    with pytest.raises(RinexError, match="ephemeris records in any of the 2 files given"):
+        load_nav([sbas, other])
 
 
 def test_a_rinex2_record_in_a_rinex3_file_costs_no_record_before_it(tmp_path):

@@ -236,6 +236,9 @@ def test_map_files_of_a_single_fix(tmp_path):
     ns = {"k": "http://www.opengis.net/kml/2.2"}
     assert root.find(".//k:LineString", ns) is None
     assert root.find(".//k:Point/k:coordinates", ns).text.split(",")[:2] == [f"{lon:.9f}", f"{lat:.9f}"]
+    both = json.loads(write_geojson(tmp_path / "p.geojson", one, points=True).read_text())
+    assert [f["geometry"]["type"] for f in both["features"]] == ["Point"]          # the epoch's point, once
+    assert len(ET.parse(write_kml(tmp_path / "p.kml", one, points=True)).getroot().findall(".//k:Point", ns)) == 1
 
 
 def test_csv_week_and_tow_are_the_instant_time_gpst_shows(tmp_path):
@@ -283,6 +286,13 @@ def test_align_to_a_receiver_faster_than_10_hz():
     al = align_to(t, other)
     np.testing.assert_array_equal(al[keep], pos[keep])
     assert np.isnan(al[[3, 6]]).all()
+    # the tolerance is each epoch's own: a burst at 20 Hz in a 1 Hz file leaves the 1 Hz epochs their 0.05 s, so
+    # RTKLIB's solutions stamped 0.8 ms early (its receiver clock) still match every epoch
+    t = 1.2e9 + np.array([0.0, 1.0, 2.0, 2.05, 2.1, 3.0])
+    pos = np.column_stack([3785166.0 + np.arange(6), np.full(6, 900013.0), np.full(6, 5037378.0)])
+    rtk = Solution(backend="rtk", time_gps_s=t - 0.0008, pos_ecef_m=pos, cov_ecef_m2=np.tile(np.eye(3), (6, 1, 1)),
+                   clock_m=np.zeros(6), n_used=np.ones(6, int), status=np.full(6, STATUS_UPDATED))
+    np.testing.assert_array_equal(align_to(t, rtk), pos)
 
 
 def test_plot_solution(tmp_path):

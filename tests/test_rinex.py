@@ -325,11 +325,11 @@ def test_rinex2_p1_stands_in_where_c1_is_blank(tmp_path):
     np.testing.assert_array_equal(same.pr_m, ref.pr_m)
     (tmp_path / "s.obs").unlink()
     path = _sample_c1_p1(tmp_path, [15, 36])          # G12 in the first two epochs
-    with pytest.warns(RinexWarning, match="C1 blank, P1 used instead"):
+    with pytest.warns(RinexWarning, match=r"C1 blank \(or 0\), P1 used instead"):
         obs = load_obs(path, cache=False)
     np.testing.assert_array_equal(obs.pr_m, ref.pr_m)
     assert obs.pr_m[0, g12] == 19834589.652
-    assert obs.warnings == (f"{path}:15: C1 blank, P1 used instead in 2 record(s) of 1 satellite(s) (G12); "
+    assert obs.warnings == (f"{path}:15: C1 blank (or 0), P1 used instead in 2 record(s) of 1 satellite(s) (G12); "
                             f"P1 differs from C1 by the satellite's P1-C1 code bias (typically decimetres), "
                             f"not corrected",)
     assert obs.codes == {"G": "C1", "R": "C1"}

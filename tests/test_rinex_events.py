@@ -76,6 +76,25 @@ def test_observation_types_redefined_by_an_event_end_the_reading_there(tmp_path)
     assert len(obs.time_gps_s) == 1 and any("SYS / # / OBS TYPES" in n for n in notes), notes
 
 
+def test_the_headers_own_types_repeated_by_an_event_change_nothing(tmp_path):
+    """A spliced file repeats its header in a flag-4 event: the same types, so the reading goes on (RTKLIB's too)."""
+    header, epochs = _v2_epochs(3)
+    types = next(h for h in header if "TYPES OF OBSERV" in h)
+    path = tmp_path / "same.obs"
+    path.write_text("\n".join(header + epochs[0] + ["                            4  1", types] + epochs[1] + epochs[2])
+                    + "\n")
+    obs, notes = _load(path)
+    assert len(obs.time_gps_s) == 3 and not notes, notes
+    v3 = _rinex3(tmp_path / "same.rnx", "3.04", {"G": "C1C D1C S1C", "E": "C1C S1C"}, n_epochs=3)
+    lines = v3.read_text().splitlines()
+    second = [i for i, ln in enumerate(lines) if ln.startswith(">")][1]
+    lines[second:second] = ["> 2020 06 03 03 02  9.5000000  4  1",
+                            "G    3 C1C D1C S1C".ljust(60) + "SYS / # / OBS TYPES"]
+    v3.write_text("\n".join(lines) + "\n")
+    obs, notes = _load(v3)
+    assert len(obs.time_gps_s) == 3 and not notes, notes
+
+
 def test_a_rinex3_event_without_a_time_is_no_unreadable_epoch_line(tmp_path):
     v3 = _rinex3(tmp_path / "e.rnx", "3.04", {"G": "C1C S1C"}, n_epochs=3)
     lines = v3.read_text().splitlines()
@@ -100,7 +119,7 @@ def test_a_pseudorange_of_zero_is_missing(tmp_path):
     obs, notes = _load(path)
     sv = first[0][32:35].replace(" ", "G")
     assert obs.pr_m[0, list(obs.sv).index(sv)] == pytest.approx(float(epochs[0][2][:14]))      # P1's value
-    assert any("C1 blank, P1 used instead" in n for n in notes), notes
+    assert any("C1 blank (or 0), P1 used instead" in n for n in notes), notes
 
     v3 = _rinex3(tmp_path / "z.rnx", "3.04", {"G": "C1C S1C"}, n_epochs=2)
     v3.write_text(v3.read_text().replace("G01  20001000.000", "G01         0.000", 1))
@@ -121,6 +140,11 @@ def test_the_code_rtklib_would_take(tmp_path, system, types, code):
 
 
 def test_a_code_without_its_own_doppler_takes_its_bands(tmp_path):
-    """GPS C1W (semi-codeless P(Y)) has no D1W in a file that has D1C: the carrier's Doppler is one, so D1C is read."""
+    """GPS C1W (semi-codeless P(Y)) has no D1W in a file that has D1C: the carrier's Doppler is one, so D1C is read;
+    of several, the one of the most preferred code (D1C before D1X, whatever the header's order)."""
     obs = load_obs(_rinex3(tmp_path / "d.rnx", "3.04", {"G": "C1W D1C S1W"}), cache=False)
     assert obs.codes == {"G": "C1W"} and np.all(obs.doppler_hz == 100.0)
+    path = _rinex3(tmp_path / "x.rnx", "3.04", {"G": "C1W D1X D1C S1W"})
+    path.write_text(path.read_text().replace("           100.000  ", "           200.000  ", 1))   # D1X's values
+    obs = load_obs(path, cache=False)
+    assert obs.codes == {"G": "C1W"} and obs.doppler_hz[0, 0] == 100.0          # D1C's, not D1X's 200
