@@ -26,6 +26,16 @@ def _load(path):
     return obs, [str(w.message) for w in caught if issubclass(w.category, RinexWarning)]
 
 
+def _v3_with_event(path, types: dict[str, str], event: list[str]):
+    """A 3-epoch RINEX 3 file (``_rinex3``) with the ``event`` lines before its second epoch; (Observations, notes)."""
+    v3 = _rinex3(path, "3.04", types, n_epochs=3)
+    lines = v3.read_text().splitlines()
+    second = [i for i, ln in enumerate(lines) if ln.startswith(">")][1]
+    lines[second:second] = event
+    v3.write_text("\n".join(lines) + "\n")
+    return _load(v3)
+
+
 @pytest.mark.parametrize("event", [["                            4  2", "ANTENNA CHANGED".ljust(60) + "COMMENT",
                                     "SOME INFO".ljust(60) + "COMMENT"],
                                    ["                            2  0"],
@@ -66,13 +76,8 @@ def test_observation_types_redefined_by_an_event_end_the_reading_there(tmp_path)
     assert any(f"{path}:{len(header) + len(epochs[0]) + 1}: the event here redefines the observation types "
                f"(# / TYPES OF OBSERV)" in n and "left out" in n for n in notes), notes
 
-    v3 = _rinex3(tmp_path / "t.rnx", "3.04", {"G": "C1C D1C S1C"}, n_epochs=3)
-    lines = v3.read_text().splitlines()
-    second = [i for i, ln in enumerate(lines) if ln.startswith(">")][1]
-    lines[second:second] = ["> 2020 06 03 03 02  9.5000000  4  1",
-                            "G    3 C1C S1C D1C".ljust(60) + "SYS / # / OBS TYPES"]
-    v3.write_text("\n".join(lines) + "\n")
-    obs, notes = _load(v3)
+    obs, notes = _v3_with_event(tmp_path / "t.rnx", {"G": "C1C D1C S1C"}, [
+        "> 2020 06 03 03 02  9.5000000  4  1", "G    3 C1C S1C D1C".ljust(60) + "SYS / # / OBS TYPES"])
     assert len(obs.time_gps_s) == 1 and any("SYS / # / OBS TYPES" in n for n in notes), notes
 
 
@@ -85,23 +90,14 @@ def test_the_headers_own_types_repeated_by_an_event_change_nothing(tmp_path):
                     + "\n")
     obs, notes = _load(path)
     assert len(obs.time_gps_s) == 3 and not notes, notes
-    v3 = _rinex3(tmp_path / "same.rnx", "3.04", {"G": "C1C D1C S1C", "E": "C1C S1C"}, n_epochs=3)
-    lines = v3.read_text().splitlines()
-    second = [i for i, ln in enumerate(lines) if ln.startswith(">")][1]
-    lines[second:second] = ["> 2020 06 03 03 02  9.5000000  4  1",
-                            "G    3 C1C D1C S1C".ljust(60) + "SYS / # / OBS TYPES"]
-    v3.write_text("\n".join(lines) + "\n")
-    obs, notes = _load(v3)
+    obs, notes = _v3_with_event(tmp_path / "same.rnx", {"G": "C1C D1C S1C", "E": "C1C S1C"}, [
+        "> 2020 06 03 03 02  9.5000000  4  1", "G    3 C1C D1C S1C".ljust(60) + "SYS / # / OBS TYPES"])
     assert len(obs.time_gps_s) == 3 and not notes, notes
 
 
 def test_a_rinex3_event_without_a_time_is_no_unreadable_epoch_line(tmp_path):
-    v3 = _rinex3(tmp_path / "e.rnx", "3.04", {"G": "C1C S1C"}, n_epochs=3)
-    lines = v3.read_text().splitlines()
-    second = [i for i, ln in enumerate(lines) if ln.startswith(">")][1]
-    lines[second:second] = [">" + " " * 30 + "4  1", "ANTENNA CHANGED".ljust(60) + "COMMENT"]
-    v3.write_text("\n".join(lines) + "\n")
-    obs, notes = _load(v3)
+    obs, notes = _v3_with_event(tmp_path / "e.rnx", {"G": "C1C S1C"},
+                                [">" + " " * 30 + "4  1", "ANTENNA CHANGED".ljust(60) + "COMMENT"])
     assert len(obs.time_gps_s) == 3 and not notes, notes
 
 
