@@ -287,11 +287,22 @@ class HeuristicNoise:
             raise ValueError(f"HeuristicNoise: elevation {float(sequence.el_rad[k, i]):g} beyond pi/2 on a usable "
                              f"satellite of {sequence.name!r} (epoch {int(k)}): Sequence.el_rad is in radians, "
                              f"not degrees")
+        faint = used & (np.asarray(sequence.cn0_dbhz, float) < FAINT_CN0_DBHZ)
+        if faint.any():
+            warnings.warn(f"HeuristicNoise: C/N0 below {FAINT_CN0_DBHZ:g} dB-Hz on {int(faint.sum())} usable "
+                          f"slot(s) of {sequence.name!r} (first at epoch {int(np.argwhere(faint)[0, 0])}): their R is "
+                          f"astronomical, so they hardly count; a C/N0 of 0 for 'unknown'? (lfgnss's quality control "
+                          f"masks C/N0 below 20 dB-Hz)", stacklevel=caller_stacklevel())
         cn0 = np.where(used, sequence.cn0_dbhz, 45.0)
         el = np.where(used, sequence.el_rad, np.pi / 2)
         r = weighted_fix.cn0_elevation_variance_m2(cn0, el, floor_m=self.floor_m, cn0_scale_m2=self.cn0_scale_m2,
                                                     elevation_power=self.elevation_power, el_min_rad=self.el_min_rad)
         return r, np.zeros_like(r)
+
+
+#: Below this C/N0 [dB-Hz] on a usable slot the hand-set noise model warns: a real signal is not that weak (the front
+#: end masks below 20), and its R (1e9 m^2 at 0 dB-Hz) shuts the satellite out without a word.
+FAINT_CN0_DBHZ = 10.0
 
 
 @dataclass(frozen=True, eq=False, repr=False)

@@ -36,7 +36,7 @@ from . import __version__
 from .frames import check_near_surface, ecef_to_lla, lla_to_ecef
 from .metrics import enu_errors, enu_rotations
 from .paths import write_output
-from .time import GPS_EPOCH, SECONDS_PER_WEEK, utc_to_gps_s
+from .time import GPS_EPOCH, SECONDS_PER_WEEK, leap_seconds, utc_to_gps_s
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -433,14 +433,24 @@ def write_kml(path: str | Path, solution: Solution, *, points: bool = False) -> 
                   f"<coordinates>{coord_text}</coordinates></Point></Placemark>"]
     if points:
         status = np.asarray(solution.status)
+        utc = _utc_iso(solution.time_gps_s)
         for k, (a, b, c) in zip(idx, lonlath):
             st = STATUS_NAMES.get(int(status[k]), str(int(status[k])))
-            parts.append(f"<Placemark><name>{solution.time_gps_s[k]:.3f}</name>"
+            parts.append(f"<Placemark><name>{solution.time_gps_s[k]:.3f}</name>"      # KML 2.2's element order
                          f"<description>{escape(st)}, {int(solution.n_used[k])} satellites</description>"
+                         f"<TimeStamp><when>{utc[k]}</when></TimeStamp>"      # Google Earth's time slider
                          f"<Point><coordinates>{a:.9f},{b:.9f},{c:.4f}</coordinates></Point></Placemark>")
     parts += ["</Document>", "</kml>"]
     _write_text(path, "\n".join(parts) + "\n")
     return path
+
+
+def _utc_iso(time_gps_s: np.ndarray) -> list[str]:
+    """``2016-06-06T11:10:24.700Z`` UTC texts (ms) of GPS times [s], the leap seconds removed."""
+    utc = np.asarray(time_gps_s, float) - leap_seconds(np.asarray(time_gps_s, float))
+    ms = np.round(utc * 1000.0).astype(np.int64)
+    stamps = (GPS_EPOCH.astype("datetime64[ms]") + ms.astype("timedelta64[ms]")).astype(str)
+    return [f"{s}Z" for s in stamps]
 
 
 # ---------------------------------------------------------------- plots

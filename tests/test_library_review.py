@@ -192,6 +192,15 @@ def test_every_back_end_skips_a_masked_in_slot_without_a_pseudorange_alike(seq):
     assert np.isfinite(r).all() and (r > 0).all()
 
 
+def test_hand_set_noise_warns_of_a_c_n0_of_zero(seq):
+    """A C/N0 of 0 (for 'unknown') gave R ~1e9 m^2 and a far worse solve without a word."""
+    cn0 = seq.cn0_dbhz.copy()
+    cn0[seq.mask] = 0.0
+    with pytest.warns(UserWarning, match=r"C/N0 below 10 dB-Hz on \d+ usable slot\(s\) of 'review'"):
+        HeuristicNoise()(replace(seq, cn0_dbhz=cn0))
+    assert not [w for w in _caught(lambda: HeuristicNoise()(seq)) if "C/N0 below" in str(w.message)]
+
+
 def test_hand_set_noise_refuses_elevations_in_degrees(seq):
     with pytest.raises(ValueError, match=r"elevation .* beyond pi/2 .* in radians, not degrees"):
         HeuristicNoise()(replace(seq, el_rad=np.degrees(seq.el_rad)))

@@ -210,6 +210,8 @@ def test_geojson_and_kml(tmp_path):
     coords = root.find(".//k:LineString/k:coordinates", ns).text.split()
     assert len(coords) == n_pos
     assert len(root.findall(".//k:Point", ns)) == n_pos
+    when = [w.text for w in root.findall(".//k:Placemark/k:TimeStamp/k:when", ns)]     # UTC, for a time slider
+    assert len(when) == n_pos and when[0] == "2016-06-06T11:10:42.800Z"                  # GPST 11:10:59.8 - 17 s
 
 
 def test_writers_with_no_position(tmp_path):
