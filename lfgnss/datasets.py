@@ -208,8 +208,9 @@ def _dataset_key(spec: DatasetSpec) -> DatasetSpec:
 #: The keys a dataset TOML may hold, at the top and in its tables (see the module docstring).
 TOML_KEYS = ("id", "obs", "nav", "systems", "description", "truth", "splits")
 TRUTH_KEYS = ("file", "format", "match_tolerance_s", "time_origin_gps_s", "time_offset_s")
-#: Truth formats that give latitude and longitude (in degrees), where a file in radians can be named as such.
-GEODETIC_TRUTH_FORMATS = ("urbannav", "static", "pos")
+#: Truth formats that give latitude and longitude in degrees written by hand or by other tools, where a file in
+#: radians can be named as such (a .pos file is RTKLIB's, in degrees or ECEF).
+GEODETIC_TRUTH_FORMATS = ("urbannav", "static")
 #: Truth rows of one time whose positions lie farther apart than this [m] are refused (which one is the truth?).
 TRUTH_REPEAT_M = 1.0
 #: A dataset id of one's own: it names cache files, so no path separators (``my-drive``, ``hk_2021.a``).

@@ -14,7 +14,7 @@ import numpy as np
 from .constants import (GM_BDS_M3_S2, GM_GAL_M3_S2, GM_GPS_M3_S2, OMEGA_EARTH_BDS_RAD_S, OMEGA_EARTH_RAD_S,
                         SPEED_OF_LIGHT_M_S)
 from .glonass import propagate
-from .navigation import KeplerEphemerides, Navigation, effective_health
+from .navigation import QZSS_HEALTH_MASK, KeplerEphemerides, Navigation, effective_health  # noqa: F401 (public)
 from .time import BDT_MINUS_GPST_S, SECONDS_PER_WEEK
 
 #: Largest |t - toe| [s] at which an ephemeris is used: RTKLIB 2.4.3's seleph / selgeph limits, MAXDTOE,

@@ -232,7 +232,7 @@ def _parse_nav(paths: list[Path]) -> Navigation:
             if key not in iono and coef.size == 8 and np.all(np.isfinite(coef)) and np.any(coef != 0):
                 iono[key] = coef    # all zero: a writer's placeholder, which would hide another file's values
     if not kep_frames:
-        if all(f": {NO_SUPPORTED}" in n for n in notes if n.endswith(LEFT_OUT)):    # SBAS files only
+        if any(f": {NO_SUPPORTED}" in n for n in notes if n.endswith(LEFT_OUT)):    # an SBAS file among them
             raise RinexError(paths[0], f"{NO_SUPPORTED} in any of the {len(paths)} files given")
         raise RinexError(paths[0], f"{NOT_NAVIGATION}, nor is any other of the {len(paths)} files given")
     kepler = _kepler_records(pd.concat(kep_frames, ignore_index=True))

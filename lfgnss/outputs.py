@@ -447,7 +447,10 @@ def write_kml(path: str | Path, solution: Solution, *, points: bool = False) -> 
 
 def _utc_iso(time_gps_s: np.ndarray) -> list[str]:
     """``2016-06-06T11:10:24.700Z`` UTC texts (ms) of GPS times [s], the leap seconds removed."""
-    utc = np.asarray(time_gps_s, float) - leap_seconds(np.asarray(time_gps_s, float))
+    gps = np.asarray(time_gps_s, float)
+    utc = gps - leap_seconds(gps)
+    inserted = leap_seconds(gps + 1.0) > leap_seconds(gps)        # within the inserted second 23:59:60: no such text
+    utc = np.where(inserted, np.floor(utc) - 0.001, utc)          # ... so 23:59:59.999, never a step back
     ms = np.round(utc * 1000.0).astype(np.int64)
     stamps = (GPS_EPOCH.astype("datetime64[ms]") + ms.astype("timedelta64[ms]")).astype(str)
     return [f"{s}Z" for s in stamps]
@@ -467,11 +470,10 @@ def align_to(time_gps_s: np.ndarray, other: Solution) -> np.ndarray:
     out = np.full((len(t), 3), np.nan)
     if not len(ot) or not len(t):
         return out
-    order = np.argsort(t, kind="stable")
-    gaps = np.diff(t[order])
-    nearest = np.minimum(np.r_[np.inf, gaps], np.r_[gaps, np.inf])       # to each epoch's nearer neighbour
-    tol = np.empty(len(t))
-    tol[order] = np.minimum(0.05, 0.5 * nearest)
+    times = np.unique(t)                                             # a repeated epoch is one time, not a 0 s gap
+    gaps = np.diff(times)
+    nearest = np.minimum(np.r_[np.inf, gaps], np.r_[gaps, np.inf])    # to each time's nearer neighbour
+    tol = np.minimum(0.05, 0.5 * nearest)[np.searchsorted(times, t)]
     other_order = np.argsort(ot, kind="stable")
     st = ot[other_order]
     right = np.clip(np.searchsorted(st, t), 0, len(st) - 1)

@@ -31,7 +31,7 @@ from .time import datetime64_to_gps_s, utc_to_gps_s
 if TYPE_CHECKING:
     import pandas as pd
 
-_PARSER_VERSION = 8       # 8: 0.000 pseudoranges missing, events (no time, flag 6, types), code order, Doppler
+_PARSER_VERSION = 9       # 9: repeated types go on, Doppler order; 8: 0.000 pseudoranges, events, code order
 _GPS_EPOCH = dt.datetime(1980, 1, 6)
 _SV_RE = re.compile(r"^[GRECJSI][ 0-9][0-9]$")
 _V2_RECORD_LIKE = re.compile(r"^[ 0-9.\-]*[0-9][ 0-9.\-]*$")  # digits, blanks, points, signs only
@@ -505,7 +505,9 @@ def _types_redefined(special: list[str], info: dict, path: Path, lineno: int, pr
         for r in lines:
             system = r[:1].strip() or (list(given)[-1] if given else "")   # a blank letter: a continuation line
             given.setdefault(system, []).extend(r[6:60].split())
-        same = all(list(info["fields"].get(s, [])) == t for s, t in given.items())
+        # a system the header lacks (or lfgnss does not read) shifts no column of the others: each record line
+        # names its system, and records of a system the header lacks are skipped with a note anyway
+        same = all(list(info["fields"][s]) == t for s, t in given.items() if s in info["fields"] and s in SYSTEMS)
     if not same:
         problems.append(f"{path}:{lineno}: the event here redefines the observation types ({label.strip()}); lfgnss "
                         f"reads one set of types per file, so the epochs from here on are left out (split the file "

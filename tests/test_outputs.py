@@ -212,6 +212,10 @@ def test_geojson_and_kml(tmp_path):
     assert len(root.findall(".//k:Point", ns)) == n_pos
     when = [w.text for w in root.findall(".//k:Placemark/k:TimeStamp/k:when", ns)]     # UTC, for a time slider
     assert len(when) == n_pos and when[0] == "2016-06-06T11:10:42.800Z"                  # GPST 11:10:59.8 - 17 s
+    from lfgnss.outputs import _utc_iso
+    leap = week_tow_to_gps_s(1930, 18.0)          # 2017-01-01 00:00:00 UTC, the first second after 23:59:60
+    assert _utc_iso(leap + np.array([-1.5, -0.5, 0.5])) == [        # the inserted second: no step back in time
+        "2016-12-31T23:59:59.500Z", "2016-12-31T23:59:59.999Z", "2017-01-01T00:00:00.500Z"]
 
 
 def test_writers_with_no_position(tmp_path):
@@ -288,13 +292,16 @@ def test_align_to_a_receiver_faster_than_10_hz():
     al = align_to(t, other)
     np.testing.assert_array_equal(al[keep], pos[keep])
     assert np.isnan(al[[3, 6]]).all()
-    # the tolerance is each epoch's own: a burst at 20 Hz in a 1 Hz file leaves the 1 Hz epochs their 0.05 s, so
-    # RTKLIB's solutions stamped 0.8 ms early (its receiver clock) still match every epoch
-    t = 1.2e9 + np.array([0.0, 1.0, 2.0, 2.05, 2.1, 3.0])
-    pos = np.column_stack([3785166.0 + np.arange(6), np.full(6, 900013.0), np.full(6, 5037378.0)])
-    rtk = Solution(backend="rtk", time_gps_s=t - 0.0008, pos_ecef_m=pos, cov_ecef_m2=np.tile(np.eye(3), (6, 1, 1)),
-                   clock_m=np.zeros(6), n_used=np.ones(6, int), status=np.full(6, STATUS_UPDATED))
-    np.testing.assert_array_equal(align_to(t, rtk), pos)
+    # the tolerance is each epoch's own: two epochs 1 ms apart leave the others their 0.05 s, so RTKLIB's solutions
+    # stamped 0.8 ms early (its receiver clock) still match them; a repeated epoch is one time, not a 0 s gap
+    for offsets, sure in (([0.0, 1.0, 2.0, 2.001, 3.0], [0, 1, 4]), ([0.0, 1.0, 1.0, 2.0], [0, 3])):
+        t, n = 1.2e9 + np.array(offsets), len(offsets)
+        pos = np.column_stack([3785166.0 + np.arange(n), np.full(n, 900013.0), np.full(n, 5037378.0)])
+        rtk = Solution(backend="rtk", time_gps_s=t - 0.0008, pos_ecef_m=pos, cov_ecef_m2=np.tile(np.eye(3), (n, 1, 1)),
+                       clock_m=np.zeros(n), n_used=np.ones(n, int), status=np.full(n, STATUS_UPDATED))
+        got = align_to(t, rtk)
+        np.testing.assert_array_equal(got[sure], pos[sure])
+    assert np.isfinite(got).all()                              # the repeated epoch is matched too (to one of its two)
 
 
 def test_plot_solution(tmp_path):

@@ -93,6 +93,11 @@ def test_the_headers_own_types_repeated_by_an_event_change_nothing(tmp_path):
     obs, notes = _v3_with_event(tmp_path / "same.rnx", {"G": "C1C D1C S1C", "E": "C1C S1C"}, [
         "> 2020 06 03 03 02  9.5000000  4  1", "G    3 C1C D1C S1C".ljust(60) + "SYS / # / OBS TYPES"])
     assert len(obs.time_gps_s) == 3 and not notes, notes
+    # a system the header lacks (or SBAS) shifts no GPS column: each record line names its system
+    obs, notes = _v3_with_event(tmp_path / "new.rnx", {"G": "C1C D1C S1C"}, [
+        "> 2020 06 03 03 02  9.5000000  4  2", "E    2 C1C S1C".ljust(60) + "SYS / # / OBS TYPES",
+        "S    2 C1C S1C".ljust(60) + "SYS / # / OBS TYPES"])
+    assert len(obs.time_gps_s) == 3 and not notes, notes
 
 
 def test_a_rinex3_event_without_a_time_is_no_unreadable_epoch_line(tmp_path):
@@ -141,6 +146,8 @@ def test_a_code_without_its_own_doppler_takes_its_bands(tmp_path):
     obs = load_obs(_rinex3(tmp_path / "d.rnx", "3.04", {"G": "C1W D1C S1W"}), cache=False)
     assert obs.codes == {"G": "C1W"} and np.all(obs.doppler_hz == 100.0)
     path = _rinex3(tmp_path / "x.rnx", "3.04", {"G": "C1W D1X D1C S1W"})
-    path.write_text(path.read_text().replace("           100.000  ", "           200.000  ", 1))   # D1X's values
+    lines = [ln[:19] + f"{200.0:14.3f}" + ln[33:] if ln.startswith("G") else ln       # D1X's values: 200
+             for ln in path.read_text().splitlines()]
+    path.write_text("\n".join(lines) + "\n")
     obs = load_obs(path, cache=False)
     assert obs.codes == {"G": "C1W"} and obs.doppler_hz[0, 0] == 100.0          # D1C's, not D1X's 200
