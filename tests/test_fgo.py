@@ -381,6 +381,24 @@ def test_fixed_lag_outage_much_longer_than_lag(left):
     assert np.sqrt(np.mean(err[after] ** 2)) < np.sqrt(np.mean(err_clean[after] ** 2)) + 0.5
 
 
+@pytest.mark.parametrize("gap_s", [100.0, 86400.0, 1e6])
+def test_fixed_lag_restarts_after_a_long_gap_at_the_next_coarse_fix(gap_s):
+    """A gap beyond MAX_GAP_S whose first epochs have no coarse fix: no position there, a new graph at the next fix,
+    as the EKF does (predicted across it, the estimate stayed 4 km off after a day, 1800 km after twelve days)."""
+    s = simulate_sequence(120, seed=4)
+    time, coarse = s.time_gps_s.copy(), s.coarse_ecef_m.copy()
+    time[60:] += gap_s
+    coarse[60:63] = np.nan
+    s = replace(s, time_gps_s=time, coarse_ecef_m=coarse)
+    for covariances in (False, True):
+        sol = create("fgo", mode="fixed-lag", noise=None, covariances=covariances).solve(s)
+        assert (sol.status[60:63] == STATUS_NONE).all() and np.isnan(sol.pos_ecef_m[60:63]).all()
+        assert (sol.status[63:] == STATUS_UPDATED).all() and np.isfinite(sol.cov_ecef_m2[63:]).all()
+        assert np.linalg.norm(sol.pos_ecef_m[63:] - s.truth_ecef_m[63:], axis=1).max() < 40.0
+    batch = create("fgo", noise=None).solve(s)          # the batch graph sees the fix after the gap: no restart
+    assert (batch.status[60:] == STATUS_UPDATED).all()
+
+
 def test_epochs_before_first_coarse_fix_are_none():
     seq = simulate_sequence(60, seed=8)
     coarse = seq.coarse_ecef_m.copy()
