@@ -21,12 +21,12 @@ Initialisation and resets take the coarse fix
 P0 and then update with the
 epoch's satellites, twice if a satellite's post-fit residual exceeds ``gate_sigma sqrt(r)`` (the
 second time without those satellites). Resets happen when the filter has no state yet, at the first coarse fix
-after a gap longer than ``max_gap_s`` (the epochs before it get no position), when most usable satellites fail
-the gate (``reset_gated_fraction``; not in the epoch right after a reset) with a median innovation of at least ``clock_jump_min_m`` and still do after the
-prior's clock was realigned to it (a receiver clock jump, ``models.realign_clock``), or when the
-updated position is farther than ``reset_distance_m`` from a coarse fix with a redundancy of at least
-``reset_min_redundancy`` satellites. ``learning.torch_ekf``
-implements exactly this logic, batched and differentiable.
+after a gap longer than ``max_gap_s`` (the epochs before it get no position), when most usable satellites fail the
+gate (``reset_gated_fraction``; not in the epoch right after a reset) with a median innovation of at least
+``clock_jump_min_m`` and still do after the prior's clock was realigned to it (a receiver clock jump,
+``models.realign_clock``), or when the updated position is farther than ``reset_distance_m`` from a coarse fix with
+a redundancy of at least ``reset_min_redundancy`` satellites. ``learning.torch_ekf`` implements exactly this logic,
+batched and differentiable.
 
 A noise model that is ``online`` (a model trained with ``model.innovation``) is asked epoch by epoch, after
 the predict step: ``noise.predict(features_k, mask_k, innovation_feature(pr - h(x^-) - median))``, with zero

@@ -246,6 +246,11 @@ def checked_noise(owner: str, sequence_name: str, usable: np.ndarray, r_m2: obje
     return r, vc
 
 
+#: Below this C/N0 [dB-Hz] on a usable slot the hand-set noise model warns: a real signal is not that weak (the front
+#: end masks below 20), and its R (1e9 m^2 at 0 dB-Hz) shuts the satellite out without a word.
+FAINT_CN0_DBHZ = 10.0
+
+
 @dataclass(frozen=True)
 class HeuristicNoise:
     """Hand-set noise from C/N0 and elevation, no compensation (the "plain EKF" baseline).
@@ -298,11 +303,6 @@ class HeuristicNoise:
         r = weighted_fix.cn0_elevation_variance_m2(cn0, el, floor_m=self.floor_m, cn0_scale_m2=self.cn0_scale_m2,
                                                     elevation_power=self.elevation_power, el_min_rad=self.el_min_rad)
         return r, np.zeros_like(r)
-
-
-#: Below this C/N0 [dB-Hz] on a usable slot the hand-set noise model warns: a real signal is not that weak (the front
-#: end masks below 20), and its R (1e9 m^2 at 0 dB-Hz) shuts the satellite out without a word.
-FAINT_CN0_DBHZ = 10.0
 
 
 @dataclass(frozen=True, eq=False, repr=False)

@@ -13,14 +13,14 @@ Per epoch, both possible priors are gated and updated in one batched call of siz
 * the normal prior ``F x, F P F^T + Q``;
 * the reset prior ``x0(coarse), P0``.
 
-When more than ``reset_gated_fraction`` of the usable satellites fail the gate (not right after a
-reset) and their median innovation is clock-jump sized (``clock_jump_min_m``), the prior's clock is
-realigned and gated again. The reset result is taken at the first epoch with a coarse fix, at the first one
-after a gap > ``max_gap_s`` (no position before it), when the realigned prior is still mostly gated, and when
-the normal update ends farther than ``reset_distance_m`` from a coarse fix of redundancy ``reset_min_redundancy`` or more; in the
-rows that reset, satellites failing the post-fit check are dropped and the reset prior updated again. With
-``EkfConfig.zupt_sigma_m_s``, epochs the Dopplers find standing still (``estimators.models.stationary_epochs``) add a
-zero-velocity update. The gate
+When more than ``reset_gated_fraction`` of the usable satellites fail the gate (not right after a reset) and their
+median innovation is clock-jump sized (``clock_jump_min_m``), the prior's clock is realigned and gated again. The
+reset result is taken at the first epoch with a coarse fix, at the first one after a gap > ``max_gap_s`` (no
+position before it), when the realigned prior is still mostly gated, and when the normal update ends farther than
+``reset_distance_m`` from a coarse fix of redundancy ``reset_min_redundancy`` or more; in the rows that reset,
+satellites failing the post-fit check are dropped and the reset prior updated again. With
+``EkfConfig.zupt_sigma_m_s``, epochs the Dopplers find standing still (``estimators.models.stationary_epochs``) add
+a zero-velocity update. The gate
 decision (a hard mask), the Huber variance factor (``EkfConfig.huber_k``), the standstill decision and the reset
 choice carry no gradient; everything else does.
 

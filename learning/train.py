@@ -569,15 +569,16 @@ def load_sequences(dataset_id: str, split: str, config: dict) -> list[Sequence]:
 def _refuse_far_truth(dataset_id: str, split: str, pieces: list[Sequence]) -> None:
     """ValueError where the truth lies a median beyond ``TRUTH_MISMATCH_M`` from the coarse fixes: a truth of
     another drive, in radians, or shifted in time would teach the network wrong labels (building it warns why)."""
-    from lfgnss.datasets import TRUTH_MISMATCH_M
+    from lfgnss.datasets import TRUTH_MISMATCH_M, median_truth_gap_m
 
-    gaps = [np.linalg.norm(s.truth_ecef_m - s.coarse_ecef_m, axis=1) for s in pieces]
-    gaps = np.concatenate(gaps) if gaps else np.zeros(0)
-    gaps = gaps[np.isfinite(gaps)]
-    if gaps.size and float(np.median(gaps)) > TRUTH_MISMATCH_M:
-        raise ValueError(f"{dataset_id}/{split}: the truth lies a median {np.median(gaps) / 1000:.1f} km from the "
-                         f"receiver's coarse fixes ({gaps.size} epochs), so training would learn from wrong labels; "
-                         f"mend the truth file first (python -m lfgnss.datasets --register ... says what looks wrong)")
+    if not pieces:
+        return
+    gap_m, n = median_truth_gap_m(np.concatenate([s.truth_ecef_m for s in pieces]),
+                                  np.concatenate([s.coarse_ecef_m for s in pieces]))
+    if gap_m > TRUTH_MISMATCH_M:
+        raise ValueError(f"{dataset_id}/{split}: the truth lies a median {gap_m / 1000:.1f} km from the receiver's "
+                         f"coarse fixes ({n} epochs), so training would learn from wrong labels; mend the truth file "
+                         f"first (python -m lfgnss.datasets --register ... says what looks wrong)")
 
 
 def source_file_hashes(dataset_id: str) -> dict[str, str]:

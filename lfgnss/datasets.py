@@ -114,9 +114,8 @@ class DatasetSpec:
         def paths(value) -> tuple[Path, ...]:
             return (Path(value),) if isinstance(value, (str, Path)) else tuple(Path(p) for p in value)
 
-        if not isinstance(self.id, str) or not DATASET_ID.fullmatch(self.id):
-            raise ValueError(f"DatasetSpec: id {self.id!r} must be letters, digits, '.', '_' or '-', starting with a "
-                             f"letter or digit (it names cache files)")
+        if id_problem(self.id):
+            raise ValueError(f"DatasetSpec: {id_problem(self.id)}")
         object.__setattr__(self, "obs", paths(self.obs))
         object.__setattr__(self, "nav", paths(self.nav))
         object.__setattr__(self, "truth", Path(self.truth))
@@ -215,6 +214,14 @@ GEODETIC_TRUTH_FORMATS = ("urbannav", "static")
 TRUTH_REPEAT_M = 1.0
 #: A dataset id of one's own: it names cache files, so no path separators (``my-drive``, ``hk_2021.a``).
 DATASET_ID = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")
+
+
+def id_problem(dataset_id: object) -> str | None:
+    """Why ``dataset_id`` cannot be a dataset id (``DATASET_ID``), or None."""
+    if isinstance(dataset_id, str) and DATASET_ID.fullmatch(dataset_id):
+        return None
+    return (f"id {dataset_id!r} must be a name of letters, digits, '.', '_' or '-' starting with a letter or digit "
+            f"(it names cache files)")
 SPLIT_KEYS = ("axis", *SPLITS)
 #: What ``get`` says about an unknown id: how a dataset of one's own becomes known, for every command.
 REGISTER_HINT = ("register a dataset of your own first: --register FILE.toml, data.register = [\"FILE.toml\"] in "
@@ -287,9 +294,8 @@ def register_toml(path: str | Path, *, need_splits: tuple[str, ...] = ()) -> Dat
             raise InputError(path, f"dataset config lacks {'[truth] with file = ...' if key == 'truth' else key}")
     if "file" not in cfg["truth"]:
         raise InputError(path, "dataset config lacks file in [truth] (the ground-truth file)")
-    if not isinstance(cfg["id"], str) or not DATASET_ID.fullmatch(cfg["id"]):
-        raise InputError(path, f"id {cfg['id']!r} must be a name of letters, digits, '.', '_' or '-' starting with a "
-                               f"letter or digit (it names cache files), e.g. \"my-drive\"")
+    if id_problem(cfg["id"]):
+        raise InputError(path, f"{id_problem(cfg['id'])}, e.g. \"my-drive\"")
     for key in ("obs", "nav"):
         value = cfg[key]
         if not (isinstance(value, str) or isinstance(value, list) and value and all(isinstance(v, str) for v in value)):
@@ -646,15 +652,12 @@ def truth_fit_notes(spec: DatasetSpec, time_gps_s: np.ndarray, truth_ecef_m: np.
     both = np.isfinite(truth).all(axis=1) & np.isfinite(fix).all(axis=1)
     notes = [static_time_note(spec.truth, time_gps_s)] if spec.truth_format == "static" else []
     if both.any():
-        median_m = float(np.median(np.linalg.norm(truth[both] - fix[both], axis=1)))
+        median_m, _ = median_truth_gap_m(truth, fix)
         if median_m > TRUTH_MISMATCH_M:
             distance = f"{median_m / 1000:.0f} km" if median_m >= 10_000 else f"{median_m / 1000:.1f} km"
             origin = f", or a wrong {_origin_words(spec)}" if spec.truth_format == "smartloc" else ""
-            lat, lon = (np.degrees(a) for a in ecef_to_lla(truth[both]).reshape(-1, 3).T[:2])
-            fix_lat, fix_lon = (np.degrees(a) for a in ecef_to_lla(fix[both]).reshape(-1, 3).T[:2])
-            if spec.truth_format in GEODETIC_TRUTH_FORMATS and (np.abs(lat) <= 90 / 57.29).all() and (
-                    np.abs(lon) <= 360 / 57.29).all() and not ((np.abs(fix_lat) <= 90 / 57.29).all()
-                                                                and (np.abs(fix_lon) <= 360 / 57.29).all()):
+            if (spec.truth_format in GEODETIC_TRUTH_FORMATS and _within_radian_bounds(truth[both])
+                    and not _within_radian_bounds(fix[both])):
                 origin += " (its latitudes and longitudes, all within 1.6 and 6.3, look like radians, not degrees)"
             notes.append(f"{spec.truth}: the truth lies a median {distance} from the receiver's least-squares fixes "
                          f"(on {int(both.sum())} epochs): a truth file of another drive or place{origin}? It is scored "
@@ -662,6 +665,23 @@ def truth_fit_notes(spec: DatasetSpec, time_gps_s: np.ndarray, truth_ecef_m: np.
         elif spec.truth_format != "static":
             notes.append(truth_shift_note(spec, time_gps_s, truth, fix))
     return [n for n in notes if n]
+
+
+def median_truth_gap_m(truth_ecef_m: np.ndarray, fix_ecef_m: np.ndarray) -> tuple[float, int]:
+    """Median distance [m] between truth and fixes (T, 3) [m] over the epochs where both are finite, and how many
+    those are (NaN, 0 if none)."""
+    both = np.isfinite(truth_ecef_m).all(axis=1) & np.isfinite(fix_ecef_m).all(axis=1)
+    if not both.any():
+        return float("nan"), 0
+    return float(np.median(np.linalg.norm(truth_ecef_m[both] - fix_ecef_m[both], axis=1))), int(both.sum())
+
+
+def _within_radian_bounds(ecef_m: np.ndarray) -> bool:
+    """Whether every latitude and longitude of the positions (N, 3) [m], in degrees, lies within what radians can be
+    (|lat| <= pi/2, |lon| <= 2 pi): a truth written in radians and read as degrees does."""
+    lla = ecef_to_lla(ecef_m).reshape(-1, 3)
+    lat_deg, lon_deg = np.degrees(lla[:, 0]), np.degrees(lla[:, 1])
+    return bool((np.abs(lat_deg) <= np.pi / 2).all() and (np.abs(lon_deg) <= 2 * np.pi).all())
 
 
 def unmatched_time_words(spec: DatasetSpec, time_gps_s: np.ndarray) -> str:

@@ -525,6 +525,12 @@ def _numbers(texts: pd.Series) -> tuple[np.ndarray, np.ndarray]:
     return values, garbage
 
 
+def _pseudoranges(texts: pd.Series) -> tuple[np.ndarray, np.ndarray]:
+    """``_numbers`` of pseudorange fields [m], 0.000 read as missing (NaN), as RTKLIB reads it."""
+    values, garbage = _numbers(texts)
+    return np.where(values == 0.0, np.nan, values), garbage
+
+
 _TIME_TOL_S = 1e-6
 
 
@@ -606,9 +612,7 @@ def _assemble(path, info, codes, epoch_times, epoch_lines, rec_epoch, rec_sv, re
         for col, out, required in ((i_pr, pr, True), (i_cn0, cn0, False), (i_dop, dop, False)):
             if col < 0:
                 continue
-            values, garbage = _numbers(sub.str[16 * col: 16 * col + 14])
-            if required:
-                values = np.where(values == 0.0, np.nan, values)     # 0.000 is a missing pseudorange (RTKLIB)
+            values, garbage = (_pseudoranges if required else _numbers)(sub.str[16 * col: 16 * col + 14])
             out[rows] = values
             if required:
                 for k in rows[garbage]:
@@ -620,8 +624,7 @@ def _assemble(path, info, codes, epoch_times, epoch_lines, rec_epoch, rec_sv, re
                 opt_names.add(info["fields"][col] if info["version"] < 3 else info["fields"][sys_letter][col])
         blank = rows[np.isnan(pr[rows]) & ~bad[rows]] if i_fallback >= 0 else rows[:0]
         if blank.size:  # RINEX 2: the preferred code blank, the other one there (RTKLIB does the same)
-            values, garbage = _numbers(text.iloc[blank].str[16 * i_fallback: 16 * i_fallback + 14])
-            values = np.where(values == 0.0, np.nan, values)
+            values, garbage = _pseudoranges(text.iloc[blank].str[16 * i_fallback: 16 * i_fallback + 14])
             for k in blank[garbage]:
                 problems.append(f"{path}:{line[k]}: unreadable pseudorange {fallback} for {sv.iloc[k]} "
                                 f"({code} blank), record skipped")
