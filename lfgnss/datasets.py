@@ -22,7 +22,8 @@ file (``register_toml``)::
                                       # nothing): GPS seconds of a smartloc truth's t = 0, also the 0 of relative_s
                                       # splits; default the first observation epoch (as --truth-origin)
     [splits]                          # [start, stop) on the split axis (a command needs the splits it uses)
-    axis = "tow"                      # tow | relative_s | epoch
+    axis = "tow"                      # tow | relative_s | epoch (tow: time of week of the first epoch's week,
+                                      # 604800 + s in the next week)
     train = [46701, 46941]            # learning.train fits train and selects on val (data.train_split,
     val = [46941, 47001]              # data.val_split); lfgnss.benchmark scores test
     test = [47001, 47186]
@@ -1067,7 +1068,9 @@ def epochs_in_split(dataset_id: str, split: str, time_gps_s: np.ndarray) -> int 
         return None
     if spec.split_axis == "relative_s" and spec.time_origin_gps_s is None:
         return None                                 # counted from the dataset's first epoch, which needs its data
-    axis = _time_axis_values(np.asarray(time_gps_s, float), spec, spec.time_origin_gps_s)
+    time_gps_s = np.asarray(time_gps_s, float)
+    first = float(np.nanmin(time_gps_s)) if time_gps_s.size else 0.0
+    axis = _time_axis_values(time_gps_s, spec, first if spec.time_origin_gps_s is None else spec.time_origin_gps_s)
     return int(sum(np.sum((axis >= start) & (axis < stop)) for start, stop in bounds))
 
 
@@ -1088,9 +1091,10 @@ def empty_split_words(seq: Sequence, spec: DatasetSpec, split: str) -> str:
 
 
 def split_axis_values(seq: Sequence, spec: DatasetSpec) -> np.ndarray:
-    """(T,) each epoch's place on ``spec``'s split axis: time of week [s], seconds since the truth origin [s] (both to
-    0.1 s), or the index among labelled epochs (-1 for an unlabelled one). ``seq`` needs only ``time_gps_s`` and
-    ``labelled`` (benchmarks/front_end.py passes such a stand-in)."""
+    """(T,) each epoch's place on ``spec``'s split axis: time of week [s] (of the first epoch's week, past 604800 s in
+    the next one), seconds since the truth origin [s] (both to 0.1 s), or the index among labelled epochs (-1 for an
+    unlabelled one). ``seq`` needs only ``time_gps_s`` and ``labelled`` (benchmarks/front_end.py passes such a
+    stand-in)."""
     if spec.split_axis in ("tow", "relative_s"):
         return _time_axis_values(seq.time_gps_s, spec, seq.time_gps_s[0] if np.size(seq.time_gps_s) else 0.0)
     if spec.split_axis == "epoch":
@@ -1100,10 +1104,12 @@ def split_axis_values(seq: Sequence, spec: DatasetSpec) -> np.ndarray:
 
 
 def _time_axis_values(time_gps_s: np.ndarray, spec: DatasetSpec, first_epoch_gps_s: float) -> np.ndarray:
-    """Epoch times [GPS s] on a ``tow`` or ``relative_s`` split axis, to 0.1 s: the time of week [s], or the seconds
-    since ``spec.time_origin_gps_s`` (else since ``first_epoch_gps_s``)."""
+    """Epoch times [GPS s] on a ``tow`` or ``relative_s`` split axis, to 0.1 s: the seconds since the start of the GPS
+    week of ``first_epoch_gps_s`` (its time of week, counting on past 604800 s so that a drive across a week's end
+    keeps one axis), or the seconds since ``spec.time_origin_gps_s`` (else since ``first_epoch_gps_s``)."""
     if spec.split_axis == "tow":
-        return np.round(gps_s_to_week_tow(time_gps_s)[1], 1)
+        week_start = np.floor(first_epoch_gps_s / SECONDS_PER_WEEK) * SECONDS_PER_WEEK
+        return np.round(np.asarray(time_gps_s, float) - week_start, 1)
     origin = first_epoch_gps_s if spec.time_origin_gps_s is None else spec.time_origin_gps_s
     return np.round(time_gps_s - origin, 1)
 

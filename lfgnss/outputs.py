@@ -296,7 +296,7 @@ def read_pos(path: str | Path, backend: str | None = None) -> Solution:
 
 
 # ---------------------------------------------------------------- CSV
-CSV_COLUMNS = ("time_gpst", "time_gps_s", "week", "tow_s", "x_m", "y_m", "z_m", "lat_deg", "lon_deg", "h_m",
+CSV_COLUMNS = ("time_gpst", "time_utc", "time_gps_s", "week", "tow_s", "x_m", "y_m", "z_m", "lat_deg", "lon_deg", "h_m",
                "sd_e_m", "sd_n_m", "sd_u_m", "n_used", "status")
 CSV_TRUTH_COLUMNS = ("err_e_m", "err_n_m", "err_u_m", "err_2d_m", "err_3d_m")
 
@@ -304,7 +304,8 @@ CSV_TRUTH_COLUMNS = ("err_e_m", "err_n_m", "err_u_m", "err_2d_m", "err_3d_m")
 def write_csv(path: str | Path, solution: Solution, truth_ecef_m: np.ndarray | None = None) -> Path:
     """One CSV row per epoch: time, ECEF, geodetic, ENU standard deviations, n_used, status.
 
-    Columns :data:`CSV_COLUMNS` (``time_gpst`` as ``yyyy/mm/dd hh:mm:ss.sss`` GPST; WGS84 ``h_m`` ellipsoidal; ``sd_*`` from the
+    Columns :data:`CSV_COLUMNS` (``time_gpst`` as ``yyyy/mm/dd hh:mm:ss.sss`` GPST; ``time_utc`` the same instant in
+    ISO 8601 UTC, leap seconds removed; WGS84 ``h_m`` ellipsoidal; ``sd_*`` from the
     position covariance rotated to the local ENU frame), plus :data:`CSV_TRUTH_COLUMNS` [m] when
     ``truth_ecef_m`` (T, 3) is given (empty where the epoch is unlabelled). Epochs without a position
     have empty numeric fields and status ``none``.
@@ -319,7 +320,7 @@ def write_csv(path: str | Path, solution: Solution, truth_ecef_m: np.ndarray | N
     digits = {"time_gps_s": 3, "tow_s": 3, "lat_deg": 9, "lon_deg": 9}      # the others: 4 (0.1 mm)
     text = {}
     for col, values in columns.items():
-        if col in ("time_gpst", "status"):
+        if col in ("time_gpst", "time_utc", "status"):
             text[col] = values
         elif col in ("week", "n_used"):
             text[col] = [str(int(v)) if has or col == "week" else "" for v, has in zip(values, ok)]
@@ -337,7 +338,7 @@ def solution_frame(solution: Solution, truth_ecef_m: np.ndarray | None = None) -
     """pandas DataFrame of a Solution, one row per epoch, with :func:`write_csv`'s columns [m, deg, s].
 
     Numbers as floats (NaN where the epoch has no position or covariance, never in the CSV), ``status`` by name,
-    ``time_gpst`` as text; with ``truth_ecef_m`` (T, 3) [m] also :data:`CSV_TRUTH_COLUMNS`.
+    ``time_gpst`` and ``time_utc`` as text; with ``truth_ecef_m`` (T, 3) [m] also :data:`CSV_TRUTH_COLUMNS`.
     """
     import pandas as pd
 
@@ -355,7 +356,7 @@ def _solution_columns(owner: str, solution: Solution, truth_ecef_m: np.ndarray |
     llh = solution.geodetic()
     sd = solution.sd_enu_m()
     status = np.asarray(solution.status)
-    columns = {"time_gpst": _calendar(ms) if t else [],
+    columns = {"time_gpst": _calendar(ms) if t else [], "time_utc": _utc_iso(ms / 1000.0) if t else [],
                "time_gps_s": np.asarray(solution.time_gps_s, float), "week": ms // _MS_PER_WEEK,
                "tow_s": (ms % _MS_PER_WEEK) / 1000.0, "x_m": pos[:, 0], "y_m": pos[:, 1], "z_m": pos[:, 2],
                "lat_deg": llh[:, 0], "lon_deg": llh[:, 1], "h_m": llh[:, 2], "sd_e_m": sd[:, 0], "sd_n_m": sd[:, 1],

@@ -432,6 +432,19 @@ def test_a_header_line_is_named_as_one(tmp_path):
     assert notes == [f"{truth}:1: unreadable truth line (a header?), skipped", f"{truth}:3: unreadable truth line, skipped"]
 
 
+def test_tow_axis_counts_on_across_the_end_of_a_week(monkeypatch):
+    """A drive across Saturday/Sunday midnight (GPS) keeps one tow axis: the next week's epochs at 604800 s and on,
+    not back at 0, where a split such as [604790, 604810) lost them (and [0, 10) took them)."""
+    from types import SimpleNamespace
+
+    t = 1900 * 604800 + 604790.0 + np.arange(0.0, 20.0, 0.5)
+    spec = datasets.DatasetSpec("x", (), (), "t.csv", "urbannav", splits={"test": (604795.0, 604805.0)})
+    values = datasets.split_axis_values(SimpleNamespace(time_gps_s=t, labelled=np.ones(t.size, bool)), spec)
+    np.testing.assert_allclose(values, 604790.0 + np.arange(0.0, 20.0, 0.5), rtol=0)
+    monkeypatch.setattr(datasets, "registered", lambda: {"x": spec})
+    assert datasets.epochs_in_split("x", "test", t[::-1]) == 20        # 604795 to 604804.5 s, in any order
+
+
 @pytest.mark.parametrize("axis", ["tow", "relative_s", "epoch"])
 def test_split_axis_values_needs_only_times_and_labels(axis):
     """benchmarks/front_end.py --table passes a stand-in with time_gps_s and labelled only; session 49's len(seq) made

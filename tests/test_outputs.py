@@ -17,7 +17,7 @@ from lfgnss.metrics import enu_errors
 from lfgnss.outputs import (CSV_COLUMNS, CSV_TRUTH_COLUMNS, align_to, plot_solution, read_pos, write_csv,
                             write_geojson, write_kml, write_pos)
 from lfgnss.paths import shared_data_dir
-from lfgnss.time import week_tow_to_gps_s
+from lfgnss.time import utc_to_gps_s, week_tow_to_gps_s
 
 # First lines of `rnx2rtkp -p 0 -t` (RTKLIB 2.4.3 b34) on the smartLoc Berlin Potsdamer Platz drive
 # (TU Chemnitz, CC BY-SA 4.0), plus two lines with negative cross terms. Line ends as RTKLIB writes.
@@ -256,6 +256,23 @@ def test_csv_week_and_tow_are_the_instant_time_gpst_shows(tmp_path):
     rows = list(csv.DictReader(open(write_csv(tmp_path / "w.csv", sol), newline="")))
     assert [(r["time_gpst"][-12:], r["week"], r["tow_s"]) for r in rows] == [
         ("00:00:00.000", "2051", "0.000"), ("00:00:00.200", "2051", "0.200")]
+
+
+def test_csv_time_utc_removes_the_leap_seconds(tmp_path):
+    """time_utc is time_gpst less GPST - UTC (17 s in 2016, 18 s from 2017), the inserted second as 23:59:59.999."""
+    time = utc_to_gps_s(np.array([(np.datetime64("2016-06-06T11:10:24.7") - np.datetime64("1980-01-06")) /
+                                  np.timedelta64(1, "s"),
+                                  (np.datetime64("2016-12-31T23:59:59.5") - np.datetime64("1980-01-06")) /
+                                  np.timedelta64(1, "s")]))
+    time = np.array([time[0], time[1], time[1] + 0.8, time[1] + 1.6])   # ... 23:59:60.3 and 2017-01-01 00:00:00.1
+    pos = lla_to_ecef(np.radians(np.full(4, 52.5)), np.radians(np.full(4, 13.4)), np.full(4, 40.0)).reshape(4, 3)
+    sol = Solution(backend="x", time_gps_s=time, pos_ecef_m=pos, cov_ecef_m2=np.tile(np.eye(3), (4, 1, 1)),
+                   clock_m=np.zeros(4), n_used=np.full(4, 6), status=np.full(4, STATUS_UPDATED))
+    rows = list(csv.DictReader(open(write_csv(tmp_path / "u.csv", sol), newline="")))
+    assert [r["time_gpst"] for r in rows] == ["2016/06/06 11:10:41.700", "2017/01/01 00:00:16.500",
+                                              "2017/01/01 00:00:17.300", "2017/01/01 00:00:18.100"]
+    assert [r["time_utc"] for r in rows] == ["2016-06-06T11:10:24.700Z", "2016-12-31T23:59:59.500Z",
+                                             "2016-12-31T23:59:59.999Z", "2017-01-01T00:00:00.100Z"]
 
 
 def test_read_pos_refuses_other_datums_and_geoid_heights(tmp_path):
