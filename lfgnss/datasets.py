@@ -712,6 +712,11 @@ def unmatched_time_words(spec: DatasetSpec, time_gps_s: np.ndarray) -> str:
         return (f"; {span} look like Unix times (seconds since 1970, UTC): ecef-csv times are GPS seconds since "
                 f"1980-01-06, {UNIX_TO_GPS_S:.0f} s fewer (and GPST - UTC more): "
                 f"{offset_words(spec, leap - UNIX_TO_GPS_S)}; and {epochs}")
+    for weeks in (1024, 2048):          # a receiver's 10-bit week number that rolled over (1999, 2019)
+        shift = weeks * SECONDS_PER_WEEK
+        if first + shift <= np.max(times) and last + shift >= np.min(times):
+            return (f"; {span} lie exactly {weeks} weeks before the epochs, as a 10-bit GPS week number that rolled "
+                    f"over reads them: {offset_words(spec, shift)}; and {epochs}")
     zone_h = _zone_offset_h(t_truth, times - leap, spec.match_tolerance_s)
     if zone_h is not None:
         return (f"; {span} would fit the epochs as local time, about UTC{zone_h:+g} h: {spec.truth_format} times are "

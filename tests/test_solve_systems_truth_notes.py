@@ -321,19 +321,21 @@ def test_a_mask_that_leaves_no_fix_is_named_as_the_cause(tmp_path, capsys):
                                                 "1980-01-06 (week * 604800 + time of week)"),
                                         ("ms", "look like milliseconds: ecef-csv times are seconds"),
                                         ("unix", "look like Unix times (seconds since 1970, UTC): ecef-csv times are GPS "
-                                                 "seconds since 1980-01-06, 315964800 s fewer")])
+                                                 "seconds since 1980-01-06, 315964800 s fewer"),
+                                        ("rollover", "lie exactly 1024 weeks before the epochs, as a 10-bit GPS week "
+                                                     "number that rolled over reads them")])
 def test_an_ecef_csv_truth_in_other_units_says_so(tmp_path, capsys, berlin, unit, said):
     """Review: times of week or milliseconds in an ecef-csv truth only got 'check --truth-format ecef-csv'."""
     t, truth = berlin
     stamps = {"tow": t - SECONDS_PER_WEEK * np.floor(t / SECONDS_PER_WEEK), "ms": t * 1000.0,
-              "unix": t + 315964800.0 - 17.0}[unit]
+              "unix": t + 315964800.0 - 17.0, "rollover": t - 1024 * SECONDS_PER_WEEK}[unit]
     path = _ecef_csv(tmp_path / f"{unit}.csv", stamps, truth)
     assert main([*FAST, *SAMPLE, "--out", str(tmp_path / "o"), "--truth", str(path), "--truth-format", "ecef-csv"]) == 0
     err = capsys.readouterr().err
     assert "no truth epoch matches" in err and said in err and "the epochs' are GPS 1149246641.7 to " in err, err
     if unit != "ms":                    # the offset named, taken as given, labels the drive with no further note
         offset = re.search(r"give --truth-offset (-?\d+(?:\.\d)?);", err).group(1)
-        assert offset == {"tow": "1149120000", "unix": "-315964783"}[unit]
+        assert offset == {"tow": "1149120000", "unix": "-315964783", "rollover": "619315200"}[unit]
         assert main([*FAST, *SAMPLE, "--out", str(tmp_path / "o"), "--truth", str(path), "--truth-format", "ecef-csv",
                      "--truth-offset", offset]) == 0
         captured = capsys.readouterr()
