@@ -18,19 +18,23 @@ def lla_to_ecef(lat_rad: np.ndarray, lon_rad: np.ndarray, h_m: np.ndarray) -> np
 
 
 def ecef_to_lla(ecef_m: np.ndarray) -> np.ndarray:
-    """Geodetic (lat [rad], lon [rad], h [m]), shape (..., 3), from ECEF [m] (Bowring, then 3 iterations)."""
+    """Geodetic (lat [rad], lon [rad], h [m]), shape (..., 3), from ECEF [m] (4 fixed-point iterations on latitude)."""
     x, y, z = np.moveaxis(np.asarray(ecef_m, dtype=float), -1, 0)
     p = np.hypot(x, y)
     lon = np.arctan2(y, x)
     lat = np.arctan2(z, p * (1.0 - _E2))
+
+    def height(lat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        # p cos(lat) + z sin(lat) - a sqrt(1 - e2 sin^2 lat), not p / cos(lat) - N, which is -N on the axis
+        s = np.sin(lat)
+        n = WGS84_A_M / np.sqrt(1.0 - _E2 * s ** 2)
+        return n, p * np.cos(lat) + z * s - WGS84_A_M * WGS84_A_M / n
+
     for _ in range(4):
-        n = WGS84_A_M / np.sqrt(1.0 - _E2 * np.sin(lat) ** 2)
-        h = p / np.maximum(np.cos(lat), 1e-12) - n
+        n, h = height(lat)
         nh = n + h
         lat = np.arctan2(z, p * (1.0 - _E2 * n / np.where(np.abs(nh) > 1.0, nh, 1.0)))
-    n = WGS84_A_M / np.sqrt(1.0 - _E2 * np.sin(lat) ** 2)
-    h = p / np.maximum(np.cos(lat), 1e-12) - n
-    return np.stack([lat, lon, h], axis=-1)
+    return np.stack([lat, lon, height(lat)[1]], axis=-1)
 
 
 def enu_rotation(lat_rad: float, lon_rad: float) -> np.ndarray:
