@@ -134,6 +134,17 @@ class Solution:
         sd = np.sqrt(np.maximum(np.diagonal(self.cov_enu_m2(), axis1=1, axis2=2), 0.0))
         return np.where(known[:, None], sd, np.nan)
 
+    def vel_enu_m_s(self) -> np.ndarray:
+        """(T, 3) velocity east, north, up [m/s] in each epoch's local frame; NaN where no position or velocity."""
+        out = np.full((len(self), 3), np.nan)
+        if self.vel_ecef_m_s is None:
+            return out
+        pos = self._positions()
+        vel = np.asarray(self.vel_ecef_m_s, float)
+        ok = np.isfinite(pos).all(axis=1) & np.isfinite(vel).all(axis=1)
+        out[ok] = np.einsum("tij,tj->ti", enu_rotations(pos[ok]).reshape(-1, 3, 3), vel[ok])
+        return out
+
     def subset(self, index: slice | np.ndarray | int) -> "Solution":
         """Epochs selected by a slice, boolean mask, index array or one index, as a new Solution (and info's arrays).
 

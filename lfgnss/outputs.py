@@ -99,8 +99,11 @@ def _calendar(ms: np.ndarray, decimals: int = 3) -> list[str]:
 
 
 def _fmt(value: float, digits: int) -> str:
-    """Fixed-point text of a finite value, '' otherwise (CSV never holds NaN or inf)."""
-    return f"{value:.{digits}f}" if np.isfinite(value) else ""
+    """Fixed-point text of a finite value, '' otherwise (CSV never holds NaN or inf); no '-0.0000'."""
+    if not np.isfinite(value):
+        return ""
+    text = f"{value:.{digits}f}"
+    return text[1:] if text.startswith("-") and not float(text) else text
 
 
 # ---------------------------------------------------------------- RTKLIB .pos
@@ -297,7 +300,7 @@ def read_pos(path: str | Path, backend: str | None = None) -> Solution:
 
 # ---------------------------------------------------------------- CSV
 CSV_COLUMNS = ("time_gpst", "time_utc", "time_gps_s", "week", "tow_s", "x_m", "y_m", "z_m", "lat_deg", "lon_deg", "h_m",
-               "sd_e_m", "sd_n_m", "sd_u_m", "n_used", "status")
+               "sd_e_m", "sd_n_m", "sd_u_m", "vel_e_m_s", "vel_n_m_s", "vel_u_m_s", "clock_m", "n_used", "status")
 CSV_TRUTH_COLUMNS = ("err_e_m", "err_n_m", "err_u_m", "err_2d_m", "err_3d_m")
 
 
@@ -305,7 +308,8 @@ def write_csv(path: str | Path, solution: Solution, truth_ecef_m: np.ndarray | N
     """One CSV row per epoch: time, ECEF, geodetic, ENU standard deviations, n_used, status.
 
     Columns :data:`CSV_COLUMNS` (``time_gpst`` as ``yyyy/mm/dd hh:mm:ss.sss`` GPST; ``time_utc`` the same instant in
-    ISO 8601 UTC, leap seconds removed; WGS84 ``h_m`` ellipsoidal; ``sd_*`` from the
+    ISO 8601 UTC, leap seconds removed; WGS84 ``h_m`` ellipsoidal; ``vel_*`` the velocity in the local ENU frame
+    (empty for an estimator without one), ``clock_m`` the receiver clock of the reference constellation; ``sd_*`` from the
     position covariance rotated to the local ENU frame), plus :data:`CSV_TRUTH_COLUMNS` [m] when
     ``truth_ecef_m`` (T, 3) is given (empty where the epoch is unlabelled). Epochs without a position
     have empty numeric fields and status ``none``.
@@ -317,7 +321,7 @@ def write_csv(path: str | Path, solution: Solution, truth_ecef_m: np.ndarray | N
         raise ValueError(f"write_csv {path}: truth_ecef_m has shape {np.shape(truth_ecef_m)}, expected ({t}, 3)")
     columns = _solution_columns(f"write_csv {path}", solution, truth_ecef_m)
     ok = solution.has_position()
-    digits = {"time_gps_s": 3, "tow_s": 3, "lat_deg": 9, "lon_deg": 9}      # the others: 4 (0.1 mm)
+    digits = {"time_gps_s": 3, "tow_s": 3, "lat_deg": 9, "lon_deg": 9}      # the others: 4 (0.1 mm, 0.1 mm/s)
     text = {}
     for col, values in columns.items():
         if col in ("time_gpst", "time_utc", "status"):
@@ -335,7 +339,7 @@ def write_csv(path: str | Path, solution: Solution, truth_ecef_m: np.ndarray | N
 
 
 def solution_frame(solution: Solution, truth_ecef_m: np.ndarray | None = None) -> "pd.DataFrame":
-    """pandas DataFrame of a Solution, one row per epoch, with :func:`write_csv`'s columns [m, deg, s].
+    """pandas DataFrame of a Solution, one row per epoch, with :func:`write_csv`'s columns [m, deg, s, m/s].
 
     Numbers as floats (NaN where the epoch has no position or covariance, never in the CSV), ``status`` by name,
     ``time_gpst`` and ``time_utc`` as text; with ``truth_ecef_m`` (T, 3) [m] also :data:`CSV_TRUTH_COLUMNS`.
@@ -355,12 +359,14 @@ def _solution_columns(owner: str, solution: Solution, truth_ecef_m: np.ndarray |
     ms = _gpst_ms(solution.time_gps_s)      # week and TOW from the milliseconds time_gpst shows: the same instant
     llh = solution.geodetic()
     sd = solution.sd_enu_m()
+    vel = solution.vel_enu_m_s()
     status = np.asarray(solution.status)
     columns = {"time_gpst": _calendar(ms) if t else [], "time_utc": _utc_iso(ms / 1000.0) if t else [],
                "time_gps_s": np.asarray(solution.time_gps_s, float), "week": ms // _MS_PER_WEEK,
                "tow_s": (ms % _MS_PER_WEEK) / 1000.0, "x_m": pos[:, 0], "y_m": pos[:, 1], "z_m": pos[:, 2],
                "lat_deg": llh[:, 0], "lon_deg": llh[:, 1], "h_m": llh[:, 2], "sd_e_m": sd[:, 0], "sd_n_m": sd[:, 1],
-               "sd_u_m": sd[:, 2], "n_used": np.where(ok, np.asarray(solution.n_used), 0).astype(int),
+               "sd_u_m": sd[:, 2], "vel_e_m_s": vel[:, 0], "vel_n_m_s": vel[:, 1], "vel_u_m_s": vel[:, 2],
+               "clock_m": np.where(ok, np.asarray(solution.clock_m, float), np.nan), "n_used": np.where(ok, np.asarray(solution.n_used), 0).astype(int),
                "status": [STATUS_NAMES.get(int(v), str(int(v))) if has else STATUS_NAMES[STATUS_NONE]
                           for v, has in zip(status, ok)]}
     if truth_ecef_m is not None:

@@ -275,6 +275,28 @@ def test_csv_time_utc_removes_the_leap_seconds(tmp_path):
                                              "2016-12-31T23:59:59.999Z", "2017-01-01T00:00:00.100Z"]
 
 
+def test_csv_velocity_in_the_local_frame_and_clock(tmp_path):
+    """Robotics users asked for velocity: vel_e/n/u_m_s rotate vel_ecef_m_s into each epoch's ENU frame (empty for an
+    estimator without velocity, and where no position); clock_m is the Solution's."""
+    lat, lon = np.radians(52.5), np.radians(13.4)
+    pos = np.tile(lla_to_ecef(lat, lon, 40.0), (3, 1))
+    east = np.array([-np.sin(lon), np.cos(lon), 0.0])
+    up = np.array([np.cos(lat) * np.cos(lon), np.cos(lat) * np.sin(lon), np.sin(lat)])
+    north = np.cross(up, east)
+    vel = np.array([10.0 * east + 1.0 * up, -3.0 * north, 10.0 * east])
+    status = np.array([STATUS_UPDATED, STATUS_COASTED, STATUS_NONE])
+    sol = Solution(backend="x", time_gps_s=1.0e9 + np.arange(3.0), pos_ecef_m=pos, cov_ecef_m2=np.tile(np.eye(3), (3, 1, 1)),
+                   clock_m=np.array([12.5, 13.0, 14.0]), n_used=np.array([6, 0, 0]), status=status, vel_ecef_m_s=vel)
+    rows = list(csv.DictReader(open(write_csv(tmp_path / "v.csv", sol), newline="")))
+    got = [(r["vel_e_m_s"], r["vel_n_m_s"], r["vel_u_m_s"], r["clock_m"]) for r in rows]
+    assert got == [("10.0000", "0.0000", "1.0000", "12.5000"), ("0.0000", "-3.0000", "0.0000", "13.0000"),
+                   ("", "", "", "")]
+    without = Solution(backend="wls", time_gps_s=sol.time_gps_s, pos_ecef_m=pos, cov_ecef_m2=sol.cov_ecef_m2,
+                       clock_m=sol.clock_m, n_used=sol.n_used, status=status)
+    rows = list(csv.DictReader(open(write_csv(tmp_path / "w.csv", without), newline="")))
+    assert [r["vel_e_m_s"] for r in rows] == ["", "", ""] and rows[0]["clock_m"] == "12.5000"
+
+
 def test_read_pos_refuses_other_datums_and_geoid_heights(tmp_path):
     """rnx2rtkp's out-height=geodetic (above the geoid) or out-datum=tokyo would be read as WGS84 ellipsoidal."""
     for frame, words in (("WGS84/geodetic", "WGS84/geodetic"), ("Tokyo/ellipsoidal", "Tokyo/ellipsoidal")):
