@@ -29,14 +29,14 @@ from xml.sax.saxutils import escape
 
 import numpy as np
 
-from estimators.base import (STATUS_COASTED, STATUS_NAMES, STATUS_NONE, STATUS_UPDATED,
+from estimators.base import (STATUS_COASTED, STATUS_NAMES, STATUS_NONE, STATUS_RESET, STATUS_UPDATED,
                              Solution)
 
 from . import __version__
 from .frames import check_near_surface, ecef_to_lla, lla_to_ecef
 from .metrics import enu_errors, enu_rotations
 from .paths import write_output
-from .time import GPS_EPOCH, SECONDS_PER_WEEK, leap_seconds, utc_to_gps_s
+from .time import GPS_EPOCH, SECONDS_PER_WEEK, gpst_stamp, leap_seconds, utc_to_gps_s
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -552,7 +552,9 @@ def plot_solution(out_dir: str | Path, solution: Solution, truth_ecef_m: np.ndar
     * ``{prefix}track.png``: horizontal track in ENU [m] about the first truth point (else the first
       position), with the truth and any extra solutions;
     * with ``truth_ecef_m`` (T, 3): ``{prefix}errors.png``, 2D and vertical error against time, and
-      ``{prefix}cdf.png``, the CDF of 2D and 3D errors of every solution on one plot.
+      ``{prefix}cdf.png``, the CDF of 2D and 3D errors of every solution on one plot;
+    * ``{prefix}quality.png``: what ``solution`` says of itself against time, truth or not: its standard deviations
+      east, north and up [m], and the satellites it used, with the coasted, reset and unsolved epochs marked.
 
     Extra solutions (a name -> Solution mapping, or Solutions named by their backend) are matched to
     ``solution``'s epochs by GPS time rounded to 0.1 s. ``label`` names ``solution`` (default: its backend), which
@@ -595,8 +597,10 @@ def save_figure(path: str | Path, fig: "Figure", dpi: int = 120) -> Path:
     return path
 
 
-#: The figures of :func:`solution_figures` with a truth, by file name (without one: the track only).
-TRUTH_FIGURES = ("track.png", "errors.png", "cdf.png")
+#: The figures of :func:`solution_figures` with a truth, by file name (without one: the track and the quality).
+TRUTH_FIGURES = ("track.png", "errors.png", "cdf.png", "quality.png")
+#: ... and without a truth.
+FIGURES = ("track.png", "quality.png")
 
 
 def solution_figures(solution: Solution, truth_ecef_m: np.ndarray | None = None,
@@ -659,9 +663,16 @@ def solution_figures(solution: Solution, truth_ecef_m: np.ndarray | None = None,
     # the figure shows every run: name the run only when it is the only one
     ax.set_title("horizontal track" if len(runs) > 1 else f"horizontal track ({runs[0][0]})")
 
-    if truth is None:
-        return figures
     t_rel = t - t[0] if len(t) else t
+    time_label = f"time since {gpst_stamp(float(t[0]), 1)} GPST [s]" if len(t) else "time [s]"
+    if truth is not None:
+        _error_figures(new_figure, runs, truth, t_rel, time_label, style, width)
+    _quality_figure(new_figure("quality.png", (10, 6)), solution, t_rel, time_label, label or solution.backend)
+    return figures
+
+
+def _error_figures(new_figure, runs, truth, t_rel, time_label, style, width) -> None:
+    """errors.png and cdf.png of :func:`solution_figures`."""
     errors = [(name, enu_errors(p, truth)) for name, p in runs]
     ax2, axu = new_figure("errors.png", (10, 6)).subplots(2, 1, sharex=True)
     for name, e in errors:
@@ -673,7 +684,7 @@ def solution_figures(solution: Solution, truth_ecef_m: np.ndarray | None = None,
     ax2.set_yscale("log")                   # 0.5 m and 50 m both readable when estimators differ tenfold
     _log_ticks(ax2.yaxis)
     axu.set_ylabel("up error [m]")
-    axu.set_xlabel("time since first epoch [s]")
+    axu.set_xlabel(time_label)
     for a in (ax2, axu):
         a.grid(True, alpha=0.3)
     _legend(ax2)
@@ -695,4 +706,37 @@ def solution_figures(solution: Solution, truth_ecef_m: np.ndarray | None = None,
     ax_h.set_ylabel("share of labelled epochs")
     ax_h.set_ylim(0, 1.0)
     _legend(ax_3)                           # beside the right panel: between the two it would cover the left one
-    return figures
+
+
+def _quality_figure(fig: "Figure", solution: Solution, t_rel: np.ndarray, time_label: str, name: str) -> None:
+    """quality.png of :func:`solution_figures`: standard deviations [m] and satellites used against time."""
+    ax_sd, ax_n = fig.subplots(2, 1, sharex=True)
+    sd = solution.sd_enu_m()
+    for j, axis in enumerate(("east", "north", "up")):
+        ax_sd.plot(t_rel, sd[:, j], marker=".", ms=2, lw=0.8, color=f"C{j}", label=axis)
+    if (sd > 0).any():
+        ax_sd.set_yscale("log")             # 0.5 m and 500 m (a coasting stretch) both readable
+        _log_ticks(ax_sd.yaxis)
+        _legend(ax_sd)
+    else:
+        ax_sd.text(0.5, 0.5, "no covariance", ha="center", va="center", transform=ax_sd.transAxes)
+    ax_sd.set_ylabel("standard deviation [m]")
+    ax_sd.set_title(f"{name}: its own standard deviations and satellites")
+    has = solution.has_position()
+    status = np.asarray(solution.status)
+    ax_n.plot(t_rel, np.where(has, np.asarray(solution.n_used, float), np.nan), color="k", lw=0.8,
+              drawstyle="steps-post", label="satellites used")
+    for code, marker, colour in ((STATUS_COASTED, "v", "C1"), (STATUS_RESET, "o", "C3"), (STATUS_NONE, "x", "0.4")):
+        at = status == code if code != STATUS_NONE else ~has
+        if at.any():
+            ax_n.plot(t_rel[at], np.zeros(int(at.sum())), ls="none", marker=marker, ms=4, color=colour,
+                      label=f"{STATUS_NAMES[code] if code != STATUS_NONE else 'no position'} ({int(at.sum())})")
+    from matplotlib.ticker import MaxNLocator
+
+    ax_n.set_ylabel("satellites used")
+    ax_n.set_ylim(bottom=-1)
+    ax_n.yaxis.set_major_locator(MaxNLocator(integer=True))
+    ax_n.set_xlabel(time_label)
+    for a in (ax_sd, ax_n):
+        a.grid(True, alpha=0.3)
+    _legend(ax_n)

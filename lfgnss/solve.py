@@ -255,7 +255,7 @@ def _solve(args) -> _Solved:
     from . import datasets
     from .features import build_sequence
     from .measurements import load
-    from .outputs import (TRUTH_FIGURES, save_figure, solution_figures, write_csv, write_geojson, write_kml,
+    from .outputs import (FIGURES, TRUTH_FIGURES, save_figure, solution_figures, write_csv, write_geojson, write_kml,
                           write_pos)
     from .spp import spp
 
@@ -293,7 +293,7 @@ def _solve(args) -> _Solved:
         if not np.isfinite(truth).all(axis=1).any():
             hint = " and --truth-origin (GPS seconds of its t = 0)" if truth_format == "smartloc" else ""
             print(f"warning: {truth_path}: no truth epoch matches an epoch of {obs}{_window_words(args)}; no accuracy "
-                  f"table or plots (check --truth-format {truth_format}{hint})"
+                  f"table or error plots (check --truth-format {truth_format}{hint})"
                   f"{datasets.unmatched_time_words(spec, meas.time_gps_s)}", file=sys.stderr)
             truth = None
         else:
@@ -350,7 +350,7 @@ def _solve(args) -> _Solved:
             (f"{stem}.csv", lambda p: [write_csv(p, solution, truth)]),
             (f"{stem}.geojson", lambda p: [write_geojson(p, solution)]),
             (f"{stem}.kml", lambda p: [write_kml(p, solution)])]
-    if truth is not None and not args.no_plots:
+    if not args.no_plots:
         figures: dict = {}                  # drawn at the first figure's turn, after the files above are written
         learned = isinstance(getattr(noise, "metadata", None), dict)
         title = f"{Path(obs).name}: {label}" + ("" if _own_model(args) or args.no_model else
@@ -362,7 +362,8 @@ def _solve(args) -> _Solved:
                                                        title=title))
             return [save_figure(path, figures[name])]
 
-        jobs += [(f"{stem}_{name}", lambda p, name=name: save(p, name)) for name in TRUTH_FIGURES]
+        jobs += [(f"{stem}_{name}", lambda p, name=name: save(p, name))
+                 for name in (TRUTH_FIGURES if truth is not None else FIGURES)]
     written, failed = [], []
     for path, job in jobs:
         try:
@@ -397,6 +398,25 @@ def _print_summary(args: argparse.Namespace, solved: _Solved, caught: list[str])
         print(format_text(rows))
 
 
+def solution_words(solution) -> str:
+    """One line on what a Solution says of itself: epochs with a position by status, median standard deviations
+    east / north / up [m] and satellites used (for a run without truth, the only account of it)."""
+    from estimators.base import STATUS_NAMES, STATUS_NONE
+
+    has = solution.has_position()
+    status = np.asarray(solution.status)
+    counts = ", ".join(f"{name} {int(np.sum(has & (status == code)))}" for code, name in STATUS_NAMES.items()
+                       if code != STATUS_NONE and np.any(has & (status == code)))
+    words = f"solution: {int(has.sum())} of {has.size} epochs with a position" + (f" ({counts})" if counts else "")
+    sd = solution.sd_enu_m()[has]
+    if np.isfinite(sd).all(axis=1).any():
+        e, n, u = np.nanmedian(sd[np.isfinite(sd).all(axis=1)], axis=0)
+        words += f"; median standard deviation east / north / up {e:.2f} / {n:.2f} / {u:.2f} m"
+    if has.any():
+        words += f"; median {np.median(np.asarray(solution.n_used)[has]):g} satellites used"
+    return words
+
+
 def _print_run(solved: _Solved, shown: list[str], n_notes: int) -> None:
     """The run's lines on stdout: file, systems and back end, coarse fix, input notes and outputs."""
     summary = solved.fix.summary()
@@ -412,6 +432,7 @@ def _print_run(solved: _Solved, shown: list[str], n_notes: int) -> None:
               f"used){f'; the first {NOTES_SHOWN}:' if n_notes > NOTES_SHOWN else ':'}")
     for note in shown:
         print(f"warning: {note}")
+    print(solution_words(solved.solution))
     files = [p for p in solved.written if not str(p).endswith(".png")]
     plots = len(solved.written) - len(files)
     print(f"outputs: {', '.join(str(p) for p in files) or 'none'}" + (f" and {plots} plots" if plots else ""))

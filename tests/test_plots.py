@@ -86,6 +86,8 @@ def test_sixteen_methods_get_distinct_lines_in_every_figure(tmp_path):
     figs = solution_figures(sol, truth, extra_solutions=extra, label="LF-GNSS EKF")
     names = ["LF-GNSS EKF", *extra]
     for fname, fig in figs.items():
+        if fname == "quality.png":                  # the main run's own standard deviations and satellites only
+            continue
         for ax in fig.axes:
             lines = {ln.get_label(): (tuple(ln.get_color()), ln.get_linestyle()) for ln in ax.get_lines()
                      if ln.get_label() in names}
@@ -93,7 +95,7 @@ def test_sixteen_methods_get_distinct_lines_in_every_figure(tmp_path):
             assert len(set(lines.values())) == len(names), fname
             assert lines == run_styles(names)
     files = plot_solution(tmp_path, sol, truth, extra_solutions=extra, label="LF-GNSS EKF")
-    assert [f.name for f in files] == ["track.png", "errors.png", "cdf.png"]
+    assert [f.name for f in files] == ["track.png", "errors.png", "cdf.png", "quality.png"]
 
 
 def test_track_title_names_no_single_method_when_it_shows_several():
@@ -126,7 +128,8 @@ def test_a_figure_that_cannot_be_written_costs_that_figure_only(tmp_path):
     assert info.value.filename == str(tmp_path / "errors.png")
     for name in ("track.png", "cdf.png"):
         assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["cdf.png", "errors.png", "track.png"]   # no temporary
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cdf.png", "errors.png", "quality.png",
+                                                          "track.png"]                          # no temporary
 
 
 def test_save_figure_writes_the_format_its_suffix_names(tmp_path):
@@ -134,9 +137,9 @@ def test_save_figure_writes_the_format_its_suffix_names(tmp_path):
 
     sol, truth = _run(np.linspace(1.0, 5.0, 20))
     fig = solution_figures(sol, truth)["track.png"]
-    from lfgnss.outputs import TRUTH_FIGURES
+    from lfgnss.outputs import FIGURES, TRUTH_FIGURES
 
-    assert tuple(solution_figures(sol, truth)) == TRUTH_FIGURES and tuple(solution_figures(sol)) == ("track.png",)
+    assert tuple(solution_figures(sol, truth)) == TRUTH_FIGURES and tuple(solution_figures(sol)) == FIGURES
     for name, magic in (("t.pdf", b"%PDF"), ("t.png", b"\x89PNG"), ("t", b"\x89PNG")):
         save_figure(tmp_path / name, fig)
         assert (tmp_path / name).read_bytes()[:4] == magic, name
@@ -149,7 +152,9 @@ def test_every_figure_is_titled_the_main_run_stands_out_and_the_cdf_legend_cover
     (main, truth), others = runs[0], [sol for sol, _ in runs[1:]]
     figures = solution_figures(main, truth, extra_solutions=others, label="LF-GNSS EKF", title="my-drive, test split")
     assert {name: fig.get_suptitle() for name, fig in figures.items()} == dict.fromkeys(figures, "my-drive, test split")
-    for fig in figures.values():
+    for name, fig in figures.items():
+        if name == "quality.png":                   # the main run's alone
+            continue
         lines = [ln for ax in fig.axes for ln in ax.get_lines() if ln.get_label() in ("LF-GNSS EKF", "run2")]
         widths = {ln.get_label(): ln.get_linewidth() for ln in lines}
         assert widths["LF-GNSS EKF"] == 2 * widths["run2"], widths
@@ -167,3 +172,31 @@ def test_the_benchmark_titles_its_figures_with_the_dataset_and_split(monkeypatch
     sol, truth = _run(np.full(5, 1.0))
     benchmark._plot(tmp_path, "my-drive", {"LF-GNSS EKF": sol}, truth, None)
     assert seen["title"] == "my-drive, test split (python -m lfgnss.benchmark)"
+
+
+def test_quality_figure_shows_the_solutions_own_sds_satellites_and_status_without_truth():
+    """A run without truth (the usual case with one's own data) had no plot and no account of itself: quality.png
+    draws the standard deviations and satellites against GPST, and marks coasted, reset and unsolved epochs."""
+    from dataclasses import replace
+
+    from estimators.base import STATUS_COASTED, STATUS_NONE, STATUS_RESET
+    from lfgnss.solve import solution_words
+
+    sol, _ = _run(np.full(6, 1.0))
+    cov = np.tile(np.diag([4.0, 9.0, 16.0]), (6, 1, 1))       # ECEF; at 52.5 N the ENU sds mix them
+    sol = replace(sol, cov_ecef_m2=cov, n_used=np.array([8, 7, 0, 9, 9, 0]),
+                  status=np.array([STATUS_RESET, STATUS_UPDATED, STATUS_COASTED, STATUS_UPDATED, STATUS_UPDATED,
+                                   STATUS_NONE]))
+    fig = solution_figures(sol)["quality.png"]
+    ax_sd, ax_n = fig.axes
+    sd = {ln.get_label(): ln.get_ydata() for ln in ax_sd.get_lines()}
+    np.testing.assert_allclose(np.column_stack([sd["east"], sd["north"], sd["up"]]), sol.sd_enu_m(), rtol=0)
+    marks = {ln.get_label(): list(ln.get_xdata()) for ln in ax_n.get_lines()}
+    assert marks["reset (1)"] == [0.0] and marks["coasted (1)"] == [2.0] and marks["no position (1)"] == [5.0]
+    used = next(ln for ln in ax_n.get_lines() if ln.get_label() == "satellites used")
+    np.testing.assert_array_equal(used.get_ydata(), [8, 7, 0, 9, 9, np.nan])
+    assert ax_n.get_xlabel() == "time since 2011-09-14 01:46:40.0 GPST [s]"
+    sd_med = np.median(sol.sd_enu_m()[:5], axis=0)
+    assert solution_words(sol) == (f"solution: 5 of 6 epochs with a position (updated 3, coasted 1, reset 1); median "
+                                   f"standard deviation east / north / up {sd_med[0]:.2f} / {sd_med[1]:.2f} / "
+                                   f"{sd_med[2]:.2f} m; median 8 satellites used")

@@ -133,7 +133,9 @@ def test_truth_matching_no_epoch_warns_and_skips_the_table(tmp_path, capsys):
     assert main(args) == 0
     captured = capsys.readouterr()
     assert "no truth epoch matches an epoch" in captured.err and "--truth-origin" in captured.err
-    assert "RMSE" not in captured.out and not list(tmp_path.glob("*.png"))
+    assert "RMSE" not in captured.out        # and no error plots: the track and the solution's own quality only
+    assert sorted(p.name for p in tmp_path.glob("*.png")) == ["Berlin_Potsdamer_Platz_ekf_quality.png",
+                                                              "Berlin_Potsdamer_Platz_ekf_track.png"]
     assert (tmp_path / "Berlin_Potsdamer_Platz_ekf.csv").exists()          # the solution is still written
 
 
@@ -217,9 +219,9 @@ def test_back_ends_compared_in_one_folder_keep_their_own_outputs(tmp_path, capsy
         assert main(["--out", str(tmp_path), "--quiet", *extra]) == 0
     stems = {"ekf", "ekf-rts-lag2s", "wls"}
     for tag in stems:
-        for suffix in (".pos", ".csv", ".geojson", ".kml", "_track.png", "_errors.png", "_cdf.png"):
+        for suffix in (".pos", ".csv", ".geojson", ".kml", "_track.png", "_errors.png", "_cdf.png", "_quality.png"):
             assert (tmp_path / f"Berlin_Potsdamer_Platz_{tag}{suffix}").exists(), (tag, suffix)
-    assert len(list(tmp_path.iterdir())) == 7 * len(stems)
+    assert len(list(tmp_path.iterdir())) == 8 * len(stems)
     capsys.readouterr()
     assert main(["--out", str(tmp_path), "--backend", "wls", "--smooth"]) == 2
     assert capsys.readouterr().err.rstrip().endswith("not wls")        # the factor graph's reason is fgo's alone
