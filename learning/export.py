@@ -760,6 +760,12 @@ def ensemble_members(metadata: dict) -> list[dict]:
     return (metadata.get("ensemble") or {}).get("members") or []
 
 
+def trained_smoothed(metadata: dict) -> bool:
+    """Whether a model file was trained and selected on RTS-smoothed positions (``train.smooth = true``): it is meant
+    for the EKF with its smoother (``smooth=True``, ``lfgnss.solve --smooth``)."""
+    return ((metadata.get("config") or {}).get("train") or {}).get("smooth") is True
+
+
 def trained_systems(metadata: dict) -> str | None:
     """The constellations (letters, GCERJ order) of the data a model file was trained and selected on, from its
     ``data_spans``; None for a file that does not record them (trained before session 50)."""
@@ -1033,7 +1039,8 @@ def describe_model(model: LfgnssModel) -> list[str]:
     data = (meta.get("config") or {}).get("data", {})
     seen = set(split_parts(data.get("val_split", "val"))) & set(split_parts(data.get("train_split", "train")))
     where = (" (on trained epochs)" if seen and val is not None else "") + \
-        (" (in the training filter)" if meta.get("refilter") and val is not None else "")
+        (" (in the training filter)" if meta.get("refilter") and val is not None else "") + \
+        (" (RTS-smoothed positions: use it with --smooth)" if trained_smoothed(meta) and val is not None else "")
     return [f"{model.path}",
             f"trained on: {trained_on(meta)}; epoch {meta.get('epoch')}, validation 3D RMSE "
             f"{'-' if val is None else f'{val:.3f} m'}{where}" + (" (its first network)" if meta.get("ensemble")

@@ -51,21 +51,28 @@ class Normaliser:
 
     @classmethod
     def fit(cls, sequences: Iterable[Sequence], feature_names: Iterable[str]) -> "Normaliser":
-        """Mean and std of each named feature over the valid slots of ``sequences``."""
+        """Mean and std of each named feature over the valid slots of ``sequences``.
+
+        A non-finite feature in a valid slot is refused, naming it (the exported model refuses it at inference:
+        ``learning.export.LfgnssModel.predict``; it used to drop the slot here and train on without a word).
+        """
         names = tuple(feature_names)
-        total = np.zeros(len(names))
-        total_sq = np.zeros(len(names))
-        count = 0
+        blocks = []
         for seq in sequences:
-            x = select_features(seq, names)[np.asarray(seq.mask, bool)]
-            x = x[np.all(np.isfinite(x), axis=-1)]
-            total += x.sum(axis=0)
-            total_sq += (x * x).sum(axis=0)
-            count += x.shape[0]
-        if count == 0:
+            full = select_features(seq, names)
+            mask = np.asarray(seq.mask, bool)
+            bad = mask[..., None] & ~np.isfinite(full)
+            if bad.any():
+                k, slot, j = (int(i[0]) for i in np.nonzero(bad))
+                raise ValueError(f"normaliser: feature {names[j]!r} of sequence {getattr(seq, 'name', '?')!r} is not "
+                                 f"finite at {int(bad[..., j].sum())} valid satellite slot(s) (first: epoch {k}, "
+                                 f"slot {slot}): give numbers there or mask those slots out")
+            blocks.append(full[mask])
+        x = np.concatenate(blocks) if blocks else np.zeros((0, len(names)))
+        if x.shape[0] == 0:
             raise ValueError("normaliser: no valid satellite slot in the training sequences")
-        mean = total / count
-        std = np.sqrt(np.maximum(total_sq / count - mean ** 2, 0.0))
+        mean = x.mean(axis=0)
+        std = x.std(axis=0)             # two passes: one, E[x^2] - mean^2, lost a small spread about a large mean
         std = np.where(std < MIN_STD, 1.0, std)
         return cls(names, mean, std)
 

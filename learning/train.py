@@ -258,6 +258,11 @@ def _setting(config: dict, key: str) -> Any:
     return value
 
 
+#: Least ``model.r_floor_m2`` [m^2]: the plug-in EKF refuses an update with R near 1e-10 m^2 as numerically singular
+#: (estimators.ekf), and the torch EKF raised torch.linalg.LinAlgError at 1e-12 m^2; loss.r_weight's ln R needs R > 0.
+MIN_R_FLOOR_M2 = 1.0e-6
+
+
 def _check_number(config: dict, key: str, low: float, high: float = math.inf, *, whole: bool = False,
                   above: bool = False) -> None:
     """ValueError naming ``key`` unless it is a finite number (an int with ``whole``; never a bool) in [low, high]
@@ -316,8 +321,7 @@ def check_config(config: dict) -> dict:
                 "model.d_model", "model.n_heads", "train.epochs", "train.batch_size", "train.t_max"):
         _check_number(config, key, 1, whole=True)
     for key, above in (("train.lr", False), ("train.eta_min", False), ("train.weight_decay", False),
-                       ("train.grad_clip", False), ("train.feature_noise", False), ("model.r_floor_m2", False),
-                       ("model.r_scale_m2", True), ("loss.alpha", True), ("loss.gamma", False),
+                       ("train.grad_clip", False), ("train.feature_noise", False), ("model.r_scale_m2", True), ("loss.alpha", True), ("loss.gamma", False),
                        ("loss.lambda", False), ("loss.up_weight", False), ("loss.vc_weight", False),
                        ("loss.vc_delta_m", True), ("loss.r_weight", False)):
         _check_number(config, key, 0, above=above)
@@ -327,9 +331,7 @@ def check_config(config: dict) -> dict:
     if _setting(config, "loss.r_weight") > 0 and _setting(config, "model.innovation"):
         raise ValueError("loss.r_weight needs a network that reads its features alone; with model.innovation = true "
                          "its R is made inside the filter")
-    if _setting(config, "loss.r_weight") > 0 and not _setting(config, "model.r_floor_m2") > 0:
-        raise ValueError("loss.r_weight needs model.r_floor_m2 > 0: the term's ln R pulls R to the floor where a "
-                         "satellite's error is its constellation's median, and ln 0 is -inf")
+    _check_number(config, "model.r_floor_m2", MIN_R_FLOOR_M2)
     if _setting(config, "loss.vc_weight") > 0 and not _setting(config, "model.compensation"):
         raise ValueError("loss.vc_weight supervises v^c, and model.compensation = false has none (v^c = 0)")
     _check_number(config, "data.synthetic.nlos_fraction", 0, 1)
@@ -1375,19 +1377,20 @@ def main(argv: list[str] | None = None) -> int:
         exit_on_input_error(p, exc)
     except KeyboardInterrupt as exc:          # Ctrl-C: one line saying what is kept and how to go on
         p.exit(130, f"{p.prog}: interrupted{_resume_hint(exc, Path(out))}\n")
-    except FloatingPointError as exc:         # diverged: not bad input (exit 3, not 2); the checkpoints stay
+    except (FloatingPointError, torch.linalg.LinAlgError) as exc:    # diverged: not bad input (exit 3, not 2)
         p.exit(3, f"{p.prog}: error: {one_line(exc)}: training stopped (exit status 3); the checkpoints of the "
                   f"epochs before it are kept in {out} (last.pt, best.pt); check [loss], or try a lower train.lr or "
                   "a train.grad_clip > 0, in a new --out\n")
-    from .export import load_model
+    from .export import load_model, trained_smoothed
 
     best = min(history, key=lambda h: h["val_rmse_3d_m"])
     exported = load_model(Path(out) / "model.npz").metadata     # the run's own config decides (--resume)
     model = shlex.quote(str(Path(out) / "model.npz"))
     print(f"{out}: best validation 3D RMSE {best['val_rmse_3d_m']:.3f} m at epoch {best['epoch']}; model "
           f"{Path(out) / 'model.npz'} is epoch {exported['epoch']} (validation {exported['val_rmse_3d_m']:.3f} m)")
-    print(f"use it: python -m lfgnss.solve --model {model} --obs OBS --nav NAV ... (without --obs: the bundled Berlin "
-          f"drive; python -m learning.export --show {model} describes the model)")
+    smooth = " --smooth" if trained_smoothed(exported) else ""
+    print(f"use it: python -m lfgnss.solve --model {model}{smooth} --obs OBS --nav NAV ... (without --obs: the bundled "
+          f"Berlin drive; python -m learning.export --show {model} describes the model)")
     if exported["epoch"] == 0:
         print(f"warning: no training epoch beat the untrained network on validation, so {Path(out) / 'model.npz'} "
               "holds no training (a network that starts from train.init is that model); train longer, change the "

@@ -127,11 +127,14 @@ def _noise(args):
     path = args.model or DEFAULT_MODEL
     if args.model is None and not path.exists():
         return HeuristicNoise(), "hand-set C/N0 noise (no bundled model found)"
-    from learning.export import load_model, untrained_reason
+    from learning.export import load_model, trained_smoothed, untrained_reason
 
     from .features import AVAILABLE_FEATURES
 
     model = load_model(path)
+    if trained_smoothed(model.metadata) and args.backend == "ekf" and not args.smooth:
+        warnings.warn(f"{model_path(path)}: trained and selected on RTS-smoothed positions (train.smooth = true); "
+                      f"this run filters forward only: add --smooth to run it as it was trained")
     untrained = untrained_reason(model)
     if untrained is not None:
         warnings.warn(f"{model_path(path)}: {untrained}; --no-model runs the hand-set noise instead")
@@ -149,7 +152,7 @@ COARSE_LABEL = "least squares (coarse)"
 def seen_epochs_notes(noise: object, obs: str | Path, time_gps_s: np.ndarray, truth_ecef_m: np.ndarray) -> list[str]:
     """Where a learned model was trained or selected on epochs this run scores (``learning.export.seen_test_epochs``:
     its recorded training pieces by time and place, else its datasets' observation files by content): one line
-    each, the accuracy table then being partly in-sample; [] for hand-set noise or none."""
+    each, the accuracy table then being in-sample on them; [] for hand-set noise or none."""
     from learning.export import seen_test_epochs
 
     from .paths import file_digests
@@ -305,7 +308,7 @@ def _solve(args) -> _Solved:
             seen = seen_epochs_notes(noise, obs, meas.time_gps_s, truth)
             if seen:
                 warnings.warn(f"{model_path(args.model or DEFAULT_MODEL)}: {'; '.join(seen)}: the accuracy table is "
-                              "partly in-sample")
+                              "in-sample on those epochs")
     from .sequence import DEFAULT_FEATURES
 
     try:

@@ -122,6 +122,31 @@ def test_feature_selection_normaliser_and_padding():
     assert not set(DPC_FEATURES) & set(norm.feature_names)
 
 
+def test_normaliser_refuses_non_finite_features_and_keeps_a_small_spread():
+    """Review: a NaN feature dropped its whole slot from the statistics and trained on (an all-NaN column said 'no
+    valid satellite slot'); the exported model then refused the sequence it was trained on. The one-pass variance
+    lost a spread of 1e-3 about a mean of 1e5."""
+    from dataclasses import replace
+
+    from learning.normalise import Normaliser
+    from lfgnss.simulate import simulate_sequence
+
+    seq = simulate_sequence(30, seed=1)
+    bad = seq.features.copy()
+    k, slot = np.argwhere(seq.mask)[3]
+    bad[k, slot, 0] = np.nan
+    with pytest.raises(ValueError, match=rf"feature 'cn0' of sequence {seq.name!r} is not finite at 1 valid "
+                                         rf"satellite slot\(s\) \(first: epoch {k}, slot {slot}\)"):
+        Normaliser.fit([replace(seq, features=bad)], ("cn0", "elevation"))
+    padded = seq.features.copy()
+    padded[~seq.mask] = np.nan                                  # padded slots may hold anything
+    assert Normaliser.fit([replace(seq, features=padded)], ("cn0",)).same_as(Normaliser.fit([seq], ("cn0",)))
+    big = seq.features.copy()
+    big[..., 0] = 1e5 + 1e-3 * np.random.default_rng(0).standard_normal(seq.mask.shape)
+    std = Normaliser.fit([replace(seq, features=big)], ("cn0",)).std[0]
+    assert std == pytest.approx(big[..., 0][seq.mask].std(), rel=1e-6)
+
+
 def test_a_labelled_piece_shorter_than_the_window_is_named(config, capsys):
     """A training piece with labels but fewer epochs than a window cannot be trained on: a note names it."""
     from lfgnss.simulate import simulate_sequence
@@ -585,8 +610,10 @@ def test_variance_term_fits_r_to_the_errors_left_after_compensation(config, prep
         load_config("learning/configs/default.toml", ["loss.r_weight=0.5", "model.innovation=true"])
     with pytest.raises(ValueError, match="loss.r_weight"):
         load_config("learning/configs/default.toml", ["loss.r_weight=-1"])
-    with pytest.raises(ValueError, match=r"loss.r_weight needs model.r_floor_m2 > 0"):
+    with pytest.raises(ValueError, match=r"model.r_floor_m2 must be a finite number >= 1e-06, got 0"):
         load_config("learning/configs/default.toml", ["loss.r_weight=1", "model.r_floor_m2=0"])
+    with pytest.raises(ValueError, match=r"model.r_floor_m2 must be a finite number >= 1e-06, got 1e-10"):
+        load_config("learning/configs/default.toml", ["model.r_floor_m2=1e-10"])     # the plug-in EKF refuses it
     with pytest.raises(ValueError, match=r"loss.r_clock must be 'median' or 'strongest', got 'mean'"):
         load_config("learning/configs/default.toml", ["loss.r_weight=1", "loss.r_clock='mean'"])
     cfg["loss"]["r_clock"], cfg["train"]["epochs"] = "strongest", 1     # the three strongest signals' clock
