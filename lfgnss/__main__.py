@@ -1,4 +1,4 @@
-"""``python -m lfgnss``: list the commands."""
+"""``python -m lfgnss``: list the commands; ``python -m lfgnss COMMAND ...`` runs one (``solve``, ``train``...)."""
 from __future__ import annotations
 
 import sys
@@ -14,16 +14,26 @@ COMMANDS = {"lfgnss.solve": "position a RINEX file (EKF, factor graph or least s
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Print the commands (exit 0); any argument but -h/--help: one line on stderr naming the command to run, exit 2."""
+    """Print the commands (exit 0), or the version (--version); ``COMMAND ARGS...`` runs that command's main with ARGS
+    (``solve`` is ``python -m lfgnss.solve``); anything else: one line on stderr naming the commands, exit 2."""
     args = sys.argv[1:] if argv is None else list(argv)
+    if args and args[0] == "--version":
+        from . import __version__
+
+        print(f"lfgnss {__version__}")
+        return 0
     if args and args[0] not in ("-h", "--help"):
         wanted = [m for m in COMMANDS if m.split(".")[1] == args[0]]
+        if wanted:
+            import importlib
+
+            return importlib.import_module(wanted[0]).main(args[1:])
         every = ", ".join(f"python -m {m}" for m in COMMANDS)
-        hint = f"run python -m {wanted[0]}" if wanted else f"the commands: {every}"
-        print(f"python -m lfgnss: error: unknown argument {args[0]!r} (this only lists the commands); {hint}",
-              file=sys.stderr)
+        print(f"python -m lfgnss: error: unknown command {args[0]!r}; the commands: {every} (or python -m lfgnss "
+              f"solve ..., train ...)", file=sys.stderr)
         return 2
-    print("lfgnss commands:\n" + "".join(f"  python -m {m:<19}{text}\n" for m, text in COMMANDS.items()), end="")
+    print("lfgnss commands (python -m lfgnss COMMAND ... runs one too):\n"
+          + "".join(f"  python -m {m:<19}{text}\n" for m, text in COMMANDS.items()), end="")
     return 0
 
 

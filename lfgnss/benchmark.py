@@ -869,13 +869,9 @@ def _main(args: argparse.Namespace, argv: list[str] | None) -> int:
     if not ids and failed:
         raise _nothing_run(failed, args.out / "results.md")
     if not ids:
-        from .paths import shared_data_dir
-
         first = datasets.get(asked[0]).missing()[0]
-        where = "; the benchmark data are read from $LFGNSS_SHARED_DATA, else ../shared/data" \
-            if shared_data_dir() in first.parents else ""
         raise InputError(args.out / "results.md", f"not written: no dataset has all its files (first missing: "
-                                                  f"{first}{where})")
+                                                  f"{first}){datasets.shared_data_hint(first)}")
     made_by = provenance_text(model_files(args.models, ids), args.out)     # before the run writes anything
     report = _prepare_out(args.out, plots=not args.no_plots)
     unwritten: list[str] = []      # figures and results.md that could not be written: the rest is kept, exit 2

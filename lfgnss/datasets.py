@@ -145,9 +145,16 @@ class DatasetSpec:
             return ""
         what = f"{missing[0]} is a folder, not a file" if missing[0].is_dir() else f"missing {missing[0]}"
         if self.source is None:
-            return what
+            return what + shared_data_hint(missing[0])
         key = "obs" if missing[0] in self.obs else "nav" if missing[0] in self.nav else "[truth] file"
         return f"{what} ({key} in {self.source})"
+
+
+def shared_data_hint(path: Path) -> str:
+    """Where the benchmark data are looked for, for a missing ``path`` inside that folder ('' for another path)."""
+    if shared_data_dir() not in Path(path).parents:
+        return ""
+    return " (the benchmark datasets are read from $LFGNSS_SHARED_DATA, else ../shared/data beside the checkout)"
 
 
 def _shared(folder: str, *names: str) -> tuple[Path, ...]:
@@ -1008,7 +1015,8 @@ def build(dataset_id: str, *, feature_names: tuple[str, ...] = DEFAULT_FEATURES,
     spec = get(dataset_id)
     missing = spec.missing()
     if missing:
-        note = spec.missing_note() if spec.source else f"missing {', '.join(map(str, missing))}"
+        note = spec.missing_note() if spec.source else \
+            f"missing {', '.join(map(str, missing))}{shared_data_hint(missing[0])}"
         raise FileNotFoundError(f"dataset {dataset_id}: {note}")
     feature_names = check_feature_names(feature_names)
     target = cache_file("sequences", f"{dataset_id}-{_fingerprint(spec, feature_names)}.npz") if cache else None

@@ -5,6 +5,7 @@ import csv
 import importlib
 import math
 import os
+import re
 import subprocess
 import sys
 
@@ -84,7 +85,23 @@ def test_benchmark_missing_shared_data_names_the_file_and_the_variable(tmp_path,
     line = _one_line(capsys.readouterr().err)
     assert line.startswith(f"error: {tmp_path / 'out' / 'results.md'}: not written: no dataset has all its files "
                            f"(first missing: {tmp_path / 'no-data'}/")
-    assert line.endswith("; the benchmark data are read from $LFGNSS_SHARED_DATA, else ../shared/data)")
+    assert line.endswith(") (the benchmark datasets are read from $LFGNSS_SHARED_DATA, else ../shared/data beside "
+                         "the checkout)")
+
+
+def test_datasets_and_training_missing_shared_data_name_the_variable(tmp_path, capsys, monkeypatch):
+    """Review: python -m lfgnss.datasets hk-tst-2019 and learning.train said 'missing PATH' and not where the
+    benchmark data are looked for."""
+    from lfgnss import datasets
+    from lfgnss.datasets import main as datasets_main
+
+    monkeypatch.setenv("LFGNSS_SHARED_DATA", str(tmp_path / "no-data"))
+    hint = "(the benchmark datasets are read from $LFGNSS_SHARED_DATA, else ../shared/data beside the checkout)"
+    assert datasets.get("hk-tst-2019").missing_note().endswith(hint)
+    with pytest.raises(FileNotFoundError, match=re.escape(hint)):
+        datasets.build("hk-tst-2019")
+    datasets_main(["hk-tst-2019"])
+    assert hint in capsys.readouterr().out
 
 
 @pytest.mark.parametrize("script, reason", [
@@ -293,13 +310,20 @@ def test_lfgnss_lists_the_commands_and_refuses_arguments(capsys):
     from lfgnss.__main__ import COMMANDS
     for module in COMMANDS:                             # every listed command has a command line
         assert callable(importlib.import_module(module).main), module
-    assert lfgnss_main(["solve", "--obs", "x.obs"]) == 2
-    assert _one_line(capsys.readouterr().err) == ("python -m lfgnss: error: unknown argument 'solve' (this only lists "
-                                                  "the commands); run python -m lfgnss.solve")
     assert lfgnss_main(["nonsense"]) == 2
     assert _one_line(capsys.readouterr().err).startswith(
-        "python -m lfgnss: error: unknown argument 'nonsense' (this only lists the commands); the commands: "
-        "python -m lfgnss.solve, ")
+        "python -m lfgnss: error: unknown command 'nonsense'; the commands: python -m lfgnss.solve, ")
+    from lfgnss import __version__
+
+    assert lfgnss_main(["--version"]) == 0 and capsys.readouterr().out == f"lfgnss {__version__}\n"
+
+
+def test_lfgnss_runs_a_command_by_its_short_name(tmp_path, capsys):
+    """Review: python -m lfgnss solve ... refused ('run python -m lfgnss.solve') where it could run it."""
+    assert lfgnss_main(["solve", "--obs", str(tmp_path / "x.obs")]) == 2
+    assert "x.obs" in capsys.readouterr().err
+    assert lfgnss_main(["solve", "--out", str(tmp_path), "--no-plots", "--quiet", "--backend", "wls"]) == 0
+    assert (tmp_path / "Berlin_Potsdamer_Platz_wls.pos").exists()
 
 
 @pytest.mark.parametrize("name, message", [
