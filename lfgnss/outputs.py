@@ -393,7 +393,8 @@ def write_geojson(path: str | Path, solution: Solution, *, points: bool = False)
     """GeoJSON FeatureCollection (RFC 7946: WGS84 ``[lon, lat, h]``) of the epochs with a position.
 
     A ``LineString`` feature of the track (a ``Point`` where only one epoch has a position), and with
-    ``points=True`` one ``Point`` feature per epoch with ``time_gps_s``, ``status`` and ``n_used`` properties.
+    ``points=True`` one ``Point`` feature per epoch with ``time_gps_s``, ``time_utc`` (ISO 8601), ``status`` and
+    ``n_used`` properties.
     """
     _check_args("write_geojson", path, solution)
     path = Path(path)
@@ -407,9 +408,10 @@ def write_geojson(path: str | Path, solution: Solution, *, points: bool = False)
                          "properties": {"backend": solution.backend, "n_epochs": len(coords)}})
     if points:
         status = np.asarray(solution.status)
-        for k, c in zip(idx, coords):
+        utc = _utc_iso(np.asarray(solution.time_gps_s, float)[idx])
+        for k, c, when in zip(idx, coords, utc):
             features.append({"type": "Feature", "geometry": {"type": "Point", "coordinates": c},
-                             "properties": {"time_gps_s": round(float(solution.time_gps_s[k]), 3),
+                             "properties": {"time_gps_s": round(float(solution.time_gps_s[k]), 3), "time_utc": when,
                                             "status": STATUS_NAMES.get(int(status[k]), str(int(status[k]))),
                                             "n_used": int(solution.n_used[k])}})
     doc = {"type": "FeatureCollection", "features": features}

@@ -111,6 +111,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="ekf, plain-ekf, fgo --marginals: write the formal sds, not those inflated by the pseudorange "
                         "residuals (docs/sd_consistency.md)")
     p.add_argument("--out", type=Path, default=Path("lfgnss-out"), help="output folder")
+    p.add_argument("--points", action="store_true",
+                   help="also write each epoch as a point in the GeoJSON and KML, with its time (UTC), status and "
+                        "satellites used (Google Earth's time slider reads them)")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     p.add_argument("--quiet", action="store_true", help="print only the accuracy table")
     return p
@@ -351,8 +354,8 @@ def _solve(args) -> _Solved:
     recorded = replace(solution, backend=solution.backend + _settings_text(args))   # the .pos header's program line
     jobs = [(f"{stem}.pos", lambda p: [write_pos(p, recorded, inputs=[obs, *nav], systems="".join(seq.systems))]),
             (f"{stem}.csv", lambda p: [write_csv(p, solution, truth)]),
-            (f"{stem}.geojson", lambda p: [write_geojson(p, solution)]),
-            (f"{stem}.kml", lambda p: [write_kml(p, solution)])]
+            (f"{stem}.geojson", lambda p: [write_geojson(p, solution, points=args.points)]),
+            (f"{stem}.kml", lambda p: [write_kml(p, solution, points=args.points)])]
     if not args.no_plots:
         figures: dict = {}                  # drawn at the first figure's turn, after the files above are written
         learned = isinstance(getattr(noise, "metadata", None), dict)

@@ -203,6 +203,7 @@ def test_geojson_and_kml(tmp_path):
     lon, lat, h = line["geometry"]["coordinates"][0]
     assert 13 < lon < 14 and 52 < lat < 53
     assert sum(f["geometry"]["type"] == "Point" for f in doc["features"]) == n_pos
+    assert doc["features"][1]["properties"]["time_utc"] == "2016-06-06T11:10:42.800Z"     # as the KML's TimeStamp
     k = write_kml(tmp_path / "a.kml", sol, points=True)
     _no_nan_text(k)
     root = ET.parse(k).getroot()

@@ -267,3 +267,17 @@ def test_formal_sd_writes_the_filters_own_sds_and_the_same_positions(tmp_path):
     sd = ["sd_e_m", "sd_n_m", "sd_u_m"]
     assert (inflated[sd].to_numpy() >= formal[sd].to_numpy() - 1e-4).all()
     assert (inflated[sd].to_numpy() > 2 * formal[sd].to_numpy()).any()
+
+
+def test_points_writes_each_epoch_into_the_geojson_and_kml(tmp_path):
+    """--points: the per-epoch points (time, status, satellites) were library-only."""
+    import json
+
+    assert main(["--out", str(tmp_path), "--no-plots", "--quiet", "--backend", "wls", "--points"]) == 0
+    doc = json.loads((tmp_path / "Berlin_Potsdamer_Platz_wls.geojson").read_text())
+    points = [f for f in doc["features"] if f["geometry"]["type"] == "Point"]
+    assert len(points) == 1375 and points[0]["properties"]["time_utc"] == "2016-06-06T11:10:24.700Z"
+    assert (tmp_path / "Berlin_Potsdamer_Platz_wls.kml").read_text().count("<TimeStamp>") == 1375
+    assert main(["--out", str(tmp_path / "plain"), "--no-plots", "--quiet", "--backend", "wls"]) == 0
+    doc = json.loads((tmp_path / "plain" / "Berlin_Potsdamer_Platz_wls.geojson").read_text())
+    assert [f["geometry"]["type"] for f in doc["features"]] == ["LineString"]
