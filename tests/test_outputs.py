@@ -349,8 +349,8 @@ def test_plot_solution(tmp_path):
     sol, truth = _solution(40)
     rtk = read_pos(write_pos(tmp_path / "r.pos", sol))
     files = plot_solution(tmp_path / "figs", sol, truth, extra_solutions={"rtklib": rtk})
-    assert [f.name for f in files] == ["track.png", "errors.png", "cdf.png"]
+    assert [f.name for f in files] == ["track.png", "errors.png", "cdf.png", "quality.png"]
     for f in files:
         assert f.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and f.stat().st_size > 5000
-    only_track = plot_solution(tmp_path / "figs2", sol, prefix="ekf_")
-    assert [f.name for f in only_track] == ["ekf_track.png"]
+    no_truth = plot_solution(tmp_path / "figs2", sol, prefix="ekf_")
+    assert [f.name for f in no_truth] == ["ekf_track.png", "ekf_quality.png"]
