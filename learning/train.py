@@ -321,7 +321,8 @@ def check_config(config: dict) -> dict:
                 "model.d_model", "model.n_heads", "train.epochs", "train.batch_size", "train.t_max"):
         _check_number(config, key, 1, whole=True)
     for key, above in (("train.lr", False), ("train.eta_min", False), ("train.weight_decay", False),
-                       ("train.grad_clip", False), ("train.feature_noise", False), ("model.r_scale_m2", True), ("loss.alpha", True), ("loss.gamma", False),
+                       ("train.grad_clip", False), ("train.feature_noise", False), ("model.r_scale_m2", True),
+                       ("loss.alpha", True), ("loss.gamma", False),
                        ("loss.lambda", False), ("loss.up_weight", False), ("loss.vc_weight", False),
                        ("loss.vc_delta_m", True), ("loss.r_weight", False)):
         _check_number(config, key, 0, above=above)

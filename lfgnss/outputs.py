@@ -309,8 +309,8 @@ def write_csv(path: str | Path, solution: Solution, truth_ecef_m: np.ndarray | N
 
     Columns :data:`CSV_COLUMNS` (``time_gpst`` as ``yyyy/mm/dd hh:mm:ss.sss`` GPST; ``time_utc`` the same instant in
     ISO 8601 UTC, leap seconds removed; WGS84 ``h_m`` ellipsoidal; ``vel_*`` the velocity in the local ENU frame
-    (empty for an estimator without one), ``clock_m`` the receiver clock of the reference constellation; ``sd_*`` from the
-    position covariance rotated to the local ENU frame), plus :data:`CSV_TRUTH_COLUMNS` [m] when
+    (empty for an estimator without one), ``clock_m`` the receiver clock of the reference constellation; ``sd_*``
+    from the position covariance rotated to the local ENU frame), plus :data:`CSV_TRUTH_COLUMNS` [m] when
     ``truth_ecef_m`` (T, 3) is given (empty where the epoch is unlabelled). Epochs without a position
     have empty numeric fields and status ``none``.
     """
@@ -366,7 +366,8 @@ def _solution_columns(owner: str, solution: Solution, truth_ecef_m: np.ndarray |
                "tow_s": (ms % _MS_PER_WEEK) / 1000.0, "x_m": pos[:, 0], "y_m": pos[:, 1], "z_m": pos[:, 2],
                "lat_deg": llh[:, 0], "lon_deg": llh[:, 1], "h_m": llh[:, 2], "sd_e_m": sd[:, 0], "sd_n_m": sd[:, 1],
                "sd_u_m": sd[:, 2], "vel_e_m_s": vel[:, 0], "vel_n_m_s": vel[:, 1], "vel_u_m_s": vel[:, 2],
-               "clock_m": np.where(ok, np.asarray(solution.clock_m, float), np.nan), "n_used": np.where(ok, np.asarray(solution.n_used), 0).astype(int),
+               "clock_m": np.where(ok, np.asarray(solution.clock_m, float), np.nan),
+               "n_used": np.where(ok, np.asarray(solution.n_used), 0).astype(int),
                "status": [STATUS_NAMES.get(int(v), str(int(v))) if has else STATUS_NAMES[STATUS_NONE]
                           for v, has in zip(status, ok)]}
     if truth_ecef_m is not None:

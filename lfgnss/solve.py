@@ -71,7 +71,9 @@ def build_parser() -> argparse.ArgumentParser:
     backends = estimators.available()
     p.add_argument("--backend", default="ekf", choices=backends, help="estimator plug-in, in any case",
                    type=lambda text: next((name for name in backends if name.lower() == text.lower()), text))
-    p.add_argument("--obs", type=Path, help="RINEX observation file (default: bundled Berlin sample)")
+    p.add_argument("--obs", type=Path, nargs="+",
+                   help="RINEX observation file(s) of one receiver, e.g. hourly files, joined in time order (default: "
+                        "the bundled Berlin sample); outputs are named after the first")
     p.add_argument("--nav", type=Path, nargs="+",
                    help="RINEX navigation file(s) (default: the bundled sample's, with no --obs)")
     p.add_argument("--model", type=Path, help="LF-GNSS model file, or a bundled model's name: "
@@ -152,10 +154,12 @@ def _noise(args):
 COARSE_LABEL = "least squares (coarse)"
 
 
-def seen_epochs_notes(noise: object, obs: str | Path, time_gps_s: np.ndarray, truth_ecef_m: np.ndarray) -> list[str]:
+def seen_epochs_notes(noise: object, obs: str | Path | list, time_gps_s: np.ndarray, truth_ecef_m: np.ndarray
+                      ) -> list[str]:
     """Where a learned model was trained or selected on epochs this run scores (``learning.export.seen_test_epochs``:
     its recorded training pieces by time and place, else its datasets' observation files by content): one line
-    each, the accuracy table then being in-sample on them; [] for hand-set noise or none."""
+    each, the accuracy table then being in-sample on them; [] for hand-set noise or none. ``obs``: the run's
+    observation file, or its files."""
     from learning.export import seen_test_epochs
 
     from .paths import file_digests
@@ -164,8 +168,9 @@ def seen_epochs_notes(noise: object, obs: str | Path, time_gps_s: np.ndarray, tr
     if not isinstance(meta, dict):
         return []
     scored = np.isfinite(truth_ecef_m).all(axis=1)
-    return seen_test_epochs(meta, Path(obs).name, time_gps_s[scored], truth_ecef_m[scored], file_digests([obs]),
-                            epochs_word="scored epochs")
+    files = list(obs) if isinstance(obs, (list, tuple)) else [obs]
+    return seen_test_epochs(meta, " + ".join(Path(f).name for f in files), time_gps_s[scored], truth_ecef_m[scored],
+                            file_digests(files), epochs_word="scored epochs")
 
 
 def unseen_systems_note(noise: object, systems: tuple[str, ...]) -> str | None:
@@ -190,7 +195,7 @@ def unseen_systems_note(noise: object, systems: tuple[str, ...]) -> str | None:
 class _Solved:
     """What a run solved and wrote, for its summary."""
 
-    obs: Path
+    obs: str                          # the observation file, or files joined by " + "
     keep: np.ndarray                  # (T,) bool: the file's epochs that were solved
     meas: Measurements                # of the solved epochs
     fix: CoarseFix
@@ -266,11 +271,14 @@ def _solve(args) -> _Solved:
     from .spp import spp
 
     sample = args.obs is None
-    obs = SAMPLE_OBS if sample else args.obs
+    obs_files = [SAMPLE_OBS] if sample else list(args.obs)
+    obs = obs_files[0]                                  # names the outputs
+    obs_words = " + ".join(map(str, obs_files))
     nav = list(SAMPLE_NAV) if sample else (args.nav or [])
     if not nav:
-        if not Path(obs).exists():                  # the missing file first: --nav alone would not make it run
-            raise InputError(obs, "cannot read file (No such file or directory)")
+        missing = next((f for f in obs_files if not Path(f).exists()), None)
+        if missing is not None:                     # the missing file first: --nav alone would not make it run
+            raise InputError(missing, "cannot read file (No such file or directory)")
         raise InputError(obs, "no navigation file given (--nav)")
     truth_path = SAMPLE_TRUTH if (sample and args.truth is None) else args.truth
     truth_format = "smartloc" if (sample and args.truth is None) else (args.truth_format or "urbannav")
@@ -278,7 +286,7 @@ def _solve(args) -> _Solved:
 
     noise, noise_text = _noise(args)
     feature_names = tuple(noise.feature_names) if hasattr(noise, "feature_names") else None
-    observations, keep = _read_window(obs, args.start, args.end)     # the whole file, and the epochs to solve
+    observations, keep = _read_window(obs_files, args.start, args.end)   # the whole file(s), and the epochs to solve
     spp_config = SppConfig(elevation_mask_deg=args.elevation_mask)
     meas = load(observations if keep.all() else observations.select_epochs(keep), nav,
                 systems=tuple(args.systems) if args.systems else None)
@@ -290,7 +298,8 @@ def _solve(args) -> _Solved:
     if truth_path is not None:
         if truth_format not in datasets.TRUTH_READERS:
             raise InputError(truth_path, f"unknown truth format {truth_format!r}")
-        spec = datasets.DatasetSpec("cli", obs, nav, truth_path, truth_format, time_origin_gps_s=args.truth_origin,
+        spec = datasets.DatasetSpec("cli", tuple(obs_files), nav, truth_path, truth_format,
+                                    time_origin_gps_s=args.truth_origin,
                                     time_offset_s=args.truth_offset or 0.0)
         truth, bad = datasets.align_truth(observations.time_gps_s, spec)   # the whole file's epochs, as always
         truth = truth[keep]
@@ -298,8 +307,8 @@ def _solve(args) -> _Solved:
             print(f"warning: {line}", file=sys.stderr)
         if not np.isfinite(truth).all(axis=1).any():
             hint = " and --truth-origin (GPS seconds of its t = 0)" if truth_format == "smartloc" else ""
-            print(f"warning: {truth_path}: no truth epoch matches an epoch of {obs}{_window_words(args)}; no accuracy "
-                  f"table or error plots (check --truth-format {truth_format}{hint})"
+            print(f"warning: {truth_path}: no truth epoch matches an epoch of {obs_words}{_window_words(args)}; no "
+                  f"accuracy table or error plots (check --truth-format {truth_format}{hint})"
                   f"{datasets.unmatched_time_words(spec, meas.time_gps_s)}", file=sys.stderr)
             truth = None
         else:
@@ -308,14 +317,15 @@ def _solve(args) -> _Solved:
                 spec, time_origin_gps_s=float(observations.time_gps_s[0]))       # file's first epoch, not --start's
             for note in datasets.truth_fit_notes(read_with, meas.time_gps_s, truth, fixed):
                 print(f"warning: {note}", file=sys.stderr)
-            seen = seen_epochs_notes(noise, obs, meas.time_gps_s, truth)
+            seen = seen_epochs_notes(noise, obs_files, meas.time_gps_s, truth)
             if seen:
                 warnings.warn(f"{model_path(args.model or DEFAULT_MODEL)}: {'; '.join(seen)}: the accuracy table is "
                               "in-sample on those epochs")
     from .sequence import DEFAULT_FEATURES
 
     try:
-        seq = build_sequence(meas, fix, feature_names=feature_names or DEFAULT_FEATURES, name=Path(obs).name,
+        seq = build_sequence(meas, fix, feature_names=feature_names or DEFAULT_FEATURES,
+                             name=" + ".join(Path(f).name for f in obs_files),
                              truth_ecef_m=truth, spp_config=spp_config)
     except LfgnssError as err:  # an error about the data that names no file: it is about the observations
         if isinstance(err, (InputError, RinexError)):
@@ -352,14 +362,15 @@ def _solve(args) -> _Solved:
     # a file that cannot be written (a folder in its place, a full disk) costs that file only: the solution, the
     # other files and the accuracy table are kept, and the run ends with exit code 2
     recorded = replace(solution, backend=solution.backend + _settings_text(args))   # the .pos header's program line
-    jobs = [(f"{stem}.pos", lambda p: [write_pos(p, recorded, inputs=[obs, *nav], systems="".join(seq.systems))]),
+    jobs = [(f"{stem}.pos", lambda p: [write_pos(p, recorded, inputs=[*obs_files, *nav],
+                                                 systems="".join(seq.systems))]),
             (f"{stem}.csv", lambda p: [write_csv(p, solution, truth)]),
             (f"{stem}.geojson", lambda p: [write_geojson(p, solution, points=args.points)]),
             (f"{stem}.kml", lambda p: [write_kml(p, solution, points=args.points)])]
     if not args.no_plots:
         figures: dict = {}                  # drawn at the first figure's turn, after the files above are written
         learned = isinstance(getattr(noise, "metadata", None), dict)
-        title = f"{Path(obs).name}: {label}" + ("" if _own_model(args) or args.no_model else
+        title = f"{seq.name}: {label}" + ("" if _own_model(args) or args.no_model else
                                                 f", model {DEFAULT_MODEL.name}" if learned else f", {noise_text}")
         title += "\nin-sample: the model was trained or selected on some of these epochs" if seen else ""
 
@@ -376,7 +387,7 @@ def _solve(args) -> _Solved:
             written += job(path)
         except OSError as err:
             failed.append(f"{err.filename or path}: {cannot_write(err)}")
-    return _Solved(obs, keep, meas, fix, solution, truth, label, noise_text, written, failed)
+    return _Solved(obs_words, keep, meas, fix, solution, truth, label, noise_text, written, failed)
 
 
 def _print_summary(args: argparse.Namespace, solved: _Solved, caught: list[str]) -> None:
@@ -521,12 +532,15 @@ def _window_words(args: argparse.Namespace) -> str:
     return " in --start/--end" if args.start is not None or args.end is not None else ""
 
 
-def _read_window(obs: Path, start: float | None, end: float | None) -> tuple[Observations, np.ndarray]:
-    """The whole observation file and (T,) bool of its epochs in [start, end] [GPS s], inclusive; none: InputError."""
+def _read_window(obs_files: list[Path], start: float | None, end: float | None) -> tuple[Observations, np.ndarray]:
+    """The whole observation file(s) (several joined in time order: ``datasets.join_observations``) and (T,) bool of
+    the epochs in [start, end] [GPS s], inclusive; none: InputError naming the first file."""
+    from .datasets import join_observations
     from .rinex import load_obs
     from .sequence import time_span_text
 
-    observations = load_obs(obs)
+    obs = obs_files[0]
+    observations = load_obs(obs) if len(obs_files) == 1 else join_observations([load_obs(f) for f in obs_files])
     t = observations.time_gps_s
     keep = np.ones(t.shape, bool)
     if start is not None:
@@ -637,7 +651,7 @@ def main(argv: list[str] | None = None) -> int:
         return 130
     except Exception as err:  # a bug, not bad input: still one line, no traceback, a distinct exit code
         message = " ".join(str(err).split())
-        print(f"error: internal error while solving {args.obs or SAMPLE_OBS} ({type(err).__name__}: {message}); "
+        print(f"error: internal error while solving {(args.obs or [SAMPLE_OBS])[0]} ({type(err).__name__}: {message}); "
               f"please report it", file=sys.stderr)
         return 3
 

@@ -286,7 +286,8 @@ def test_csv_velocity_in_the_local_frame_and_clock(tmp_path):
     north = np.cross(up, east)
     vel = np.array([10.0 * east + 1.0 * up, -3.0 * north, 10.0 * east])
     status = np.array([STATUS_UPDATED, STATUS_COASTED, STATUS_NONE])
-    sol = Solution(backend="x", time_gps_s=1.0e9 + np.arange(3.0), pos_ecef_m=pos, cov_ecef_m2=np.tile(np.eye(3), (3, 1, 1)),
+    sol = Solution(backend="x", time_gps_s=1.0e9 + np.arange(3.0), pos_ecef_m=pos,
+                   cov_ecef_m2=np.tile(np.eye(3), (3, 1, 1)),
                    clock_m=np.array([12.5, 13.0, 14.0]), n_used=np.array([6, 0, 0]), status=status, vel_ecef_m_s=vel)
     rows = list(csv.DictReader(open(write_csv(tmp_path / "v.csv", sol), newline="")))
     got = [(r["vel_e_m_s"], r["vel_n_m_s"], r["vel_u_m_s"], r["clock_m"]) for r in rows]

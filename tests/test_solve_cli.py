@@ -91,7 +91,8 @@ def test_an_output_that_cannot_be_written_costs_that_file_only(tmp_path, capsys)
     assert main(["--out", str(out), "--no-plots"]) == 2
     captured = capsys.readouterr()
     assert captured.err.splitlines()[-1] == f"error: {out / 'Berlin_Potsdamer_Platz_ekf.csv'}: cannot write (Is a directory)"
-    assert [line for line in captured.err.splitlines()[:-1] if "the accuracy table is in-sample on those epochs" not in line] == []
+    assert [line for line in captured.err.splitlines()[:-1]
+            if "the accuracy table is in-sample on those epochs" not in line] == []
     assert any(line.startswith("ekf ") and "100.0" in line for line in captured.out.splitlines())   # the table
     for suffix in ("pos", "geojson", "kml"):
         assert (out / f"Berlin_Potsdamer_Platz_ekf.{suffix}").stat().st_size > 0
@@ -281,3 +282,29 @@ def test_points_writes_each_epoch_into_the_geojson_and_kml(tmp_path):
     assert main(["--out", str(tmp_path / "plain"), "--no-plots", "--quiet", "--backend", "wls"]) == 0
     doc = json.loads((tmp_path / "plain" / "Berlin_Potsdamer_Platz_wls.geojson").read_text())
     assert [f["geometry"]["type"] for f in doc["features"]] == ["LineString"]
+
+
+def test_several_obs_files_are_joined_in_time_order(tmp_path, capsys):
+    """--obs took one file; a drive logged in pieces (hourly files) had to be merged by hand. Given in any order, the
+    pieces solve as the whole file does; overlapping pieces are refused in one line."""
+    import gzip
+    import re
+
+    text = gzip.open(SAMPLE_OBS, "rt").read()
+    end = text.index("\n", text.index("END OF HEADER")) + 1
+    head, body = text[:end], text[end:]
+    cut = re.search(r"^ 16  6  6 11 13 ", body, re.M).start()
+    (tmp_path / "a.obs").write_text(head + body[:cut])
+    (tmp_path / "b.obs").write_text(head + body[cut:])
+    nav = ["--nav", *map(str, SAMPLE_NAV), "--no-plots", "--quiet", "--backend", "plain-ekf"]
+    assert main(["--obs", str(tmp_path / "b.obs"), str(tmp_path / "a.obs"), "--out", str(tmp_path / "parts"), *nav]) == 0
+    assert main(["--obs", str(SAMPLE_OBS), "--out", str(tmp_path / "whole"), *nav]) == 0
+    parts = (tmp_path / "parts" / "b_plain-ekf.csv").read_text()        # named after the first file given
+    assert parts == (tmp_path / "whole" / "Berlin_Potsdamer_Platz_plain-ekf.csv").read_text()
+    header = [ln for ln in (tmp_path / "parts" / "b_plain-ekf.pos").read_text().splitlines() if ln.startswith("%")]
+    assert [ln.split(":", 1)[1].strip() for ln in header if ln.startswith("% inp file")][:2] == [
+        str(tmp_path / "b.obs"), str(tmp_path / "a.obs")]
+    capsys.readouterr()
+    assert main(["--obs", str(tmp_path / "a.obs"), str(SAMPLE_OBS), "--out", str(tmp_path / "o"), *nav]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "overlaps" in err and "must not overlap" in err, err

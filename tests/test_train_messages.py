@@ -175,6 +175,7 @@ def test_warnings_are_one_line_each(command, tmp_path, capsys, monkeypatch):
 def test_a_smoothed_run_names_smooth_in_its_next_step(tmp_path, capsys):
     """train.smooth = true selects on RTS-smoothed positions: the 'use it' line runs the model with --smooth."""
     out = tmp_path / "smoothed"
-    assert train_main(["--config", CONFIG, "--out", str(out), "--no-progress"] + sets(TINY + ["train.smooth=true"])) == 0
+    argv = ["--config", CONFIG, "--out", str(out), "--no-progress"] + sets(TINY + ["train.smooth=true"])
+    assert train_main(argv) == 0
     model = out / "model.npz"
     assert f"use it: python -m lfgnss.solve --model {model} --smooth --obs OBS" in capsys.readouterr().out
