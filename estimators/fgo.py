@@ -110,6 +110,14 @@ R_TINY_M2, R_HUGE_M2, PSD_TINY_M2_S3 = 1e-4, 1e6, 1e-6
 _GTSAM_SYMBOL = re.compile(r"\(Symbol: ([a-zA-Z])(\d+)\)")
 
 
+#: Sigma [m] of the batch graph's conditioning-only position prior at an epoch with fewer than 3 ranges left after
+#: its clocks. It must weigh nothing beside the motion factors even summed over a long weak stretch, where it sits on
+#: the coarse track interpolated (or held) across it: at prior_pos_sigma_m (100 m) 150 of them at 5 Hz pulled the graph
+#: to that track, 175 m off where one satellite per constellation was left against 73 m with none. The fixed-lag
+#: graph keeps prior_pos_sigma_m: its iSAM2 Cholesky found 1e4 m indeterminate, and its priors sit on the prediction.
+LOOSE_PRIOR_SIGMA_M = 1.0e4
+
+
 def symbol_epoch(message: str, n_systems: int) -> tuple[str, int] | None:
     """(symbol, epoch) of the variable a gtsam error names, ``(Symbol: x24)``: ("x24", 24) (``key_epoch``). None
     when the message names none."""
@@ -484,9 +492,9 @@ class LfgnssFgo:
 
     def _epoch(self, k: int, seq: Sequence, z_m: np.ndarray, sigma_m: np.ndarray, pos_guess: np.ndarray,
                graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
-               kernel: tuple[str | None, float] | None = None, loose_prior: bool = False) -> int:
-        """Add epoch k's pseudorange factors, clock initial values (and with ``loose_prior``, for fewer than 3
-        ``position_ranges``, a loose position prior); return satellites used.
+               kernel: tuple[str | None, float] | None = None, loose_sigma_m: float | None = None) -> int:
+        """Add epoch k's pseudorange factors, clock initial values (and with ``loose_sigma_m`` [m], for fewer than 3
+        ``position_ranges``, a loose position prior of that sigma); return satellites used.
 
         Clock initial value per constellation: median(pr + vc - rho(x_guess)) / c [s].
         """
@@ -504,12 +512,11 @@ class LfgnssFgo:
         xk = X(k)
         for key, z, s, sig in zip(keys, z_m[k, used].tolist(), sat, sigma_m[k, used].tolist()):
             graph.add(gtsam.PseudorangeFactor(xk, key, z, s, 0.0, self._measurement_model(sig, kernel)))
-        if loose_prior:
+        if loose_sigma_m:
             # Fewer than 3 satellites left once each constellation's clock took one: with the clocks' Jacobians
             # (c, in seconds) beside the positions', gtsam's undamped Cholesky (iSAM2, marginals) declares the
-            # system indeterminate although the motion factors fix it. The first epoch's loose prior, at the
-            # guess, lets it through and weighs nothing beside the motion factors.
-            loose = gtsam.noiseModel.Isotropic.Sigma(3, self.prior_pos_sigma_m)
+            # system indeterminate although the motion factors fix it. A loose prior at the guess lets it through.
+            loose = gtsam.noiseModel.Isotropic.Sigma(3, loose_sigma_m)
             graph.add(gtsam.PriorFactorPoint3(xk, pos_guess, loose))
         return int(used.size)
 
@@ -694,8 +701,8 @@ class LfgnssFgo:
                 guess = p0[k - k0] if values is None else values.atPoint3(X(k))
                 start.insertPoint3(X(k), guess)
                 start.insertPoint3(V(k), v0[k - k0] if values is None else values.atPoint3(V(k)))
-                n_used[k - k0] = self._epoch(k, seq, z_m, sigma_m, guess, graph, start, kernel,
-                                             loose_prior=k > k0 and ranges[k] < 3)
+                loose = LOOSE_PRIOR_SIGMA_M if k > k0 and ranges[k] < 3 else None
+                n_used[k - k0] = self._epoch(k, seq, z_m, sigma_m, guess, graph, start, kernel, loose_sigma_m=loose)
                 self._velocity_prior(k, dv, still, graph)
                 if k > k0:
                     graph.add(motion.factor(k - 1, k, float(t[k] - t[k - 1])))
@@ -841,7 +848,7 @@ class LfgnssFgo:
             values.insertPoint3(X(k), x_guess)
             values.insertPoint3(V(k), v_guess)
             n_used[i] = self._epoch(k, seq, z_m, sigma_m, x_guess, graph, values,
-                                    loose_prior=k > k0 and ranges[k] < 3)
+                                    loose_sigma_m=self.prior_pos_sigma_m if k > k0 and ranges[k] < 3 else None)
             self._velocity_prior(k, dv, still, graph)
             stamps = {key: float(t[k]) for key in values.keys()}
             smoother.update(graph, values, stamps)
