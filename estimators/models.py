@@ -488,6 +488,27 @@ def lower_median(values: np.ndarray) -> float:
     return float(v[(v.size - 1) // 2])
 
 
+def first_sight_isbs(x: np.ndarray, isb_known: np.ndarray, z_m: np.ndarray, sat_pos_ecef_m: np.ndarray,
+                     system_index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(state, isb_known): the prior with the ISB of each constellation first seen since the (re)start set from its
+    satellites, ``isb += lower_median(z - h)`` over them, and ``isb_known`` (C - 1,) bool updated.
+
+    A constellation absent from the coarse fix the filter started from has ISB 0 with P0's sigma (100 m); one that
+    appears later with an ISB of some hundred metres (receivers differ) was gated out for the rest of the run. The
+    covariance is kept: an ISB never measured has no correlation to lose. ``z_m``, ``sat_pos_ecef_m`` (N, 3) and
+    ``system_index`` are the epoch's usable pseudoranges [m]."""
+    s = np.asarray(system_index)
+    new = [j for j in np.unique(s[s >= 1]).tolist() if not isb_known[j - 1]]
+    if not new:
+        return x, isb_known
+    h, _ = measurement(x, sat_pos_ecef_m, s)
+    x, known = np.array(x, float), np.array(isb_known, bool)
+    for j in new:
+        x[ISB0 + j - 1] += lower_median((np.asarray(z_m) - h)[s == j])
+        known[j - 1] = True
+    return x, known
+
+
 def realign_clock(x: np.ndarray, shift_m: float) -> np.ndarray:
     """Prior state with the receiver clock moved by ``shift_m`` [m], the (lower) median innovation.
 
@@ -599,5 +620,5 @@ __all__ = ["EkfConfig", "n_states", "clock_column", "initial_covariance", "initi
            "transition_generator", "coarse_drift_m_s",
            "transition", "process_noise_coefficients", "process_noise", "vertical_noise_increment", "measurement",
            "doppler_measurement", "doppler_variance_m2_s2", "used_doppler_variance_m2_s2", "prior_innovation_m",
-           "lower_median", "realign_clock", "stationary_epochs", "still_fixes", "zero_velocity_measurement",
-           "CHI2_3DOF_99", "COARSE_DRIFT_SPREAD_M_S", "POS", "VEL", "CLOCK", "DRIFT", "ISB0"]
+           "lower_median", "first_sight_isbs", "realign_clock", "stationary_epochs", "still_fixes",
+           "zero_velocity_measurement", "CHI2_3DOF_99", "COARSE_DRIFT_SPREAD_M_S", "POS", "VEL", "CLOCK", "DRIFT", "ISB0"]

@@ -98,6 +98,26 @@ def geometric_range_m(sat_ecef_m: torch.Tensor, rcv_ecef_m: torch.Tensor) -> tor
     return torch.linalg.norm(d, dim=-1) + sagnac
 
 
+def _first_sight_isbs(x: torch.Tensor, isb_known: torch.Tensor, sat: torch.Tensor, clock_rows: torch.Tensor,
+                      z: torch.Tensor, usable: torch.Tensor, system_index: torch.Tensor
+                      ) -> tuple[torch.Tensor, torch.Tensor]:
+    """(x, isb_known) of ``estimators.models.first_sight_isbs`` for M rows: each ISB not yet known (M, C - 1) and
+    seen now set from the lower median innovation of its constellation's usable pseudoranges."""
+    n_isb = isb_known.shape[-1]
+    if n_isb == 0:
+        return x, isb_known
+    h, _ = _measurement(x, sat, clock_rows)
+    v = z - h
+    shifts, seen = [], []
+    for j in range(1, n_isb + 1):
+        sel = usable & (system_index == j)
+        has = sel.any(-1)
+        seen.append(has)
+        shifts.append(torch.where(has & ~isb_known[:, j - 1], _lower_median(v, sel), torch.zeros_like(v[:, 0])))
+    pad = torch.zeros(x.shape[0], models.ISB0, dtype=x.dtype, device=x.device)
+    return x + torch.cat([pad, torch.stack(shifts, -1)], -1), isb_known | torch.stack(seen, -1)
+
+
 def _clock_rows(system_index: torch.Tensor, usable: torch.Tensor, n: int) -> torch.Tensor:
     """(..., N, n) float64: the clock/ISB part of H (1 at the clock column and at the ISB column)."""
     cols = torch.where(system_index >= 1, models.ISB0 + system_index - 1, torch.full_like(system_index, models.CLOCK))
@@ -354,6 +374,8 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor | None, vc_m: torch.Tensor 
         *(a.detach().cpu().numpy() for a in (prr_all, dop_all, batch.sat_pos_ecef_m.to(f64), satvel_all,
                                              coarse_pos_all))), dtype=f64, device=dev)
     x0_all[..., models.ISB0:] = clk[..., 1:]
+    isb_finite_all = torch.isfinite(batch.coarse_clock_m[..., 1:n_systems])     # ISBs the coarse fix knew
+    system_all = batch.system_index.long()
 
     P0 = torch.as_tensor(models.initial_covariance(n_systems, config), dtype=f64, device=dev)
     A = torch.as_tensor(models.transition_generator(n_systems), dtype=f64, device=dev)
@@ -363,6 +385,7 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor | None, vc_m: torch.Tensor 
     x = torch.zeros(b_len, n, dtype=f64, device=dev)
     P = P0.expand(b_len, n, n)
     started = torch.zeros(b_len, dtype=torch.bool, device=dev)
+    isb_known = torch.zeros(b_len, n_systems - 1, dtype=torch.bool, device=dev)
     prev_status = torch.full((b_len,), STATUS_NONE, dtype=torch.int64, device=dev)
     xs, Ps, used_out, gated_out, status_out, dop_out, priors, prior_Ps, Fs = [], [], [], [], [], [], [], [], []
     for k in range(t_len):
@@ -384,13 +407,18 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor | None, vc_m: torch.Tensor 
             _check_noise(r_step, vc_step, usable_all[:, k])
             z_k, r_k = _measurement_noise(pr[:, k], r_step, vc_step, usable_all[:, k])
             r_k = r_k * r_factor_all[:, k]
+        # a constellation first seen since the (re)start: its ISB from its satellites (models.first_sight_isbs)
+        x_pred, known_n = _first_sight_isbs(x_pred, isb_known, sat_all[:, k], clock_rows_all[:, k], z_k,
+                                            usable_all[:, k], system_all[:, k])
+        x0_k, known_r = _first_sight_isbs(x0_all[:, k], isb_finite_all[:, k], sat_all[:, k], clock_rows_all[:, k],
+                                          z_k, usable_all[:, k], system_all[:, k])
 
         # Both branches in one batched call: rows [0, B) normal prior, [B, 2B) reset prior.
         two = lambda a: torch.cat([a, a], 0)  # noqa: E731
         dop_k = (satvel_all[:, k], prr_all[:, k], dop_all[:, k], dopvar_all[:, k]) if use_doppler else None
         still_k = None if still_all is None else still_all[:, k]
         xu, Pu, n_used2, n_rej2, n_usable2, n_dop2 = _gate_and_update(
-            torch.cat([x_pred, x0_all[:, k]], 0), torch.cat([P_pred, P0.expand(b_len, n, n)], 0),
+            torch.cat([x_pred, x0_k], 0), torch.cat([P_pred, P0.expand(b_len, n, n)], 0),
             two(sat_all[:, k]), two(clock_rows_all[:, k]), two(z_k), two(r_k),
             two(usable_all[:, k]), torch.cat([normal, coarse_ok], 0), config,
             tuple(two(a) for a in dop_k) if use_doppler else None, None if still_k is None else two(still_k))
@@ -442,7 +470,7 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor | None, vc_m: torch.Tensor 
                 redo = reset & (n_ok > 0) & (n_ok < n_us)
             if bool(redo.any()):
                 x2, P2, n_used_2, n_rej_2, _, n_dop_2 = _gate_and_update(
-                    x0_all[:, k], P0.expand(b_len, n, n), sat_all[:, k], clock_rows_all[:, k], z_k,
+                    x0_k, P0.expand(b_len, n, n), sat_all[:, k], clock_rows_all[:, k], z_k,
                     r_k, ok, redo, config, dop_k, still_k)
                 x_r = torch.where(redo[:, None], x2, x_r)
                 P_r = torch.where(redo[:, None, None], P2, P_r)
@@ -452,6 +480,7 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor | None, vc_m: torch.Tensor 
         x = torch.where(reset[:, None], x_r, torch.where(keep_n[:, None], x_n, x))
         P = torch.where(reset[:, None, None], P_r, torch.where(keep_n[:, None, None], P_n, P))
         started = started | reset
+        isb_known = torch.where(reset[:, None], known_r, torch.where(keep_n[:, None], known_n, isb_known))
         prev_status = status
         xs.append(x)
         Ps.append(P)

@@ -11,7 +11,7 @@ torch = pytest.importorskip("torch")
 from estimators.base import STATUS_NONE, STATUS_RESET, STATUS_UPDATED, usable_measurements  # noqa: E402
 from estimators.ekf import LfgnssEkf  # noqa: E402
 from estimators import models  # noqa: E402
-from estimators.models import EkfConfig  # noqa: E402
+from estimators.models import ISB0, EkfConfig  # noqa: E402
 from estimators.noise import FixedNoise  # noqa: E402
 from learning.torch_ekf import batch_ekf, geometric_range_m, rts_smooth  # noqa: E402
 from learning.types import WindowBatch  # noqa: E402
@@ -287,6 +287,30 @@ def test_a_clock_jump_without_a_coarse_fix_is_realigned_in_both_filters():
     assert sol.status[60] == STATUS_UPDATED and sol.n_used[60] == s.mask[60].sum()
     assert sol.status[90] == STATUS_UPDATED and sol.n_used[90] < s.mask[90].sum() / 2     # no reset, nothing to it
     assert np.linalg.norm(sol.pos_ecef_m[60] - s.truth_ecef_m[60]) < 20.0
+
+
+@pytest.mark.parametrize("isb_m", [50.0, 1000.0, 30000.0])
+def test_a_constellation_appearing_mid_run_gets_its_isb_in_both_filters(isb_m):
+    """Galileo absent for the first 60 s, then 3 satellites with an ISB of isb_m: its ISB started at 0 with P0's
+    100 m sigma, so from some hundred metres on they were gated out for the rest of the run (a review: 1000 m and
+    more, 100 % of the later epochs). Now the first epoch that sees them sets it from their median innovation."""
+    s = simulate_sequence(120, systems=("G", "C", "E"), sats_per_system=7, nlos_fraction=0.0, seed=4)
+    e = s.systems.index("E")
+    galileo = s.system_index == e
+    keep = np.zeros(s.mask.shape[1], bool)
+    keep[np.flatnonzero(galileo[0])[:3]] = True
+    mask = s.mask & (~galileo | keep)
+    mask[:60] &= ~galileo[:60]
+    clock = s.coarse_clock_m.copy()
+    clock[:, e] += isb_m
+    clock[:60, e] = np.nan                                  # the coarse fix did not see Galileo either
+    s = replace(s, pr_m=np.where(galileo, s.pr_m + isb_m, s.pr_m), mask=mask, prr_mask=s.prr_mask & mask,
+                coarse_clock_m=clock)
+    sol = _both_filters(s)
+    assert np.array_equal(sol.n_used[61:], mask[61:].sum(1))                  # every Galileo satellite used
+    isb = sol.info["filtered_state"][-1, ISB0 + e - 1]
+    assert abs(isb - clock[-1, e]) < 5.0, (isb, clock[-1, e])
+    assert np.linalg.norm(sol.pos_ecef_m - s.truth_ecef_m, axis=1).max() < 10.0
 
 
 @pytest.mark.parametrize("gap_s", [100.0, 86400.0, 1e6])
