@@ -103,3 +103,5 @@ def test_format_markdown_takes_only_the_columns_asked_for():
     assert lines[1] == "| --- | ---: | ---: |" and lines[2] == "| x | 100.0 | 5.00 |"
     assert format_markdown([row]) == format_markdown([row], columns=None)           # the default: every column
     assert " - " not in format_markdown([row])
+    timed = format_markdown([row | {"epochs_per_s": 35540.66}], columns=["method", "epochs_per_s"])
+    assert timed.splitlines()[2] == "| x | 35541 |"                     # a timing: whole epochs, not 35540.66
