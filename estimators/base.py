@@ -329,8 +329,8 @@ _LAZY: dict[str, str] = {"fgo": "estimators.fgo"}
 
 def epoch_range(start: int, stop: int, progress: bool, desc: str) -> Iterable[int]:
     """``range(start, stop)`` with a tqdm bar when ``progress`` and stderr is a terminal (long files take minutes)."""
-    if not progress:
-        return range(start, stop)
+    if not progress or not getattr(sys.stderr, "isatty", lambda: False)():   # tqdm's disable=None test, before
+        return range(start, stop)                                            # importing it (20 ms)
     from tqdm.auto import tqdm
 
     return tqdm(range(start, stop), desc=desc, unit="epoch", disable=None, leave=False, mininterval=0.5)

@@ -465,7 +465,9 @@ def vertical_noise_increment(dt_s: float, pos_ecef_m: np.ndarray, n_systems: int
         return q
     u = np.asarray(pos_ecef_m, float) / norm
     k = np.array([[dt_s ** 3 / 3.0, dt_s ** 2 / 2.0], [dt_s ** 2 / 2.0, dt_s]])
-    q[:6, :6] = (config.q_vel_up_m2_s3 - config.q_vel_m2_s3) * np.kron(k, np.outer(u, u))
+    uu = u[:, None] * u[None, :]
+    kron = (k[:, None, :, None] * uu[None, :, None, :]).reshape(6, 6)    # np.kron(k, uu), without its 40 us a call
+    q[:6, :6] = (config.q_vel_up_m2_s3 - config.q_vel_m2_s3) * kron
     return q
 
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import math
 import re
 from pathlib import Path
 from typing import TYPE_CHECKING, Mapping, Sequence
@@ -100,7 +101,7 @@ def _calendar(ms: np.ndarray, decimals: int = 3) -> list[str]:
 
 def _fmt(value: float, digits: int) -> str:
     """Fixed-point text of a finite value, '' otherwise (CSV never holds NaN or inf); no '-0.0000'."""
-    if not np.isfinite(value):
+    if not math.isfinite(value):
         return ""
     text = f"{value:.{digits}f}"
     return text[1:] if text.startswith("-") and not float(text) else text
@@ -167,10 +168,10 @@ def write_pos(path: str | Path, solution: Solution, *, time_format: str = "calen
     lines.append(_POS_QLINE + "\r\n")
     lines.append("%  " + "GPST".ljust(time_width) + " "
                  + " ".join(c.rjust(w) for c, w in zip(_POS_COLS, _POS_WIDTHS)) + "\r\n")
-    for k, tstr in enumerate(times):
-        lat, lon = np.degrees(llh[k, :2])
-        lines.append(f"{tstr} {lat:14.9f} {lon:14.9f} {llh[k, 2]:10.4f} {q[k]:3d} {ns[k]:3d} "
-                     + " ".join(f"{v:8.4f}" for v in sd[k]) + f" {0.0:6.2f} {0.0:6.1f}\r\n")
+    rows = zip(times, np.degrees(llh[:, :2]).tolist(), llh[:, 2].tolist(), q.tolist(), ns.tolist(), sd.tolist())
+    for tstr, (lat, lon), h, qk, nk, sdk in rows:        # Python numbers: formatting numpy scalars costs 3x
+        lines.append(f"{tstr} {lat:14.9f} {lon:14.9f} {h:10.4f} {qk:3d} {nk:3d} "
+                     + " ".join(f"{v:8.4f}" for v in sdk) + f" {0.0:6.2f} {0.0:6.1f}\r\n")
     _write_text(path, "".join(lines))
     return path
 
@@ -329,7 +330,7 @@ def write_csv(path: str | Path, solution: Solution, truth_ecef_m: np.ndarray | N
         elif col in ("week", "n_used"):
             text[col] = [str(int(v)) if has or col == "week" else "" for v, has in zip(values, ok)]
         else:
-            text[col] = [_fmt(v, digits.get(col, 4)) for v in values]
+            text[col] = [_fmt(v, digits.get(col, 4)) for v in np.asarray(values, float).tolist()]
     buffer = io.StringIO(newline="")
     writer = csv.writer(buffer)
     writer.writerow(columns)

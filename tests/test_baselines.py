@@ -85,11 +85,15 @@ def test_factor_graph_reports_position_blind_epochs_as_coasted(seq, mode):
     assert np.isfinite(sol.clock_m[20:24]).all()
 
 
-def test_progress_bar_is_tqdm_and_changes_nothing(seq):
+def test_progress_bar_is_tqdm_and_changes_nothing(seq, monkeypatch):
+    import sys
+
     from tqdm.auto import tqdm
 
     from estimators.base import epoch_range
 
+    assert epoch_range(0, 5, True, "x") == range(0, 5)          # stderr not a terminal: no bar, tqdm not imported
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: True, raising=False)
     assert isinstance(epoch_range(0, 5, True, "x"), tqdm) and list(epoch_range(0, 5, True, "x")) == list(range(5))
     assert epoch_range(2, 5, False, "x") == range(2, 5)
     for backend, options in (("ekf", {}), ("fgo", {"mode": "fixed-lag"}), ("fgo", {})):
