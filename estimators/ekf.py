@@ -328,7 +328,7 @@ class LfgnssEkf:
         n_gated = np.zeros(t_len, dtype=np.int32)
         n_doppler = np.zeros(t_len, dtype=np.int32)
         clock_realigned = np.zeros(t_len, dtype=bool)
-        isb_known = np.zeros(max(n_sys - 1, 0), dtype=bool)     # each ISB measured since the (re)start
+        clock_known = np.zeros(n_sys, dtype=bool)     # each constellation's clock term measured since the (re)start
         gate_sigma = cfg.gate_sigma
         started = False
         still = models.stationary_epochs(prr_all, doppler_ok, sat_all, satvel_all, sequence.coarse_ecef_m,
@@ -412,8 +412,9 @@ class LfgnssEkf:
             drift = models.coarse_drift_m_s(prr_all[k], doppler_ok[k], sat_all[k], satvel_all[k],
                                             sequence.coarse_ecef_m[k])
             x0 = models.initial_state(sequence.coarse_ecef_m[k], coarse_clock[k], float(drift))
-            x0, isb_known[:] = models.first_sight_isbs(x0, np.isfinite(coarse_clock[k, 1:n_sys]), z_all[k, idx],
-                                                       sat_all[k, idx], sys_all[k, idx])
+            known = np.concatenate([[np.any(sys_all[k, idx] == 0)], np.isfinite(coarse_clock[k, 1:n_sys])])
+            x0, clock_known[:] = models.first_sight_clocks(x0, known, pr_all[k, idx], sat_all[k, idx],
+                                                           sys_all[k, idx])
             ekf.x, ekf.P = x0, p0.copy()
             update(k, gate(k, idx, jdx))
             if gate_sigma > 0:
@@ -449,10 +450,10 @@ class LfgnssEkf:
                 ekf.predict()
                 if kept:
                     steps[k] = ekf.F
+                ekf.x, clock_known[:] = models.first_sight_clocks(ekf.x, clock_known, pr_all[k, idx],
+                                                                  sat_all[k, idx], sys_all[k, idx])
                 if online:
                     idx, jdx = ask_noise(k, idx, ekf.x)
-                ekf.x, isb_known[:] = models.first_sight_isbs(ekf.x, isb_known, z_all[k, idx], sat_all[k, idx],
-                                                              sys_all[k, idx])
                 gated = gate(k, idx, jdx)
                 inconsistent = False
                 if (gate_sigma > 0 and idx.size >= cfg.reset_min_sats

@@ -490,24 +490,37 @@ def lower_median(values: np.ndarray) -> float:
     return float(v[(v.size - 1) // 2])
 
 
-def first_sight_isbs(x: np.ndarray, isb_known: np.ndarray, z_m: np.ndarray, sat_pos_ecef_m: np.ndarray,
-                     system_index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(state, isb_known): the prior with the ISB of each constellation first seen since the (re)start set from its
-    satellites, ``isb += lower_median(z - h)`` over them, and ``isb_known`` (C - 1,) bool updated.
+def first_sight_clocks(x: np.ndarray, known: np.ndarray, pr_m: np.ndarray, sat_pos_ecef_m: np.ndarray,
+                       system_index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(state, known): the prior with the clock terms of each constellation first seen since the (re)start set from
+    its satellites, and ``known`` (C,) bool (the constellations measured since then) updated.
 
-    A constellation absent from the coarse fix the filter started from has ISB 0 with P0's sigma (100 m); one that
-    appears later with an ISB of some hundred metres (receivers differ) was gated out for the rest of the run. The
-    covariance is kept: an ISB never measured has no correlation to lose. ``z_m``, ``sat_pos_ecef_m`` (N, 3) and
-    ``system_index`` are the epoch's usable pseudoranges [m]."""
+    A constellation absent from the coarse fix the filter started from has ISB 0 with P0's sigma (100 m), and where
+    systems[0] was absent the clock is another constellation's: one that appeared later with an offset of some
+    hundred metres (receivers differ) was gated out for the rest of the run. Its offset is the lower median of its
+    satellites' ``pr - h`` less that of the known constellations' satellites (so a receiver clock jump at the same
+    epoch, common to all, stays for ``realign_clock``; with no known satellite, the whole median): a new systems[j]
+    moves ISB j, a new systems[0] moves the clock and every ISB the other way. The raw pseudoranges ``pr_m`` [m] (N,)
+    are used, not the compensated ones (an online model's v^c is asked for at the prior this corrects). The
+    covariance is kept: an offset never measured has no correlation to lose."""
     s = np.asarray(system_index)
-    new = [j for j in np.unique(s[s >= 1]).tolist() if not isb_known[j - 1]]
+    present = np.unique(s[s >= 0]).tolist()
+    new = [j for j in present if not known[j]]
     if not new:
-        return x, isb_known
+        return x, known
     h, _ = measurement(x, sat_pos_ecef_m, s)
-    x, known = np.array(x, float), np.array(isb_known, bool)
+    v = np.asarray(pr_m, float) - h
+    old = np.isin(s, np.flatnonzero(known))
+    ref = lower_median(v[old]) if old.any() else 0.0
+    x, known = np.array(x, float), np.array(known, bool)
+    shift = {j: lower_median(v[s == j]) - ref for j in new}
+    if 0 in shift:
+        x[CLOCK] += shift[0]
+        x[ISB0:] -= shift[0]
     for j in new:
-        x[ISB0 + j - 1] += lower_median((np.asarray(z_m) - h)[s == j])
-        known[j - 1] = True
+        if j > 0:
+            x[ISB0 + j - 1] += shift[j]
+        known[j] = True
     return x, known
 
 
@@ -622,5 +635,5 @@ __all__ = ["EkfConfig", "n_states", "clock_column", "initial_covariance", "initi
            "transition_generator", "coarse_drift_m_s",
            "transition", "process_noise_coefficients", "process_noise", "vertical_noise_increment", "measurement",
            "doppler_measurement", "doppler_variance_m2_s2", "used_doppler_variance_m2_s2", "prior_innovation_m",
-           "lower_median", "first_sight_isbs", "realign_clock", "stationary_epochs", "still_fixes",
+           "lower_median", "first_sight_clocks", "realign_clock", "stationary_epochs", "still_fixes",
            "zero_velocity_measurement", "CHI2_3DOF_99", "COARSE_DRIFT_SPREAD_M_S", "POS", "VEL", "CLOCK", "DRIFT", "ISB0"]

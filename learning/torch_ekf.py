@@ -98,24 +98,28 @@ def geometric_range_m(sat_ecef_m: torch.Tensor, rcv_ecef_m: torch.Tensor) -> tor
     return torch.linalg.norm(d, dim=-1) + sagnac
 
 
-def _first_sight_isbs(x: torch.Tensor, isb_known: torch.Tensor, sat: torch.Tensor, clock_rows: torch.Tensor,
-                      z: torch.Tensor, usable: torch.Tensor, system_index: torch.Tensor
-                      ) -> tuple[torch.Tensor, torch.Tensor]:
-    """(x, isb_known) of ``estimators.models.first_sight_isbs`` for M rows: each ISB not yet known (M, C - 1) and
-    seen now set from the lower median innovation of its constellation's usable pseudoranges."""
-    n_isb = isb_known.shape[-1]
-    if n_isb == 0:
-        return x, isb_known
+def _first_sight_clocks(x: torch.Tensor, known: torch.Tensor, sat: torch.Tensor, clock_rows: torch.Tensor,
+                        pr: torch.Tensor, usable: torch.Tensor, system_index: torch.Tensor
+                        ) -> tuple[torch.Tensor, torch.Tensor]:
+    """(x, known) of ``estimators.models.first_sight_clocks`` for M rows: the clock terms of each constellation
+    first seen (``known`` (M, C) False, satellites now) from its raw pseudoranges ``pr`` (M, N) [m], against the
+    known constellations' lower median."""
+    n_sys = known.shape[-1]
     h, _ = _measurement(x, sat, clock_rows)
-    v = z - h
+    v = pr - h
+    old = usable & torch.gather(known, 1, system_index.clamp(min=0, max=n_sys - 1))
+    ref = _lower_median(v, old)                         # 0 where no known satellite, as the plug-in's
     shifts, seen = [], []
-    for j in range(1, n_isb + 1):
+    for j in range(n_sys):
         sel = usable & (system_index == j)
         has = sel.any(-1)
         seen.append(has)
-        shifts.append(torch.where(has & ~isb_known[:, j - 1], _lower_median(v, sel), torch.zeros_like(v[:, 0])))
-    pad = torch.zeros(x.shape[0], models.ISB0, dtype=x.dtype, device=x.device)
-    return x + torch.cat([pad, torch.stack(shifts, -1)], -1), isb_known | torch.stack(seen, -1)
+        shifts.append(torch.where(has & ~known[:, j], _lower_median(v, sel) - ref, torch.zeros_like(ref)))
+    shift = torch.stack(shifts, -1)                     # (M, C)
+    delta = torch.zeros_like(x)
+    delta[:, models.CLOCK] = shift[:, 0]
+    delta[:, models.ISB0:] = shift[:, 1:] - shift[:, :1]
+    return x + delta, known | torch.stack(seen, -1)
 
 
 def _clock_rows(system_index: torch.Tensor, usable: torch.Tensor, n: int) -> torch.Tensor:
@@ -385,7 +389,7 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor | None, vc_m: torch.Tensor 
     x = torch.zeros(b_len, n, dtype=f64, device=dev)
     P = P0.expand(b_len, n, n)
     started = torch.zeros(b_len, dtype=torch.bool, device=dev)
-    isb_known = torch.zeros(b_len, n_systems - 1, dtype=torch.bool, device=dev)
+    clock_known = torch.zeros(b_len, n_systems, dtype=torch.bool, device=dev)
     prev_status = torch.full((b_len,), STATUS_NONE, dtype=torch.int64, device=dev)
     xs, Ps, used_out, gated_out, status_out, dop_out, priors, prior_Ps, Fs = [], [], [], [], [], [], [], [], []
     for k in range(t_len):
@@ -399,6 +403,13 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor | None, vc_m: torch.Tensor 
         started = started & ~(dt_all[:, k] > config.max_gap_s)     # a long gap: restart at the next coarse fix
         reset_a = ~started & coarse_ok
         normal = started & ~reset_a
+        # a constellation first seen since the (re)start: its clock term from its satellites (first_sight_clocks)
+        x_pred, known_n = _first_sight_clocks(x_pred, clock_known, sat_all[:, k], clock_rows_all[:, k], pr[:, k],
+                                              usable_all[:, k], system_all[:, k])
+        known_0 = torch.cat([(usable_all[:, k] & (system_all[:, k] == 0)).any(-1, keepdim=True),
+                             isb_finite_all[:, k]], -1)
+        x0_k, known_r = _first_sight_clocks(x0_all[:, k], known_0, sat_all[:, k], clock_rows_all[:, k], pr[:, k],
+                                            usable_all[:, k], system_all[:, k])
         if noise_step is None:
             z_k, r_k = z_all[:, k], r_all[:, k]
         else:
@@ -407,11 +418,6 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor | None, vc_m: torch.Tensor 
             _check_noise(r_step, vc_step, usable_all[:, k])
             z_k, r_k = _measurement_noise(pr[:, k], r_step, vc_step, usable_all[:, k])
             r_k = r_k * r_factor_all[:, k]
-        # a constellation first seen since the (re)start: its ISB from its satellites (models.first_sight_isbs)
-        x_pred, known_n = _first_sight_isbs(x_pred, isb_known, sat_all[:, k], clock_rows_all[:, k], z_k,
-                                            usable_all[:, k], system_all[:, k])
-        x0_k, known_r = _first_sight_isbs(x0_all[:, k], isb_finite_all[:, k], sat_all[:, k], clock_rows_all[:, k],
-                                          z_k, usable_all[:, k], system_all[:, k])
 
         # Both branches in one batched call: rows [0, B) normal prior, [B, 2B) reset prior.
         two = lambda a: torch.cat([a, a], 0)  # noqa: E731
@@ -480,7 +486,7 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor | None, vc_m: torch.Tensor 
         x = torch.where(reset[:, None], x_r, torch.where(keep_n[:, None], x_n, x))
         P = torch.where(reset[:, None, None], P_r, torch.where(keep_n[:, None, None], P_n, P))
         started = started | reset
-        isb_known = torch.where(reset[:, None], known_r, torch.where(keep_n[:, None], known_n, isb_known))
+        clock_known = torch.where(reset[:, None], known_r, torch.where(keep_n[:, None], known_n, clock_known))
         prev_status = status
         xs.append(x)
         Ps.append(P)

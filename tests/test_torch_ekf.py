@@ -289,11 +289,8 @@ def test_a_clock_jump_without_a_coarse_fix_is_realigned_in_both_filters():
     assert np.linalg.norm(sol.pos_ecef_m[60] - s.truth_ecef_m[60]) < 20.0
 
 
-@pytest.mark.parametrize("isb_m", [50.0, 1000.0, 30000.0])
-def test_a_constellation_appearing_mid_run_gets_its_isb_in_both_filters(isb_m):
-    """Galileo absent for the first 60 s, then 3 satellites with an ISB of isb_m: its ISB started at 0 with P0's
-    100 m sigma, so from some hundred metres on they were gated out for the rest of the run (a review: 1000 m and
-    more, 100 % of the later epochs). Now the first epoch that sees them sets it from their median innovation."""
+def _galileo_from_epoch_60(isb_m: float):
+    """A G+C+E drive whose 3 Galileo satellites (ISB isb_m) appear at epoch 60, unseen by the coarse fix before."""
     s = simulate_sequence(120, systems=("G", "C", "E"), sats_per_system=7, nlos_fraction=0.0, seed=4)
     e = s.systems.index("E")
     galileo = s.system_index == e
@@ -303,14 +300,73 @@ def test_a_constellation_appearing_mid_run_gets_its_isb_in_both_filters(isb_m):
     mask[:60] &= ~galileo[:60]
     clock = s.coarse_clock_m.copy()
     clock[:, e] += isb_m
-    clock[:60, e] = np.nan                                  # the coarse fix did not see Galileo either
-    s = replace(s, pr_m=np.where(galileo, s.pr_m + isb_m, s.pr_m), mask=mask, prr_mask=s.prr_mask & mask,
-                coarse_clock_m=clock)
-    sol = _both_filters(s)
-    assert np.array_equal(sol.n_used[61:], mask[61:].sum(1))                  # every Galileo satellite used
-    isb = sol.info["filtered_state"][-1, ISB0 + e - 1]
-    assert abs(isb - clock[-1, e]) < 5.0, (isb, clock[-1, e])
+    clock[:60, e] = np.nan
+    return replace(s, pr_m=np.where(galileo, s.pr_m + isb_m, s.pr_m), mask=mask, prr_mask=s.prr_mask & mask,
+                   coarse_clock_m=clock), e
+
+
+def _every_satellite_used_from(sol, s, k: int, isb: tuple[int, float] | None = None) -> None:
+    assert np.array_equal(sol.n_used[k:], s.mask[k:].sum(1)) and sol.info["n_gated"][k:].sum() == 0
     assert np.linalg.norm(sol.pos_ecef_m - s.truth_ecef_m, axis=1).max() < 10.0
+    if isb is not None:
+        column, value = isb
+        assert abs(sol.info["filtered_state"][-1, column] - value) < 5.0
+
+
+@pytest.mark.parametrize("isb_m", [50.0, 1000.0, 30000.0])
+def test_a_constellation_appearing_mid_run_gets_its_isb_in_both_filters(isb_m):
+    """Galileo absent for the first 60 s, then 3 satellites with an ISB of isb_m: its ISB started at 0 with P0's
+    100 m sigma, so from some hundred metres on they were gated out for the rest of the run (a review: 1000 m and
+    more, 100 % of the later epochs). Now the first epoch that sees them sets it from their pseudoranges."""
+    s, e = _galileo_from_epoch_60(isb_m)
+    _every_satellite_used_from(_both_filters(s), s, 60, (ISB0 + e - 1, s.coarse_clock_m[-1, e]))
+
+
+@pytest.mark.parametrize("coarse_fix_there", [True, False])
+def test_a_clock_jump_where_a_constellation_first_appears_stays_the_clocks(coarse_fix_there):
+    """A 1 ms receiver clock jump at Galileo's first epoch: its ISB taken from its whole median innovation held the
+    jump (300 km) after the clock realignment moved the clock, and Galileo was lost (a review); it is taken against
+    the known constellations' median, so the jump is left to the realignment."""
+    s, e = _galileo_from_epoch_60(1000.0)
+    jump = 1e-3 * SPEED_OF_LIGHT_M_S
+    pr, clock, coarse = s.pr_m.copy(), s.coarse_clock_m.copy(), s.coarse_ecef_m.copy()
+    pr[60:] += np.where(s.mask[60:], jump, 0.0)
+    clock[60:, 0] += jump
+    if not coarse_fix_there:
+        coarse[60], clock[60] = np.nan, np.nan
+    s = replace(s, pr_m=np.where(s.mask, pr, 0.0), coarse_clock_m=clock, coarse_ecef_m=coarse)
+    sol = _both_filters(s)
+    assert np.flatnonzero(sol.info["clock_realigned"]).tolist() == [60]
+    _every_satellite_used_from(sol, s, 60, (ISB0 + e - 1, s.coarse_clock_m[-1, e]))
+
+
+def test_the_reference_constellation_appearing_mid_run_moves_the_clock_in_both_filters():
+    """GPS (systems[0]) absent for the first 60 s: the coarse fix's clock is BeiDou's (ISB 0). When GPS appears the
+    clock takes GPS's and BeiDou's ISB its 1000 m; before, GPS was gated out (7 of 12-14 satellites used)."""
+    s = simulate_sequence(120, systems=("G", "C"), sats_per_system=7, nlos_fraction=0.0, seed=4)
+    beidou = s.system_index == 1
+    mask = s.mask.copy()
+    mask[:60] &= ~(s.system_index[:60] == 0)
+    clock = s.coarse_clock_m.copy()
+    clock[:, 1] += 1000.0
+    clock[:60, 0] += clock[:60, 1]
+    clock[:60, 1] = 0.0
+    s = replace(s, pr_m=np.where(mask, np.where(beidou, s.pr_m + 1000.0, s.pr_m), 0.0), mask=mask,
+                prr_mask=s.prr_mask & mask, coarse_clock_m=clock)
+    _every_satellite_used_from(_both_filters(s), s, 60, (ISB0, s.coarse_clock_m[-1, 1]))
+
+
+def test_a_constellation_first_seen_at_a_restart_without_its_coarse_isb_in_both_filters():
+    """A restart after a long gap whose coarse fix lacks Galileo while its satellites are there: the reset takes
+    its ISB from them too (only the normal path was tested)."""
+    s, e = _galileo_from_epoch_60(1000.0)
+    time, clock = s.time_gps_s.copy(), s.coarse_clock_m.copy()
+    time[60:] += 100.0
+    clock[60:, e] = np.nan
+    s = replace(s, time_gps_s=time, coarse_clock_m=clock)
+    sol = _both_filters(s)
+    assert sol.status[60] == STATUS_RESET
+    _every_satellite_used_from(sol, s, 60)
 
 
 @pytest.mark.parametrize("gap_s", [100.0, 86400.0, 1e6])
