@@ -649,14 +649,17 @@ def run_filter(model: LfgnssNet, batch: WindowBatch, *, n_systems: int, ekf_cfg,
     """
     from .torch_ekf import batch_ekf, rts_smooth
 
-    if model.innovation:
-        def step(k: int, innovation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-            return model(batch.features[:, k], batch.mask[:, k], innovation)
+    try:
+        if model.innovation:
+            def step(k: int, innovation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+                return model(batch.features[:, k], batch.mask[:, k], innovation)
 
-        out = batch_ekf(batch, None, None, n_systems=n_systems, config=ekf_cfg, noise_step=step)
-    else:
-        r, vc = model(batch.features, batch.mask) if noise is None else noise
-        out = batch_ekf(batch, r.to(torch.float64), vc.to(torch.float64), n_systems=n_systems, config=ekf_cfg)
+            out = batch_ekf(batch, None, None, n_systems=n_systems, config=ekf_cfg, noise_step=step)
+        else:
+            r, vc = model(batch.features, batch.mask) if noise is None else noise
+            out = batch_ekf(batch, r.to(torch.float64), vc.to(torch.float64), n_systems=n_systems, config=ekf_cfg)
+    except torch.linalg.LinAlgError as err:     # a collapsed R: divergence, as a non-finite loss (exit 3)
+        raise FloatingPointError(f"the filter's update failed ({one_line(err)}): the network's R collapsed") from None
     return rts_smooth(out) if smooth else out.pos_ecef_m
 
 
@@ -1378,7 +1381,7 @@ def main(argv: list[str] | None = None) -> int:
         exit_on_input_error(p, exc)
     except KeyboardInterrupt as exc:          # Ctrl-C: one line saying what is kept and how to go on
         p.exit(130, f"{p.prog}: interrupted{_resume_hint(exc, Path(out))}\n")
-    except (FloatingPointError, torch.linalg.LinAlgError) as exc:    # diverged: not bad input (exit 3, not 2)
+    except FloatingPointError as exc:         # diverged: not bad input (exit 3, not 2); the checkpoints stay
         p.exit(3, f"{p.prog}: error: {one_line(exc)}: training stopped (exit status 3); the checkpoints of the "
                   f"epochs before it are kept in {out} (last.pt, best.pt); check [loss], or try a lower train.lr or "
                   "a train.grad_clip > 0, in a new --out\n")

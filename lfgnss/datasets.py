@@ -961,12 +961,12 @@ def join_observations(parts: list[Observations]) -> Observations:
         if after.time_gps_s[0] <= before.time_gps_s[-1]:
             raise InputError(after.path, f"overlaps {before.path} in time (GPS {after.time_gps_s[0]:.1f} s to "
                                          f"{after.time_gps_s[-1]:.1f} s against {before.time_gps_s[0]:.1f} s to "
-                                         f"{before.time_gps_s[-1]:.1f} s); the obs files of a dataset are joined in "
-                                         f"time order and must not overlap")
+                                         f"{before.time_gps_s[-1]:.1f} s); observation files are joined in time "
+                                         f"order and must not overlap")
         for system in set(before.codes) & set(after.codes):
             if before.codes[system] != after.codes[system]:
                 raise InputError(after.path, f"{system} pseudoranges are {after.codes[system]}, in {before.path} "
-                                             f"{before.codes[system]}; the obs files of a dataset must use one signal")
+                                             f"{before.codes[system]}; observation files joined must use one signal")
     sv = np.unique(np.concatenate([o.sv for o in parts]))
     n_t = sum(len(o) for o in parts)
     arrays = {key: np.full((n_t, sv.size), np.nan) for key in ("pr_m", "cn0_dbhz", "doppler_hz")}
@@ -1073,17 +1073,23 @@ def obs_hashes(dataset_id: str) -> set[str]:
 
 def epochs_in_split(dataset_id: str, split: str, time_gps_s: np.ndarray) -> int | None:
     """How many of the epoch times [GPS s] lie in a split of the dataset registered as ``dataset_id`` now, read from its
-    bounds alone; None when that needs its data (an ``epoch`` axis, a ``relative_s`` one without a time origin) or
-    no such dataset or split is registered. For epochs of that dataset's own files (a model file's record)."""
+    bounds alone; None when that needs its data (an ``epoch`` axis, a ``relative_s`` one without a time origin, a
+    ``tow`` split past 604800 s, whose week is the dataset's first epoch's) or no such dataset or split is registered.
+    For epochs of that dataset's own files (a model file's record)."""
     spec = registered().get(dataset_id)
     bounds = [spec.splits.get(part) for part in split_parts(split)] if spec else [None]
     if None in bounds or spec.split_axis not in ("tow", "relative_s"):
         return None
     if spec.split_axis == "relative_s" and spec.time_origin_gps_s is None:
         return None                                 # counted from the dataset's first epoch, which needs its data
+    bounds_s = [b for pair in bounds for b in pair if math.isfinite(b)]
+    if spec.split_axis == "tow" and any(b > SECONDS_PER_WEEK for b in bounds_s):
+        return None                                 # a split in the next week: which week is the first epoch's
     time_gps_s = np.asarray(time_gps_s, float)
-    first = float(np.nanmin(time_gps_s)) if time_gps_s.size else 0.0
-    axis = _time_axis_values(time_gps_s, spec, first if spec.time_origin_gps_s is None else spec.time_origin_gps_s)
+    if spec.split_axis == "tow":                    # within one week: each epoch's own time of week
+        axis = np.round(gps_s_to_week_tow(time_gps_s)[1], 1)
+    else:
+        axis = _time_axis_values(time_gps_s, spec, spec.time_origin_gps_s)
     return int(sum(np.sum((axis >= start) & (axis < stop)) for start, stop in bounds))
 
 

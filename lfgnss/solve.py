@@ -548,8 +548,9 @@ def _read_window(obs_files: list[Path], start: float | None, end: float | None) 
     if end is not None:
         keep &= t <= end + WINDOW_TOLERANCE_S
     if not keep.any() and (start is not None or end is not None):
-        raise InputError(obs, f"no epoch in --start/--end {_window_text(start, end)}; the file spans "
-                              f"{time_span_text(t)}")
+        files = "the file spans" if len(obs_files) == 1 else \
+            f"the files ({' + '.join(Path(f).name for f in obs_files)}) span, with their gaps,"
+        raise InputError(obs, f"no epoch in --start/--end {_window_text(start, end)}; {files} {time_span_text(t)}")
     return observations, keep
 
 

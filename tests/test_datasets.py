@@ -442,7 +442,11 @@ def test_tow_axis_counts_on_across_the_end_of_a_week(monkeypatch):
     values = datasets.split_axis_values(SimpleNamespace(time_gps_s=t, labelled=np.ones(t.size, bool)), spec)
     np.testing.assert_allclose(values, 604790.0 + np.arange(0.0, 20.0, 0.5), rtol=0)
     monkeypatch.setattr(datasets, "registered", lambda: {"x": spec})
-    assert datasets.epochs_in_split("x", "test", t[::-1]) == 20        # 604795 to 604804.5 s, in any order
+    assert datasets.epochs_in_split("x", "test", t[::-1]) is None      # which week is the first epoch's: unknown
+    one_week = datasets.DatasetSpec("y", (), (), "t.csv", "urbannav", splits={"test": (604780.0, 604795.0)})
+    monkeypatch.setattr(datasets, "registered", lambda: {"y": one_week})
+    assert datasets.epochs_in_split("y", "test", t[::-1]) == 10        # 604790 to 604794.5 s, in any order
+    assert datasets.epochs_in_split("y", "test", t[-4:]) == 0          # the next week's epochs alone: none
 
 
 @pytest.mark.parametrize("axis", ["tow", "relative_s", "epoch"])

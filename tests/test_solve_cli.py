@@ -308,3 +308,7 @@ def test_several_obs_files_are_joined_in_time_order(tmp_path, capsys):
     assert main(["--obs", str(tmp_path / "a.obs"), str(SAMPLE_OBS), "--out", str(tmp_path / "o"), *nav]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "overlaps" in err and "must not overlap" in err, err
+    assert main(["--obs", str(tmp_path / "a.obs"), str(tmp_path / "b.obs"), "--start", "1900:127000",
+                 "--out", str(tmp_path / "o"), *nav]) == 2
+    assert "(1900:127000); the files (a.obs + b.obs) span, with their gaps, 2016-06-06 11:10:41.7 to 11:15:25.1 " \
+        in capsys.readouterr().err

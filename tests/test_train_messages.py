@@ -179,3 +179,20 @@ def test_a_smoothed_run_names_smooth_in_its_next_step(tmp_path, capsys):
     assert train_main(argv) == 0
     model = out / "model.npz"
     assert f"use it: python -m lfgnss.solve --model {model} --smooth --obs OBS" in capsys.readouterr().out
+
+
+def test_a_failed_filter_update_is_divergence_exit_3(tmp_path, capsys, monkeypatch):
+    """A collapsed R makes the torch EKF's solve raise LinAlgError: a traceback before, now the exit-3 line."""
+    import torch
+
+    import learning.torch_ekf
+
+    def singular(*args, **kwargs):
+        raise torch.linalg.LinAlgError("linalg.solve: The solver failed because the input matrix is singular.")
+
+    monkeypatch.setattr(learning.torch_ekf, "batch_ekf", singular)
+    with pytest.raises(SystemExit) as info:
+        train_main(["--config", CONFIG, "--out", str(tmp_path / "r"), "--no-progress"] + sets(TINY))
+    err = capsys.readouterr().err
+    assert info.value.code == 3 and "the filter's update failed (linalg.solve: The solver failed" in err, err
+    assert "training stopped (exit status 3)" in err
