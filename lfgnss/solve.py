@@ -169,8 +169,13 @@ def seen_epochs_notes(noise: object, obs: str | Path | list, time_gps_s: np.ndar
         return []
     scored = np.isfinite(truth_ecef_m).all(axis=1)
     files = list(obs) if isinstance(obs, (list, tuple)) else [obs]
-    return seen_test_epochs(meta, " + ".join(Path(f).name for f in files), time_gps_s[scored], truth_ecef_m[scored],
-                            file_digests(files), epochs_word="scored epochs")
+    return seen_test_epochs(meta, file_names(files), time_gps_s[scored], truth_ecef_m[scored], file_digests(files),
+                            epochs_word="scored epochs")
+
+
+def file_names(paths: list) -> str:
+    """``a.obs + b.obs``: the names of a run's observation files."""
+    return " + ".join(Path(f).name for f in paths)
 
 
 def unseen_systems_note(noise: object, systems: tuple[str, ...]) -> str | None:
@@ -325,7 +330,7 @@ def _solve(args) -> _Solved:
 
     try:
         seq = build_sequence(meas, fix, feature_names=feature_names or DEFAULT_FEATURES,
-                             name=" + ".join(Path(f).name for f in obs_files),
+                             name=file_names(obs_files),
                              truth_ecef_m=truth, spp_config=spp_config)
     except LfgnssError as err:  # an error about the data that names no file: it is about the observations
         if isinstance(err, (InputError, RinexError)):
@@ -371,7 +376,7 @@ def _solve(args) -> _Solved:
         figures: dict = {}                  # drawn at the first figure's turn, after the files above are written
         learned = isinstance(getattr(noise, "metadata", None), dict)
         title = f"{seq.name}: {label}" + ("" if _own_model(args) or args.no_model else
-                                                f", model {DEFAULT_MODEL.name}" if learned else f", {noise_text}")
+                                          f", model {DEFAULT_MODEL.name}" if learned else f", {noise_text}")
         title += "\nin-sample: the model was trained or selected on some of these epochs" if seen else ""
 
         def save(path: str, name: str) -> list[Path]:
@@ -549,7 +554,7 @@ def _read_window(obs_files: list[Path], start: float | None, end: float | None) 
         keep &= t <= end + WINDOW_TOLERANCE_S
     if not keep.any() and (start is not None or end is not None):
         files = "the file spans" if len(obs_files) == 1 else \
-            f"the files ({' + '.join(Path(f).name for f in obs_files)}) span, with their gaps,"
+            f"the files ({file_names(obs_files)}) span, with their gaps,"
         raise InputError(obs, f"no epoch in --start/--end {_window_text(start, end)}; {files} {time_span_text(t)}")
     return observations, keep
 
