@@ -157,7 +157,8 @@ def test_built_in_datasets_without_shared_data_keep_their_skipped_line(tmp_path,
     monkeypatch.setenv("LFGNSS_SHARED_DATA", str(tmp_path))
     lines = []
     assert datasets.present(["berlin-pp"], lines.append) == []
-    assert lines == [f"berlin-pp: skipped, missing {datasets.get('berlin-pp').missing()[0]}"]
+    assert lines == [f"berlin-pp: skipped, missing {datasets.get('berlin-pp').missing()[0]} (the benchmark datasets "
+                     f"are read from $LFGNSS_SHARED_DATA, else ../shared/data beside the checkout)"]
     assert datasets.main([]) == 0
     captured = capsys.readouterr()
     assert captured.err == "" and captured.out.count(": skipped, missing ") == 3
