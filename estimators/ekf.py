@@ -329,6 +329,8 @@ class LfgnssEkf:
         n_doppler = np.zeros(t_len, dtype=np.int32)
         clock_realigned = np.zeros(t_len, dtype=bool)
         clock_known = np.zeros(n_sys, dtype=bool)     # each constellation's clock term measured since the (re)start
+        drift_found = np.zeros(1, dtype=bool)         # the last (re)start took its drift from the Dopplers
+        reference_seen = (usable & (sys_all == 0)).any(axis=1)      # systems[0] holds coarse_clock's first column
         gate_sigma = cfg.gate_sigma
         started = False
         still = models.stationary_epochs(prr_all, doppler_ok, sat_all, satvel_all, sequence.coarse_ecef_m,
@@ -409,8 +411,8 @@ class LfgnssEkf:
             return idx.size - int(gated[0][-1].sum()) > cfg.reset_gated_fraction * idx.size
 
         def reset(k: int, idx: np.ndarray, jdx: np.ndarray) -> None:
-            drift = models.coarse_drift_m_s(prr_all[k], doppler_ok[k], sat_all[k], satvel_all[k],
-                                            sequence.coarse_ecef_m[k])
+            drift, drift_found[0] = models.coarse_drift(prr_all[k], doppler_ok[k], sat_all[k], satvel_all[k],
+                                                        sequence.coarse_ecef_m[k])
             x0 = models.initial_state(sequence.coarse_ecef_m[k], coarse_clock[k], float(drift))
             known = np.concatenate([[np.any(sys_all[k, idx] == 0)], np.isfinite(coarse_clock[k, 1:n_sys])])
             x0, clock_known[:] = models.first_sight_clocks(x0, known, pr_all[k, idx], sat_all[k, idx],
@@ -442,6 +444,13 @@ class LfgnssEkf:
                 reset(k, idx, jdx)
                 started = True
             else:
+                if status[k - 1] == STATUS_RESET and not drift_found[0] and reference_seen[k - 1:k + 1].all():
+                    # a start without a Doppler drift: the second epoch takes it from the two coarse clocks
+                    drift = models.coarse_clock_drift_m_s(coarse_clock[k - 1, 0], coarse_clock[k, 0], dt)
+                    if np.isfinite(drift):
+                        x = ekf.x.copy()
+                        x[models.DRIFT] = drift
+                        ekf.x = x
                 if dt not in cache:
                     cache[dt] = (eye + dt * a, q1 * dt + q2 * dt ** 2 + q3 * dt ** 3)
                 ekf.F, ekf.Q = cache[dt]

@@ -36,6 +36,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Callable
 
+import numpy as np
 import torch
 
 from estimators import models
@@ -374,12 +375,22 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor | None, vc_m: torch.Tensor 
     x0_all = torch.zeros(b_len, t_len, n, dtype=f64, device=dev)
     x0_all[..., :3] = coarse_pos_all
     x0_all[..., models.CLOCK] = torch.where(coarse_ok_all, clk[..., 0], zero)
-    x0_all[..., models.DRIFT] = torch.as_tensor(models.coarse_drift_m_s(   # from the data, as the plug-in's
+    drift0, found0 = models.coarse_drift(   # from the data, as the plug-in's
         *(a.detach().cpu().numpy() for a in (prr_all, dop_all, batch.sat_pos_ecef_m.to(f64), satvel_all,
-                                             coarse_pos_all))), dtype=f64, device=dev)
+                                             coarse_pos_all)))
+    x0_all[..., models.DRIFT] = torch.as_tensor(drift0, dtype=f64, device=dev)
+    drift_found_all = torch.as_tensor(found0, device=dev)
+    # a start without a Doppler drift: its second epoch takes it from the two coarse clocks (as the plug-in)
+    clock0 = batch.coarse_clock_m[..., 0].to(f64).detach().cpu().numpy()
+    clock_drift = np.full(clock0.shape, np.nan)
+    clock_drift[:, 1:] = models.coarse_clock_drift_m_s(clock0[:, :-1], clock0[:, 1:], dt_all[:, 1:].cpu().numpy())
+    clock_drift_all = torch.as_tensor(clock_drift, dtype=f64, device=dev)
     x0_all[..., models.ISB0:] = clk[..., 1:]
     isb_finite_all = torch.isfinite(batch.coarse_clock_m[..., 1:n_systems])     # ISBs the coarse fix knew
     system_all = batch.system_index.long()
+    reference_seen_all = (usable_all & (system_all == 0)).any(-1)
+    drift_column = torch.zeros(n, dtype=torch.bool, device=dev)
+    drift_column[models.DRIFT] = True
 
     P0 = torch.as_tensor(models.initial_covariance(n_systems, config), dtype=f64, device=dev)
     A = torch.as_tensor(models.transition_generator(n_systems), dtype=f64, device=dev)
@@ -390,9 +401,15 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor | None, vc_m: torch.Tensor 
     P = P0.expand(b_len, n, n)
     started = torch.zeros(b_len, dtype=torch.bool, device=dev)
     clock_known = torch.zeros(b_len, n_systems, dtype=torch.bool, device=dev)
+    drift_found = torch.zeros(b_len, dtype=torch.bool, device=dev)
     prev_status = torch.full((b_len,), STATUS_NONE, dtype=torch.int64, device=dev)
     xs, Ps, used_out, gated_out, status_out, dop_out, priors, prior_Ps, Fs = [], [], [], [], [], [], [], [], []
     for k in range(t_len):
+        if k > 0:
+            take = (started & (prev_status == STATUS_RESET) & ~drift_found & reference_seen_all[:, k - 1]
+                    & reference_seen_all[:, k] & torch.isfinite(clock_drift_all[:, k])
+                    & ~(dt_all[:, k] > config.max_gap_s))
+            x = torch.where(take[:, None] & drift_column, torch.nan_to_num(clock_drift_all[:, k, None]), x)
         dt = dt_all[:, k, None, None]
         F = eye + dt * A
         x_pred = (F @ x[..., None])[..., 0]
@@ -487,6 +504,7 @@ def batch_ekf(batch: WindowBatch, r_m2: torch.Tensor | None, vc_m: torch.Tensor 
         P = torch.where(reset[:, None, None], P_r, torch.where(keep_n[:, None, None], P_n, P))
         started = started | reset
         clock_known = torch.where(reset[:, None], known_r, torch.where(keep_n[:, None], known_n, clock_known))
+        drift_found = torch.where(reset, drift_found_all[:, k], drift_found)
         prev_status = status
         xs.append(x)
         Ps.append(P)

@@ -405,6 +405,32 @@ def test_a_drift_beyond_the_initial_covariance_is_taken_from_the_dopplers_in_bot
     np.testing.assert_allclose(sol.pos_ecef_m, plain.pos_ecef_m, rtol=0, atol=1e-3)
 
 
+@pytest.mark.parametrize("extra", [350.0, -900.0])
+def test_a_drift_without_dopplers_is_taken_from_the_coarse_clocks_in_both_filters(extra):
+    """The same oscillator without Dopplers: the start could not see the drift, the pseudoranges of the next epoch
+    failed the gate and most epochs coasted (docs/bad_input.md's known limitation). The epoch after a start without a
+    Doppler drift takes it from the two coarse fixes' clocks."""
+    base = simulate_sequence(120, seed=3)
+    t = base.time_gps_s - base.time_gps_s[0]
+    clock = base.coarse_clock_m.copy()
+    clock[:, 0] += extra * t
+    no_doppler = np.zeros_like(base.prr_mask)
+    s = replace(base, pr_m=np.where(base.mask, base.pr_m + extra * t[:, None], 0.0), coarse_clock_m=clock,
+                prr_mask=no_doppler)
+    sol = _both_filters(s)
+    assert np.all(sol.status[1:] == STATUS_UPDATED) and not sol.info["n_doppler"].any()
+    plain = _both_filters(replace(base, prr_mask=no_doppler))                         # the simulation's drift only
+    np.testing.assert_array_equal(sol.n_used, plain.n_used)
+    np.testing.assert_allclose(sol.pos_ecef_m, plain.pos_ecef_m, rtol=0, atol=0.5)
+
+
+def test_a_clock_jump_right_after_a_start_is_no_drift():
+    """A 1 ms jump between a start's two coarse clocks is 3e5 m/s: no drift (MAX_COARSE_CLOCK_DRIFT_M_S), and the
+    jump is left to the clock realignment."""
+    got = models.coarse_clock_drift_m_s(np.array([0.0, 0.0, np.nan]), np.array([350.0, 3e5, 0.0]), np.ones(3))
+    np.testing.assert_array_equal(got, [350.0, np.nan, np.nan])
+
+
 def test_coarse_drift_is_the_lower_median_of_agreeing_dopplers_at_zero_velocity():
     """Vectorised over epochs; 0 where an epoch has fewer than 3 Dopplers or no majority within
     COARSE_DRIFT_SPREAD_M_S of the median (a drift fitted to an outlier kept every later Doppler out of the gate)."""
