@@ -391,23 +391,43 @@ def _track(solution: Solution) -> tuple[np.ndarray, np.ndarray]:
     return idx, np.column_stack([np.degrees(llh[:, 1]), np.degrees(llh[:, 0]), llh[:, 2]])
 
 
+def _pieces(idx: np.ndarray) -> tuple[list[np.ndarray], list[int]]:
+    """The track's rows in lines and lone fixes: runs of consecutive epochs with a position (a line where it holds
+    two rows or more; a lone fix's row otherwise), so that a track is not drawn straight across epochs without one."""
+    runs = np.split(np.arange(idx.size), np.flatnonzero(np.diff(idx) > 1) + 1) if idx.size else []
+    return [r for r in runs if r.size >= 2], [int(r[0]) for r in runs if r.size == 1]
+
+
 def write_geojson(path: str | Path, solution: Solution, *, points: bool = False) -> Path:
     """GeoJSON FeatureCollection (RFC 7946: WGS84 ``[lon, lat, h]``) of the epochs with a position.
 
-    A ``LineString`` feature of the track (a ``Point`` where only one epoch has a position), and with
-    ``points=True`` one ``Point`` feature per epoch with ``time_gps_s``, ``time_utc`` (ISO 8601), ``status`` and
-    ``n_used`` properties.
+    A ``LineString`` feature of the track (a ``Point`` where only one epoch has a position; where epochs without a
+    position cut it, a ``MultiLineString`` of its pieces and a ``MultiPoint`` feature of the lone fixes between them),
+    and with ``points=True`` one ``Point`` feature per epoch with ``time_gps_s``, ``time_utc`` (ISO 8601), ``status``
+    and ``n_used`` properties.
     """
     _check_args("write_geojson", path, solution)
     path = Path(path)
     idx, lonlath = _track(solution)
     coords = [[round(float(a), 9), round(float(b), 9), round(float(c), 4)] for a, b, c in lonlath]
+    lines, lone = _pieces(idx)
     features = []
-    if len(coords) >= 2 or coords and not points:      # a LineString needs two positions: one is a Point
-        geometry = ({"type": "LineString", "coordinates": coords} if len(coords) >= 2
-                    else {"type": "Point", "coordinates": coords[0]})
-        features.append({"type": "Feature", "geometry": geometry,
-                         "properties": {"backend": solution.backend, "n_epochs": len(coords)}})
+    properties = {"backend": solution.backend, "n_epochs": len(coords)}
+    if len(lines) == 1 and not lone:
+        features.append({"type": "Feature", "geometry": {"type": "LineString", "coordinates": coords},
+                         "properties": properties})
+    elif len(lines) == 0 and len(lone) == 1:
+        if not points:                                  # a lone position: a Point (points=True writes it anyway)
+            features.append({"type": "Feature", "geometry": {"type": "Point", "coordinates": coords[0]},
+                             "properties": properties})
+    elif lines or lone:
+        if lines:
+            features.append({"type": "Feature", "properties": properties | {"n_pieces": len(lines)},
+                             "geometry": {"type": "MultiLineString",
+                                          "coordinates": [[coords[i] for i in run] for run in lines]}})
+        if lone and not points:
+            features.append({"type": "Feature", "properties": {"backend": solution.backend, "lone_fixes": len(lone)},
+                             "geometry": {"type": "MultiPoint", "coordinates": [coords[i] for i in lone]}})
     if points:
         status = np.asarray(solution.status)
         utc = _utc_iso(np.asarray(solution.time_gps_s, float)[idx])
@@ -425,23 +445,29 @@ def write_kml(path: str | Path, solution: Solution, *, points: bool = False) -> 
     """KML track of the epochs with a position (``lon,lat,h``; a point where only one has), clamped to the ground.
 
     Heights are ellipsoidal while KML altitudes are above mean sea level, so the track uses
-    ``altitudeMode clampToGround``. With ``points=True`` one Placemark per epoch as well.
+    ``altitudeMode clampToGround``. Where epochs without a position cut it, the track is a ``MultiGeometry`` of its
+    pieces (and the lone fixes between them as points). With ``points=True`` one Placemark per epoch as well.
     """
     _check_args("write_kml", path, solution)
     path = Path(path)
     idx, lonlath = _track(solution)
-    coord_text = " ".join(f"{a:.9f},{b:.9f},{c:.4f}" for a, b, c in lonlath)
+    rows = [f"{a:.9f},{b:.9f},{c:.4f}" for a, b, c in lonlath]
+    lines, lone = _pieces(idx)
     name = escape(str(solution.backend))
     parts = ['<?xml version="1.0" encoding="UTF-8"?>',
              '<kml xmlns="http://www.opengis.net/kml/2.2">', "<Document>", f"<name>{name}</name>",
              '<Style id="track"><LineStyle><color>ff0000ff</color><width>2</width></LineStyle></Style>']
-    if len(idx) >= 2:
-        parts += [f"<Placemark><name>{name} track</name><styleUrl>#track</styleUrl><LineString>",
-                  "<tessellate>1</tessellate><altitudeMode>clampToGround</altitudeMode>",
-                  f"<coordinates>{coord_text}</coordinates>", "</LineString></Placemark>"]
-    elif len(idx) == 1 and not points:      # a LineString needs two positions
-        parts += [f"<Placemark><name>{name} fix</name><Point><altitudeMode>clampToGround</altitudeMode>",
-                  f"<coordinates>{coord_text}</coordinates></Point></Placemark>"]
+    line_kml = ["<LineString><tessellate>1</tessellate><altitudeMode>clampToGround</altitudeMode>"
+                f"<coordinates>{' '.join(rows[i] for i in run)}</coordinates></LineString>" for run in lines]
+    lone_kml = [f"<Point><altitudeMode>clampToGround</altitudeMode><coordinates>{rows[i]}</coordinates></Point>"
+                for i in ([] if points else lone)]          # points=True writes every epoch's point anyway
+    if len(line_kml) == 1 and not lone:
+        parts += [f"<Placemark><name>{name} track</name><styleUrl>#track</styleUrl>{line_kml[0]}</Placemark>"]
+    elif len(line_kml) + len(lone_kml) == 1:                # a lone position
+        parts += [f"<Placemark><name>{name} fix</name>{lone_kml[0]}</Placemark>"]
+    elif line_kml or lone_kml:
+        parts += [f"<Placemark><name>{name} track</name><styleUrl>#track</styleUrl><MultiGeometry>",
+                  *line_kml, *lone_kml, "</MultiGeometry></Placemark>"]
     if points:
         status = np.asarray(solution.status)
         utc = _utc_iso(solution.time_gps_s)

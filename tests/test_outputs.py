@@ -198,9 +198,10 @@ def test_geojson_and_kml(tmp_path):
     g = write_geojson(tmp_path / "a.geojson", sol, points=True)
     _no_nan_text(g)
     doc = json.loads(g.read_text())
-    line = doc["features"][0]
-    assert line["geometry"]["type"] == "LineString" and len(line["geometry"]["coordinates"]) == n_pos
-    lon, lat, h = line["geometry"]["coordinates"][0]
+    line = doc["features"][0]            # epoch 9 has no position: two pieces, not a line straight across it
+    assert line["geometry"]["type"] == "MultiLineString" and line["properties"]["n_pieces"] == 2
+    assert [len(piece) for piece in line["geometry"]["coordinates"]] == [8, 2] and n_pos == 10
+    lon, lat, h = line["geometry"]["coordinates"][0][0]
     assert 13 < lon < 14 and 52 < lat < 53
     assert sum(f["geometry"]["type"] == "Point" for f in doc["features"]) == n_pos
     assert doc["features"][1]["properties"]["time_utc"] == "2016-06-06T11:10:42.800Z"     # as the KML's TimeStamp
@@ -208,8 +209,8 @@ def test_geojson_and_kml(tmp_path):
     _no_nan_text(k)
     root = ET.parse(k).getroot()
     ns = {"k": "http://www.opengis.net/kml/2.2"}
-    coords = root.find(".//k:LineString/k:coordinates", ns).text.split()
-    assert len(coords) == n_pos
+    pieces = root.findall(".//k:MultiGeometry/k:LineString/k:coordinates", ns)
+    assert [len(c.text.split()) for c in pieces] == [8, 2]
     assert len(root.findall(".//k:Point", ns)) == n_pos
     when = [w.text for w in root.findall(".//k:Placemark/k:TimeStamp/k:when", ns)]     # UTC, for a time slider
     assert len(when) == n_pos and when[0] == "2016-06-06T11:10:42.800Z"                  # GPST 11:10:59.8 - 17 s
@@ -246,6 +247,31 @@ def test_map_files_of_a_single_fix(tmp_path):
     both = json.loads(write_geojson(tmp_path / "p.geojson", one, points=True).read_text())
     assert [f["geometry"]["type"] for f in both["features"]] == ["Point"]          # the epoch's point, once
     assert len(ET.parse(write_kml(tmp_path / "p.kml", one, points=True)).getroot().findall(".//k:Point", ns)) == 1
+
+
+def test_a_track_with_gaps_and_a_lone_fix_is_drawn_in_pieces(tmp_path):
+    """Epochs without a position (a wls run's unfixed epochs) cut the track: the pieces are lines, a lone fix between
+    two gaps a point; one unbroken run stays one LineString (the EKF's usual track)."""
+    sol, _ = _solution()
+    status = sol.status.copy()
+    status[[3, 5]] = STATUS_NONE                        # positions at 1-2, 4 (alone), 6-8, 10-11
+    cut = Solution(backend="wls", time_gps_s=sol.time_gps_s, pos_ecef_m=sol.pos_ecef_m, cov_ecef_m2=sol.cov_ecef_m2,
+                   clock_m=sol.clock_m, n_used=sol.n_used, status=status)
+    doc = json.loads(write_geojson(tmp_path / "c.geojson", cut).read_text())
+    assert [f["geometry"]["type"] for f in doc["features"]] == ["MultiLineString", "MultiPoint"]
+    assert [len(p) for p in doc["features"][0]["geometry"]["coordinates"]] == [2, 3, 2]
+    assert len(doc["features"][1]["geometry"]["coordinates"]) == 1 and doc["features"][1]["properties"] == {
+        "backend": "wls", "lone_fixes": 1}
+    ns = {"k": "http://www.opengis.net/kml/2.2"}
+    root = ET.parse(write_kml(tmp_path / "c.kml", cut)).getroot()
+    assert [len(c.text.split()) for c in root.findall(".//k:MultiGeometry/k:LineString/k:coordinates", ns)] == [2, 3, 2]
+    assert len(root.findall(".//k:MultiGeometry/k:Point", ns)) == 1
+    whole = Solution(backend="ekf", time_gps_s=sol.time_gps_s[1:9], pos_ecef_m=sol.pos_ecef_m[1:9],
+                     cov_ecef_m2=sol.cov_ecef_m2[1:9], clock_m=sol.clock_m[1:9], n_used=sol.n_used[1:9],
+                     status=sol.status[1:9])
+    doc = json.loads(write_geojson(tmp_path / "w.geojson", whole).read_text())
+    assert [f["geometry"]["type"] for f in doc["features"]] == ["LineString"]
+    assert ET.parse(write_kml(tmp_path / "w.kml", whole)).getroot().find(".//k:MultiGeometry", ns) is None
 
 
 def test_csv_week_and_tow_are_the_instant_time_gpst_shows(tmp_path):
