@@ -27,35 +27,55 @@ def feature_statistics(seq: Sequence) -> list[dict]:
         res = np.abs(seq.features[..., names.index("residual")][m]) if "residual" in names else np.zeros(0)
         row = {"dataset": seq.name, "system": label, "epochs": len(seq),
                "sats_per_epoch": float(m.sum(1).mean()) if len(seq) else 0.0,
-               "cn0_p5": np.percentile(cn0, 5) if cn0.size else np.nan,
-               "cn0_p50": np.percentile(cn0, 50) if cn0.size else np.nan,
-               "res_p50_m": np.percentile(res, 50) if res.size else np.nan,
-               "res_p95_m": np.percentile(res, 95) if res.size else np.nan}
+               "cn0_p5_dbhz": np.percentile(cn0, 5) if cn0.size else np.nan,
+               "cn0_p50_dbhz": np.percentile(cn0, 50) if cn0.size else np.nan,
+               "abs_res_p50_m": np.percentile(res, 50) if res.size else np.nan,
+               "abs_res_p95_m": np.percentile(res, 95) if res.size else np.nan}
         rows.append(row)
     return rows
 
 
+#: Sky plot marker of each constellation (by letter).
+SKY_MARKERS = {"G": "o", "R": "s", "E": "^", "C": "D", "J": "v"}
+
+
 def plot_features(seq: Sequence, out_dir: Path, prefix: str) -> list[Path]:
-    """Sky plot coloured by |residual| and C/N0-vs-residual scatter, as PNGs."""
+    """Sky plot (a marker per constellation, each satellite named at its last position, colour |residual| up to its
+    95th percentile) and C/N0-vs-residual scatter, as PNGs."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.colors import Normalize
     from matplotlib.figure import Figure
 
     out_dir.mkdir(parents=True, exist_ok=True)
     m = seq.mask
-    res = seq.features[..., list(seq.feature_names).index("residual")][m]
+    residual = seq.features[..., list(seq.feature_names).index("residual")]
+    res = residual[m]
     written = []
 
-    fig = Figure(figsize=(6, 6))
+    fig = Figure(figsize=(7, 7))
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(projection="polar")
     ax.set_theta_zero_location("N")
     ax.set_theta_direction(-1)
-    sc = ax.scatter(seq.az_rad[m], 90.0 - np.degrees(seq.el_rad[m]), c=np.clip(np.abs(res), 0, 60), s=3,
-                    cmap="viridis")
+    az, zenith = seq.az_rad, 90.0 - np.degrees(seq.el_rad)
+    top = float(np.percentile(np.abs(res), 95)) if res.size else 1.0
+    norm = Normalize(0.0, max(top, 1.0))                # the 95th percentile: a few outliers would wash out the rest
+    sc = None
+    for k, letter in enumerate(seq.systems):
+        sel = m & (seq.system_index == k)
+        if sel.any():
+            sc = ax.scatter(az[sel], zenith[sel], c=np.abs(residual[sel]), s=4, cmap="viridis", norm=norm,
+                            marker=SKY_MARKERS.get(letter, "o"), label=letter)
+    for name in np.unique(seq.sv[m]):                   # each satellite named where it was last seen
+        k, j = np.argwhere((seq.sv == name) & m)[-1]
+        ax.annotate(str(name), (az[k, j], zenith[k, j]), fontsize=6, alpha=0.8)
     ax.set_rlim(0, 90)
     ax.set_yticks([0, 30, 60, 90], labels=["", "60°", "30°", ""])     # elevation; the rim (0°) holds the azimuths
     ax.set_rlabel_position(22.5)
-    fig.colorbar(sc, ax=ax, label="|coarse residual| [m] (clipped at 60)", shrink=0.8, pad=0.1)
+    if sc is not None:
+        fig.colorbar(sc, ax=ax, label=f"|coarse residual| [m] (to its 95th percentile, {top:.0f} m)", shrink=0.8,
+                     pad=0.1)
+        ax.legend(loc="lower left", bbox_to_anchor=(-0.12, -0.12), markerscale=3, title="constellation")
     ax.set_title(f"{seq.name}: sky plot (azimuth, elevation)")
     written.append(save_figure(out_dir / f"{prefix}skyplot.png", fig, dpi=110))
 
@@ -67,7 +87,8 @@ def plot_features(seq: Sequence, out_dir: Path, prefix: str) -> list[Path]:
         ax.scatter(seq.cn0_dbhz[m][sel], res[sel], s=2, alpha=0.4, label=s)
     ax.set_xlabel("C/N0 [dB-Hz]")
     ax.set_ylabel("coarse residual [m]")
-    ax.set_ylim(-100, 150)
+    if res.size:                                         # the data's range, not a fixed one that dropped points
+        ax.set_ylim(*np.percentile(res, [0.5, 99.5]) + np.array([-5.0, 5.0]))
     ax.grid(True, alpha=0.3)
     ax.legend(markerscale=5)
     ax.set_title(f"{seq.name}: C/N0 vs residual")

@@ -20,12 +20,12 @@ time_origin_gps_s = {1900 * 604800 + 126641.7}
 ''')
     assert main(["--register", str(cfg), "--out", str(tmp_path / "png")]) == 0
     out = capsys.readouterr().out
-    assert "summary-sample" in out and "cn0_p50" in out
+    assert "summary-sample" in out and "cn0_p50_dbhz" in out
     pngs = sorted(p.name for p in (tmp_path / "png").glob("*.png"))
     assert pngs == ["summary-sample-cn0_residual.png", "summary-sample-skyplot.png"]
     rows = feature_statistics(datasets.build("summary-sample"))
     assert [r["system"] for r in rows] == ["all", "G", "R"]
-    assert 10 < rows[0]["sats_per_epoch"] < 20 and 30 < rows[0]["cn0_p50"] < 50
+    assert 10 < rows[0]["sats_per_epoch"] < 20 and 30 < rows[0]["cn0_p50_dbhz"] < 50
     assert np.isclose(rows[1]["sats_per_epoch"] + rows[2]["sats_per_epoch"], rows[0]["sats_per_epoch"])
 
 
