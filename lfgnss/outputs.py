@@ -756,10 +756,11 @@ def _quality_figure(fig: "Figure", solution: Solution, t_rel: np.ndarray, time_l
     status = np.asarray(solution.status)
     ax_n.plot(t_rel, np.where(has, np.asarray(solution.n_used, float), np.nan), color="k", lw=0.8,
               drawstyle="steps-post", label="satellites used")
+    used = np.where(has, np.asarray(solution.n_used, float), 0.0)     # on the line: a reset's dot at its satellites
     for code, marker, colour in ((STATUS_COASTED, "v", "C1"), (STATUS_RESET, "o", "C3"), (STATUS_NONE, "x", "0.4")):
         at = status == code if code != STATUS_NONE else ~has
         if at.any():
-            ax_n.plot(t_rel[at], np.zeros(int(at.sum())), ls="none", marker=marker, ms=4, color=colour,
+            ax_n.plot(t_rel[at], used[at], ls="none", marker=marker, ms=4, color=colour,
                       label=f"{STATUS_NAMES[code] if code != STATUS_NONE else 'no position'} ({int(at.sum())})")
     from matplotlib.ticker import MaxNLocator
 

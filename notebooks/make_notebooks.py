@@ -11,7 +11,7 @@ def nb(cells, path):
     nbf.write(n, path)
 
 nb([
-("md", "# Comparing estimators\n\nEqual-weight least squares, the plain EKF (hand-set C/N0 noise, innovation gate), and the LF-GNSS EKF (forward, and smoothed backwards with `smooth=True` for post-processing) and factor graph with the shipped model, on the bundled Berlin drive (smartLoc, CC BY-SA 4.0) and, when present, on a shared benchmark dataset's test split.\n\nThe bundled drive is berlin-pp's own drive, so the shipped model was trained on 724 of its epochs and selected on 148 more: its rows on it are partly in-sample, a demonstration of the API, not a result (the shared dataset's test split below is out of sample; `python -m lfgnss.benchmark` gives the results)."),
+("md", "# Comparing estimators\n\nEqual-weight least squares, the plain EKF (hand-set C/N0 noise, innovation gate), and the LF-GNSS EKF (forward, and smoothed backwards with `smooth=True` for post-processing) and factor graph with the shipped model, on the bundled Berlin drive (smartLoc, CC BY-SA 4.0) and, when present, on a shared benchmark dataset's test split.\n\nThe bundled drive is berlin-pp's own drive, so the shipped model was trained on 724 of its epochs, with 148 more in its validation split: its rows on it are partly in-sample, a demonstration of the API, not a result (the shared dataset's test split below is out of sample; `python -m lfgnss.benchmark` gives the results)."),
 ("code", """import tempfile, warnings
 from pathlib import Path
 warnings.simplefilter("ignore", FutureWarning)
@@ -45,7 +45,8 @@ def compare(seq):
     rows = [accuracy_table(s.pos_ecef_m, seq.truth_ecef_m, s.available, method=name) for name, s in sols.items()]
     return sols, rows
 
-sols, rows = compare(seq)
+sols, rows = compare(seq)     # the batch graph may warn that Levenberg-Marquardt stopped at max_iterations: its
+                              # positions are then its last iterate (docs/fgo_convergence.md)
 print(format_markdown(rows, columns=["method", "availability", "rmse_2d_m", "rmse_3d_m", "p95_3d_m"]))"""),
 ("code", """# plot_solution draws every run against the truth (track, error against time, error CDF over the labelled
 # epochs, so that a curve ends at the estimator's availability); the CDFs:
@@ -53,7 +54,7 @@ others = {name: s for name, s in sols.items() if name != "LF-GNSS EKF"}
 plot_solution(folder, sols["LF-GNSS EKF"], seq.truth_ecef_m, extra_solutions=others, prefix="berlin-",
               label="LF-GNSS EKF")
 display(Image(filename=str(folder / "berlin-cdf.png")))"""),
-("md", "## A shared benchmark dataset (skipped when `../shared/data` is absent)"),
+("md", "## A shared benchmark dataset (skipped when the shared data are absent: `$LFGNSS_SHARED_DATA`, else `../shared/data` beside the checkout)"),
 ("code", """spec = datasets.get("hk-tst-static-2020")
 if spec.missing():
     print("shared data not found:", spec.missing()[0])
@@ -64,7 +65,7 @@ else:
 ], "notebooks/estimator_comparison.ipynb")
 
 nb([
-("md", "# Training walk-through\n\nThe LF-GNSS network is trained end to end through a differentiable EKF (`learning.torch_ekf`). This notebook trains a small model for a few epochs on simulated urban drives (seconds on a laptop), exports it to a model file and uses it in the filterpy EKF plug-in. For the real benchmark data use `python -m learning.train --config learning/configs/shipped.toml` (`lfgnss/data/model/README.md` gives the command and configuration behind each shipped model)."),
+("md", "# Training walk-through\n\nThe LF-GNSS network is trained end to end through a differentiable EKF (`learning.torch_ekf`). This notebook trains a small model for a few epochs on simulated urban drives (seconds on a laptop), exports it to a model file and uses it in the filterpy EKF plug-in. For the real benchmark data use `python -m learning.train --config shipped` (`lfgnss/data/model/README.md` gives the command and configuration behind each shipped model)."),
 ("code", """import tempfile, warnings
 from pathlib import Path
 warnings.simplefilter("ignore", FutureWarning)
@@ -100,13 +101,13 @@ for r in rows:
 ], "notebooks/training_walkthrough.ipynb")
 
 nb([
-("md", "# Use your own data\n\nDescribe your receiver's files in a small TOML file, register it, and every tool of lfgnss (the estimators, the trainer, the benchmark) can use it by id. Here the bundled Berlin files stand in for your own."),
+("md", "# Use your own data\n\nDescribe your receiver's files in a small TOML file, register it, and every tool of lfgnss (the estimators, the trainer, the benchmark) can use it by id. Here the bundled Berlin files stand in for your own. (To position a drive, `python -m lfgnss.solve --obs ROVER.obs --nav BRDC.nav` needs no TOML, and `--obs` takes several files of one receiver; a TOML is for training, cross-validation and the benchmark, and lists several obs files the same way.)"),
 ("code", """import tempfile, warnings
 from pathlib import Path
 warnings.simplefilter("ignore", FutureWarning)
 import estimators
 from lfgnss import datasets
-from lfgnss.metrics import accuracy_table
+from lfgnss.metrics import accuracy_table, format_text
 from lfgnss.outputs import plot_solution, write_csv, write_pos
 from lfgnss.solve import SAMPLE_DIR
 from IPython.display import Image, display
@@ -132,13 +133,17 @@ print(spec.id, [p.name for p in spec.files()])"""),
 ("code", """print(datasets.alignment_report(["my-drive"]))"""),
 ("code", """test = datasets.load_split("my-drive", "test")[0]
 sol = estimators.create("plain-ekf").solve(test)
-print(accuracy_table(sol.pos_ecef_m, test.truth_ecef_m, sol.available, method="plain-ekf"))
-print(write_pos(folder / "my-drive.pos", sol), write_csv(folder / "my-drive.csv", sol, test.truth_ecef_m))"""),
-("md", "`plot_solution` writes the track, the error against time and the error CDF as PNG files (here into the temporary folder); the error against time:"),
+print(format_text([accuracy_table(sol.pos_ecef_m, test.truth_ecef_m, sol.available, method="plain-ekf")]))
+print(write_pos(folder / "my-drive.pos", sol), write_csv(folder / "my-drive.csv", sol, test.truth_ecef_m))
+# the CSV's columns, as a pandas table: times (GPST, UTC), ECEF and WGS84 position, ENU standard deviations and
+# velocity, receiver clock, satellites used, status (updated / coasted / reset / none), errors against the truth
+sol.to_frame(test.truth_ecef_m).head()"""),
+("md", "`plot_solution` writes the track, the error against time, the error CDF and `quality.png` as PNG files (here into the temporary folder). The quality plot is what the solution says of itself, truth or not: its standard deviations east, north and up, and the satellites it used, with coasted (prediction only), reset (restarted from the least-squares fix) and unsolved epochs marked. The error against time, then the quality plot:"),
 ("code", """figures = plot_solution(folder / "figures", sol, test.truth_ecef_m, prefix="my-drive-", label="plain EKF")
 print([f.name for f in figures])
-display(Image(filename=str(folder / "figures" / "my-drive-errors.png")))"""),
-("md", "## Fine-tune the shipped model on your drive\n\nWith a few minutes of labelled data, start from the shipped model rather than from scratch: `train.init` loads its weights, network, features, normalisation and filter (the `[ekf]` keys you set win), and the new model file records what it started from. `data.register` names your dataset TOML files. One epoch here, to keep the notebook quick (the bundled drive is also one the shipped model was trained on, so this shows the mechanics, not a gain). The same from the shell:\n\n    python -m learning.train --config learning/configs/finetune.toml --set 'data.register=[\"my-drive.toml\"]' --set 'data.datasets=[\"my-drive\"]' --out runs/my-drive\n\n`python -m lfgnss.datasets --register my-drive.toml` prints the alignment report."),
+display(Image(filename=str(folder / "figures" / "my-drive-errors.png")))
+display(Image(filename=str(folder / "figures" / "my-drive-quality.png")))"""),
+("md", "## Fine-tune the shipped model on your drive\n\nWith a few minutes of labelled data, start from the shipped model rather than from scratch: `train.init` loads its weights, network, features, normalisation and filter (the `[ekf]` keys you set win), and the new model file records what it started from. `data.register` names your dataset TOML files. One epoch here, to keep the notebook quick (the bundled drive is also one the shipped model was trained on, so this shows the mechanics, not a gain). The same from the shell:\n\n    python -m learning.train --config finetune --set 'data.register=[\"my-drive.toml\"]' --set 'data.datasets=[\"my-drive\"]' --out runs/my-drive\n\n`python -m lfgnss.datasets --register my-drive.toml` prints the alignment report."),
 ("code", """from learning.export import load_model
 from learning.train import load_config, train
 from lfgnss.solve import DEFAULT_MODEL

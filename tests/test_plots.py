@@ -191,8 +191,9 @@ def test_quality_figure_shows_the_solutions_own_sds_satellites_and_status_withou
     ax_sd, ax_n = fig.axes
     sd = {ln.get_label(): ln.get_ydata() for ln in ax_sd.get_lines()}
     np.testing.assert_allclose(np.column_stack([sd["east"], sd["north"], sd["up"]]), sol.sd_enu_m(), rtol=0)
-    marks = {ln.get_label(): list(ln.get_xdata()) for ln in ax_n.get_lines()}
-    assert marks["reset (1)"] == [0.0] and marks["coasted (1)"] == [2.0] and marks["no position (1)"] == [5.0]
+    marks = {ln.get_label(): (list(ln.get_xdata()), list(ln.get_ydata())) for ln in ax_n.get_lines()}
+    assert marks["reset (1)"] == ([0.0], [8.0]) and marks["coasted (1)"] == ([2.0], [0.0])      # at their satellites
+    assert marks["no position (1)"] == ([5.0], [0.0])
     used = next(ln for ln in ax_n.get_lines() if ln.get_label() == "satellites used")
     np.testing.assert_array_equal(used.get_ydata(), [8, 7, 0, 9, 9, np.nan])
     assert ax_n.get_xlabel() == "time since 2011-09-14 01:46:40.0 GPST [s]"
