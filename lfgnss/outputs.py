@@ -461,13 +461,13 @@ def write_kml(path: str | Path, solution: Solution, *, points: bool = False) -> 
                 f"<coordinates>{' '.join(rows[i] for i in run)}</coordinates></LineString>" for run in lines]
     lone_kml = [f"<Point><altitudeMode>clampToGround</altitudeMode><coordinates>{rows[i]}</coordinates></Point>"
                 for i in ([] if points else lone)]          # points=True writes every epoch's point anyway
-    if len(line_kml) == 1 and not lone:
-        parts += [f"<Placemark><name>{name} track</name><styleUrl>#track</styleUrl>{line_kml[0]}</Placemark>"]
-    elif len(line_kml) + len(lone_kml) == 1:                # a lone position
-        parts += [f"<Placemark><name>{name} fix</name>{lone_kml[0]}</Placemark>"]
-    elif line_kml or lone_kml:
-        parts += [f"<Placemark><name>{name} track</name><styleUrl>#track</styleUrl><MultiGeometry>",
-                  *line_kml, *lone_kml, "</MultiGeometry></Placemark>"]
+    shapes = line_kml + lone_kml
+    if len(shapes) == 1:                                    # one line, or a lone position
+        label = f"{name} track</name><styleUrl>#track</styleUrl>" if line_kml else f"{name} fix</name>"
+        parts += [f"<Placemark><name>{label}{shapes[0]}</Placemark>"]
+    elif shapes:
+        parts += [f"<Placemark><name>{name} track</name><styleUrl>#track</styleUrl><MultiGeometry>", *shapes,
+                  "</MultiGeometry></Placemark>"]
     if points:
         status = np.asarray(solution.status)
         utc = _utc_iso(solution.time_gps_s)

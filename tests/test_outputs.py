@@ -266,6 +266,15 @@ def test_a_track_with_gaps_and_a_lone_fix_is_drawn_in_pieces(tmp_path):
     root = ET.parse(write_kml(tmp_path / "c.kml", cut)).getroot()
     assert [len(c.text.split()) for c in root.findall(".//k:MultiGeometry/k:LineString/k:coordinates", ns)] == [2, 3, 2]
     assert len(root.findall(".//k:MultiGeometry/k:Point", ns)) == 1
+    status[[3, 5, 9]] = STATUS_UPDATED, STATUS_UPDATED, STATUS_NONE
+    status[11] = STATUS_NONE                            # one line (1-8) and a lone fix (10), with points=True
+    one = Solution(backend="wls", time_gps_s=sol.time_gps_s, pos_ecef_m=sol.pos_ecef_m, cov_ecef_m2=sol.cov_ecef_m2,
+                   clock_m=sol.clock_m, n_used=sol.n_used, status=status)
+    root = ET.parse(write_kml(tmp_path / "p.kml", one, points=True)).getroot()
+    assert len(root.findall(".//k:LineString", ns)) == 1 and len(root.findall(".//k:Point", ns)) == 9
+    doc = json.loads(write_geojson(tmp_path / "p.geojson", one, points=True).read_text())
+    assert [len(p) for p in doc["features"][0]["geometry"]["coordinates"]] == [8]
+    assert sum(f["geometry"]["type"] == "Point" for f in doc["features"]) == 9
     whole = Solution(backend="ekf", time_gps_s=sol.time_gps_s[1:9], pos_ecef_m=sol.pos_ecef_m[1:9],
                      cov_ecef_m2=sol.cov_ecef_m2[1:9], clock_m=sol.clock_m[1:9], n_used=sol.n_used[1:9],
                      status=sol.status[1:9])
