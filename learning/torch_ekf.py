@@ -106,21 +106,20 @@ def _first_sight_clocks(x: torch.Tensor, known: torch.Tensor, sat: torch.Tensor,
     first seen (``known`` (M, C) False, satellites now) from its raw pseudoranges ``pr`` (M, N) [m], against the
     known constellations' lower median."""
     n_sys = known.shape[-1]
+    system = system_index.clamp(min=0, max=n_sys - 1)
+    seen = (torch.nn.functional.one_hot(system, n_sys).bool() & usable[..., None]).any(-2)     # (M, C)
+    old = usable & torch.gather(known, 1, system)
+    if not bool((usable & ~old).any()):                 # nothing new (nearly every epoch): the medians cost a third
+        return x, known | seen                          # of the filter's time
     h, _ = _measurement(x, sat, clock_rows)
     v = pr - h
-    old = usable & torch.gather(known, 1, system_index.clamp(min=0, max=n_sys - 1))
     ref = _lower_median(v, old)                         # 0 where no known satellite, as the plug-in's
-    shifts, seen = [], []
-    for j in range(n_sys):
-        sel = usable & (system_index == j)
-        has = sel.any(-1)
-        seen.append(has)
-        shifts.append(torch.where(has & ~known[:, j], _lower_median(v, sel) - ref, torch.zeros_like(ref)))
-    shift = torch.stack(shifts, -1)                     # (M, C)
+    shift = torch.stack([torch.where(seen[:, j] & ~known[:, j], _lower_median(v, usable & (system_index == j)) - ref,
+                                     torch.zeros_like(ref)) for j in range(n_sys)], -1)      # (M, C)
     delta = torch.zeros_like(x)
     delta[:, models.CLOCK] = shift[:, 0]
     delta[:, models.ISB0:] = shift[:, 1:] - shift[:, :1]
-    return x + delta, known | torch.stack(seen, -1)
+    return x + delta, known | seen
 
 
 def _clock_rows(system_index: torch.Tensor, usable: torch.Tensor, n: int) -> torch.Tensor:
