@@ -344,7 +344,7 @@ def initial_state(coarse_ecef_m: np.ndarray, coarse_clock_m: np.ndarray, drift_m
     ----------
     coarse_ecef_m : (3,) position [m]
     coarse_clock_m : (C,) receiver clock of systems[0] then ISBs of systems[1:] [m]
-    drift_m_s : receiver clock drift [m/s] (``coarse_drift_m_s``)
+    drift_m_s : receiver clock drift [m/s] (``coarse_drift``)
     """
     c = np.asarray(coarse_clock_m, float)
     x = np.zeros(n_states(c.shape[0]))
@@ -355,16 +355,9 @@ def initial_state(coarse_ecef_m: np.ndarray, coarse_clock_m: np.ndarray, drift_m
     return x
 
 
-#: Spread [m/s] of an epoch's Doppler rates about the drift at zero velocity that ``coarse_drift_m_s`` allows: the
+#: Spread [m/s] of an epoch's Doppler rates about the drift at zero velocity that ``coarse_drift`` allows: the
 #: receiver's speed along the lines of sight (180 km/h).
 COARSE_DRIFT_SPREAD_M_S = 50.0
-
-
-def coarse_drift_m_s(prr_m_s: np.ndarray, doppler_ok: np.ndarray, sat_pos_ecef_m: np.ndarray,
-                     sat_vel_ecef_m_s: np.ndarray, rcv_ecef_m: np.ndarray) -> np.ndarray:
-    """(...,) receiver clock drift [m/s] from each epoch's Dopplers at ``rcv_ecef_m`` and zero velocity; 0 where they
-    do not agree on one (``coarse_drift``'s first half)."""
-    return coarse_drift(prr_m_s, doppler_ok, sat_pos_ecef_m, sat_vel_ecef_m_s, rcv_ecef_m)[0]
 
 
 def coarse_drift(prr_m_s: np.ndarray, doppler_ok: np.ndarray, sat_pos_ecef_m: np.ndarray,
@@ -657,7 +650,7 @@ def doppler_measurement(x: np.ndarray, sat_pos_ecef_m: np.ndarray, sat_vel_ecef_
 
 
 __all__ = ["EkfConfig", "n_states", "clock_column", "initial_covariance", "initial_state", "pseudorange_clock_m",
-           "transition_generator", "coarse_drift_m_s", "coarse_drift", "coarse_clock_drift_m_s",
+           "transition_generator", "coarse_drift", "coarse_clock_drift_m_s",
            "MAX_COARSE_CLOCK_DRIFT_M_S",
            "transition", "process_noise_coefficients", "process_noise", "vertical_noise_increment", "measurement",
            "doppler_measurement", "doppler_variance_m2_s2", "used_doppler_variance_m2_s2", "prior_innovation_m",

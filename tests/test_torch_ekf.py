@@ -395,8 +395,9 @@ def test_a_drift_beyond_the_initial_covariance_is_taken_from_the_dopplers_in_bot
     clock[:, 0] += extra * t
     s = replace(s, pr_m=np.where(s.mask, s.pr_m + extra * t[:, None], 0.0), coarse_clock_m=clock,
                 prr_m_s=np.where(s.prr_mask, s.prr_m_s + extra, 0.0))
-    assert models.coarse_drift_m_s(s.prr_m_s[0], s.mask[0] & s.prr_mask[0], s.sat_pos_ecef_m[0],
-                                   s.sat_vel_ecef_m_s[0], s.coarse_ecef_m[0]) > 3 * np.sqrt(CONFIG.p0_drift_m2_s2)
+    drift, found = models.coarse_drift(s.prr_m_s[0], s.mask[0] & s.prr_mask[0], s.sat_pos_ecef_m[0],
+                                       s.sat_vel_ecef_m_s[0], s.coarse_ecef_m[0])
+    assert found and drift > 3 * np.sqrt(CONFIG.p0_drift_m2_s2)
     sol = _both_filters(s)
     assert np.all(sol.status[1:] == STATUS_UPDATED) and np.all(sol.info["n_doppler"] > 0)
     plain = LfgnssEkf(noise=FixedNoise(np.where(base.mask, 25.0, 0.0), np.zeros(base.mask.shape)),
@@ -451,10 +452,11 @@ def test_coarse_drift_is_the_lower_median_of_agreeing_dopplers_at_zero_velocity(
         ok[k, slots] = True
         prr[k, slots] = a[k, slots] + np.array(rates)
     given = ok.copy()
-    got = models.coarse_drift_m_s(prr, ok, s.sat_pos_ecef_m, s.sat_vel_ecef_m_s, s.coarse_ecef_m)
+    got, found = models.coarse_drift(prr, ok, s.sat_pos_ecef_m, s.sat_vel_ecef_m_s, s.coarse_ecef_m)
     np.testing.assert_allclose(got, [400.0, 0.0, 0.0, 0.0, 5.0, 0.0], rtol=0, atol=1e-6)
+    np.testing.assert_array_equal(found, [True, False, False, False, True, False])
     prr[4, np.flatnonzero(ok[4])[0]] = np.nan              # skipped (-20 of the other four), the caller's mask kept
-    got = models.coarse_drift_m_s(prr, ok, s.sat_pos_ecef_m, s.sat_vel_ecef_m_s, s.coarse_ecef_m)
+    got = models.coarse_drift(prr, ok, s.sat_pos_ecef_m, s.sat_vel_ecef_m_s, s.coarse_ecef_m)[0]
     assert got[4] == pytest.approx(-20.0, abs=1e-6)
     np.testing.assert_array_equal(ok, given)
 
