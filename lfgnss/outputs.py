@@ -394,7 +394,9 @@ def _track(solution: Solution) -> tuple[np.ndarray, np.ndarray]:
 def _pieces(idx: np.ndarray) -> tuple[list[np.ndarray], list[int]]:
     """The track's rows in lines and lone fixes: runs of consecutive epochs with a position (a line where it holds
     two rows or more; a lone fix's row otherwise), so that a track is not drawn straight across epochs without one."""
-    runs = np.split(np.arange(idx.size), np.flatnonzero(np.diff(idx) > 1) + 1) if idx.size else []
+    from .datasets import contiguous_runs
+
+    runs = [np.searchsorted(idx, run) for run in contiguous_runs(idx)]     # epochs -> the track's rows
     return [r for r in runs if r.size >= 2], [int(r[0]) for r in runs if r.size == 1]
 
 
@@ -754,9 +756,8 @@ def _quality_figure(fig: "Figure", solution: Solution, t_rel: np.ndarray, time_l
     ax_sd.set_title(f"{name}: its own standard deviations and satellites")
     has = solution.has_position()
     status = np.asarray(solution.status)
-    ax_n.plot(t_rel, np.where(has, np.asarray(solution.n_used, float), np.nan), color="k", lw=0.8,
-              drawstyle="steps-post", label="satellites used")
-    used = np.where(has, np.asarray(solution.n_used, float), 0.0)     # on the line: a reset's dot at its satellites
+    used = np.where(has, np.asarray(solution.n_used, float), 0.0)     # marks on the line: a reset's at its satellites
+    ax_n.plot(t_rel, np.where(has, used, np.nan), color="k", lw=0.8, drawstyle="steps-post", label="satellites used")
     for code, marker, colour in ((STATUS_COASTED, "v", "C1"), (STATUS_RESET, "o", "C3"), (STATUS_NONE, "x", "0.4")):
         at = status == code if code != STATUS_NONE else ~has
         if at.any():
