@@ -67,10 +67,12 @@ import numpy as np
 from lfgnss.datasets import contiguous_runs, split_parts
 from lfgnss.errors import (INPUT_ERRORS, InputError, cannot_write, input_line, one_line, path_option, shortened,
                            stdout_gone, warnings_on_one_line)
+from lfgnss.help_text import PlainHelp
 from lfgnss.metrics import accuracy_table, markdown_table
 from lfgnss.paths import check_output_folder, make_output_folder, model_path
 from lfgnss.sequence import Sequence
 
+from .data import signed_log_names
 from .network import COMBINE_RULES, check_combine
 from .normalise import Normaliser
 from .provenance import code_text, command_line, git_state
@@ -221,7 +223,8 @@ def _same_data_elsewhere(saved: dict, config: dict, held: list[Sequence], traine
             return f"{toml}: {change} when it was trained"
     if trained is not None:
         init = init_model(config)
-        here = init.normaliser if init is not None else Normaliser.fit(trained, saved["feature_names"])
+        logged = signed_log_names(config["data"]["signed_log"], saved["feature_names"], config["model"].get("r_prior"))
+        here = init.normaliser if init is not None else Normaliser.fit(trained, saved["feature_names"], logged)
         if not here.same_as(Normaliser.from_dict(saved["normaliser"])):
             return ("its features are normalised otherwise than this run's beyond rounding: another train.init file, "
                     "or another version of lfgnss's front end")
@@ -619,7 +622,8 @@ def main(argv: list[str] | None = None) -> int:
     results that could not be written (printed all the same); 3 for a diverged fold or an internal error; 130 for
     Ctrl-C. A run that stops keeps its finished folds' rows in ``crossval.csv`` / ``crossval.md``.
     """
-    p = argparse.ArgumentParser(prog="python -m learning.crossval", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog="python -m learning.crossval", description=__doc__.split("\n")[0],
+                                formatter_class=PlainHelp)
     p.add_argument("--config", type=config_path, help="TOML configuration: a file, or the name of a shipped one "
                    "(as learning.train's; default: built-in defaults)")
     p.add_argument("--folds", type=int, default=3, help="number of contiguous blocks (default 3)")

@@ -52,6 +52,27 @@ def resolve_feature_names(names: Iterable[str] | None = None, drop: Iterable[str
     return out
 
 
+def signed_log_names(logged: Iterable[str], features: Iterable[str], r_prior: str | None = None) -> tuple[str, ...]:
+    """``data.signed_log`` as feature names (``"dpc"``: the four ``dpc_*`` features that ``features`` has).
+
+    Each name must be one of ``features``; with ``r_prior = "heuristic"`` neither 'cn0' nor 'elevation' (the prior
+    reads them back from the normalised inputs, in their own units). ValueError otherwise.
+    """
+    features = tuple(features)
+    out: list[str] = []
+    for name in logged:
+        for n in ([d for d in DPC_FEATURES if d in features] if name == "dpc" else [name]):
+            if n not in features:
+                raise ValueError(f"data.signed_log: {n!r} is not a feature of the model "
+                                 f"({', '.join(features)}){did_you_mean(n, list(features))}")
+            if r_prior == "heuristic" and n in ("cn0", "elevation"):
+                raise ValueError(f"data.signed_log: {n!r} must stay in its own units with model.r_prior = "
+                                 "'heuristic' (the prior reads it)")
+            if n not in out:
+                out.append(n)
+    return tuple(out)
+
+
 @dataclass(frozen=True)
 class Window:
     """Epochs ``start:start + length`` of ``sequences[seq_index]``; the first ``burn_in`` are not scored.

@@ -16,8 +16,9 @@ Format (``FORMAT_NAME`` version ``FORMAT_VERSION``), arrays in one uncompressed 
                         epoch, val_rmse_3d_m, versions (lfgnss, torch, numpy) and created_utc of the export, and
                         refilter (only if the file's filter was changed after training, ``refilter_model``:
                         per change, the settings before and after, command line, git state, time)
-    normaliser_mean     (d,) float64   per-feature mean of the training split (valid slots)
-    normaliser_std      (d,) float64   per-feature std
+    normaliser_mean     (d,) float64   per-feature mean of the training split (valid slots), of sign(x) ln(1 + |x|)
+                                       for the features the metadata's normaliser.signed_log names (absent: none)
+    normaliser_std      (d,) float64   per-feature std (of the same)
     param/<name>        float32        every tensor of ``LfgnssNet.state_dict()``
 
 Version ``ENSEMBLE_FORMAT_VERSION`` (2) is an ensemble (``export_ensemble``): networks of one recipe trained with
@@ -52,6 +53,7 @@ import numpy as np
 
 from lfgnss.errors import InputError, closest_name, shortened
 from lfgnss.features import AVAILABLE_FEATURES
+from lfgnss.help_text import PlainHelp
 from lfgnss.paths import MODEL_PREFIX, bundled_models, may_name_a_bundled_model, model_path, replace_atomically
 from lfgnss.sequence import Sequence
 from lfgnss.weighted_fix import cn0_elevation_variance_m2
@@ -222,6 +224,9 @@ def _member_difference(meta: dict, normaliser: Normaliser, other: dict, other_no
     mine, theirs = list(other_normaliser.feature_names), list(normaliser.feature_names)
     if mine != theirs:
         return "feature_names", _values_text(mine, theirs)
+    if set(normaliser.signed_log) != set(other_normaliser.signed_log):
+        return "the normaliser's signed_log", _values_text(list(other_normaliser.signed_log) or ["none"],
+                                                           list(normaliser.signed_log) or ["none"])
     if not normaliser.same_as(other_normaliser):
         return "the normaliser (the training data's feature statistics)", "the feature means or stds"
 
@@ -706,11 +711,20 @@ def load_model(path: str | Path, expected_features: Iterable[str] | None = None)
                                    f"({n_members}; ensemble.members)")
     params = members[0]
     try:
-        normaliser = Normaliser(tuple(meta["feature_names"]), arrays["normaliser_mean"], arrays["normaliser_std"])
+        logged = meta["normaliser"].get("signed_log", [])
+        if not (isinstance(logged, list) and all(isinstance(n, str) for n in logged)):
+            raise ValueError(f"metadata normaliser.signed_log must be a list of feature names, not {logged!r:.60}")
+        normaliser = Normaliser(tuple(meta["feature_names"]), arrays["normaliser_mean"], arrays["normaliser_std"],
+                                tuple(logged))
     except (KeyError, ValueError, TypeError) as exc:
         reason = "normaliser_mean / normaliser_std are not numbers" if isinstance(exc, TypeError) else exc
         raise ModelFileError(path, f"bad normaliser ({reason})") from exc
     settings = model_settings(meta)
+    prior = settings.get("r_prior")
+    read = {normaliser.feature_names[prior[k]] for k in ("cn0_index", "el_index")} if prior else set()
+    if read & set(normaliser.signed_log):
+        raise ModelFileError(path, f"metadata normaliser.signed_log names {sorted(read & set(normaliser.signed_log))}, "
+                                   "which the R prior (model.r_prior) reads in its own units")
     n_inputs = len(normaliser.feature_names) + settings["innovation"]
     shapes = _parameter_shapes(settings, n_inputs)
     absent = [k for k in shapes if k not in params]       # every member has the same names (meta["parameters"])
@@ -1046,7 +1060,9 @@ def describe_model(model: LfgnssModel) -> list[str]:
             f"{'-' if val is None else f'{val:.3f} m'}{where}" + (" (its first network)" if meta.get("ensemble")
                                                                   else ""),
             *ensemble_lines(meta),
-            f"features: {', '.join(model.feature_names)}",
+            f"features: {', '.join(model.feature_names)}" + (f" ({', '.join(model.normaliser.signed_log)} as "
+                                                               "sign(x) ln(1 + |x|))" if model.normaliser.signed_log
+                                                               else ""),
             *([] if trained_systems(meta) is None else [f"constellations trained on: {trained_systems(meta)}"]),
             f"filter (settings other than the defaults): {config_changes(config_of(model))}",
             *([] if untrained is None else [f"warning: {untrained}"]),
@@ -1124,7 +1140,7 @@ def main(argv: list[str] | None = None) -> int:
 
     p = argparse.ArgumentParser(prog="python -m learning.export",
                                 description="Write a training checkpoint (best.pt / last.pt of learning.train) as a "
-                                            "model file, or describe a model file.")
+                                            "model file, or describe a model file.", formatter_class=PlainHelp)
     p.add_argument("paths", nargs="*", type=path_option, metavar="PATH",
                    help="CHECKPOINT [CHECKPOINT ...] OUT.npz: best.pt or last.pt of a learning.train run, and the "
                         "model file to write (.npz); several "

@@ -62,11 +62,12 @@ import torch
 
 from lfgnss.datasets import get, load_split, register_toml, split_parts
 from lfgnss.errors import INPUT_ERRORS, did_you_mean, one_line, shortened, warnings_on_one_line
+from lfgnss.help_text import PlainHelp
 from lfgnss.paths import check_output_folder, file_hashes, may_name_a_bundled_model, names_something, replace_atomically
 from lfgnss.sequence import DEFAULT_FEATURES, Sequence
 
 from . import provenance
-from .data import Window, collate, make_windows, resolve_feature_names, sequence_batch
+from .data import Window, collate, make_windows, resolve_feature_names, sequence_batch, signed_log_names
 from .export import model_settings, truth_extent
 from .loss import compensation_loss, error_norm_m, labelled_errors_m, make_loss, variance_loss
 from .network import LfgnssNet
@@ -84,6 +85,7 @@ DEFAULT_CONFIG: dict[str, Any] = {
         "val_split": "val",
         "features": list(DEFAULT_FEATURES),
         "drop_features": [],
+        "signed_log": [],
         "register": [],
         "window": 40,
         "stride": 5,
@@ -285,14 +287,16 @@ def check_config(config: dict) -> dict:
             raise ValueError(f"{key} must be a table of settings, got {_setting(config, key)!r}")
     resolve_device(config.get("device", "cpu"))
     for key, what in (("datasets", "dataset ids"), ("features", "feature names"),
-                      ("drop_features", "feature names (or 'dpc')"), ("register", "dataset TOML files")):
+                      ("drop_features", "feature names (or 'dpc')"), ("signed_log", "feature names (or 'dpc')"),
+                      ("register", "dataset TOML files")):
         items = _setting(config, f"data.{key}")
         if isinstance(items, str):                        # --set data.register=my.toml: one file, not its letters
             config["data"][key] = items = [items]
         needed = key in ("datasets", "features")
         if not isinstance(items, list) or not all(isinstance(i, str) for i in items) or (needed and not items):
             raise ValueError(f"data.{key} must be a {'non-empty ' * needed}list of {what}, got {items!r}")
-    resolve_feature_names(_setting(config, "data.features"), _setting(config, "data.drop_features"))  # typos
+    names = resolve_feature_names(_setting(config, "data.features"), _setting(config, "data.drop_features"))  # typos
+    signed_log_names(_setting(config, "data.signed_log"), names, _setting(config, "model.r_prior"))
     datasets = _setting(config, "data.datasets")
     twice = sorted({d for d in datasets if datasets.count(d) > 1})
     if twice:                                             # each would be loaded, trained on and validated on twice
@@ -500,10 +504,13 @@ def adopt_init(config: dict) -> dict:
     out["model"] = copy.deepcopy(trained["model"])
     out["data"]["features"] = list(model.feature_names)
     out["data"]["drop_features"] = []
+    out["data"]["signed_log"] = list(model.normaliser.signed_log)
     given = resolve_feature_names(config["data"]["features"], config["data"]["drop_features"])
-    if config["model"] != out["model"] or tuple(given) != model.feature_names:
-        print(f"train.init: the network and features are those of {model.path} ([model] and data.features of "
-              "the configuration are replaced)", file=sys.stderr)
+    logged = signed_log_names(config["data"]["signed_log"], given)
+    if (config["model"] != out["model"] or tuple(given) != model.feature_names
+            or set(logged) != set(model.normaliser.signed_log)):
+        print(f"train.init: the network and features are those of {model.path} ([model], data.features and "
+              "data.signed_log of the configuration are replaced)", file=sys.stderr)
     adopted = {k: v for k, v in _own_filter(model).items() if k not in config["ekf"]}
     out["ekf"] = {**adopted, **config["ekf"]}
     if adopted:
@@ -773,7 +780,8 @@ def prepare(config: dict, source=None) -> Prepared:
         raise ValueError(f"train.init: {init.path} takes features {list(init.feature_names)}, the configuration "
                          f"gives {list(names)} (use adopt_init)")
     # a fine-tuned network keeps the normalisation its weights were trained with
-    normaliser = Normaliser.fit(train_seqs, names) if init is None else init.normaliser
+    logged = signed_log_names(data["signed_log"], names, config["model"].get("r_prior"))
+    normaliser = Normaliser.fit(train_seqs, names, logged) if init is None else init.normaliser
     n_systems = max(len(s.systems) for s in train_seqs + val_seqs)
     windows = make_windows(train_seqs, int(data["window"]), int(data["stride"]), int(data.get("burn_in", 0)))
     short = [f"{s.name} ({int(s.labelled.sum())} labelled epochs)" for s in train_seqs
@@ -956,7 +964,8 @@ def _warn_ignored_config(config: dict | None, checkpoint: dict, overrides: list[
     except (KeyError, TypeError):                   # a configuration without those tables: compared as given
         now = _flat(config)
     differ = sorted(k for k in was.keys() & now.keys() if was[k] != now[k] and k not in given
-                    and not k.startswith(("model.", "data.features", "data.drop_features")))   # train.init's own
+                    and not k.startswith(("model.", "data.features", "data.drop_features", "data.signed_log")))
+    # (those are train.init's own)
     if differ:
         k = differ[0]
         warnings.warn(f"{where}: resuming goes on with the checkpoint's configuration, not the one given ({k} "
@@ -1354,7 +1363,8 @@ def main(argv: list[str] | None = None) -> int:
     Exit status 0; 2 for bad input (one line ``PROG: error: ...``); 3 for a non-finite training loss or gradient;
     130 for Ctrl-C (one line naming the epoch ``last.pt`` holds, and how to resume).
     """
-    p = argparse.ArgumentParser(prog="python -m learning.train", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog="python -m learning.train", description=__doc__.split("\n")[0],
+                                formatter_class=PlainHelp)
     p.add_argument("--config", type=config_path, help="TOML configuration: a file, or the name of a shipped one ("
                    f"{', '.join(shipped_configs())}; default: built-in defaults)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",

@@ -57,6 +57,7 @@ import numpy as np
 from . import datasets
 from .errors import (INPUT_ERRORS, InputError, cannot_write, input_line, one_line, path_option, run_command,
                      shortened, stdout_gone)
+from .help_text import PlainHelp
 from .metrics import METRIC_COLUMNS, accuracy_table, format_markdown, format_text, markdown_table
 from .paths import bundled_data_dir, make_output_folder, write_output
 from .sequence import Sequence
@@ -803,7 +804,8 @@ def main(argv: list[str] | None = None) -> int:
     row whose estimator raised (the tables are printed all the same, without what is lost); 3 for an internal error;
     130 for Ctrl-C.
     """
-    p = argparse.ArgumentParser(prog="python -m lfgnss.benchmark", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m lfgnss.benchmark", description=__doc__.split("\n\n")[0],
+                                formatter_class=PlainHelp)
     p.add_argument("datasets", nargs="*", default=[],
                    help=f"dataset ids: {', '.join(DEFAULT_DATASETS)} (the benchmark datasets of shared/BENCHMARK.md) "
                         "or the id of a --register'ed file (default: all three, or only the --register'ed ones)")

@@ -59,9 +59,10 @@ import numpy as np
 from .constants import SYSTEMS, unknown_systems
 from .errors import InputError, UnknownNameError, did_you_mean
 from .frames import NEAR_SURFACE_RADIUS_M, ecef_to_lla, lla_to_ecef
+from .help_text import PlainHelp
 from .paths import cache_file, file_digests, load_cached, names_something, shared_data_dir, store_cached
 from .sequence import DEFAULT_FEATURES, Sequence, load_sequence, save_sequence
-from .time import SECONDS_PER_WEEK, gps_s_to_week_tow, week_tow_to_gps_s
+from .time import SECONDS_PER_WEEK, gps_s_to_week_tow, gpst_stamp, week_tow_to_gps_s
 
 if TYPE_CHECKING:
     from .observations import Observations
@@ -1201,7 +1202,11 @@ def alignment_report(dataset_ids: list[str] | None = None, problems: list[str] |
                 continue
             has_fix = np.all(np.isfinite(seq.coarse_ecef_m), axis=1)
             row = accuracy_table(seq.coarse_ecef_m[idx], seq.truth_ecef_m[idx], has_fix[idx])
-            lines.append(f"  {split:5s} {int(idx.sum()):5d} matched epochs, coarse fix for {row['availability']:.1%}: "
+            first, last = gpst_stamp(seq.time_gps_s[idx].min(), 1), gpst_stamp(seq.time_gps_s[idx].max(), 1)
+            lines.append(f"  {split:5s} {int(idx.sum()):5d} matched epochs, {first} to "
+                         f"{last[11:] if last[:10] == first[:10] else last} GPST ({split_bounds_words(spec, split)} "
+                         f"on axis {spec.split_axis!r})")
+            lines.append(f"{'':17s}coarse fix for {row['availability']:.1%}: "
                          f"3D RMSE {row['rmse_3d_m']:.1f} m, 2D RMSE {row['rmse_2d_m']:.1f} m, "
                          f"3D p50 {row['p50_3d_m']:.1f} m, p95 {row['p95_3d_m']:.1f} m")
     return "\n".join(lines)
@@ -1220,7 +1225,8 @@ def main(argv: list[str] | None = None) -> int:
 
     from .errors import INPUT_ERRORS, one_line
 
-    parser = argparse.ArgumentParser(prog="python -m lfgnss.datasets", description=main.__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m lfgnss.datasets", description=main.__doc__.split("\n")[0],
+                                     formatter_class=PlainHelp)
     parser.add_argument("ids", nargs="*", help=f"dataset ids (default: {', '.join(sorted(_builtin()))})")
     parser.add_argument("--register", action="append", default=[], metavar="TOML", help="user dataset config")
     args = parser.parse_args(argv)

@@ -47,7 +47,9 @@ if TYPE_CHECKING:
 Q_SINGLE = 5
 Q_DR = 7
 _MS_PER_WEEK = int(SECONDS_PER_WEEK * 1000)
-_POS_QLINE = "% (lat/lon/height=WGS84/ellipsoidal,Q=1:fix,2:float,3:sbas,4:dgps,5:single,6:ppp,ns=# of satellites)"
+#: RTKLIB's legend line, with 7 (its SOLQ_DR, dead reckoning): what lfgnss writes for a coasted epoch.
+_POS_QLINE = ("% (lat/lon/height=WGS84/ellipsoidal,Q=1:fix,2:float,3:sbas,4:dgps,5:single,6:ppp,7:dr,"
+              "ns=# of satellites)")
 _POS_COLS = ("latitude(deg)", "longitude(deg)", "height(m)", "Q", "ns", "sdn(m)", "sde(m)", "sdu(m)",
              "sdne(m)", "sdeu(m)", "sdun(m)", "age(s)", "ratio")
 _POS_WIDTHS = (14, 14, 10, 3, 3, 8, 8, 8, 8, 8, 8, 6, 6)

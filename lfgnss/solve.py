@@ -20,6 +20,7 @@ import numpy as np
 
 from .constants import SYSTEMS, unknown_systems
 from .errors import INPUT_ERRORS, InputError, LfgnssError, RinexError, cannot_write, one_line, stdout_gone
+from .help_text import PlainHelpWithDefaults
 from .observations import Observations
 from .paths import bundled_data_dir, bundled_models, default_model_path, make_output_folder, model_path
 from .spp import SppConfig
@@ -51,7 +52,7 @@ _WEEK_TOW = re.compile(r"\s*(\d{1,4}):(\d+(?:\.\d*)?)\s*")
 _CALENDAR = re.compile(r"\s*(\d{4})[/-](\d{1,2})[/-](\d{1,2})(?:\s+|T)(\d{1,2}):(\d{1,2}):(\d{1,2}(?:\.\d*)?)\s*")
 
 
-class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+class _HelpFormatter(PlainHelpWithDefaults):
     """Shows a default only where there is one to show (not None, not a flag's False)."""
 
     def _get_help_string(self, action: argparse.Action) -> str:

@@ -12,6 +12,7 @@ import numpy as np
 
 from . import datasets
 from .errors import path_option, run_command
+from .help_text import PlainHelp
 from .outputs import save_figure
 from .paths import check_output_folder
 from .sequence import Sequence
@@ -102,7 +103,8 @@ def main(argv: list[str] | None = None) -> int:
     Exit status 0; 2 for bad input (one line ``error: ...``: an unknown id, a bad TOML, an --out that takes no file,
     a dataset asked for whose files are missing); 3 for an internal error; 130 for Ctrl-C.
     """
-    p = argparse.ArgumentParser(prog="python -m lfgnss.summary", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m lfgnss.summary", description=__doc__.split("\n\n")[0],
+                                formatter_class=PlainHelp)
     p.add_argument("ids", nargs="*", help="dataset ids (default: the registered TOML datasets, else the "
                                           "three benchmark datasets)")
     p.add_argument("--register", action="append", default=[], metavar="TOML", help="user dataset config")

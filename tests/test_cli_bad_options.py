@@ -387,3 +387,15 @@ def test_an_out_without_permission_for_new_files_still_rewrites_its_outputs(tmp_
     assert solve_main(["--out", str(out / "sub"), "--backend", "wls", "--no-plots", "--quiet"]) == 2
     assert _one_line(capsys.readouterr().err) == (f"error: {out / 'sub'}: cannot create the output folder (no "
                                                   f"permission to write in {out})")
+
+
+@pytest.mark.parametrize("module", ["lfgnss.solve", "lfgnss.datasets", "lfgnss.summary", "lfgnss.benchmark",
+                                    "learning.train", "learning.crossval", "learning.export"])
+def test_help_shows_no_rest_markup(module, capsys):
+    """Review: the descriptions and option help come from docstrings, whose ``literal`` quotes --help printed as
+    they are (lfgnss.solve's first line read ``python -m lfgnss.solve``: ...)."""
+    with pytest.raises(SystemExit) as exit_info:
+        importlib.import_module(module).main(["--help"])
+    assert exit_info.value.code == 0
+    out = capsys.readouterr().out
+    assert f"python -m {module}" in out and "``" not in out

@@ -395,6 +395,9 @@ def test_a_split_that_misses_the_drive_shows_the_drives_span_on_its_axis(clean_r
     assert datasets.main(["--register", str(cfg)]) == 0
     out = capsys.readouterr().out
     assert "  train   765 matched epochs" in out and "(check [splits]" not in out, out
+    # each split says when it is and its bounds on the axis (the report showed neither)
+    assert re.search(r"  train   765 matched epochs, 2016-06-06 11:10:41\.7 to 11:1\d:\d\d\.\d GPST "
+                     r"\(train = \[126641\.7, 126800\) on axis 'tow'\)\n {17}coarse fix for 100\.0%", out), out
 
 
 @pytest.mark.parametrize("line", ['truth = "truth.csv"', "splits = [1, 2]"])
