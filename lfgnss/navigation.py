@@ -121,8 +121,9 @@ class Navigation:
     warnings: tuple[str, ...] = ()
 
 
-_CACHE_VERSION = 7       # 7: RINEX 2 records in 3.0x files, damaged QZSS L6-flagged records; 6: GLONASS epochs on
-#                          the 15 min grid, blank trailing fields; 5: accuracy_m, GLONASS channels past 128
+_CACHE_VERSION = 8       # 8: 3.05 files with 4-line GLONASS records; 7: RINEX 2 records in 3.0x files, damaged
+#                          QZSS L6-flagged records; 6: GLONASS epochs on the 15 min grid, blank trailing fields;
+#                          5: accuracy_m, GLONASS channels past 128
 
 
 def load_nav(paths: str | Path | Iterable[str | Path], *, cache: bool = True) -> Navigation:
@@ -341,7 +342,8 @@ _COMPLETE_NUMBER = re.compile(r" *[+-]?(\d+\.?\d*|\.\d+)[EeD][+-]?\d\d+ *")
 _RECORD_LINES = {3: {"G": 8, "E": 8, "J": 8, "C": 8, "I": 8, "R": 4, "S": 4}, 2: {"N": 8, "E": 8, "G": 4}}
 #: RINEX 3.05 added a fourth BROADCAST ORBIT line to GLONASS records (status flags, L1/L2 group delay
 #: difference, URAI, health flags): 5 lines from version 3.05 on. lfgnss uses none of its values; the line is
-#: checked like the others, then dropped before georinex (1.16 reads 4 lines) sees the record.
+#: checked like the others, then dropped before georinex (1.16 reads 4 lines) sees the record. A 3.05 file whose
+#: GLONASS records all keep the 4-line layout is read in that layout.
 _GLONASS_LINES_V305 = 5
 
 
@@ -441,6 +443,12 @@ def _clean_layers(text: str, path: Path) -> tuple[list[str], list[str]]:
         elif ln.strip():
             orphans.append(i)
     notes = [f"{path}:{orphans[0]}: {len(orphans)} line(s) before the first ephemeris record skipped"] if orphans else []
+    if record_lines.get("R") == _GLONASS_LINES_V305:
+        glonass = [(numbers, rec) for numbers, rec in records if rec[0][:1] == "R"]
+        if glonass and all(len(rec) == _GLONASS_LINES_V305 - 1 for _, rec in glonass):
+            # every GLONASS record in the layout before 3.05 (a writer that labels its files 3.05 without the status
+            # line): read so, as lfgnss drops that line anyway. One record short among 5-line ones stays damaged.
+            record_lines["R"] = _GLONASS_LINES_V305 - 1
     cut_line = len(lines) if lines[-1].strip() else None   # the file ends without a newline
     seen: set[tuple[str, ...]] = set()
     count: dict[str, int] = {}

@@ -485,17 +485,29 @@ def test_rinex305_mixed_file_keeps_glonass(tmp_path, bundled):
         np.testing.assert_array_equal(getattr(nav.kepler, name), getattr(ref, name))
 
 
+def test_rinex305_file_whose_glonass_records_all_keep_four_lines(tmp_path, bundled):
+    """Review: a file labelled 3.05 whose writer kept the 4-line GLONASS layout lost every GLONASS record ('cut
+    short'); when all of them have 4 lines, that is the layout, read as such."""
+    ref = load_nav(bundled[1]).glonass
+    path = _nav3(tmp_path / "g.rnx", "3.05", [GPS_REC_V3, GLO_REC_V3, GLO_REC_V3])    # (a duplicate, dropped)
+    nav = load_nav(path)
+    assert not nav.warnings and len(nav.kepler) == 1
+    _glonass_equal(nav.glonass, ref)
+
+
 @pytest.mark.parametrize("version, status_line, reason", [
     ("3.04", True, "record too long (damaged, or merged with the next record): 5 lines instead of 4"),
     ("3.05", False, "record cut short: 4 lines instead of 5"),
 ])
 def test_glonass_record_line_count_by_version(tmp_path, version, status_line, reason):
-    """The number of lines still protects against a lost or an extra line: 4 before 3.05, 5 from 3.05 on."""
+    """The number of lines still protects against a lost or an extra line: 4 before 3.05, 5 from 3.05 on (a 4-line
+    record among 5-line ones)."""
     bad = GLO_REC_V3 + ([GLO_STATUS_LINE] if status_line else [])
-    path = _nav3(tmp_path / "g.rnx", version, [bad, GPS_REC_V3])
+    good = GLO_REC_V3 + ([] if status_line else [GLO_STATUS_LINE])
+    path = _nav3(tmp_path / "g.rnx", version, [bad, GPS_REC_V3] + ([] if status_line else [good]))
     with pytest.warns(RinexWarning, match="damaged navigation records skipped"):
         nav = load_nav(path)
-    assert len(nav.glonass) == 0 and len(nav.kepler) == 1
+    assert len(nav.glonass) == (0 if status_line else 1) and len(nav.kepler) == 1
     assert nav.warnings == (f"{path}:4: {reason}; R01 record of line 4 skipped",)
 
 
