@@ -916,8 +916,9 @@ def seen_test_epochs(metadata: dict, dataset_id: str, test_time_gps_s: np.ndarra
             reach = SAME_PLACE_M + (radius or 0.0) + (span["radius_m"] if _is_number(span.get("radius_m")) else 0.0)
             near = where is None or radius is None or np.linalg.norm(np.asarray(where) - centre) <= reach
             if n and near:
-                lines.append(f"{via}{_used_as(span.get('split'))} {span.get('sequence')} ({span.get('dataset')} {span.get('split')}, GPS "
-                             f"{t[0]:.1f}-{t[1]:.1f} s), which holds {n} of {dataset_id}'s {times.size} {epochs_word}")
+                lines.append(f"{via}{_used_as(span.get('split'))} {span.get('sequence')} ({span.get('dataset')} "
+                             f"{span.get('split')}, GPS {t[0]:.1f}-{t[1]:.1f} s): {n} of {dataset_id}'s {times.size} "
+                             f"{epochs_word}")
         files = record.get("source_files") or {}
         pieces = [] if spans else [p for p in record.get("data_fingerprints") or [] if isinstance(p, dict)]
         for ds in sorted({str(p.get("dataset", "")) for p in pieces}):
@@ -929,8 +930,7 @@ def seen_test_epochs(metadata: dict, dataset_id: str, test_time_gps_s: np.ndarra
                 lines.append(f"{via}trained on dataset {ds}, which reads {dataset_id}'s observation file(s); the model "
                              "does not record which epochs (it predates data_spans), so its training may hold "
                              f"{epochs_word}")
-            lines += [f"{via}{_used_as(split)} {ds} {split} (as its splits are "
-                      f"registered now; the model predates data_spans), which holds {n} of {dataset_id}'s "
+            lines += [f"{via}{_used_as(split)} {ds} {split} (its split as registered now): {n} of {dataset_id}'s "
                       f"{times.size} {epochs_word}" for split, n in zip(splits, hits) if n]
         record = record.get("init_model")
         via = f"{via}fine-tuned from {(record or {}).get('path')}, which was "

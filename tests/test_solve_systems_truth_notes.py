@@ -366,10 +366,9 @@ def test_a_model_trained_on_the_drive_it_scores_is_named_and_its_figures_say_in_
     berlin-pp train and validation epochs, without a word (the benchmark says so of test epochs)."""
     assert main(["--out", str(tmp_path), "--quiet"]) == 0
     seen = [line for line in capsys.readouterr().err.splitlines() if "in-sample on those epochs" in line]
-    assert seen == [f"warning: {DEFAULT_MODEL}: trained on berlin-pp train (as its splits are registered now; the model "
-                    "predates data_spans), which holds 724 of Berlin_Potsdamer_Platz.obs.gz's 1372 scored epochs; "
-                    "selected on berlin-pp val (as its splits are registered now; the model predates data_spans), "
-                    "which holds 148 of Berlin_Potsdamer_Platz.obs.gz's 1372 scored epochs: the accuracy table is "
-                    "in-sample on those epochs"]
+    assert seen == ["warning: the bundled model 'default': trained on berlin-pp train (its split as registered now): "
+                    "724 of Berlin_Potsdamer_Platz.obs.gz's 1372 scored epochs; selected on berlin-pp val (its split "
+                    "as registered now): 148 of Berlin_Potsdamer_Platz.obs.gz's 1372 scored epochs: the accuracy table "
+                    "is in-sample on those epochs"]
     assert main(["--no-model", "--out", str(tmp_path / "plain"), "--quiet", "--no-plots"]) == 0
     assert "in-sample" not in capsys.readouterr().err                           # hand-set noise learned nothing

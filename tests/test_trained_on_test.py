@@ -28,7 +28,7 @@ def test_a_piece_holding_test_epochs_at_the_same_place_is_named():
     test_t = 1000.0 + np.arange(10.0)
     meta = {"data_spans": [_span("a", "train", 0.0, 999.0), _span("a", "val", 1005.0, 1100.0)]}
     lines = seen_test_epochs(meta, "b", test_t, _still(10))
-    assert lines == ["selected on a/val (a val, GPS 1005.0-1100.0 s), which holds 5 of b's 10 test epochs"]
+    assert lines == ["selected on a/val (a val, GPS 1005.0-1100.0 s): 5 of b's 10 test epochs"]
     far = BERLIN + [0.0, 0.0, 2 * SAME_PLACE_M]                 # another receiver elsewhere at the same time
     assert seen_test_epochs(meta, "b", test_t, _still(10, far)) == []
     no_truth = {"data_spans": [{**_span("a", "train", 1000.0, 1001.0), "place_ecef_m": [], "radius_m": None}]}
@@ -52,7 +52,7 @@ def test_the_models_fine_tuning_started_from_are_checked_too():
     meta = {"data_spans": [_span("a", "train", 0.0, 10.0)], "init_model": middle}
     assert seen_test_epochs(meta, "b", 1000.0 + np.arange(10.0), _still(10)) == [
         "fine-tuned from middle.npz, which was fine-tuned from base.npz, which was trained on base/train (base train, "
-        "GPS 990.0-1001.0 s), which holds 2 of b's 10 test epochs"]
+        "GPS 990.0-1001.0 s): 2 of b's 10 test epochs"]
 
 
 def test_a_model_without_spans_is_named_only_for_another_dataset_reading_the_test_obs_file():
@@ -127,8 +127,7 @@ def test_the_bundled_models_are_named_on_the_bundled_drive_where_they_trained_on
         lines[name] = models_that_saw_test_epochs(name, plugins, span.subset(slice(k, None)))
     assert lines["late"] == []
     assert lines["early"] and all(
-        "trained on berlin-pp train (as its splits are registered now; the model predates data_spans), which holds "
-        "197 of early's 197 test epochs" in line for line in lines["early"]), lines["early"]   # 0.3 s gaps
+        "trained on berlin-pp train (its split as registered now): 197 of early's 197 test epochs" in line for line in lines["early"]), lines["early"]   # 0.3 s gaps
 
 
 def test_crossval_names_a_starting_model_trained_on_the_blocks(monkeypatch, sample_toml):
@@ -141,5 +140,5 @@ def test_crossval_names_a_starting_model_trained_on_the_blocks(monkeypatch, samp
     datasets.register_toml(sample_toml("my-drive", splits=((0, 150), (150, 180), (180, 200))))
     whole = {"my-drive": datasets.load_split("my-drive", "train+val")}
     lines = _init_saw_blocks(load_model("default"), whole)
-    assert len(lines) == 1 and lines[0].startswith("trained on berlin-pp train (as its splits are registered now")
-    assert lines[0].endswith("which holds 724 of my-drive's 872 epochs to cross-validate on"), lines[0]
+    assert len(lines) == 1 and lines[0].startswith("trained on berlin-pp train (its split as registered now)")
+    assert lines[0].endswith(": 724 of my-drive's 872 epochs to cross-validate on"), lines[0]
