@@ -37,6 +37,7 @@ if str(REPO) not in sys.path:
 import lfgnss  # noqa: E402
 from lfgnss import datasets  # noqa: E402
 from lfgnss import qc  # noqa: E402
+from lfgnss.help_text import PlainHelp  # noqa: E402
 from lfgnss.metrics import accuracy_table, enu_rotations, format_markdown, format_text, markdown_table  # noqa: E402
 from lfgnss.rtklib import rtklib_available, run_rnx2rtkp  # noqa: E402
 from lfgnss.spp import FIX_STATUS  # noqa: E402
@@ -417,7 +418,7 @@ def speed(ids: list[str], profile: bool = False, write_doc: bool = False) -> str
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0], formatter_class=PlainHelp)
     parser.add_argument("--table", action="store_true", help="accuracy table, availability claim, like-for-like")
     parser.add_argument("--speed", action="store_true", help="throughput per stage vs rnx2rtkp")
     parser.add_argument("--profile", action="store_true", help="with --speed: cProfile our stages")

@@ -338,7 +338,7 @@ def available(ids: list[str]) -> list:
 
 def main(argv: list[str] | None = None) -> int:
     """Parse arguments, measure, print the Markdown, optionally write docs/solve_speed.md."""
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0].replace("``", ""))  # no reST quotes
     parser.add_argument("--datasets", nargs="+", default=list(DATASETS),
                         help=f"dataset ids (default: {' '.join(DATASETS)})")
     parser.add_argument("--backends", nargs="+", default=list(BACKENDS), choices=BACKENDS,
