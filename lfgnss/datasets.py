@@ -1203,9 +1203,11 @@ def alignment_report(dataset_ids: list[str] | None = None, problems: list[str] |
             has_fix = np.all(np.isfinite(seq.coarse_ecef_m), axis=1)
             row = accuracy_table(seq.coarse_ecef_m[idx], seq.truth_ecef_m[idx], has_fix[idx])
             first, last = gpst_stamp(seq.time_gps_s[idx].min(), 1), gpst_stamp(seq.time_gps_s[idx].max(), 1)
+            origin = spec.time_origin_gps_s if spec.time_origin_gps_s is not None else seq.time_gps_s[0]
+            since = f", seconds since {gpst_stamp(origin, 1)}" if spec.split_axis == "relative_s" else ""
             lines.append(f"  {split:5s} {int(idx.sum()):5d} matched epochs, {first} to "
                          f"{last[11:] if last[:10] == first[:10] else last} GPST ({split_bounds_words(spec, split)} "
-                         f"on axis {spec.split_axis!r})")
+                         f"on axis {spec.split_axis!r}{since})")
             lines.append(f"{'':17s}coarse fix for {row['availability']:.1%}: "
                          f"3D RMSE {row['rmse_3d_m']:.1f} m, 2D RMSE {row['rmse_2d_m']:.1f} m, "
                          f"3D p50 {row['p50_3d_m']:.1f} m, p95 {row['p95_3d_m']:.1f} m")

@@ -249,7 +249,9 @@ def _parse_nav(paths: list[Path]) -> Navigation:
 KEPLER_LIMITS = (("sqrt_a_sqrt_m", 4000.0, 7500.0, "sqrt(A) [m^0.5]"), ("e", 0.0, 0.5, "eccentricity"),
                  ("af0_s", -0.1, 0.1, "clock offset af0 [s]"))
 GLONASS_LIMITS = (("radius_m", 2.0e7, 3.5e7, "orbit radius [m]"), ("speed_m_s", 0.0, 1.0e4, "speed [m/s]"),
-                  ("tau_n_s", -0.01, 0.01, "clock offset tau_n [s]"))
+                  ("tau_n_s", -0.01, 0.01, "clock offset tau_n [s]"),
+                  # the ICD's field reaches 1.4e-5 m/s^2 (15 x 2^-30 km/s^2); a status line read as an orbit line, 15
+                  ("acc_m_s2", 0.0, 1.0e-4, "luni-solar acceleration [m/s^2]"))
 
 
 #: QZSS health bits that concern L1 C/A users: RTKLIB masks the lowest (L6/LEX) bit (``svh &= 0xFE``, satexclude).
@@ -268,7 +270,8 @@ def _plausible(df: pd.DataFrame, limits: tuple) -> tuple[pd.DataFrame, list[str]
     if df.empty:
         return df, []
     values = {"radius_m": lambda: np.linalg.norm(df[["x", "y", "z"]].to_numpy(float), axis=1),
-              "speed_m_s": lambda: np.linalg.norm(df[["vx", "vy", "vz"]].to_numpy(float), axis=1)}
+              "speed_m_s": lambda: np.linalg.norm(df[["vx", "vy", "vz"]].to_numpy(float), axis=1),
+              "acc_m_s2": lambda: np.linalg.norm(df[["ax", "ay", "az"]].to_numpy(float), axis=1)}
     bad = np.zeros(len(df), bool)
     system = df["system"].to_numpy() if "system" in df else np.full(len(df), "R")
     unhealthy = effective_health(system, df["health"].to_numpy()) != 0   # unusable anyway: kept, its flag in force
@@ -443,13 +446,14 @@ def _clean_layers(text: str, path: Path) -> tuple[list[str], list[str]]:
         elif ln.strip():
             orphans.append(i)
     notes = [f"{path}:{orphans[0]}: {len(orphans)} line(s) before the first ephemeris record skipped"] if orphans else []
-    if record_lines.get("R") == _GLONASS_LINES_V305:
-        glonass = [(numbers, rec) for numbers, rec in records if rec[0][:1] == "R"]
-        if glonass and all(len(rec) == _GLONASS_LINES_V305 - 1 for _, rec in glonass):
-            # every GLONASS record in the layout before 3.05 (a writer that labels its files 3.05 without the status
-            # line): read so, as lfgnss drops that line anyway. One record short among 5-line ones stays damaged.
-            record_lines["R"] = _GLONASS_LINES_V305 - 1
     cut_line = len(lines) if lines[-1].strip() else None   # the file ends without a newline
+    if record_lines.get("R") == _GLONASS_LINES_V305:
+        # A writer that labels its files 3.05 but keeps the 4-line layout (no status line, which lfgnss drops anyway):
+        # two or more whole GLONASS records of 4 lines and none of 5 make that the file's layout. A record cut by
+        # the file's end is not counted; one short record among 5-line ones, or a lone one, stays damaged.
+        sizes = [len(rec) for numbers, rec in records if rec[0][:1] == "R" and numbers[-1] != cut_line]
+        if sizes.count(_GLONASS_LINES_V305 - 1) >= 2 and _GLONASS_LINES_V305 not in sizes:
+            record_lines["R"] = _GLONASS_LINES_V305 - 1
     seen: set[tuple[str, ...]] = set()
     count: dict[str, int] = {}
     chunks: dict[tuple[int, str], list[str]] = {}

@@ -325,10 +325,9 @@ def _solve(args) -> _Solved:
                 print(f"warning: {note}", file=sys.stderr)
             seen = seen_epochs_notes(noise, obs_files, meas.time_gps_s, truth)
             if seen:
-                from learning.export import bundled_name
-
-                path = model_path(args.model or DEFAULT_MODEL)
-                who = f"the bundled model {bundled_name(path)!r}" if bundled_name(path) else str(path)
+                name, path = str(args.model or "default"), model_path(args.model or DEFAULT_MODEL)
+                named = args.model is None or path == bundled_models().get(name)    # by name, not a path to a copy
+                who = f"the bundled model {name!r}" if named else str(path)
                 warnings.warn(f"{who}: {'; '.join(seen)}: the accuracy table is in-sample on those epochs")
     from .sequence import DEFAULT_FEATURES
 

@@ -374,6 +374,9 @@ def test_datasets_cli_reports_a_dataset_named_twice_once(tmp_path, clean_registr
     assert datasets.main(["--register", str(cfg), "my-berlin"]) == 0
     out = capsys.readouterr().out
     assert out.count("my-berlin: 1375 epochs, 1372 with truth") == 1
+    # a relative_s split says what its seconds count from (review: the first observation epoch was never printed)
+    assert ("  val      96 matched epochs, 2016-06-06 11:12:21.7 to 11:12:41.5 GPST (val = [100, 120) on axis "
+            "'relative_s', seconds since 2016-06-06 11:10:41.7)\n") in out, out
 
 
 def test_a_split_that_misses_the_drive_shows_the_drives_span_on_its_axis(clean_registry, capsys, sample_toml):

@@ -495,6 +495,40 @@ def test_rinex305_file_whose_glonass_records_all_keep_four_lines(tmp_path, bundl
     _glonass_equal(nav.glonass, ref)
 
 
+def test_rinex305_four_line_layout_needs_two_whole_records(tmp_path, bundled):
+    """Review: a lone 4-line GLONASS record (one that lost a line) switched the layout and its status line was read as
+    the z line; a file cut inside its last record kept the layout from switching. Two or more whole 4-line records
+    and no 5-line one decide it; a record cut by the file's end does not count."""
+    ref = load_nav(bundled[1]).glonass
+    lone = _nav3(tmp_path / "lone.rnx", "3.05", [GPS_REC_V3, GLO_REC_V3])
+    with pytest.warns(RinexWarning, match="damaged navigation records skipped"):
+        nav = load_nav(lone)
+    assert len(nav.glonass) == 0 and nav.warnings == (f"{lone}:12: record cut short: 4 lines instead of 5; R01 record "
+                                                      "of line 12 skipped",)
+    r02 = ["R02" + GLO_REC_V3[0][3:]] + GLO_REC_V3[1:]
+    cut = tmp_path / "cut.rnx"
+    cut.write_text(_nav3(tmp_path / "c.rnx", "3.05", [GLO_REC_V3, r02, GLO_REC_V3[:2]]).read_text().rstrip("\n")[:-20])
+    with pytest.warns(RinexWarning, match="damaged navigation records skipped"):
+        nav = load_nav(cut)
+    assert len(nav.glonass) == 2 and nav.warnings == (f"{cut}:12: record cut short: 2 lines instead of 4; R01 record "
+                                                      "of line 12 skipped",)
+    assert sorted(nav.glonass.sv) == ["R01", "R02"]
+    np.testing.assert_array_equal(nav.glonass.pos_ecef_m, np.repeat(ref.pos_ecef_m, 2, axis=0))
+
+
+def test_a_status_line_read_as_an_orbit_line_is_impossible(tmp_path):
+    """Two records that both lost their third orbit line (z, z velocity, z acceleration) in a 3.05 file read in the
+    4-line layout: the status line's URAI 15 arrives as an acceleration of 15 km/s^2 and the records are skipped, not
+    used with z = 0."""
+    lost = [GLO_REC_V3[0], GLO_REC_V3[1], GLO_REC_V3[2], GLO_STATUS_LINE]
+    r02 = ["R02" + lost[0][3:]] + lost[1:]
+    path = _nav3(tmp_path / "g.rnx", "3.05", [GPS_REC_V3, lost, r02])
+    with pytest.warns(RinexWarning):
+        nav = load_nav(path)
+    assert len(nav.glonass) == 0 and len(nav.kepler) == 1
+    assert any("luni-solar acceleration [m/s^2] 15000 outside [0, 0.0001]" in w for w in nav.warnings), nav.warnings
+
+
 @pytest.mark.parametrize("version, status_line, reason", [
     ("3.04", True, "record too long (damaged, or merged with the next record): 5 lines instead of 4"),
     ("3.05", False, "record cut short: 4 lines instead of 5"),

@@ -372,3 +372,7 @@ def test_a_model_trained_on_the_drive_it_scores_is_named_and_its_figures_say_in_
                     "is in-sample on those epochs"]
     assert main(["--no-model", "--out", str(tmp_path / "plain"), "--quiet", "--no-plots"]) == 0
     assert "in-sample" not in capsys.readouterr().err                           # hand-set noise learned nothing
+    copy = tmp_path / "mine.npz"                    # a copy given by its path is named by that path (review)
+    copy.write_bytes(DEFAULT_MODEL.read_bytes())
+    assert main(["--model", str(copy), "--out", str(tmp_path / "copy"), "--quiet", "--no-plots"]) == 0
+    assert f"warning: {copy}: trained on berlin-pp train" in capsys.readouterr().err
