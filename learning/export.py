@@ -932,9 +932,26 @@ def seen_test_epochs(metadata: dict, dataset_id: str, test_time_gps_s: np.ndarra
                              f"{epochs_word}")
             lines += [f"{via}{_used_as(split)} {ds} {split} (its split as registered now): {n} of {dataset_id}'s "
                       f"{times.size} {epochs_word}" for split, n in zip(splits, hits) if n]
-        record = record.get("init_model")
-        via = f"{via}fine-tuned from {(record or {}).get('path')}, which was "
+        record, bundled = _completed_init(record.get("init_model"))
+        via = (f"{via}fine-tuned from {f'the bundled model {bundled!r}' if bundled else (record or {}).get('path')}, "
+               "which was ")
     return lines
+
+
+def _completed_init(record: object) -> tuple[object, str | None]:
+    """(record, bundled name): a ``train.init`` record and, where its file is a bundled model (by content,
+    ``sha256_16``), that model's name; a record that predates ``source_files`` and ``data_spans`` (the bundled
+    hk-tst-2019 model's, of the transfer base) takes them from that file, so its training data are checked too."""
+    if not isinstance(record, dict) or not isinstance(record.get("sha256_16"), str):
+        return record, None
+    for name, path in bundled_models().items():
+        if hashlib.sha256(path.read_bytes()).hexdigest()[:16] == record["sha256_16"]:
+            if record.get("source_files") or record.get("data_spans"):
+                return record, name
+            meta = load_model(path).metadata
+            return {**record, "source_files": meta.get("source_files") or {},
+                    "data_spans": meta.get("data_spans") or []}, name
+    return record, None
 
 
 #: Where the bundled models' commands are written down (their files predate ``provenance``).
