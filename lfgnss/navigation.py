@@ -250,7 +250,8 @@ KEPLER_LIMITS = (("sqrt_a_sqrt_m", 4000.0, 7500.0, "sqrt(A) [m^0.5]"), ("e", 0.0
                  ("af0_s", -0.1, 0.1, "clock offset af0 [s]"))
 GLONASS_LIMITS = (("radius_m", 2.0e7, 3.5e7, "orbit radius [m]"), ("speed_m_s", 0.0, 1.0e4, "speed [m/s]"),
                   ("tau_n_s", -0.01, 0.01, "clock offset tau_n [s]"),
-                  # the ICD's field reaches 1.4e-5 m/s^2 (15 x 2^-30 km/s^2); a status line read as an orbit line, 15
+                  # the ICD's field reaches 1.4e-5 m/s^2 (15 x 2^-30 km/s^2); a 3.05 status line read as an orbit
+                  # line gives the URAI there (15 km/s^2 for an unknown accuracy)
                   ("acc_m_s2", 0.0, 1.0e-4, "luni-solar acceleration [m/s^2]"))
 
 
