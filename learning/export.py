@@ -892,7 +892,8 @@ def _used_as(split: object) -> str:
 
 def seen_test_epochs(metadata: dict, dataset_id: str, test_time_gps_s: np.ndarray, test_truth_ecef_m: np.ndarray,
                      obs_hashes: Iterable[str] = (), epochs_word: str = "test epochs") -> list[str]:
-    """Where a model (or a model it was fine-tuned from) was trained or selected on test epochs: one line each.
+    """Where a model (or a model it was fine-tuned from) was trained or selected on test epochs: a line for each piece
+    of the model's own, one for each starting model (its pieces joined, after one "fine-tuned from ..." prefix).
 
     ``test_time_gps_s`` (T,) [s] and ``test_truth_ecef_m`` (T, 3) [m]: the test split's scored epochs. A training or
     validation piece (``data_spans``) counts when its time span holds test epochs and its truth's extent
@@ -909,6 +910,7 @@ def seen_test_epochs(metadata: dict, dataset_id: str, test_time_gps_s: np.ndarra
     centre, radius = truth_extent(test_truth_ecef_m)
     lines, record, via = [], metadata, ""
     while isinstance(record, dict):
+        found: list[str] = []                   # this record's pieces: its own lines, one line for a starting model's
         spans = [s for s in record.get("data_spans") or [] if isinstance(s, dict)]
         for span in spans:
             t, where = _numbers(span.get("gps_s"), 2), _numbers(span.get("place_ecef_m"), 3)
@@ -916,7 +918,7 @@ def seen_test_epochs(metadata: dict, dataset_id: str, test_time_gps_s: np.ndarra
             reach = SAME_PLACE_M + (radius or 0.0) + (span["radius_m"] if _is_number(span.get("radius_m")) else 0.0)
             near = where is None or radius is None or np.linalg.norm(np.asarray(where) - centre) <= reach
             if n and near:
-                lines.append(f"{via}{_used_as(span.get('split'))} {span.get('sequence')} ({span.get('dataset')} "
+                found.append(f"{_used_as(span.get('split'))} {span.get('sequence')} ({span.get('dataset')} "
                              f"{span.get('split')}, GPS {t[0]:.1f}-{t[1]:.1f} s): {n} of {dataset_id}'s {times.size} "
                              f"{epochs_word}")
         files = record.get("source_files") or {}
@@ -927,11 +929,12 @@ def seen_test_epochs(metadata: dict, dataset_id: str, test_time_gps_s: np.ndarra
             splits = sorted({str(p.get("split", "")) for p in pieces if p.get("dataset") == ds})
             hits = [epochs_in_split(ds, split, times) for split in splits]
             if None in hits:
-                lines.append(f"{via}trained on dataset {ds}, which reads {dataset_id}'s observation file(s); the model "
+                found.append(f"trained on dataset {ds}, which reads {dataset_id}'s observation file(s); the model "
                              "does not record which epochs (it predates data_spans), so its training may hold "
                              f"{epochs_word}")
-            lines += [f"{via}{_used_as(split)} {ds} {split} (its split as registered now): {n} of {dataset_id}'s "
+            found += [f"{_used_as(split)} {ds} {split} (its split as registered now): {n} of {dataset_id}'s "
                       f"{times.size} {epochs_word}" for split, n in zip(splits, hits) if n]
+        lines += ([f"{via}{', and '.join(found)}"] if via and found else found)
         record, bundled = _completed_init(record.get("init_model"))
         via = (f"{via}fine-tuned from {f'the bundled model {bundled!r}' if bundled else (record or {}).get('path')}, "
                "which was ")

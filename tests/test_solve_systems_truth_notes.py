@@ -379,5 +379,7 @@ def test_a_model_trained_on_the_drive_it_scores_is_named_and_its_figures_say_in_
     # the hk-tst-2019 model's start, the transfer base, was trained on the drive; its record predates source_files, so
     # this was not seen (review): the bundled file it names by content gives them
     assert main(["--model", "hk-tst-2019", "--out", str(tmp_path / "hk"), "--quiet", "--no-plots"]) == 0
+    err = capsys.readouterr().err
     assert ("warning: the bundled model 'hk-tst-2019': fine-tuned from the bundled model 'transfer-base', which was "
-            "trained on berlin-pp train (its split as registered now): 724 of") in capsys.readouterr().err
+            "trained on berlin-pp train (its split as registered now): 724 of Berlin_Potsdamer_Platz.obs.gz's 1372 "
+            "scored epochs, and selected on berlin-pp val") in err and err.count("fine-tuned from") == 1, err
