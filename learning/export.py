@@ -543,6 +543,10 @@ def model_settings(metadata: dict) -> dict:
     return OLD_FILE_MODEL_DEFAULTS | metadata["model"]
 
 
+#: Least ``model.r_floor_m2`` [m^2] (training and model files alike): the plug-in EKF refuses an update with R near
+#: 1e-10 m^2 as numerically singular (estimators.ekf), and the torch EKF raised torch.linalg.LinAlgError at 1e-12 m^2;
+#: loss.r_weight's ln R needs R > 0.
+MIN_R_FLOOR_M2 = 1.0e-6
 _REQUIRED_META = ("format", "format_version", "feature_names", "model", "parameters", "normaliser")
 _REQUIRED_MODEL = ("d_model", "n_heads", "hidden", "r_floor_m2")
 _PRIOR_KEYS = ("cn0_index", "el_index", "cn0_mean", "cn0_std", "el_mean", "el_std", "floor_m", "cn0_scale_m2",
@@ -579,7 +583,8 @@ def _check_metadata(path: str, meta: dict) -> None:
                f"an integer >= 1 dividing d_model {d_model}"),
               ("hidden", isinstance(m["hidden"], list) and all(_is_count(h) for h in m["hidden"]),
                "a list of integers >= 1"),
-              ("r_floor_m2", _is_number(m["r_floor_m2"]) and m["r_floor_m2"] >= 0, "a finite number >= 0"),
+              ("r_floor_m2", _is_number(m["r_floor_m2"]) and m["r_floor_m2"] >= MIN_R_FLOOR_M2,
+               f"a finite number >= {MIN_R_FLOOR_M2:g} (learning.train's least)"),
               ("r_scale_m2", _is_number(m.get("r_scale_m2", 1.0)) and m.get("r_scale_m2", 1.0) > 0,
                "a finite number > 0"),
               ("compensation", isinstance(m.get("compensation", True), bool), "true or false"),

@@ -68,7 +68,7 @@ from lfgnss.sequence import DEFAULT_FEATURES, Sequence
 
 from . import provenance
 from .data import Window, collate, make_windows, resolve_feature_names, sequence_batch, signed_log_names
-from .export import model_settings, truth_extent
+from .export import MIN_R_FLOOR_M2, model_settings, truth_extent
 from .loss import compensation_loss, error_norm_m, labelled_errors_m, make_loss, variance_loss
 from .network import LfgnssNet
 from .normalise import Normaliser
@@ -258,11 +258,6 @@ def _setting(config: dict, key: str) -> Any:
         default = default[part]
         value = value.get(part, default)
     return value
-
-
-#: Least ``model.r_floor_m2`` [m^2]: the plug-in EKF refuses an update with R near 1e-10 m^2 as numerically singular
-#: (estimators.ekf), and the torch EKF raised torch.linalg.LinAlgError at 1e-12 m^2; loss.r_weight's ln R needs R > 0.
-MIN_R_FLOOR_M2 = 1.0e-6
 
 
 def _check_number(config: dict, key: str, low: float, high: float = math.inf, *, whole: bool = False,

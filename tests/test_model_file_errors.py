@@ -113,7 +113,8 @@ def _drop_bias(arrays):
 
 
 BAD_ARRAYS = [   # (id, change of the arrays, change of the metadata, text the message must contain)
-    ("zero-noise", _zero_noise, _model(r_floor_m2=0.0), "non-positive noise"),
+    # a floor of 0 is refused (training's least is 1e-6 m^2; the file check accepted 0), so R = 0 cannot reach the EKF
+    ("zero-floor", _zero_noise, _model(r_floor_m2=0.0), "metadata model.r_floor_m2 must be a finite number >= 1e-06"),
     ("text-parameter", _text_param, None, "'head.bias'"),
     ("missing-bias", _drop_bias, _delete("parameters", "mlp.2.bias"), "mlp.2.bias"),
     ("text-normaliser", lambda a: a.update(normaliser_mean=np.array(["x"] * 8)), None, "normaliser_mean"),
