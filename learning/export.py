@@ -54,7 +54,8 @@ import numpy as np
 from lfgnss.errors import InputError, closest_name, shortened
 from lfgnss.features import AVAILABLE_FEATURES
 from lfgnss.help_text import PlainHelp
-from lfgnss.paths import MODEL_PREFIX, bundled_models, may_name_a_bundled_model, model_path, replace_atomically
+from lfgnss.paths import (MODEL_PREFIX, bundled_models, file_hashes, may_name_a_bundled_model, model_path,
+                          replace_atomically)
 from lfgnss.sequence import Sequence
 from lfgnss.weighted_fix import cn0_elevation_variance_m2
 
@@ -727,9 +728,10 @@ def load_model(path: str | Path, expected_features: Iterable[str] | None = None)
     settings = model_settings(meta)
     prior = settings.get("r_prior")
     read = {normaliser.feature_names[prior[k]] for k in ("cn0_index", "el_index")} if prior else set()
-    if read & set(normaliser.signed_log):
-        raise ModelFileError(path, f"metadata normaliser.signed_log names {sorted(read & set(normaliser.signed_log))}, "
-                                   "which the R prior (model.r_prior) reads in its own units")
+    logged_read = sorted(read & set(normaliser.signed_log))
+    if logged_read:
+        raise ModelFileError(path, f"metadata normaliser.signed_log names {logged_read}, which the R prior "
+                                   "(model.r_prior) reads in its own units")
     n_inputs = len(normaliser.feature_names) + settings["innovation"]
     shapes = _parameter_shapes(settings, n_inputs)
     absent = [k for k in shapes if k not in params]       # every member has the same names (meta["parameters"])
@@ -952,14 +954,13 @@ def _completed_init(record: object) -> tuple[object, str | None]:
     hk-tst-2019 model's, of the transfer base) takes them from that file, so its training data are checked too."""
     if not isinstance(record, dict) or not isinstance(record.get("sha256_16"), str):
         return record, None
-    for name, path in bundled_models().items():
-        if hashlib.sha256(path.read_bytes()).hexdigest()[:16] == record["sha256_16"]:
-            if record.get("source_files") or record.get("data_spans"):
-                return record, name
-            meta = load_model(path).metadata
-            return {**record, "source_files": meta.get("source_files") or {},
-                    "data_spans": meta.get("data_spans") or []}, name
-    return record, None
+    bundled = bundled_models()
+    digests = file_hashes(bundled.values(), content=False)             # by file name, as init records hash them
+    name = next((n for n, path in bundled.items() if digests.get(path.name) == record["sha256_16"]), None)
+    if name is None or record.get("source_files") or record.get("data_spans"):
+        return record, name
+    meta = load_model(bundled[name]).metadata
+    return {**record, "source_files": meta.get("source_files") or {}, "data_spans": meta.get("data_spans") or []}, name
 
 
 #: Where the bundled models' commands are written down (their files predate ``provenance``).

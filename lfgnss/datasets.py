@@ -1130,8 +1130,12 @@ def _time_axis_values(time_gps_s: np.ndarray, spec: DatasetSpec, first_epoch_gps
     if spec.split_axis == "tow":
         week_start = np.floor(first_epoch_gps_s / SECONDS_PER_WEEK) * SECONDS_PER_WEEK
         return np.round(np.asarray(time_gps_s, float) - week_start, 1)
-    origin = first_epoch_gps_s if spec.time_origin_gps_s is None else spec.time_origin_gps_s
-    return np.round(time_gps_s - origin, 1)
+    return np.round(time_gps_s - _relative_origin_gps_s(spec, first_epoch_gps_s), 1)
+
+
+def _relative_origin_gps_s(spec: DatasetSpec, first_epoch_gps_s: float) -> float:
+    """What a ``relative_s`` split axis counts from [GPS s]: ``spec.time_origin_gps_s``, else the first epoch."""
+    return first_epoch_gps_s if spec.time_origin_gps_s is None else spec.time_origin_gps_s
 
 
 def present(dataset_ids, report=print) -> list[str]:
@@ -1203,8 +1207,8 @@ def alignment_report(dataset_ids: list[str] | None = None, problems: list[str] |
             has_fix = np.all(np.isfinite(seq.coarse_ecef_m), axis=1)
             row = accuracy_table(seq.coarse_ecef_m[idx], seq.truth_ecef_m[idx], has_fix[idx])
             first, last = gpst_stamp(seq.time_gps_s[idx].min(), 1), gpst_stamp(seq.time_gps_s[idx].max(), 1)
-            origin = spec.time_origin_gps_s if spec.time_origin_gps_s is not None else seq.time_gps_s[0]
-            since = f", seconds since {gpst_stamp(origin, 1)}" if spec.split_axis == "relative_s" else ""
+            since = (f", seconds since {gpst_stamp(_relative_origin_gps_s(spec, seq.time_gps_s[0]), 1)}"
+                     if spec.split_axis == "relative_s" else "")
             lines.append(f"  {split:5s} {int(idx.sum()):5d} matched epochs, {first} to "
                          f"{last[11:] if last[:10] == first[:10] else last} GPST ({split_bounds_words(spec, split)} "
                          f"on axis {spec.split_axis!r}{since})")
