@@ -8,7 +8,7 @@ Format (``FORMAT_NAME`` version ``FORMAT_VERSION``), arrays in one uncompressed 
                         (per sequence: dataset, split, name, epochs, content sha256), data_spans (per
                         sequence: dataset, split, name, first and last GPS time, median truth), source_files
                         (dataset -> file name -> sha256 of the input files), init_model (the
-                        model file fine-tuning started from: path, sha256, datasets, its data
+                        model file fine-tuning started from: path, sha256, datasets, train.select, its data
                         fingerprints, spans and source files and its own init_model; null when trained
                         from scratch),
                         config_file (the --config file's path and settings), provenance (the command
@@ -41,7 +41,6 @@ from __future__ import annotations
 import dataclasses
 import datetime as _dt
 import errno
-import hashlib
 import json
 import shlex
 import sys
@@ -54,8 +53,8 @@ import numpy as np
 from lfgnss.errors import InputError, closest_name, shortened
 from lfgnss.features import AVAILABLE_FEATURES
 from lfgnss.help_text import PlainHelp
-from lfgnss.paths import (MODEL_PREFIX, bundled_models, file_hashes, may_name_a_bundled_model, model_path,
-                          replace_atomically)
+from lfgnss.paths import (MODEL_PREFIX, bundled_models, file_hash, file_hashes, may_name_a_bundled_model,
+                          model_path, replace_atomically)
 from lfgnss.sequence import Sequence
 from lfgnss.weighted_fix import cn0_elevation_variance_m2
 
@@ -187,7 +186,7 @@ def _source_networks(path: Path) -> tuple[list[tuple[dict[str, np.ndarray], Norm
     records = ensemble_members(meta) or [{"checkpoint": None, "seed": (meta.get("config") or {}).get("seed"),
                                           "epoch": meta.get("epoch"), "val_rmse_3d_m": meta.get("val_rmse_3d_m"),
                                           "provenance": meta.get("provenance")}]
-    sha = hashlib.sha256(path.read_bytes()).hexdigest()[:16]
+    sha = file_hash(path, content=False)
     ensemble = meta.get("ensemble") or {}
     grown = {"model_file": str(path), "sha256_16": sha, "networks": len(model.members),
              "exported": ensemble.get("exported"),
@@ -892,9 +891,19 @@ def _numbers(value: object, n: int) -> list[float] | None:
     return [float(v) for v in value] if ok else None
 
 
-def _used_as(split: object) -> str:
-    """How a model used a piece of the split named ``split``: validation selects the model, the rest trains it."""
-    return "selected on" if split in ("val", "validation") else "trained on"
+def _used_as(split: object, select: object) -> str:
+    """How a model used a piece of the split named ``split``: validation selects the model (``train.select = "val"``,
+    the default) or, with ``"last"``, is only scored (its schedule was chosen by cross-validation); the rest trains it."""
+    if split not in ("val", "validation"):
+        return "trained on"
+    return "validated on" if select == "last" else "selected on"
+
+
+def _select(record: dict) -> object:
+    """A model record's ``train.select``: its config's (a model file's metadata) or its own (a ``train.init``
+    record), else None."""
+    train = (record.get("config") or {}).get("train") if isinstance(record.get("config"), dict) else None
+    return train.get("select") if isinstance(train, dict) else record.get("select")
 
 
 def seen_test_epochs(metadata: dict, dataset_id: str, test_time_gps_s: np.ndarray, test_truth_ecef_m: np.ndarray,
@@ -925,7 +934,7 @@ def seen_test_epochs(metadata: dict, dataset_id: str, test_time_gps_s: np.ndarra
             reach = SAME_PLACE_M + (radius or 0.0) + (span["radius_m"] if _is_number(span.get("radius_m")) else 0.0)
             near = where is None or radius is None or np.linalg.norm(np.asarray(where) - centre) <= reach
             if n and near:
-                found.append(f"{_used_as(span.get('split'))} {span.get('sequence')} ({span.get('dataset')} "
+                found.append(f"{_used_as(span.get('split'), _select(record))} {span.get('sequence')} ({span.get('dataset')} "
                              f"{span.get('split')}, GPS {t[0]:.1f}-{t[1]:.1f} s): {n} of {dataset_id}'s {times.size} "
                              f"{epochs_word}")
         files = record.get("source_files") or {}
@@ -939,7 +948,7 @@ def seen_test_epochs(metadata: dict, dataset_id: str, test_time_gps_s: np.ndarra
                 found.append(f"trained on dataset {ds}, which reads {dataset_id}'s observation file(s); the model "
                              "does not record which epochs (it predates data_spans), so its training may hold "
                              f"{epochs_word}")
-            found += [f"{_used_as(split)} {ds} {split} (its split as registered now): {n} of {dataset_id}'s "
+            found += [f"{_used_as(split, _select(record))} {ds} {split} (its split as registered now): {n} of {dataset_id}'s "
                       f"{times.size} {epochs_word}" for split, n in zip(splits, hits) if n]
         lines += ([f"{via}{', and '.join(found)}"] if via and found else found)
         record, bundled = _completed_init(record.get("init_model"))
@@ -960,7 +969,8 @@ def _completed_init(record: object) -> tuple[object, str | None]:
     if name is None or record.get("source_files") or record.get("data_spans"):
         return record, name
     meta = load_model(bundled[name]).metadata
-    return {**record, "source_files": meta.get("source_files") or {}, "data_spans": meta.get("data_spans") or []}, name
+    return {**record, "source_files": meta.get("source_files") or {}, "data_spans": meta.get("data_spans") or [],
+            "select": _select(meta)}, name
 
 
 #: Where the bundled models' commands are written down (their files predate ``provenance``).

@@ -63,7 +63,8 @@ import torch
 from lfgnss.datasets import get, load_split, register_toml, split_parts
 from lfgnss.errors import INPUT_ERRORS, did_you_mean, one_line, shortened, warnings_on_one_line
 from lfgnss.help_text import PlainHelp
-from lfgnss.paths import check_output_folder, file_hashes, may_name_a_bundled_model, names_something, replace_atomically
+from lfgnss.paths import (check_output_folder, file_hash, file_hashes, may_name_a_bundled_model, names_something,
+                          replace_atomically)
 from lfgnss.sequence import DEFAULT_FEATURES, Sequence
 
 from . import provenance
@@ -531,10 +532,11 @@ def trained_datasets(model) -> list[str]:
 
 def init_record(model) -> dict:
     """What a fine-tuned model file says about the model it started from: path, content hash and lineage."""
-    h = hashlib.sha256(Path(model.path).read_bytes()).hexdigest()[:16]
     meta = model.metadata
-    return {"path": str(model.path), "sha256_16": h, "epoch": meta.get("epoch"), "datasets": trained_datasets(model),
+    return {"path": str(model.path), "sha256_16": file_hash(model.path, content=False), "epoch": meta.get("epoch"),
+            "datasets": trained_datasets(model),
             "train_split": (meta.get("config") or {}).get("data", {}).get("train_split", "train"),
+            "select": ((meta.get("config") or {}).get("train") or {}).get("select", "val"),
             "data_fingerprints": meta.get("data_fingerprints", []), "data_spans": meta.get("data_spans", []),
             "source_files": meta.get("source_files", {}), "init_model": meta.get("init_model")}
 

@@ -666,13 +666,12 @@ def model_files(model_dir: Path, ids: list[str]) -> list[Path]:
 def provenance_text(models: list[Path], out: Path | None = None) -> str:
     """results.md's line on what made the figures: lfgnss's version, the code's git commit (changes under the run's
     ``out`` folder aside: regenerating docs/ rewrites tracked files), each model's SHA-256."""
-    import hashlib
-
     from learning.provenance import code_text, git_state
 
     from . import __version__
+    from .paths import file_hash
 
-    digests = ", ".join(f"`{m.name}` {hashlib.sha256(m.read_bytes()).hexdigest()[:16]}" for m in models)
+    digests = ", ".join(f"`{m.name}` {file_hash(m, content=False)}" for m in models)
     code = code_text(git_state(ignore=(out,) if out else ()))
     return f"Code: lfgnss {__version__}, {code}. Model files (SHA-256, first 16 hex digits): {digests or 'none'}."
 

@@ -173,13 +173,13 @@ def _builtin() -> dict[str, DatasetSpec]:
         "berlin-pp": DatasetSpec(
             "berlin-pp", _shared(bpp, "Berlin_Potsdamer_Platz.obs"), _shared(bpp, "brdc1580.16n", "brdc1580.16g"),
             _shared(bpp, "Berlin_Potsdamer_Platz_GT.txt")[0], "smartloc",
-            {"train": (0.0, 150.0), "val": (150.0, 180.0), "test": (180.0, 1e9)}, "relative_s", ("G", "R"), 0.05,
+            {"train": (0.0, 150.0), "val": (150.0, 180.0), "test": (180.0, math.inf)}, "relative_s", ("G", "R"), 0.05,
             week_tow_to_gps_s(1900, 126641.7), "smartLoc Berlin Potsdamer Platz, u-blox GPS+GLONASS, ~5 Hz drive"),
         "hk-tst-static-2020": DatasetSpec(
             "hk-tst-static-2020", _shared(st, "2020_06_03_TST_03.obs"),
             tuple(shared_data_dir() / st / f"hksc155{h}.20{x}" for h in "cd" for x in "nglb"),
             _shared(st, "groundTruth_TST.csv")[0], "static",
-            {"train": (0, 500), "val": (500, 600), "test": (600, 10**9)}, "epoch", ("G", "R", "E", "J", "C"), 0.5,
+            {"train": (0, 500), "val": (500, 600), "test": (600, math.inf)}, "epoch", ("G", "R", "E", "J", "C"), 0.5,
             description="HK TST static 2020-06-03, u-blox F9P G/R/E/J/C, one true point"),
     }
 

@@ -70,26 +70,28 @@ def model_path(model: str | os.PathLike) -> Path:
 
 
 def file_hashes(paths: Iterable[str | os.PathLike], *, content: bool = True) -> dict[str, str]:
-    """SHA-256 (16 hex digits) of each file, by file name: of its content, a gzip file's decompressed, so that a file
-    and its compressed copy are one (the bundled drive's ``.obs.gz`` is berlin-pp's ``.obs``); ``content=False``:
-    of its bytes as they are (gzip data that do not decompress whole count so too)."""
-    def digest(opener, path) -> str:
+    """``file_hash`` of each file, by file name."""
+    return {Path(path).name: file_hash(path, content=content) for path in paths}
+
+
+def file_hash(path: str | os.PathLike, *, content: bool = True) -> str:
+    """SHA-256 (16 hex digits) of a file: of its content, a gzip file's decompressed, so that a file and its
+    compressed copy are one (the bundled drive's ``.obs.gz`` is berlin-pp's ``.obs``); ``content=False``: of its
+    bytes as they are (gzip data that do not decompress whole count so too)."""
+    def digest(opener) -> str:
         h = hashlib.sha256()
         with opener(path, "rb") as fh:
             for block in iter(lambda: fh.read(1 << 20), b""):
                 h.update(block)
         return h.hexdigest()[:16]
 
-    out = {}
-    for path in paths:
-        packed = content and is_gzip(path)
-        try:
-            out[Path(path).name] = digest(gzip.open if packed else open, path)
-        except (OSError, EOFError, zlib.error):
-            if not packed:
-                raise
-            out[Path(path).name] = digest(open, path)
-    return out
+    packed = content and is_gzip(path)
+    try:
+        return digest(gzip.open if packed else open)
+    except (OSError, EOFError, zlib.error):
+        if not packed:
+            raise
+        return digest(open)
 
 
 def is_gzip(path: str | os.PathLike) -> bool:

@@ -31,7 +31,8 @@ from .time import datetime64_to_gps_s, utc_to_gps_s
 if TYPE_CHECKING:
     import pandas as pd
 
-_PARSER_VERSION = 9       # 9: repeated types go on, Doppler order; 8: 0.000 pseudoranges, events, code order
+_PARSER_VERSION = 10      # 10: types an event redefines; 9: repeated types go on, Doppler order; 8: 0.000 pseudoranges,
+#                           events, code order
 _GPS_EPOCH = dt.datetime(1980, 1, 6)
 _SV_RE = re.compile(r"^[GRECJSI][ 0-9][0-9]$")
 _V2_RECORD_LIKE = re.compile(r"^[ 0-9.\-]*[0-9][ 0-9.\-]*$")  # digits, blanks, points, signs only
@@ -337,8 +338,26 @@ def _parse(text: str, path: Path, engine: str, notes: list[str] | None = None) -
     if engine == "georinex":
         return _parse_georinex(text, path, info, codes, problems)
     cut = _cut_v2 if info["version"] < 3 else _cut_v3
-    epoch_times, epoch_lines, rec_epoch, rec_sv, rec_text, rec_line = cut(body, n_header, path, info, problems)
-    return _assemble(path, info, codes, epoch_times, epoch_lines, rec_epoch, rec_sv, rec_text, rec_line, problems)
+    cuts: list[list] = [[] for _ in range(6)]   # epoch times and lines; records' epoch, id, text and line
+    piece, start = info, 0
+    while True:     # one piece of the file per set of observation types (an event may redefine them)
+        *got, redefined = cut(body[start:], n_header + start, path, piece, problems)
+        if piece is not info:
+            got[4] = _in_header_layout(got[3], got[4], piece["fields"], info["fields"], info["version"])
+        got[2] = [e + len(cuts[0]) for e in got[2]]
+        for whole, part in zip(cuts, got):
+            whole += part
+        if redefined is None:
+            break
+        at, resume, fields = redefined
+        if not fields:  # unreadable: the note is given
+            break
+        lacking = _lacking_types(codes, info["fields"], fields, info["version"])
+        if lacking:
+            problems.append(f"{path}:{n_header + start + at + 1}: the event here redefines the observation types "
+                            f"without {lacking}: read as missing from here on")
+        piece, start = dict(info, fields=fields), start + resume
+    return _assemble(path, info, codes, *cuts, problems)
 
 
 def _epoch_fields(ln: str, v3: bool) -> tuple[int, int, int, int, int, float, int, int]:
@@ -351,7 +370,8 @@ def _epoch_fields(ln: str, v3: bool) -> tuple[int, int, int, int, int, float, in
 
 
 def _cut_v3(body, n_header, path, info, problems):
-    """Epoch times and lines, and the raw record lines of every complete epoch (RINEX 3)."""
+    """Epoch times and lines, and the raw record lines of every complete epoch (RINEX 3), up to an event that
+    redefines the observation types: then also (its index, the index after its special records, the new types)."""
     times, epoch_lines, rec_epoch, rec_sv, rec_text, rec_line = [], [], [], [], [], []
     i, n = 0, len(body)
     while i < n:
@@ -365,8 +385,9 @@ def _cut_v3(body, n_header, path, info, problems):
         event = _V3_EVENT_RE.match(ln)
         if event:
             flag, nsat = int(event[1]), int(event[2])
-            if _types_redefined(body[i + 1: i + 1 + nsat], info, path, lineno, problems):
-                break
+            fields = _types_redefined(body[i + 1: i + 1 + nsat], info, path, lineno, problems)
+            if fields is not None:
+                return times, epoch_lines, rec_epoch, rec_sv, rec_text, rec_line, (i, i + 1 + nsat, fields)
             i += 1 + nsat
             continue
         try:
@@ -381,8 +402,9 @@ def _cut_v3(body, n_header, path, info, problems):
                 i += 1
             continue
         if flag > 1:  # event records: nsat special lines follow
-            if 2 <= flag <= 5 and _types_redefined(body[i + 1: i + 1 + nsat], info, path, lineno, problems):
-                break
+            fields = _types_redefined(body[i + 1: i + 1 + nsat], info, path, lineno, problems) if flag <= 5 else None
+            if fields is not None:
+                return times, epoch_lines, rec_epoch, rec_sv, rec_text, rec_line, (i, i + 1 + nsat, fields)
             i += 1 + nsat
             continue
         recs = body[i + 1: i + 1 + nsat]
@@ -400,11 +422,12 @@ def _cut_v3(body, n_header, path, info, problems):
             rec_text.append(r[3:])
             rec_line.append(lineno + 1 + k)
         i += 1 + nsat
-    return times, epoch_lines, rec_epoch, rec_sv, rec_text, rec_line
+    return times, epoch_lines, rec_epoch, rec_sv, rec_text, rec_line, None
 
 
 def _cut_v2(body, n_header, path, info, problems):
-    """Epoch times and lines, and per-satellite record strings of every complete epoch (RINEX 2)."""
+    """Epoch times and lines, and per-satellite record strings of every complete epoch (RINEX 2), and where an
+    event redefines the observation types, as ``_cut_v3``."""
     n_types = len(info["fields"])
     lines_per_sat = (n_types + 4) // 5
     times, epoch_lines, rec_epoch, rec_sv, rec_text, rec_line = [], [], [], [], [], []
@@ -433,8 +456,9 @@ def _cut_v2(body, n_header, path, info, problems):
             i += n_sv_lines + nsat * lines_per_sat
             continue
         if flag > 1:    # events: nsat special records
-            if _types_redefined(body[i + 1: i + 1 + nsat], info, path, lineno, problems):
-                break
+            fields = _types_redefined(body[i + 1: i + 1 + nsat], info, path, lineno, problems)
+            if fields is not None:
+                return times, epoch_lines, rec_epoch, rec_sv, rec_text, rec_line, (i, i + 1 + nsat, fields)
             i += 1 + nsat
             continue
         if any(i + k >= n or body[i + k][:32].strip() for k in range(1, n_sv_lines)):
@@ -478,7 +502,7 @@ def _cut_v2(body, n_header, path, info, problems):
             rec_text.append("".join(c[:80].ljust(80) for c in chunk))
             rec_line.append(first + 1 + n_header + k * lines_per_sat)
         i = first + nsat * lines_per_sat
-    return times, epoch_lines, rec_epoch, rec_sv, rec_text, rec_line
+    return times, epoch_lines, rec_epoch, rec_sv, rec_text, rec_line, None
 
 
 def _next_v2_epoch(body: list[str], i: int) -> int:
@@ -490,29 +514,68 @@ def _next_v2_epoch(body: list[str], i: int) -> int:
     return i
 
 
-def _types_redefined(special: list[str], info: dict, path: Path, lineno: int, problems: list[str]) -> bool:
-    """Whether an event's special records give observation types other than the header's (with a note): lfgnss reads
-    the header's types for the whole file, so the epochs after that event, whose columns differ, are left out. The
-    header's own types repeated (a spliced file) change nothing."""
+def _types_redefined(special: list[str], info: dict, path: Path, lineno: int, problems: list[str]):
+    """The observation types an event's special records give where they differ from ``info``'s (RINEX 2: a list;
+    3: a dict, the header's systems with theirs replaced), else None: the header's own types repeated (a spliced
+    file) change nothing. Types it cannot read: a note, and an empty list or dict (the reading ends there)."""
     lines = [r for r in special if r[60:].strip().startswith(_TYPES_LABELS)]
     if not lines:
-        return False
+        return None
     label = next(lab for lab in _TYPES_LABELS if lines[0][60:].strip().startswith(lab))
+    counts: list[list] = []     # [declared count, listed types] per system (RINEX 2: one)
+    given: dict[str, list[str]] = {}
+    for r in lines:
+        system = "" if info["version"] < 3 else r[:1].strip()
+        if not counts or system:    # else a continuation line
+            counts.append([(r[:6] if info["version"] < 3 else r[3:6]).strip(), given.setdefault(system, [])])
+        counts[-1][1] += r[6:60].split()
+    if any(not c.isdigit() or int(c) != len(t) for c, t in counts) or "" in given and info["version"] >= 3:
+        problems.append(f"{path}:{lineno}: the event here redefines the observation types ({label.strip()}) in "
+                        f"lines that cannot be read (a count that is not the number of types listed, or a "
+                        f"continuation line first): the epochs from here on are left out")
+        return [] if info["version"] < 3 else {}
     if info["version"] < 3:
-        same = " ".join(r[6:60] for r in lines).split() == list(info["fields"])
-    else:
-        given: dict[str, list[str]] = {}
-        for r in lines:
-            system = r[:1].strip() or (list(given)[-1] if given else "")   # a blank letter: a continuation line
-            given.setdefault(system, []).extend(r[6:60].split())
-        # a system the header lacks (or lfgnss does not read) shifts no column of the others: each record line
-        # names its system, and records of a system the header lacks are skipped with a note anyway
-        same = all(list(info["fields"][s]) == t for s, t in given.items() if s in info["fields"] and s in SYSTEMS)
-    if not same:
-        problems.append(f"{path}:{lineno}: the event here redefines the observation types ({label.strip()}); lfgnss "
-                        f"reads one set of types per file, so the epochs from here on are left out (split the file "
-                        f"here to read them)")
-    return not same
+        return None if given[""] == list(info["fields"]) else given[""]
+    # a system the header lacks (or lfgnss does not read) shifts no column of the others: each record line names
+    # its system, and records of a system the header lacks are skipped with a note anyway
+    known = {s: t for s, t in given.items() if s in info["fields"] and s in SYSTEMS}
+    if all(list(info["fields"][s]) == t for s, t in known.items()):
+        return None
+    return {**info["fields"], **known}
+
+
+def _in_header_layout(rec_sv: list[str], rec_text: list[str], fields, header_fields, version: float) -> list[str]:
+    """Record texts laid out in ``fields`` (types an event gave), rearranged into the header's layout (16
+    characters a value; a type the event dropped left blank), so one set of column indices reads every record."""
+    import pandas as pd
+
+    text = pd.Series(rec_text, dtype=object)
+    system = pd.Series(rec_sv, dtype=object).str[:1].str.replace(" ", "G")
+    out = text.copy()
+    for letter in (["G"] if version < 3 else list(header_fields)):
+        rows = np.ones(len(text), bool) if version < 3 else (system == letter).to_numpy()
+        if not rows.any():
+            continue
+        new, old = list(fields if version < 3 else fields[letter]), list(header_fields if version < 3 else
+                                                                         header_fields[letter])
+        sub = text[rows].str.ljust(16 * len(new))
+        blank = pd.Series(" " * 16, index=sub.index)
+        out[rows] = sum((sub.str[16 * new.index(t): 16 * new.index(t) + 16] if t in new else blank for t in old),
+                        pd.Series("", index=sub.index))
+    return out.tolist()
+
+
+def _lacking_types(codes: dict, header_fields, fields, version: float) -> str:
+    """The types lfgnss reads (pseudorange, C/N0, Doppler and RINEX 2's stand-in code) that redefined ``fields``
+    lack, as "C1C S1C of G, ..." ("" if none)."""
+    lacking = []
+    for system, (*columns, _, i_fallback, _) in codes.items():
+        old = header_fields if version < 3 else header_fields[system]
+        new = fields if version < 3 else fields[system]
+        gone = [old[i] for i in (*columns, i_fallback) if i >= 0 and old[i] not in new]
+        if gone:
+            lacking.append(" ".join(gone) + ("" if version < 3 else f" of {system}"))
+    return ", ".join(dict.fromkeys(lacking))
 
 
 def _numbers(texts: pd.Series) -> tuple[np.ndarray, np.ndarray]:

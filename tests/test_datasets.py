@@ -468,3 +468,10 @@ def test_split_axis_values_needs_only_times_and_labels(axis):
     values = datasets.split_axis_values(SimpleNamespace(time_gps_s=t, labelled=np.isfinite(truth).all(axis=1)), spec)
     expected = {"tow": [126641.7, 126642.7, 126643.7, 126644.7], "relative_s": [0, 1, 2, 3], "epoch": [0, -1, 1, 2]}
     np.testing.assert_allclose(values, expected[axis])
+
+
+def test_the_builtin_test_splits_run_to_the_end_and_say_so():
+    """The berlin-pp and static test splits end with the drive: their bounds printed as [180, 1000000000) (review)."""
+    assert datasets.split_bounds_words(datasets.get("berlin-pp"), "test") == "test = [180, inf)"
+    assert (datasets.split_bounds_words(datasets.get("hk-tst-static-2020"), "val+test")
+            == "val = [500, 600), test = [600, inf)")

@@ -64,21 +64,98 @@ def test_rinex2_cycle_slip_records_are_skipped_whole(tmp_path):
     assert len(obs.time_gps_s) == 3 and not notes, notes
 
 
-def test_observation_types_redefined_by_an_event_end_the_reading_there(tmp_path):
-    """A flag-4 event may bring a new '# / TYPES OF OBSERV': columns after it may differ, and read with the header's
-    types a Doppler became a C/N0 of 464 dB-Hz. The epochs before it are kept, the rest left out with a note."""
-    header, epochs = _v2_epochs(3)
-    event = ["                            4  1", "     4    C1    L1    D1    S1".ljust(60) + "# / TYPES OF OBSERV"]
-    path = tmp_path / "t.obs"
-    path.write_text("\n".join(header + epochs[0] + event + epochs[1] + epochs[2]) + "\n")
-    obs, notes = _load(path)
-    assert len(obs.time_gps_s) == 1
-    assert any(f"{path}:{len(header) + len(epochs[0]) + 1}: the event here redefines the observation types "
-               f"(# / TYPES OF OBSERV)" in n and "left out" in n for n in notes), notes
+def _v2_in_types(epoch: list[str], types: list[str]) -> list[str]:
+    """A bundled-drive epoch (C1 L1 S1 D1, one line a record) with each record's values laid out in ``types``
+    (a type the drive lacks left blank)."""
+    header_types = ["C1", "L1", "S1", "D1"]
+    n_lines, n_id_lines = (len(types) + 4) // 5, (int(epoch[0][29:32]) + 11) // 12
+    out = epoch[:n_id_lines]
+    for record in epoch[n_id_lines:]:
+        values = [record.ljust(80)[16 * k: 16 * k + 16] for k in range(4)]
+        fields = "".join(values[header_types.index(t)] if t in header_types else " " * 16 for t in types)
+        out += [fields[80 * k: 80 * k + 80].rstrip() for k in range(n_lines)]
+    return out
 
-    obs, notes = _v3_with_event(tmp_path / "t.rnx", {"G": "C1C D1C S1C"}, [
-        "> 2020 06 03 03 02  9.5000000  4  1", "G    3 C1C S1C D1C".ljust(60) + "SYS / # / OBS TYPES"])
-    assert len(obs.time_gps_s) == 1 and any("SYS / # / OBS TYPES" in n for n in notes), notes
+
+@pytest.mark.parametrize("types", [["C1", "L1", "D1", "S1"], ["S1", "P2", "C1", "L2", "D1", "L1"]],
+                         ids=["reordered", "two-lines-a-record"])
+def test_observation_types_redefined_by_an_event_are_read_from_there(tmp_path, types):
+    """A flag-4 event may bring a new '# / TYPES OF OBSERV': the epochs after it are read in its layout (the reading
+    ended there, leaving them out; read with the header's types a Doppler had become a C/N0 of 464 dB-Hz)."""
+    header, epochs = _v2_epochs(3)
+    event = ["                            4  1", f"{len(types):6d}" + "".join(f"{t:>6s}" for t in types).ljust(54)
+             + "# / TYPES OF OBSERV"]
+    path = tmp_path / "t.obs"
+    path.write_text("\n".join(header + epochs[0] + event + _v2_in_types(epochs[1], types)
+                              + _v2_in_types(epochs[2], types)) + "\n")
+    obs, notes = _load(path)
+    plain = tmp_path / "p.obs"
+    plain.write_text("\n".join(header + epochs[0] + epochs[1] + epochs[2]) + "\n")
+    ref = load_obs(plain, cache=False)
+    assert not notes and len(obs.time_gps_s) == 3, notes
+    for name in ("pr_m", "cn0_dbhz", "doppler_hz"):
+        np.testing.assert_array_equal(getattr(obs, name), getattr(ref, name))
+
+
+def test_types_an_event_drops_are_missing_from_there_with_a_note(tmp_path):
+    header, epochs = _v2_epochs(3)
+    types = ["C1", "L1", "D1"]
+    event = ["                            4  1", "     3    C1    L1    D1".ljust(60) + "# / TYPES OF OBSERV"]
+    path = tmp_path / "d.obs"
+    path.write_text("\n".join(header + epochs[0] + event + _v2_in_types(epochs[1], types)
+                              + _v2_in_types(epochs[2], types)) + "\n")
+    obs, notes = _load(path)
+    assert len(obs.time_gps_s) == 3
+    assert np.isfinite(obs.cn0_dbhz[0]).any() and np.isnan(obs.cn0_dbhz[1:]).all()
+    assert np.isfinite(obs.pr_m[1:]).any() and np.isfinite(obs.doppler_hz[1:]).any()
+    assert any(f"{path}:{len(header) + len(epochs[0]) + 1}: the event here redefines the observation types without "
+               f"S1: read as missing from here on" in n for n in notes), notes
+
+
+def _v3_redefined(path, event_types: str | None, count: int | None = None):
+    """A 3-epoch RINEX 3 file of G01-G03 with types C1C D1C S1C, an event before its second epoch giving
+    ``event_types`` (declaring ``count`` of them), the later epochs written in those types: C1C 2e7 + 1000 s,
+    D1C 200, S1C 40, C1W 9 m more than C1C."""
+    head = ["     3.04           OBSERVATION DATA    G                   RINEX VERSION / TYPE",
+            "G    3 C1C D1C S1C".ljust(60) + "SYS / # / OBS TYPES",
+            "  2020     6     3     3     2    9.0000000     GPS".ljust(60) + "TIME OF FIRST OBS",
+            " " * 60 + "END OF HEADER"]
+    body = []
+    for e in range(3):
+        body.append(f"> 2020 06 03 03 02{9.0 + e:11.7f}  0  3")
+        if e == 1 and event_types is not None:
+            n = len(event_types.split()) if count is None else count
+            body[-1:-1] = ["> 2020 06 03 03 02  9.5000000  4  1", f"G  {n:3d} {event_types}".ljust(60)
+                           + "SYS / # / OBS TYPES"]
+        names = (event_types if e and event_types is not None else "C1C D1C S1C").split()
+        for s in (1, 2, 3):
+            value = {"C1C": 2e7 + 1000 * s, "C1W": 2e7 + 1000 * s + 9, "D1C": 100.0 + 100 * (e > 0),
+                     "S1C": 45.0 - 5 * (e > 0)}
+            body.append(f"G{s:02d}" + "".join(f"{value[n]:14.3f}  " for n in names).rstrip())
+    path.write_text("\n".join(head + body) + "\n")
+    return _load(path)
+
+
+def test_rinex3_types_redefined_by_an_event_are_read_from_there(tmp_path):
+    obs, notes = _v3_redefined(tmp_path / "r.rnx", "S1C C1W C1C D1C")
+    assert not notes and len(obs.time_gps_s) == 3, notes
+    np.testing.assert_array_equal(obs.pr_m, np.tile(2e7 + 1000 * np.arange(1, 4), (3, 1)))
+    np.testing.assert_array_equal(obs.doppler_hz[:, 0], [100, 200, 200])
+    np.testing.assert_array_equal(obs.cn0_dbhz[:, 0], [45, 40, 40])
+    obs, notes = _v3_redefined(tmp_path / "d.rnx", "C1C D1C")
+    assert len(obs.time_gps_s) == 3 and np.isnan(obs.cn0_dbhz[1:]).all()
+    assert any("redefines the observation types without S1C of G: read as missing" in n for n in notes), notes
+    # the header's code gone: no pseudorange of G from there (C1W, another signal, does not stand in)
+    obs, notes = _v3_redefined(tmp_path / "w.rnx", "C1W D1C S1C")
+    assert obs.codes == {"G": "C1C"} and np.isfinite(obs.pr_m[0]).all() and np.isnan(obs.pr_m[1:]).all()
+    assert any("without C1C of G: read as missing" in n for n in notes), notes
+
+
+def test_types_an_event_gives_unreadably_end_the_reading_there(tmp_path):
+    obs, notes = _v3_redefined(tmp_path / "u.rnx", "C1C S1C D1C", count=4)
+    assert len(obs.time_gps_s) == 1
+    assert any(f"{tmp_path / 'u.rnx'}:9: the event here redefines the observation types (SYS / # / OBS TYPES) in "
+               f"lines that cannot be read" in n and "left out" in n for n in notes), notes
 
 
 def test_the_headers_own_types_repeated_by_an_event_change_nothing(tmp_path):

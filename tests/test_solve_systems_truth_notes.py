@@ -367,7 +367,7 @@ def test_a_model_trained_on_the_drive_it_scores_is_named_and_its_figures_say_in_
     assert main(["--out", str(tmp_path), "--quiet"]) == 0
     seen = [line for line in capsys.readouterr().err.splitlines() if "in-sample on those epochs" in line]
     assert seen == ["warning: the bundled model 'default': trained on berlin-pp train (its split as registered now): "
-                    "724 of Berlin_Potsdamer_Platz.obs.gz's 1372 scored epochs; selected on berlin-pp val (its split "
+                    "724 of Berlin_Potsdamer_Platz.obs.gz's 1372 scored epochs; validated on berlin-pp val (its split "
                     "as registered now): 148 of Berlin_Potsdamer_Platz.obs.gz's 1372 scored epochs: the accuracy table "
                     "is in-sample on those epochs"]
     assert main(["--no-model", "--out", str(tmp_path / "plain"), "--quiet", "--no-plots"]) == 0
@@ -382,4 +382,4 @@ def test_a_model_trained_on_the_drive_it_scores_is_named_and_its_figures_say_in_
     err = capsys.readouterr().err
     assert ("warning: the bundled model 'hk-tst-2019': fine-tuned from the bundled model 'transfer-base', which was "
             "trained on berlin-pp train (its split as registered now): 724 of Berlin_Potsdamer_Platz.obs.gz's 1372 "
-            "scored epochs, and selected on berlin-pp val") in err and err.count("fine-tuned from") == 1, err
+            "scored epochs, and validated on berlin-pp val") in err and err.count("fine-tuned from") == 1, err

@@ -303,6 +303,7 @@ def test_fine_tuning_starts_from_a_model_file(config, full_run, tmp_path, capsys
     assert record["datasets"] == ["synthetic"] and record["data_fingerprints"] == start.metadata["data_fingerprints"]
     assert record["data_spans"] == start.metadata["data_spans"] and record["source_files"] == {"synthetic": {}}
     assert record["epoch"] == start.metadata["epoch"] and record["init_model"] is None
+    assert record["select"] == start.metadata["config"]["train"]["select"]
     assert _trained_on(tuned) == "synthetic (train), fine-tuned from synthetic (train)"
     assert load_model(out / "model.npz").metadata["init_model"] is None
 

@@ -29,6 +29,13 @@ def test_a_piece_holding_test_epochs_at_the_same_place_is_named():
     meta = {"data_spans": [_span("a", "train", 0.0, 999.0), _span("a", "val", 1005.0, 1100.0)]}
     lines = seen_test_epochs(meta, "b", test_t, _still(10))
     assert lines == ["selected on a/val (a val, GPS 1005.0-1100.0 s): 5 of b's 10 test epochs"]
+    # train.select = "last" exports the last epoch: validation chose nothing (review: it was "selected on" too)
+    last = {**meta, "config": {"train": {"select": "last"}}}
+    assert seen_test_epochs(last, "b", test_t, _still(10)) == [
+        "validated on a/val (a val, GPS 1005.0-1100.0 s): 5 of b's 10 test epochs"]
+    started = {"init_model": {**meta, "path": "start.npz", "select": "last"}}   # a train.init record says its own
+    assert seen_test_epochs(started, "b", test_t, _still(10)) == [
+        "fine-tuned from start.npz, which was validated on a/val (a val, GPS 1005.0-1100.0 s): 5 of b's 10 test epochs"]
     far = BERLIN + [0.0, 0.0, 2 * SAME_PLACE_M]                 # another receiver elsewhere at the same time
     assert seen_test_epochs(meta, "b", test_t, _still(10, far)) == []
     no_truth = {"data_spans": [{**_span("a", "train", 1000.0, 1001.0), "place_ecef_m": [], "radius_m": None}]}
