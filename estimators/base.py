@@ -66,6 +66,18 @@ class Solution:
         if unknown:
             raise ValueError(f"Solution of {self.backend!r}: unknown status code(s) {unknown} (estimators.STATUS_NAMES: "
                              f"{STATUS_NAMES})")
+        dtype = np.asarray(self.time_gps_s).dtype
+        if dtype.kind == "f" and dtype.itemsize < 8:    # float32 steps 128 s at 1.2e9 s: every tag the same minute
+            raise ValueError(f"Solution of {self.backend!r}: time_gps_s must be float64 GPS seconds, got {dtype} "
+                             f"(.astype(float) before rounding, from the source)")
+        n_used = np.asarray(self.n_used)
+        if n_used.dtype.kind not in "iub":
+            flat = n_used.ravel().astype(float) if n_used.dtype.kind == "f" else None
+            odd = None if flat is None else flat[flat != np.round(flat)]      # NaN too
+            if odd is None or odd.size:
+                got = n_used.dtype if odd is None else f"{odd[0]} (of {odd.size} such values)"
+                raise ValueError(f"Solution of {self.backend!r}: n_used must be whole numbers of satellites (0 where "
+                                 f"none was used), got {got}")
 
     @property
     def available(self) -> np.ndarray:

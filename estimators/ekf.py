@@ -532,6 +532,11 @@ class PlainEkf(LfgnssEkf):
         super().__init__(noise=HeuristicNoise() if noise is None else noise, config=config, name=name,
                          use_compensation=False, smooth=smooth, smooth_lag_s=smooth_lag_s, progress=progress,
                          inflate_cov=inflate_cov)
+        if isinstance(getattr(self.noise, "metadata", None), dict):
+            # its R in its own filter under the baseline's name: a learned run labelled plain in tables and files
+            raise TypeError(f"PlainEkf: noise {describe_noise(self.noise)} is a learned model; the plain EKF is the "
+                            f"baseline with hand-set noise (HeuristicNoise, FixedNoise or your own function): use "
+                            f"create('ekf', noise=...) for a learned model")
 
 
 __all__ = ["config_of", "config_changes", "smoothed_name", "LfgnssEkf", "create_lfgnss_ekf", "PlainEkf",

@@ -45,7 +45,9 @@ last one in the graph by one CV factor over the whole interval, the exact margin
 so an outage is a time gap to the smoother. A long chain of short CV factors with nothing else on it made
 gtsam's Cholesky give up (IndeterminantLinearSystem after ~100-200 epochs, ~30 s at 5 Hz). After a time step longer
 than ``MAX_GAP_S`` the epochs get no position (STATUS_NONE) until one with a coarse fix, where a new graph starts,
-as the EKF restarts (the batch graph needs no restart: it sees the fix after the gap).
+as the EKF restarts (the batch graph needs no restart: it sees the fix after the gap). An update that gtsam's Cholesky
+still finds indeterminate (weak epochs in a row, e.g. two satellites of one constellation at the start) starts the graph
+anew at that epoch from its prediction, with a warning, rather than end the run.
 
 Covariances: with ``covariances=True`` the position covariance is the gtsam marginal
 (``Marginals`` in batch, ``marginalCovariance`` in fixed-lag, where coasted epochs propagate the joint
@@ -812,6 +814,7 @@ class LfgnssFgo:
         joint = None                                # marginal covariance blocks of X(last), V(last)
         fixed = np.all(np.isfinite(seq.coarse_ecef_m), axis=1)
         gap_open, restart = False, False            # after a long gap: no position until a coarse fix, then anew
+        restarted: list[int] = []                   # epochs where a numerically singular update started anew
         after_gap = np.zeros(m, bool)
         for k in epoch_range(k0, n_t, self.progress, self.name):
             i = k - k0
@@ -841,12 +844,10 @@ class LfgnssFgo:
                         self._warn_no_marginals(seq, err)
                         cov = None
                 continue
-            graph = gtsam.NonlinearFactorGraph()
-            values = gtsam.Values()
-            if k == k0 or restart:
+            prior = k == k0 or restart
+            if prior:
                 x_guess = seq.coarse_ecef_m[k]
                 v_guess = v0[0] if k == k0 else (dv.vel_ecef_m_s[k] if dv is not None and dv.ok[k] else np.zeros(3))
-                self._priors(k, x_guess, v_guess, graph)
                 restart = False
             else:
                 dt = float(t[k] - t[last])
@@ -857,17 +858,19 @@ class LfgnssFgo:
                     # the epoch: start from the coarse fix, not from a prediction maybe 100+ m off, which
                     # would put every satellite deep in the robust kernel's tail.
                     x_guess = seq.coarse_ecef_m[k]
-                graph.add(motion.factor(last, k, dt))
-            values.insertPoint3(X(k), x_guess)
-            values.insertPoint3(V(k), v_guess)
-            n_used[i] = self._epoch(k, seq, z_m, sigma_m, x_guess, graph, values,
-                                    loose_sigma_m=self.prior_pos_sigma_m if k > k0 and ranges[k] < 3 else None)
-            self._velocity_prior(k, dv, still, graph)
-            stamps = {key: float(t[k]) for key in values.keys()}
-            smoother.update(graph, values, stamps)
-            for _ in range(self.fixed_lag_iterations - 1):
-                smoother.update()
-            est = smoother.calculateEstimate()
+            update = (seq, k, k0, last, t, x_guess, v_guess, z_m, sigma_m, motion, dv, still, ranges)
+            try:
+                est, n_used[i] = self._fixed_lag_update(smoother, *update, prior)
+            except RuntimeError as err:
+                if (prior or symbol_epoch(str(err), n_sys) is None or "linear system" not in str(err)
+                        or self._failure(seq, sigma_m ** 2, k, "") is not None):
+                    raise                                   # solve names the epoch and the input behind it
+                # gtsam's undamped Cholesky can find a chain of weak epochs (few satellites, each constellation's
+                # clock in seconds beside positions in metres) indeterminate with inputs in order; the update may
+                # have half entered the smoother, so a new one starts at this epoch from its prediction, as after a gap
+                smoother = gtsam.IncrementalFixedLagSmoother(self.lag_s, isam)
+                est, n_used[i] = self._fixed_lag_update(smoother, *update, True)
+                restarted.append(k)
             pos[i] = est.atPoint3(X(k))
             vel[i] = est.atPoint3(V(k))
             if est.exists(clock_key(k, 0, n_sys)):
@@ -881,7 +884,35 @@ class LfgnssFgo:
             last, joint = k, None
         info["coasted_outside_graph"] = int(np.count_nonzero(blind[k0 + 1:] & ~after_gap[1:]))
         info["after_gap"] = after_gap
+        info["restarted"] = restarted
+        if restarted:
+            warnings.warn(f"{type(self).__name__}: the fixed-lag update of {seq.name!r} was numerically singular at "
+                          f"{len(restarted)} epoch(s) (first: epoch {restarted[0]}, {int(ranges[restarted[0]])} "
+                          f"pseudorange(s) on position after the clocks); the graph started anew there from its "
+                          f"prediction (prior_pos_sigma_m, prior_vel_sigma_m_s), as after a gap", UserWarning,
+                          stacklevel=caller_stacklevel())
         return pos, vel, clk, n_used, cov
+
+    def _fixed_lag_update(self, smoother, seq, k, k0, last, t, x_guess, v_guess, z_m, sigma_m, motion, dv, still,
+                          ranges, prior: bool):
+        """Put epoch k in the fixed-lag ``smoother``: its pseudoranges, Doppler velocity and, with ``prior``, priors
+        at ``x_guess`` [m], ``v_guess`` [m/s] (else a CV factor from epoch ``last``); (the estimate, satellites used)."""
+        graph = gtsam.NonlinearFactorGraph()
+        values = gtsam.Values()
+        if prior:
+            self._priors(k, x_guess, v_guess, graph)
+        else:
+            graph.add(motion.factor(last, k, float(t[k] - t[last])))
+        values.insertPoint3(X(k), x_guess)
+        values.insertPoint3(V(k), v_guess)
+        n_used = self._epoch(k, seq, z_m, sigma_m, x_guess, graph, values,
+                             loose_sigma_m=self.prior_pos_sigma_m if k > k0 and ranges[k] < 3 else None)
+        self._velocity_prior(k, dv, still, graph)
+        stamps = {key: float(t[k]) for key in values.keys()}
+        smoother.update(graph, values, stamps)
+        for _ in range(self.fixed_lag_iterations - 1):
+            smoother.update()
+        return smoother.calculateEstimate(), n_used
 
     @staticmethod
     def _clock_only(k: int, seq: Sequence, z_m: np.ndarray, pos: np.ndarray) -> float:

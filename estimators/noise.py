@@ -227,8 +227,9 @@ def checked_noise(owner: str, sequence_name: str, usable: np.ndarray, r_m2: obje
                   noise: object = None) -> tuple[np.ndarray, np.ndarray]:
     """A noise model's ``(r_m2, vc_m)`` as float arrays shaped like ``usable``; ValueError naming the first bad epoch.
 
-    R must be finite and > 0 [m^2] and v^c finite [m] on the usable slots; other slots may hold anything. An R above
-    ``R_OFF_M2`` (1e30, say) switches the satellite off (``switched_on``): the estimators leave it out as if masked.
+    R must be > 0 [m^2] and v^c finite [m] on the usable slots; other slots may hold anything. An R above
+    ``R_OFF_M2`` (1e30 or inf, say) switches the satellite off (``switched_on``): the estimators leave it out as if
+    masked, whatever its v^c.
     Values that are not numbers are a TypeError naming ``owner`` and the model ``noise`` (``float_array``). Whether
     R's scale is plausible is ``warn_implausible_r``'s, which the estimators call once per run (``warn_noise``).
     """
@@ -237,8 +238,10 @@ def checked_noise(owner: str, sequence_name: str, usable: np.ndarray, r_m2: obje
     if r.shape != usable.shape or vc.shape != usable.shape:
         raise ValueError(f"{owner}: noise model gave shapes {r.shape}, {vc.shape} for sequence {sequence_name!r}, "
                          f"expected {usable.shape}")
-    for what, bad in (("non-positive or non-finite R", ~(np.isfinite(r) & (r > 0))),
-                      ("non-finite v^c", ~np.isfinite(vc))):
+    # +inf is above R_OFF_M2 like 1e30: the natural way to say "off"; v^c of a slot switched off is never used
+    off = r > R_OFF_M2
+    for what, bad in (("non-positive or NaN R (an R above R_OFF_M2 = 1e12 m^2, inf too, switches a satellite off)",
+                       ~(r > 0)), ("non-finite v^c", ~np.isfinite(vc) & ~off)):
         bad &= usable
         if bad.any():
             where = f" (first at epoch {int(np.argwhere(bad)[0, 0])})" if bad.ndim == 2 else ""

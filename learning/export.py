@@ -50,7 +50,7 @@ from typing import Iterable
 
 import numpy as np
 
-from lfgnss.errors import InputError, closest_name, shortened
+from lfgnss.errors import InputError, closest_name, print_stdout, shortened
 from lfgnss.features import AVAILABLE_FEATURES
 from lfgnss.help_text import PlainHelp
 from lfgnss.paths import (MODEL_PREFIX, bundled_models, file_hash, file_hashes, may_name_a_bundled_model,
@@ -1213,9 +1213,9 @@ def main(argv: list[str] | None = None) -> int:
                                             f"(python -m learning.export {args.show} model.npz)")
             model = load_model(args.show)
             if args.config:
-                print(config_text(model), end="")
+                print_stdout(config_text(model), end="")
             else:
-                print("\n".join(describe_model(model)))
+                print_stdout("\n".join(describe_model(model)))
             return 0
         if not str(args.out).endswith(".npz"):
             raise InputError(args.out, "give the model file a .npz name (numpy would add it)")

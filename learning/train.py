@@ -61,7 +61,7 @@ import numpy as np
 import torch
 
 from lfgnss.datasets import get, load_split, register_toml, split_parts
-from lfgnss.errors import INPUT_ERRORS, did_you_mean, one_line, shortened, warnings_on_one_line
+from lfgnss.errors import INPUT_ERRORS, did_you_mean, one_line, path_option, shortened, warnings_on_one_line
 from lfgnss.help_text import PlainHelp
 from lfgnss.paths import (check_output_folder, file_hash, file_hashes, may_name_a_bundled_model, names_something,
                           replace_atomically)
@@ -1367,7 +1367,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override a configuration key, e.g. --set train.epochs=5, --set threads=4 (CPU threads), "
                         "--set device=cuda (cpu, cuda, cuda:N or auto) (repeatable)")
-    p.add_argument("--out", help="run folder (default: runs/<config name>)")
+    p.add_argument("--out", type=path_option, help="run folder (default: runs/<config name>)")
     p.add_argument("--resume", action="store_true",
                    help="continue from OUT/last.pt with the run's own configuration (only --set train.epochs=N, "
                         "threads and device may change)")
@@ -1375,7 +1375,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="no progress bars (the per-epoch result lines are printed all the same; the bars are drawn "
                         "only where stderr is a terminal)")
     args = p.parse_args(argv)
-    out = args.out or str(Path("runs") / (Path(args.config).stem if args.config else "default"))
+    out = str(args.out or Path("runs") / (Path(args.config).stem if args.config else "default"))
     try:
         with warnings_on_one_line():
             config = load_config(args.config, args.overrides)

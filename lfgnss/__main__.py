@@ -32,8 +32,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"python -m lfgnss: error: unknown command {args[0]!r}; the commands: {every} (or python -m lfgnss "
               f"solve ..., train ...)", file=sys.stderr)
         return 2
-    print("lfgnss commands (python -m lfgnss COMMAND ... runs one too):\n"
-          + "".join(f"  python -m {m:<19}{text}\n" for m, text in COMMANDS.items()), end="")
+    from .errors import print_stdout
+
+    print_stdout("lfgnss commands (python -m lfgnss COMMAND ... runs one too):\n"
+                 + "".join(f"  python -m {m:<19}{text}\n" for m, text in COMMANDS.items()), end="")
     return 0
 
 

@@ -57,7 +57,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .constants import SYSTEMS, unknown_systems
-from .errors import InputError, UnknownNameError, did_you_mean
+from .errors import InputError, UnknownNameError, did_you_mean, print_stdout
 from .frames import NEAR_SURFACE_RADIUS_M, ecef_to_lla, lla_to_ecef
 from .help_text import PlainHelp
 from .paths import cache_file, file_digests, load_cached, names_something, shared_data_dir, store_cached
@@ -1248,7 +1248,7 @@ def main(argv: list[str] | None = None) -> int:
         for message in dict.fromkeys(str(w.message) for w in caught):
             print(f"warning: {message}", file=sys.stderr)
         if report:
-            print(report)
+            print_stdout(report)
         if unbuilt:
             print(f"error: dataset not built: {'; '.join(unbuilt)}", file=sys.stderr)
         if problems:                # what the training and benchmark commands would refuse

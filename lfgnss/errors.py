@@ -77,6 +77,15 @@ def stdout_gone() -> None:
     os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
 
 
+def print_stdout(text: str, end: str = "\n") -> None:
+    """Print ``text`` on stdout, flushed; where its reader went away (``| head``), nothing more goes there
+    (``stdout_gone``) and the command goes on, as if it had been read."""
+    try:
+        print(text, end=end, flush=True)
+    except BrokenPipeError:
+        stdout_gone()
+
+
 def cannot_write(err: OSError) -> str:
     """The reason an output could not be written, ``cannot write (REASON)``; its file is ``err.filename``."""
     return f"cannot write ({err.strerror or one_line(err)})"

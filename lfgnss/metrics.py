@@ -99,7 +99,14 @@ def accuracy_table(est_ecef_m: np.ndarray, truth_ecef_m: np.ndarray, available: 
         est_ecef_m = est_ecef_m.pos_ecef_m
     est = np.asarray(est_ecef_m, dtype=float)
     truth = np.asarray(truth_ecef_m, dtype=float)
+    for name, value, given in (("est_ecef_m", est, est_ecef_m), ("truth_ecef_m", truth, truth_ecef_m)):
+        if value.ndim != 2 or value.shape[1] != 3:     # one epoch as (3,), or None: not an xyz axis read as epochs
+            got = "is None" if given is None else f"has shape {value.shape}"
+            raise ValueError(f"accuracy_table: {name} {got}, expected (T, 3) ECEF metres (one epoch: (1, 3))")
     t = est.shape[0]
+    if truth.shape[0] != t:
+        raise ValueError(f"accuracy_table: est_ecef_m has {t} epochs and truth_ecef_m {truth.shape[0]}; they must be "
+                         f"the same epochs")
     avail = np.isfinite(est).all(axis=-1) if available is None else np.asarray(available, dtype=bool)
     if avail.shape != (t,):
         raise ValueError(f"accuracy_table: available has shape {avail.shape}, expected ({t},)")

@@ -24,6 +24,7 @@ import io
 import json
 import math
 import re
+import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, Mapping, Sequence
 from xml.sax.saxutils import escape
@@ -34,7 +35,7 @@ from estimators.base import (STATUS_COASTED, STATUS_NAMES, STATUS_NONE, STATUS_R
                              Solution)
 
 from . import __version__
-from .frames import check_near_surface, ecef_to_lla, lla_to_ecef
+from .frames import NEAR_SURFACE_RADIUS_M, check_near_surface, ecef_to_lla, lla_to_ecef
 from .metrics import enu_errors, enu_rotations
 from .paths import write_output
 from .time import GPS_EPOCH, SECONDS_PER_WEEK, gpst_stamp, leap_seconds, utc_to_gps_s
@@ -66,6 +67,30 @@ def _check_args(writer: str, path: object, solution: object, where: str = "path"
                         f"got {type(solution).__name__}")
     if not isinstance(path, (str, Path)) and not hasattr(path, "__fspath__"):
         raise TypeError(f"{call}: {where} must be a str or Path, got {type(path).__name__}")
+
+
+def _on_earth(solution: Solution) -> np.ndarray:
+    """(T,) bool: epochs whose position lies near the Earth's surface (``NEAR_SURFACE_RADIUS_M``), where latitude,
+    longitude and height mean something; a diverged estimate (the Earth's centre, 1e12 m) does not."""
+    with np.errstate(over="ignore"):                # 1e300 m: inf, outside too
+        r = np.linalg.norm(np.nan_to_num(np.asarray(solution.pos_ecef_m, float), nan=0.0), axis=1)
+    return (r >= NEAR_SURFACE_RADIUS_M[0]) & (r <= NEAR_SURFACE_RADIUS_M[1])
+
+
+def _placed(writer: str, path: Path, solution: Solution, stacklevel: int = 3) -> np.ndarray:
+    """(T,) bool: the epochs ``writer`` writes with a position (``has_position`` and ``_on_earth``), with one warning
+    naming the file for those left out: latitude 180 and a height of -6378137 m are no place to draw."""
+    ok = solution.has_position()
+    far = ok & ~_on_earth(solution)
+    if far.any():
+        k = int(np.argmax(far))
+        with np.errstate(over="ignore"):
+            r = float(np.linalg.norm(np.asarray(solution.pos_ecef_m, float)[k]))
+        warnings.warn(f"{writer} {path}: {int(far.sum())} epoch(s) of {solution.backend!r} have a position far from "
+                      f"the Earth's surface (first: epoch {k}, {r:.6g} m from its centre, outside "
+                      f"[{NEAR_SURFACE_RADIUS_M[0]:g}, {NEAR_SURFACE_RADIUS_M[1]:g}] m): written without one (a "
+                      f"diverged estimate?)", UserWarning, stacklevel=stacklevel)
+    return ok & ~far
 
 
 #: RTKLIB's names of the constellations in a .pos header's ``navi sys`` line.
@@ -141,7 +166,7 @@ def write_pos(path: str | Path, solution: Solution, *, time_format: str = "calen
     if time_format not in ("calendar", "tow"):
         raise ValueError(f"write_pos {path}: time_format must be 'calendar' or 'tow', got {time_format!r}")
     path = Path(path)
-    ok = solution.has_position()
+    ok = _placed("write_pos", path, solution)
     ms_all = _gpst_ms(solution.time_gps_s)
     ms = ms_all[ok]
     llh = ecef_to_lla(solution.pos_ecef_m[ok])
@@ -360,7 +385,7 @@ def _solution_columns(owner: str, solution: Solution, truth_ecef_m: np.ndarray |
     ok = solution.has_position()
     pos = np.where(ok[:, None], np.asarray(solution.pos_ecef_m, float), np.nan)
     ms = _gpst_ms(solution.time_gps_s)      # week and TOW from the milliseconds time_gpst shows: the same instant
-    llh = solution.geodetic()
+    llh = np.where(_on_earth(solution)[:, None], solution.geodetic(), np.nan)     # ECEF stays: what it estimated
     sd = solution.sd_enu_m()
     vel = solution.vel_enu_m_s()
     status = np.asarray(solution.status)
@@ -386,9 +411,9 @@ def _solution_columns(owner: str, solution: Solution, truth_ecef_m: np.ndarray |
 
 
 # ---------------------------------------------------------------- GeoJSON / KML
-def _track(solution: Solution) -> tuple[np.ndarray, np.ndarray]:
-    """Indices of epochs with a position and their (lon [deg], lat [deg], h [m]) rows."""
-    idx = np.flatnonzero(solution.has_position())
+def _track(writer: str, path: Path, solution: Solution) -> tuple[np.ndarray, np.ndarray]:
+    """Indices of epochs with a position (``_placed``) and their (lon [deg], lat [deg], h [m]) rows."""
+    idx = np.flatnonzero(_placed(writer, path, solution, stacklevel=4))
     llh = ecef_to_lla(solution.pos_ecef_m[idx]).reshape(-1, 3)
     return idx, np.column_stack([np.degrees(llh[:, 1]), np.degrees(llh[:, 0]), llh[:, 2]])
 
@@ -412,7 +437,7 @@ def write_geojson(path: str | Path, solution: Solution, *, points: bool = False)
     """
     _check_args("write_geojson", path, solution)
     path = Path(path)
-    idx, lonlath = _track(solution)
+    idx, lonlath = _track("write_geojson", path, solution)
     coords = [[round(float(a), 9), round(float(b), 9), round(float(c), 4)] for a, b, c in lonlath]
     lines, lone = _pieces(idx)
     features = []
@@ -454,7 +479,7 @@ def write_kml(path: str | Path, solution: Solution, *, points: bool = False) -> 
     """
     _check_args("write_kml", path, solution)
     path = Path(path)
-    idx, lonlath = _track(solution)
+    idx, lonlath = _track("write_kml", path, solution)
     rows = [f"{a:.9f},{b:.9f},{c:.4f}" for a, b, c in lonlath]
     lines, lone = _pieces(idx)
     name = escape(str(solution.backend))

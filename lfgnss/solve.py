@@ -19,7 +19,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .constants import SYSTEMS, unknown_systems
-from .errors import INPUT_ERRORS, InputError, LfgnssError, RinexError, cannot_write, one_line, stdout_gone
+from .errors import (INPUT_ERRORS, InputError, LfgnssError, RinexError, cannot_write, one_line, path_option,
+                     stdout_gone)
 from .help_text import PlainHelpWithDefaults
 from .observations import Observations
 from .paths import bundled_data_dir, bundled_models, default_model_path, make_output_folder, model_path
@@ -72,18 +73,18 @@ def build_parser() -> argparse.ArgumentParser:
     backends = estimators.available()
     p.add_argument("--backend", default="ekf", choices=backends, help="estimator plug-in, in any case",
                    type=lambda text: next((name for name in backends if name.lower() == text.lower()), text))
-    p.add_argument("--obs", type=Path, nargs="+",
+    p.add_argument("--obs", type=path_option, nargs="+",
                    help="RINEX observation file(s) of one receiver, e.g. hourly files, joined in time order (default: "
                         "the bundled Berlin sample); outputs are named after the first")
-    p.add_argument("--nav", type=Path, nargs="+",
+    p.add_argument("--nav", type=path_option, nargs="+",
                    help="RINEX navigation file(s) (default: the bundled sample's, with no --obs)")
-    p.add_argument("--model", type=Path, help="LF-GNSS model file, or a bundled model's name: "
+    p.add_argument("--model", type=path_option, help="LF-GNSS model file, or a bundled model's name: "
                    f"{', '.join(bundled_models())} (default: default, trained on all three benchmark datasets)")
     p.add_argument("--no-model", action="store_true", help="use the hand-set C/N0 noise model instead")
     p.add_argument("--systems", type=_systems, default=None,
                    help=f"constellations to use, letters of {''.join(SYSTEMS)}: GC, \"G C\" or G,C "
                         "(default: all present)")
-    p.add_argument("--truth", type=Path, help="ground-truth file, for an accuracy table and error plots")
+    p.add_argument("--truth", type=path_option, help="ground-truth file, for an accuracy table and error plots")
     p.add_argument("--truth-format", type=str.lower, default=None, choices=tuple(TRUTH_READERS),
                    help="format of the --truth file, in any case (default: urbannav; with no --truth and no --obs, "
                         "the bundled sample's smartloc truth). Rows of " + "; ".join(
@@ -113,7 +114,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--formal-sd", action="store_true",
                    help="ekf, plain-ekf, fgo --marginals: write the formal sds, not those inflated by the pseudorange "
                         "residuals (docs/sd_consistency.md)")
-    p.add_argument("--out", type=Path, default=Path("lfgnss-out"), help="output folder")
+    p.add_argument("--out", type=path_option, default=Path("lfgnss-out"), help="output folder")
     p.add_argument("--points", action="store_true",
                    help="also write each epoch as a point in the GeoJSON and KML, with its time (UTC), status and "
                         "satellites used (Google Earth's time slider reads them)")
@@ -231,6 +232,9 @@ def run(args) -> int:
 
 def _check_options(args) -> None:
     """ValueError for options that do not apply or contradict each other, before any file is read."""
+    if args.smooth_lag is not None and args.backend not in SMOOTHABLE_BACKENDS:
+        raise ValueError(f"--smooth-lag applies to --backend {' and '.join(SMOOTHABLE_BACKENDS)} with --smooth, not "
+                         f"{args.backend}" + (" (its fixed-lag mode: --mode fixed-lag)" if args.backend == "fgo" else ""))
     if args.smooth_lag is not None and not args.smooth:
         raise ValueError(f"--smooth-lag needs --smooth (--smooth --smooth-lag {args.smooth_lag:g})")
     if args.smooth_lag is not None and args.smooth_lag < 0:

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from . import datasets
-from .errors import path_option, run_command
+from .errors import path_option, print_stdout, run_command
 from .help_text import PlainHelp
 from .outputs import save_figure
 from .paths import check_output_folder
@@ -132,8 +132,8 @@ def _summarise(args: argparse.Namespace) -> int:
         rows += feature_statistics(seq)
         written += plot_features(seq, args.out, f"{dataset_id}-")
     if rows:
-        print(pd.DataFrame(rows).to_string(index=False, float_format=lambda v: f"{v:.1f}"))
-    print(f"plots: {', '.join(str(w) for w in written)}" if written else "no dataset found (the benchmark data are "
+        print_stdout(pd.DataFrame(rows).to_string(index=False, float_format=lambda v: f"{v:.1f}"))
+    print_stdout(f"plots: {', '.join(str(w) for w in written)}" if written else "no dataset found (the benchmark data are "
           "read from $LFGNSS_SHARED_DATA, else ../shared/data; --register FILE.toml adds one of your own)")
     return 0
 

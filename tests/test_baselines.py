@@ -42,11 +42,26 @@ def _bad_noise(kind):
 
 
 @pytest.mark.parametrize("backend", ["ekf", "fgo", "wls-weighted"])
-@pytest.mark.parametrize("kind, message", [("nan", "non-positive or non-finite R"),
-                                           ("negative", "non-positive or non-finite R"), ("shape", "shapes")])
+@pytest.mark.parametrize("kind, message", [("nan", "non-positive or NaN R"),
+                                           ("negative", "non-positive or NaN R"), ("shape", "shapes")])
 def test_a_bad_noise_model_is_named_by_every_back_end(seq, backend, kind, message):
     with pytest.raises(ValueError, match=message):
         estimators.create(backend, noise=_bad_noise(kind)).solve(seq)
+
+
+@pytest.mark.parametrize("backend", ["ekf", "fgo", "wls-weighted"])
+def test_an_infinite_r_switches_a_satellite_off_as_a_huge_one_does(seq, backend):
+    """Review: R = inf was refused as 'non-finite', though an R above R_OFF_M2 (1e30, say) switches a satellite off."""
+    def noise(r_off, vc_off):
+        def model(s):
+            r, vc = np.full(s.mask.shape, 25.0), np.zeros(s.mask.shape)
+            r[:, 0], vc[:, 0] = r_off, vc_off
+            return r, vc
+        return model
+
+    off = estimators.create(backend, noise=noise(np.inf, np.nan)).solve(seq)
+    huge = estimators.create(backend, noise=noise(1e30, 0.0)).solve(seq)
+    np.testing.assert_array_equal(off.pos_ecef_m, huge.pos_ecef_m)
 
 
 def test_least_squares_without_redundancy_keeps_a_plausible_covariance(seq):

@@ -616,3 +616,24 @@ def test_a_weak_stretch_is_not_pulled_to_the_coarse_track_by_its_conditioning_pr
         err = np.linalg.norm(sol.pos_ecef_m[a:b] - seq.truth_ecef_m[a:b], axis=1)
         rms[n_per] = float(np.sqrt(np.mean(err ** 2)))
     assert rms[0] < 5.0 and rms[1] <= rms[0] + 0.5, rms
+
+
+def test_a_fixed_lag_start_on_weak_epochs_starts_anew_instead_of_failing():
+    """Review: 2 GPS satellites in the first three epochs stopped the whole fixed-lag run with 'numerically singular'
+    (blaming R), where the batch graph and the EKF solve every epoch: gtsam's undamped Cholesky on a chain of weak
+    epochs. The graph now starts anew at such an epoch, from its prediction, with a warning."""
+    clean = simulate_sequence(60, dt_s=0.2, seed=5)
+    mask = clean.mask.copy()
+    for k in range(3):
+        keep = np.flatnonzero(mask[k] & (clean.system_index[k] == 0))[:2]
+        mask[k] = False
+        mask[k, keep] = True
+    seq = replace(clean, mask=mask, prr_mask=clean.prr_mask & mask)
+    with pytest.warns(UserWarning, match=r"fixed-lag update of 'synthetic' was numerically singular at 2 epoch\(s\) "
+                                         r"\(first: epoch 1, 1 pseudorange\(s\) on position after the clocks\); the "
+                                         r"graph started anew there"):
+        sol = LfgnssFgo(mode="fixed-lag", covariances=True).solve(seq)
+    assert np.all(sol.status == STATUS_UPDATED) and np.isfinite(sol.pos_ecef_m).all()
+    assert sol.info["restarted"] == [1, 2] and np.isfinite(sol.cov_ecef_m2).all()
+    batch = LfgnssFgo().solve(seq)
+    assert _rmse_3d(sol, seq, slice(10, None)) < 2 * _rmse_3d(batch, seq, slice(10, None)) + 1.0

@@ -290,11 +290,15 @@ def test_latitude_longitude_for_an_ecef_truth_or_reference_is_refused_by_the_sol
     ("clock_m", np.zeros(4), r"clock_m has shape \(4,\), expected \(5\)"),
     ("vel_ecef_m_s", np.zeros((5, 2)), r"vel_ecef_m_s has shape \(5, 2\), expected \(5, 3\)"),
     ("status", np.full(5, 7), r"unknown status code\(s\) \[7\]"),
+    # review: float32 times wrote every line of a .pos at one minute; a NaN n_used as -9223372036854775808 satellites
+    ("time_gps_s", (1.2e9 + np.arange(5.0)).astype(np.float32), "time_gps_s must be float64 GPS seconds, got float32"),
+    ("n_used", np.array([4.0, np.nan, 5.0, 6.0, 0.5]), r"n_used must be whole numbers .*, got nan \(of 2 such values\)"),
 ])
 def test_a_solution_of_the_wrong_shape_is_refused_when_made(field, value, message):
     parts = dict(backend="mine", time_gps_s=np.arange(5.0), pos_ecef_m=np.zeros((5, 3)), cov_ecef_m2=np.zeros((5, 3, 3)),
                  clock_m=np.zeros(5), n_used=np.zeros(5, int), status=np.ones(5, int))
     estimators.Solution(**parts)
+    estimators.Solution(**(parts | {"n_used": np.full(5, 4.0)}))        # whole numbers as floats stand
     with pytest.raises(ValueError, match=r"^Solution of 'mine': " + message):
         estimators.Solution(**(parts | {field: value}))
 

@@ -73,6 +73,20 @@ def test_accuracy_table_default_available_and_empty():
         accuracy_table(est, truth, np.ones(3, bool))
 
 
+@pytest.mark.parametrize("est, truth, message", [
+    ("one", "one", r"est_ecef_m has shape \(3,\), expected \(T, 3\) ECEF metres \(one epoch: \(1, 3\)\)"),
+    ("all", None, r"truth_ecef_m is None, expected \(T, 3\)"),
+    ("all", "half", r"est_ecef_m has 4 epochs and truth_ecef_m 2; they must be the same epochs"),
+])
+def test_accuracy_table_says_which_array_is_misshapen(est, truth, message):
+    """Review: one epoch as (3,) arrays was 'available has shape (), expected (3,)' (its xyz read as epochs), and a
+    truth of None 'cannot reshape array of size 1 into shape (3)'."""
+    track = _truth_track(4)
+    pick = {"one": track[0], "all": track, "half": track[:2], None: None}
+    with pytest.raises(ValueError, match=r"^accuracy_table: " + message):
+        accuracy_table(pick[est] + 1.0, pick[truth])
+
+
 def test_tables_format_rows():
     truth = _truth_track(10)
     est = truth + 2.0

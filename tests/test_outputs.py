@@ -392,3 +392,31 @@ def test_plot_solution(tmp_path):
         assert f.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and f.stat().st_size > 5000
     no_truth = plot_solution(tmp_path / "figs2", sol, prefix="ekf_")
     assert [f.name for f in no_truth] == ["ekf_track.png", "ekf_quality.png"]
+
+
+def test_a_position_far_from_the_earth_is_written_without_one(tmp_path):
+    """Review: a diverged estimate at the Earth's centre was written as latitude 180, height -6378137 m (in the .pos,
+    the GeoJSON, against RFC 7946's [-90, 90], and the KML), and one at 1e12 m broke the .pos columns."""
+    from dataclasses import replace
+
+    from lfgnss.outputs import read_pos, write_csv, write_geojson, write_kml, write_pos
+
+    sol, _ = _solution()
+    pos = sol.pos_ecef_m.copy()
+    pos[3], pos[7] = 0.0, 1e12
+    far = replace(sol, pos_ecef_m=pos)
+    for writer, name in ((write_pos, "a.pos"), (write_geojson, "a.geojson"), (write_kml, "a.kml")):
+        with pytest.warns(UserWarning, match=rf"{writer.__name__} {tmp_path / name}: 2 epoch\(s\) of 'ekf' have a "
+                                             r"position far from the Earth's surface \(first: epoch 3, 0 m from its "
+                                             r"centre, .*written without one"):
+            writer(tmp_path / name, far)
+    keep = sol.has_position()
+    keep[[3, 7]] = False
+    np.testing.assert_allclose(read_pos(tmp_path / "a.pos").pos_ecef_m, sol.pos_ecef_m[keep], atol=1e-3)
+    geometries = [f["geometry"] for f in json.loads((tmp_path / "a.geojson").read_text())["features"]]
+    lats = [c[1] for g in geometries for c in (g["coordinates"] if g["type"] in ("LineString", "MultiPoint")
+                                               else [c for line in g["coordinates"] for c in line])]
+    assert len(lats) == keep.sum() and all(52 < lat < 53 for lat in lats)
+    write_csv(tmp_path / "a.csv", far)                      # the estimate stays in ECEF; no geodetic coordinates
+    rows = list(csv.DictReader((tmp_path / "a.csv").open()))
+    assert rows[3]["x_m"] == "0.0000" and rows[3]["lat_deg"] == "" and rows[4]["lat_deg"] != ""

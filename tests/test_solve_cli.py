@@ -19,6 +19,9 @@ from lfgnss.solve import DEFAULT_MODEL, SAMPLE_NAV, SAMPLE_OBS, SAMPLE_TRUTH, ma
     (["--model", "m.npz", "--no-model"], "--model and --no-model contradict each other"),
     (["--backend", "ekf", "--mode", "fixed-lag"], "--mode applies to --backend fgo, not ekf"),
     (["--smooth-lag", "5"], "--smooth-lag needs --smooth (--smooth --smooth-lag 5)"),
+    # review: it advised --smooth, which fgo then refuses
+    (["--backend", "fgo", "--smooth-lag", "2"],
+     "--smooth-lag applies to --backend ekf and plain-ekf with --smooth, not fgo (its fixed-lag mode: --mode fixed-lag)"),
     (["--smooth", "--smooth-lag", "-1"], "--smooth-lag must be a lag >= 0 seconds, got -1"),
     (["--backend", "wls", "--formal-sd"],
      "--formal-sd applies to --backend ekf and plain-ekf and to fgo with --marginals, not wls (whose sds are not"),
@@ -36,6 +39,17 @@ def test_misused_option_is_one_line_before_any_work(tmp_path, capsys, extra, mes
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and message in err, err
     assert not any(out.glob("*.csv"))
+
+
+@pytest.mark.parametrize("option", ["--out", "--obs", "--truth", "--model"])
+def test_an_empty_path_option_is_refused(tmp_path, capsys, monkeypatch, option):
+    """Review: --out "" (an unset shell variable) wrote the run's files into the current folder."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as stopped:
+        main([option, "", "--no-plots", "--quiet"])
+    assert stopped.value.code == 2
+    assert f"argument {option}: needs a path, got an empty string" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())
 
 
 @pytest.mark.parametrize("make, message", [
@@ -255,6 +269,19 @@ def test_stdout_closed_early_keeps_the_outputs_and_exits_0(tmp_path):
     assert proc.wait(timeout=120) == 0
     assert proc.stderr.read() == ""
     assert sorted(p.suffix for p in tmp_path.iterdir()) == [".csv", ".geojson", ".kml", ".pos"]
+
+
+@pytest.mark.parametrize("command", [["learning.export", "--show", "berlin-pp"], ["lfgnss"]])
+def test_other_commands_whose_reader_went_away_exit_0(command):
+    """Review: ``python -m learning.export --show berlin-pp | head`` sometimes ended 'error: [Errno 32] Broken pipe',
+    exit 2 (``lfgnss.datasets`` would have called it an internal error)."""
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen([sys.executable, "-m", *command], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc.stdout.close()                                           # gone before the command prints
+    assert proc.wait(timeout=120) == 0
+    assert proc.stderr.read() == ""
 
 
 def test_formal_sd_writes_the_filters_own_sds_and_the_same_positions(tmp_path):

@@ -276,3 +276,10 @@ def test_a_config_that_is_no_file_says_which_shipped_one_was_meant(given, said):
     with pytest.raises(ValueError) as err:
         load_config(given)
     assert str(err.value).startswith(f"{given}: cannot read configuration: {said}"), str(err.value)
+
+
+def test_an_empty_run_folder_is_refused(capsys):
+    """Review: --out "" (an unset shell variable) fell back to runs/<config name> without a word."""
+    with pytest.raises(SystemExit) as stopped:
+        main(["--out", ""])
+    assert stopped.value.code == 2 and "argument --out: needs a path, got an empty string" in capsys.readouterr().err
