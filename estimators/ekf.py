@@ -177,7 +177,7 @@ class LfgnssEkf:
     noise : NoiseModel, str or Path
         ``noise(sequence) -> (r_m2, vc_m)``, each (T, N); a learned model (``learning.export.load_model``, or the
         path of its file, read with it) or ``HeuristicNoise``, which None means here (the plain EKF).
-        ``create("ekf")`` gives the bundled model. An R above ``estimators.noise.R_OFF_M2`` (1e12 m^2; 1e30, say)
+        ``create("ekf")`` gives the bundled model. An R above ``estimators.noise.R_OFF_M2`` (1e12 m^2; 1e30 or inf, say)
         switches the satellite off: its pseudorange and Doppler are left out as if masked (``switched_on``).
     config : EkfConfig
         Process noise, initial covariance, gate and reset settings; default: those the noise model

@@ -284,7 +284,7 @@ class LfgnssFgo:
     noise : NoiseModel, str or Path
         ``noise(sequence) -> (r_m2, vc_m)``, (T, N) each; sigma_i = sqrt(r_i), measurement pr + vc; or the path
         of a model file (read with ``learning.export.load_model``). None: ``HeuristicNoise``; ``create("fgo")``
-        gives the bundled model. An R above ``estimators.noise.R_OFF_M2`` (1e12 m^2; 1e30, say) switches the
+        gives the bundled model. An R above ``estimators.noise.R_OFF_M2`` (1e12 m^2; 1e30 or inf, say) switches the
         satellite off: its pseudorange and Doppler are left out as if masked (``switched_on``). R is used as given:
         the graph does not apply a model filter's ``EkfConfig.glonass_sigma_factor`` (the static model's 1.5
         reaches its EKF, not this graph).
@@ -895,8 +895,9 @@ class LfgnssFgo:
 
     def _fixed_lag_update(self, smoother, seq, k, k0, last, t, x_guess, v_guess, z_m, sigma_m, motion, dv, still,
                           ranges, prior: bool):
-        """Put epoch k in the fixed-lag ``smoother``: its pseudoranges, Doppler velocity and, with ``prior``, priors
-        at ``x_guess`` [m], ``v_guess`` [m/s] (else a CV factor from epoch ``last``); (the estimate, satellites used)."""
+        """Put epoch k in the fixed-lag ``smoother``: its pseudoranges, Doppler velocity and, with ``prior``,
+        priors at ``x_guess`` [m], ``v_guess`` [m/s] (else a CV factor from epoch ``last``); (estimate, satellites
+        used)."""
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
         if prior:
