@@ -45,9 +45,9 @@ last one in the graph by one CV factor over the whole interval, the exact margin
 so an outage is a time gap to the smoother. A long chain of short CV factors with nothing else on it made
 gtsam's Cholesky give up (IndeterminantLinearSystem after ~100-200 epochs, ~30 s at 5 Hz). After a time step longer
 than ``MAX_GAP_S`` the epochs get no position (STATUS_NONE) until one with a coarse fix, where a new graph starts,
-as the EKF restarts (the batch graph needs no restart: it sees the fix after the gap). An update that gtsam's Cholesky
-still finds indeterminate (weak epochs in a row, e.g. two satellites of one constellation at the start) starts the graph
-anew at that epoch from its prediction, with a warning, rather than end the run.
+as the EKF restarts (the batch graph needs no restart: it sees the fix after the gap). iSAM2 factorises by Cholesky;
+where that finds weak epochs in a row indeterminate (e.g. two satellites of one constellation at the start) with inputs
+in order, the run is solved again with QR factorisation (numerically stabler, ~1.5 times slower), with a warning.
 
 Covariances: with ``covariances=True`` the position covariance is the gtsam marginal
 (``Marginals`` in batch, ``marginalCovariance`` in fixed-lag, where coasted epochs propagate the joint
@@ -574,6 +574,15 @@ class LfgnssFgo:
         rot = enu_rotation(lat, lon)
         return rot.T @ np.diag(self.accel_psd_enu_m2_s3) @ rot
 
+    @staticmethod
+    def _first_velocity(k: int, dv: DopplerVelocity | None) -> np.ndarray:
+        """Velocity [m/s] a graph starts from at epoch k, under its prior: the Doppler fix, else 0 (as the EKF starts).
+
+        Not the coarse fixes' time derivative: at 5 Hz, fixes 10-30 m apart in noise differ by 50-150 m/s, which a
+        prior of ``prior_vel_sigma_m_s`` (10 m/s) then held (a fixed-lag run 100 m/s off diverged by hundreds of m).
+        """
+        return dv.vel_ecef_m_s[k] if dv is not None and dv.ok[k] else np.zeros(3)
+
     def _priors(self, k0: int, pos: np.ndarray, vel: np.ndarray, graph: gtsam.NonlinearFactorGraph) -> None:
         """Priors on the first epoch's position ``pos`` [m] and velocity ``vel`` [m/s] (``prior_*_sigma``)."""
         graph.add(gtsam.PriorFactorPoint3(X(k0), pos, gtsam.noiseModel.Isotropic.Sigma(3, self.prior_pos_sigma_m)))
@@ -614,17 +623,31 @@ class LfgnssFgo:
         dv = self._doppler_velocity(seq)
         info["n_velocity_priors"] = 0 if dv is None else int(np.count_nonzero(dv.ok[k0:]))
         still = self._still(dv)
-        solve = self._solve_batch if self.mode == "batch" else self._solve_fixed_lag
-        try:
-            est = solve(seq, k0, z_m, sigma_m, psd_ecef, dv, still, info, ranges)
-        except RuntimeError as err:
-            found = symbol_epoch(str(err), len(seq.systems))
-            if found is None or "linear system" not in str(err):
-                raise
-            where = (f"fixed-lag update at epoch {found[1]} of {seq.name!r}" if self.mode == "fixed-lag"
-                     else f"batch graph of {seq.name!r} at epoch {found[1]}")
-            raise self._failure(seq, r_m2, found[1], f"the {where} is numerically singular (gtsam: an indeterminate "
-                                                     f"linear system near variable {found[0]})", always=True) from None
+        inputs = (seq, k0, z_m, sigma_m, psd_ecef, dv, still, info, ranges)
+        # fixed-lag: iSAM2's Cholesky, fast; where it finds weak epochs in a row (few satellites, each constellation's
+        # clock in seconds beside positions in metres) indeterminate with inputs in order, QR again, the stabler one
+        tries = ["CHOLESKY", "QR"] if self.mode == "fixed-lag" else [""]
+        for factorization in tries:
+            try:
+                est = (self._solve_fixed_lag(*inputs, factorization) if factorization
+                       else self._solve_batch(*inputs))
+                break
+            except RuntimeError as err:
+                found = symbol_epoch(str(err), len(seq.systems))
+                if found is None or "linear system" not in str(err):
+                    raise
+                where = (f"fixed-lag update at epoch {found[1]} of {seq.name!r}" if self.mode == "fixed-lag"
+                         else f"batch graph of {seq.name!r} at epoch {found[1]}")
+                failure = self._failure(seq, r_m2, found[1], f"the {where} is numerically singular (gtsam: an "
+                                                             f"indeterminate linear system near variable {found[0]})",
+                                        always=factorization == tries[-1])
+                if failure is not None:
+                    raise failure from None
+                warnings.warn(f"{owner}: gtsam's Cholesky factorisation found the fixed-lag graph of {seq.name!r} "
+                              f"indeterminate at epoch {found[1]} ({int(ranges[found[1]])} pseudorange(s) on "
+                              f"position after the clocks); solved again with QR factorisation (numerically stabler, "
+                              f"slower)", UserWarning, stacklevel=caller_stacklevel())
+        info["factorization"] = factorization or None
         info["solve_time_s"] = time.perf_counter() - start
         pos[k0:], vel[k0:], clock[k0:], n_used[k0:], cov_m = est
         gap = np.zeros(n_t, bool)                   # fixed-lag epochs left without a position after a long gap
@@ -710,7 +733,7 @@ class LfgnssFgo:
         for kernel in stages:
             graph = gtsam.NonlinearFactorGraph()
             start = gtsam.Values()
-            self._priors(k0, p0[0], v0[0], graph)
+            self._priors(k0, p0[0], self._first_velocity(k0, dv), graph)
             n_used = np.zeros(n_t - k0, int)
             for k in epoch_range(k0, n_t, self.progress, f"{self.name} ({kernel[0]} graph)"):
                 guess = p0[k - k0] if values is None else values.atPoint3(X(k))
@@ -787,9 +810,9 @@ class LfgnssFgo:
                       f"(gtsam: {why}); the positions are kept, with the stand-in covariance of covariances=False",
                       UserWarning, stacklevel=caller_stacklevel())
 
-    def _solve_fixed_lag(self, seq, k0, z_m, sigma_m, psd_ecef, dv, still, info, ranges):
+    def _solve_fixed_lag(self, seq, k0, z_m, sigma_m, psd_ecef, dv, still, info, ranges, factorization="CHOLESKY"):
         """Epoch by epoch in iSAM2 over a ``lag_s`` window (causal): ``_solve_batch``'s tuple, each epoch's state as
-        estimated when it arrived."""
+        estimated when it arrived; iSAM2 factorises by ``factorization`` (``"CHOLESKY"`` or ``"QR"``)."""
         n_t, n_sys = len(seq), len(seq.systems)
         t = seq.time_gps_s - seq.time_gps_s[k0]
         isam = gtsam.ISAM2Params()
@@ -801,9 +824,9 @@ class LfgnssFgo:
             thresholds.insert((letter, np.full((size, 1), threshold)))
         isam.setRelinearizeThreshold(thresholds)
         isam.relinearizeSkip = 1
+        isam.setFactorization(factorization)
         isam.findUnusedFactorSlots = True          # else every marginalised factor's slot stays: O(T^2) time
         smoother = gtsam.IncrementalFixedLagSmoother(self.lag_s, isam)
-        _, v0 = self._initial_trajectory(seq, k0, dv)
         motion = _MotionModel(psd_ecef)
         blind = ranges <= 0
         m = n_t - k0
@@ -814,7 +837,6 @@ class LfgnssFgo:
         joint = None                                # marginal covariance blocks of X(last), V(last)
         fixed = np.all(np.isfinite(seq.coarse_ecef_m), axis=1)
         gap_open, restart = False, False            # after a long gap: no position until a coarse fix, then anew
-        restarted: list[int] = []                   # epochs where a numerically singular update started anew
         after_gap = np.zeros(m, bool)
         for k in epoch_range(k0, n_t, self.progress, self.name):
             i = k - k0
@@ -847,7 +869,7 @@ class LfgnssFgo:
             prior = k == k0 or restart
             if prior:
                 x_guess = seq.coarse_ecef_m[k]
-                v_guess = v0[0] if k == k0 else (dv.vel_ecef_m_s[k] if dv is not None and dv.ok[k] else np.zeros(3))
+                v_guess = self._first_velocity(k, dv)
                 restart = False
             else:
                 dt = float(t[k] - t[last])
@@ -858,19 +880,8 @@ class LfgnssFgo:
                     # the epoch: start from the coarse fix, not from a prediction maybe 100+ m off, which
                     # would put every satellite deep in the robust kernel's tail.
                     x_guess = seq.coarse_ecef_m[k]
-            update = (seq, k, k0, last, t, x_guess, v_guess, z_m, sigma_m, motion, dv, still, ranges)
-            try:
-                est, n_used[i] = self._fixed_lag_update(smoother, *update, prior)
-            except RuntimeError as err:
-                if (prior or symbol_epoch(str(err), n_sys) is None or "linear system" not in str(err)
-                        or self._failure(seq, sigma_m ** 2, k, "") is not None):
-                    raise                                   # solve names the epoch and the input behind it
-                # gtsam's undamped Cholesky can find a chain of weak epochs (few satellites, each constellation's
-                # clock in seconds beside positions in metres) indeterminate with inputs in order; the update may
-                # have half entered the smoother, so a new one starts at this epoch from its prediction, as after a gap
-                smoother = gtsam.IncrementalFixedLagSmoother(self.lag_s, isam)
-                est, n_used[i] = self._fixed_lag_update(smoother, *update, True)
-                restarted.append(k)
+            est, n_used[i] = self._fixed_lag_update(smoother, seq, k, k0, last, t, x_guess, v_guess, z_m, sigma_m,
+                                                    motion, dv, still, ranges, prior)
             pos[i] = est.atPoint3(X(k))
             vel[i] = est.atPoint3(V(k))
             if est.exists(clock_key(k, 0, n_sys)):
@@ -884,17 +895,12 @@ class LfgnssFgo:
             last, joint = k, None
         info["coasted_outside_graph"] = int(np.count_nonzero(blind[k0 + 1:] & ~after_gap[1:]))
         info["after_gap"] = after_gap
-        info["restarted"] = restarted
-        if restarted:
-            warnings.warn(f"{type(self).__name__}: the fixed-lag update of {seq.name!r} was numerically singular at "
-                          f"{len(restarted)} epoch(s) (first: epoch {restarted[0]}, {int(ranges[restarted[0]])} "
-                          f"pseudorange(s) on position after the clocks); the graph started anew there from its "
-                          f"prediction (prior_pos_sigma_m, prior_vel_sigma_m_s), as after a gap", UserWarning,
-                          stacklevel=caller_stacklevel())
         return pos, vel, clk, n_used, cov
 
-    def _fixed_lag_update(self, smoother, seq, k, k0, last, t, x_guess, v_guess, z_m, sigma_m, motion, dv, still,
-                          ranges, prior: bool):
+    def _fixed_lag_update(self, smoother: gtsam.IncrementalFixedLagSmoother, seq: Sequence, k: int, k0: int,
+                          last: int, t: np.ndarray, x_guess: np.ndarray, v_guess: np.ndarray, z_m: np.ndarray,
+                          sigma_m: np.ndarray, motion: _MotionModel, dv: DopplerVelocity | None,
+                          still: np.ndarray | None, ranges: np.ndarray, prior: bool) -> tuple[gtsam.Values, int]:
         """Put epoch k in the fixed-lag ``smoother``: its pseudoranges, Doppler velocity and, with ``prior``,
         priors at ``x_guess`` [m], ``v_guess`` [m/s] (else a CV factor from epoch ``last``); (estimate, satellites
         used)."""

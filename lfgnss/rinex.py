@@ -267,9 +267,11 @@ def _bds_codes(types: list[str], version: float) -> tuple[str, ...]:
     return CODES_V302_BDS
 
 
-def _choose_codes(fields, version: float, path: Path, problems: list[str]) -> dict[str, tuple]:
+def _choose_codes(fields, version: float, path: Path, problems: list[str], required: bool = True
+                  ) -> dict[str, tuple]:
     """Per constellation: column index of pseudorange, C/N0, Doppler (-1 if absent), the code, and the
-    column and code of the RINEX 2 fallback pseudorange (-1 and "" if none)."""
+    column and code of the RINEX 2 fallback pseudorange (-1 and "" if none). None at all: RinexError if
+    ``required`` (a header), else {} (the constellations an event adds)."""
     chosen = {}
     for system in SYSTEMS:
         if version < 3:
@@ -300,7 +302,7 @@ def _choose_codes(fields, version: float, path: Path, problems: list[str]) -> di
         fallback = next((c for c in prefs[prefs.index(code) + 1:] if c in types), None) if version < 3 else None
         chosen[system] = (types.index(code), types.index(cn0) if cn0 else -1, types.index(dop) if dop else -1, code,
                           types.index(fallback) if fallback else -1, fallback or "")
-    if not chosen:
+    if not chosen and required:
         raise RinexError(path, "no pseudorange observation type for any supported constellation "
                                "(need C1C/C1/C2I/...)")
     return chosen
@@ -336,27 +338,54 @@ def _parse(text: str, path: Path, engine: str, notes: list[str] | None = None) -
     problems: list[str] = list(notes or []) + info["notes"]
     codes = _choose_codes(info["fields"], info["version"], path, problems)
     if engine == "georinex":
-        return _parse_georinex(text, path, info, codes, problems)
+        return _parse_georinex(text, path, info, codes, problems, _first_redefinition(body, n_header, info, path))
     cut = _cut_v2 if info["version"] < 3 else _cut_v3
     cuts: list[list] = [[] for _ in range(6)]   # epoch times and lines; records' epoch, id, text and line
     piece, start = info, 0
+    pieces = []     # per redefinition: where its note goes in problems, its line, its types, its first record
+    dropped: set[int] = set()
     while True:     # one piece of the file per set of observation types (an event may redefine them)
-        *got, redefined = cut(body[start:], n_header + start, path, piece, problems)
-        if piece is not info:
-            got[4] = _in_header_layout(got[3], got[4], piece["fields"], info["fields"], info["version"])
+        *got, redefined = cut(body, n_header, path, piece, problems, start)
         got[2] = [e + len(cuts[0]) for e in got[2]]
         for whole, part in zip(cuts, got):
             whole += part
         if redefined is None:
             break
-        at, resume, fields = redefined
+        at, start, fields = redefined
         if not fields:  # unreadable: the note is given
             break
-        lacking = _lacking_types(codes, info["fields"], fields, info["version"])
+        added = {} if info["version"] < 3 else {k: v for k, v in fields.items() if k not in info["fields"]}
+        if added:       # a constellation the header lacks: its first types are its layout, as a header's would be
+            info = dict(info, fields={**info["fields"], **added})
+            codes = {**codes, **_choose_codes(added, info["version"], path, problems, required=False)}
+            early = [k for k, sv in enumerate(cuts[3]) if sv[:1] in added]   # records before it had types
+            if early:
+                problems.append(f"{path}:{cuts[5][early[0]]}: {len(early)} record(s) of {''.join(sorted(added))} "
+                                f"before the event on line {n_header + at + 1} gives their observation types (no "
+                                f"header line for them): skipped")
+                dropped.update(early)
+        pieces.append((len(problems), n_header + at + 1, fields, len(cuts[3])))
+        piece = dict(info, fields=fields)
+    ends = [p[3] for p in pieces[1:]] + [len(cuts[3])]
+    layouts: dict[str, list] = {}               # records of each set of types an event gave, read in one go
+    for (where, lineno, fields, first), end in reversed(list(zip(pieces, ends))):
+        layouts.setdefault(repr(fields), [fields, []])[1].extend(range(first, end))
+        # only constellations with records in the piece: RINEX 2 types name none, and lfgnss's BeiDou ones (C2)
+        # would be missed in a GPS and GLONASS file
+        present = {(sv[:1].strip() or "G") for sv in cuts[3][first:end]}
+        lacking = _lacking_types({k: v for k, v in codes.items() if k in present}, info["fields"], fields,
+                                 info["version"])
         if lacking:
-            problems.append(f"{path}:{n_header + start + at + 1}: the event here redefines the observation types "
-                            f"without {lacking}: read as missing from here on")
-        piece, start = dict(info, fields=fields), start + resume
+            problems.insert(where, f"{path}:{lineno}: the event here redefines the observation types without "
+                                   f"{lacking}: read as missing from here on")
+    for fields, rows in layouts.values():
+        texts = _in_header_layout([cuts[3][k] for k in rows], [cuts[4][k] for k in rows], fields, info["fields"],
+                                  info["version"])
+        for k, text in zip(rows, texts):
+            cuts[4][k] = text
+    if dropped:
+        for j in range(2, 6):
+            cuts[j] = [v for k, v in enumerate(cuts[j]) if k not in dropped]
     return _assemble(path, info, codes, *cuts, problems)
 
 
@@ -369,11 +398,12 @@ def _epoch_fields(ln: str, v3: bool) -> tuple[int, int, int, int, int, float, in
             float(ln[15:26]), int(ln[28]), int(ln[29:32]))
 
 
-def _cut_v3(body, n_header, path, info, problems):
-    """Epoch times and lines, and the raw record lines of every complete epoch (RINEX 3), up to an event that
-    redefines the observation types: then also (its index, the index after its special records, the new types)."""
+def _cut_v3(body, n_header, path, info, problems, start=0):
+    """Epoch times and lines, and the raw record lines of every complete epoch (RINEX 3) from ``body[start]`` up to an
+    event that redefines the observation types: then also (its index, the index after its special records, the new
+    types)."""
     times, epoch_lines, rec_epoch, rec_sv, rec_text, rec_line = [], [], [], [], [], []
-    i, n = 0, len(body)
+    i, n = start, len(body)
     while i < n:
         ln = body[i]
         lineno = n_header + i + 1
@@ -425,13 +455,13 @@ def _cut_v3(body, n_header, path, info, problems):
     return times, epoch_lines, rec_epoch, rec_sv, rec_text, rec_line, None
 
 
-def _cut_v2(body, n_header, path, info, problems):
+def _cut_v2(body, n_header, path, info, problems, start=0):
     """Epoch times and lines, and per-satellite record strings of every complete epoch (RINEX 2), and where an
     event redefines the observation types, as ``_cut_v3``."""
     n_types = len(info["fields"])
     lines_per_sat = (n_types + 4) // 5
     times, epoch_lines, rec_epoch, rec_sv, rec_text, rec_line = [], [], [], [], [], []
-    i, n = 0, len(body)
+    i, n = start, len(body)
     while i < n:
         ln = body[i]
         lineno = n_header + i + 1
@@ -536,10 +566,9 @@ def _types_redefined(special: list[str], info: dict, path: Path, lineno: int, pr
         return [] if info["version"] < 3 else {}
     if info["version"] < 3:
         return None if given[""] == list(info["fields"]) else given[""]
-    # a system the header lacks (or lfgnss does not read) shifts no column of the others: each record line names
-    # its system, and records of a system the header lacks are skipped with a note anyway
-    known = {s: t for s, t in given.items() if s in info["fields"] and s in SYSTEMS}
-    if all(list(info["fields"][s]) == t for s, t in known.items()):
+    # a system lfgnss does not read (SBAS) shifts no column of the others: each record line names its system
+    known = {s: t for s, t in given.items() if s in SYSTEMS}
+    if all(list(info["fields"].get(s, [])) == t for s, t in known.items()):
         return None
     return {**info["fields"], **known}
 
@@ -566,16 +595,16 @@ def _in_header_layout(rec_sv: list[str], rec_text: list[str], fields, header_fie
 
 
 def _lacking_types(codes: dict, header_fields, fields, version: float) -> str:
-    """The types lfgnss reads (pseudorange, C/N0, Doppler and RINEX 2's stand-in code) that redefined ``fields``
-    lack, as "C1C S1C of G, ..." ("" if none)."""
-    lacking = []
+    """The types lfgnss reads (pseudorange, C/N0, Doppler and RINEX 2's stand-in code) of the constellations in
+    ``codes`` that redefined ``fields`` lack, as "C1C S1C of G, S1 of GR" ("" if none)."""
+    lacking: dict[str, str] = {}                # the types gone -> the constellations (letters) they are gone for
     for system, (*columns, _, i_fallback, _) in codes.items():
         old = header_fields if version < 3 else header_fields[system]
         new = fields if version < 3 else fields[system]
-        gone = [old[i] for i in (*columns, i_fallback) if i >= 0 and old[i] not in new]
+        gone = " ".join(old[i] for i in (*columns, i_fallback) if i >= 0 and old[i] not in new)
         if gone:
-            lacking.append(" ".join(gone) + ("" if version < 3 else f" of {system}"))
-    return ", ".join(dict.fromkeys(lacking))
+            lacking[gone] = lacking.get(gone, "") + system
+    return ", ".join(f"{gone} of {systems}" for gone, systems in lacking.items())
 
 
 def _numbers(texts: pd.Series) -> tuple[np.ndarray, np.ndarray]:
@@ -762,9 +791,28 @@ def _drop_repeated_satellites(path, use, epoch, sv, pr, line, problems) -> None:
     use[rows[repeat | drop]] = False
 
 
-def _parse_georinex(text, path, info, codes, problems) -> Observations:
+def _first_redefinition(body: list[str], n_header: int, info: dict, path: Path) -> int | None:
+    """Line number of the first event record that gives observation types other than the header's, or None."""
+    label_lines = [i for i, ln in enumerate(body) if ln[60:].strip().startswith(_TYPES_LABELS)]
+    runs: list[list[int]] = []                  # one event's lines together
+    for i in label_lines:
+        if runs and i == runs[-1][-1] + 1:
+            runs[-1].append(i)
+        else:
+            runs.append([i])
+    for run in runs:
+        if _types_redefined([body[i] for i in run], info, path, n_header + run[0] + 1, []) is not None:
+            return n_header + run[0] + 1
+    return None
+
+
+def _parse_georinex(text, path, info, codes, problems, redefined: int | None) -> Observations:
     import georinex
 
+    if redefined is not None:   # georinex reads the header's columns throughout: the later values would be others
+        raise RinexError(path, "an event redefines the observation types here, which engine='georinex' cannot read "
+                               "(it would read other columns as pseudoranges); engine='lfgnss' reads it",
+                         line=redefined)
     meas = sorted({info["fields"][i] if info["version"] < 3 else info["fields"][s][i]
                    for s, idx in codes.items() for i in (*idx[:3], idx[4]) if i >= 0})
     with warnings.catch_warnings():
@@ -791,9 +839,10 @@ def _parse_georinex(text, path, info, codes, problems) -> Observations:
 
     pr, fallback = (np.where(a == 0.0, np.nan, a) for a in (grab(0), grab(4)))     # 0.000: missing
     pr = np.where(np.isnan(pr), fallback, pr)
+    cn0, dop = grab(1), grab(2)                 # before svs is cut to the satellites kept: grab reads it
     keep = np.any(np.isfinite(pr), axis=0)
     svs = np.array(svs, dtype="<U3")[keep]
-    return Observations(str(path), info["version"], times, svs, pr[:, keep], grab(1)[:, keep], grab(2)[:, keep],
+    return Observations(str(path), info["version"], times, svs, pr[:, keep], cn0[:, keep], dop[:, keep],
                         {k: v[3] for k, v in codes.items()}, info["approx"], tuple(problems))
 
 

@@ -618,10 +618,10 @@ def test_a_weak_stretch_is_not_pulled_to_the_coarse_track_by_its_conditioning_pr
     assert rms[0] < 5.0 and rms[1] <= rms[0] + 0.5, rms
 
 
-def test_a_fixed_lag_start_on_weak_epochs_starts_anew_instead_of_failing():
+def test_a_fixed_lag_start_on_weak_epochs_is_solved_again_by_qr_instead_of_failing():
     """Review: 2 GPS satellites in the first three epochs stopped the whole fixed-lag run with 'numerically singular'
-    (blaming R), where the batch graph and the EKF solve every epoch: gtsam's undamped Cholesky on a chain of weak
-    epochs. The graph now starts anew at such an epoch, from its prediction, with a warning."""
+    (blaming R), where the batch graph and the EKF solve every epoch: iSAM2's Cholesky on a chain of weak epochs. The
+    run is now solved again with QR factorisation, with a warning."""
     clean = simulate_sequence(60, dt_s=0.2, seed=5)
     mask = clean.mask.copy()
     for k in range(3):
@@ -629,11 +629,31 @@ def test_a_fixed_lag_start_on_weak_epochs_starts_anew_instead_of_failing():
         mask[k] = False
         mask[k, keep] = True
     seq = replace(clean, mask=mask, prr_mask=clean.prr_mask & mask)
-    with pytest.warns(UserWarning, match=r"fixed-lag update of 'synthetic' was numerically singular at 2 epoch\(s\) "
-                                         r"\(first: epoch 1, 1 pseudorange\(s\) on position after the clocks\); the "
-                                         r"graph started anew there"):
+    with pytest.warns(UserWarning, match=r"LfgnssFgo: gtsam's Cholesky factorisation found the fixed-lag graph of "
+                                         r"'synthetic' indeterminate at epoch 1 \(1 pseudorange\(s\) on position after "
+                                         r"the clocks\); solved again with QR factorisation"):
         sol = LfgnssFgo(mode="fixed-lag", covariances=True).solve(seq)
     assert np.all(sol.status == STATUS_UPDATED) and np.isfinite(sol.pos_ecef_m).all()
-    assert sol.info["restarted"] == [1, 2] and np.isfinite(sol.cov_ecef_m2).all()
-    batch = LfgnssFgo().solve(seq)
-    assert _rmse_3d(sol, seq, slice(10, None)) < 2 * _rmse_3d(batch, seq, slice(10, None)) + 1.0
+    assert sol.info["factorization"] == "QR" and np.isfinite(sol.cov_ecef_m2).all()
+    assert _rmse_3d(sol, seq, slice(10, None)) < 2 * _rmse_3d(LfgnssFgo().solve(seq), seq, slice(10, None)) + 1.0
+    # a singular graph with a bad input still names it: test_library_inputs.test_a_singular_fixed_lag_graph_...
+
+
+@pytest.mark.parametrize("mode", ["fixed-lag", "batch"])
+def test_without_a_doppler_fix_the_first_velocity_is_zero_not_the_coarse_fixes_derivative(mode):
+    """Review: 3 GPS satellites an epoch (no Doppler fix) at 5 Hz: the first velocity, the time derivative of coarse
+    fixes metres apart in noise, was 100 m/s off under a 10 m/s prior; the fixed-lag run drifted 380 m off with an
+    sd of 30 m (the EKF, which starts at 0, stayed within 23 m)."""
+    clean = simulate_sequence(60, dt_s=0.2, seed=5)
+    mask = clean.mask.copy()
+    for k in range(len(clean)):
+        keep = np.flatnonzero(mask[k] & (clean.system_index[k] == 0))[:3]
+        mask[k] = False
+        mask[k, keep] = True
+    seq = replace(clean, mask=mask, prr_mask=clean.prr_mask & mask)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        sol = LfgnssFgo(mode=mode, covariances=True).solve(seq)
+    err = _err(sol, seq)
+    sd = np.sqrt(np.trace(sol.cov_ecef_m2, axis1=1, axis2=2))
+    assert err.max() < 40.0 and np.max(err / sd) < 2.0, (err.max(), np.max(err / sd))

@@ -109,7 +109,7 @@ def test_types_an_event_drops_are_missing_from_there_with_a_note(tmp_path):
     assert np.isfinite(obs.cn0_dbhz[0]).any() and np.isnan(obs.cn0_dbhz[1:]).all()
     assert np.isfinite(obs.pr_m[1:]).any() and np.isfinite(obs.doppler_hz[1:]).any()
     assert any(f"{path}:{len(header) + len(epochs[0]) + 1}: the event here redefines the observation types without "
-               f"S1: read as missing from here on" in n for n in notes), notes
+               f"S1 of GR: read as missing from here on" in n for n in notes), notes
 
 
 def _v3_redefined(path, event_types: str | None, count: int | None = None):
@@ -228,3 +228,67 @@ def test_a_code_without_its_own_doppler_takes_its_bands(tmp_path):
     path.write_text("\n".join(lines) + "\n")
     obs = load_obs(path, cache=False)
     assert obs.codes == {"G": "C1W"} and obs.doppler_hz[0, 0] == 100.0          # D1C's, not D1X's 200
+
+
+def test_the_georinex_engine_refuses_redefined_types_and_reads_a_satellite_without_pseudoranges(tmp_path):
+    """Review: engine='georinex' read the header's columns after an event that redefines them (a C/N0 of 20.861 as the
+    pseudorange, with no note), and a satellite with C/N0 but never a pseudorange was an IndexError."""
+    from lfgnss.errors import RinexError
+
+    header, epochs = _v2_epochs(3)
+    types = ["C1", "L1", "D1", "S1"]
+    event = ["                            4  1", "     4    C1    L1    D1    S1".ljust(60) + "# / TYPES OF OBSERV"]
+    path = tmp_path / "t.obs"
+    path.write_text("\n".join(header + epochs[0] + event + _v2_in_types(epochs[1], types)) + "\n")
+    with pytest.raises(RinexError, match=rf"^{path}:{len(header) + len(epochs[0]) + 2}: an event redefines the "
+                                         r"observation types here, which engine='georinex' cannot read"):
+        load_obs(path, cache=False, engine="georinex")
+    blank = tmp_path / "blank.rnx"
+    blank.write_text("\n".join([
+        "     3.04           OBSERVATION DATA    G                   RINEX VERSION / TYPE",
+        "G    2 C1C S1C".ljust(60) + "SYS / # / OBS TYPES",
+        "  2020     6     3     3     2    9.0000000     GPS".ljust(60) + "TIME OF FIRST OBS",
+        " " * 60 + "END OF HEADER",
+        "> 2020 06 03 03 02  9.0000000  0  2", "G01  20008600.000          20.860", "G02                        20.870",
+        "> 2020 06 03 03 02 10.0000000  0  2", "G01  20008601.000          20.861", "G02                        20.871"]) + "\n")
+    obs = load_obs(blank, cache=False, engine="georinex")
+    ours = load_obs(blank, cache=False)
+    assert list(obs.sv) == list(ours.sv) == ["G01"]
+    np.testing.assert_array_equal(obs.cn0_dbhz, ours.cn0_dbhz)
+
+
+def test_a_redefinition_notes_only_types_of_constellations_in_the_file(tmp_path):
+    """Review: a GPS + GLONASS RINEX 2 file whose event dropped C2 was told 'without C2', lfgnss's BeiDou code
+    there, though the file has no BeiDou satellite and every value was read."""
+    header, epochs = _v2_epochs(3)
+    wide = ["C1", "L1", "S1", "D1", "C2"]
+    header = [("     5    C1    L1    S1    D1    C2".ljust(60) + "# / TYPES OF OBSERV") if "TYPES OF OBSERV" in h
+              else h for h in header]
+    event = ["                            4  1", "     4    C1    L1    S1    D1".ljust(60) + "# / TYPES OF OBSERV"]
+    path = tmp_path / "gr.obs"
+    path.write_text("\n".join(header + _v2_in_types(epochs[0], wide) + event + epochs[1] + epochs[2]) + "\n")
+    obs, notes = _load(path)
+    assert len(obs.time_gps_s) == 3 and not notes, notes
+
+
+def test_a_rinex3_event_may_add_a_constellation_the_header_lacks(tmp_path):
+    """Review: a GPS header, then an event giving GLONASS its types: the GLONASS records after it were skipped with
+    'no SYS / # / OBS TYPES header line for R' (RTKLIB reads them); those before it have no types and are skipped."""
+    head = ["     3.04           OBSERVATION DATA    M                   RINEX VERSION / TYPE",
+            "G    2 C1C S1C".ljust(60) + "SYS / # / OBS TYPES",
+            "  2020     6     3     3     2    9.0000000     GPS".ljust(60) + "TIME OF FIRST OBS",
+            " " * 60 + "END OF HEADER"]
+    body = ["> 2020 06 03 03 02  9.0000000  0  2", "G01  20001000.000          45.000", "R01  21001000.000          41.000",
+            "> 2020 06 03 03 02  9.5000000  4  1", "R    2 S1C C1C".ljust(60) + "SYS / # / OBS TYPES"]
+    for e in (1, 2):
+        body += [f"> 2020 06 03 03 02 {9 + e:2d}.0000000  0  2", f"G01  {20001000 + e:12d}.000          45.000",
+                 f"R01          42.000  {21001000 + e:12d}.000"]
+    path = tmp_path / "add.rnx"
+    path.write_text("\n".join(head + body) + "\n")
+    obs, notes = _load(path)
+    assert list(obs.sv) == ["G01", "R01"] and obs.codes == {"G": "C1C", "R": "C1C"}
+    np.testing.assert_array_equal(obs.pr_m[:, 1], [np.nan, 21001001.0, 21001002.0])
+    np.testing.assert_array_equal(obs.cn0_dbhz[:, 1], [np.nan, 42.0, 42.0])
+    np.testing.assert_array_equal(obs.pr_m[:, 0], [20001000.0, 20001001.0, 20001002.0])
+    assert any(f"{path}:7: 1 record(s) of R before the event on line 8 gives their observation types" in n
+               for n in notes), notes
