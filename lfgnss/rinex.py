@@ -544,7 +544,8 @@ def _next_v2_epoch(body: list[str], i: int) -> int:
     return i
 
 
-def _types_redefined(special: list[str], info: dict, path: Path, lineno: int, problems: list[str]):
+def _types_redefined(special: list[str], info: dict, path: Path, lineno: int, problems: list[str]
+                     ) -> list[str] | dict[str, list[str]] | None:
     """The observation types an event's special records give where they differ from ``info``'s (RINEX 2: a list;
     3: a dict, the header's systems with theirs replaced), else None: the header's own types repeated (a spliced
     file) change nothing. Types it cannot read: a note, and an empty list or dict (the reading ends there)."""
@@ -559,9 +560,9 @@ def _types_redefined(special: list[str], info: dict, path: Path, lineno: int, pr
         if not counts or system:    # else a continuation line
             counts.append([(r[:6] if info["version"] < 3 else r[3:6]).strip(), given.setdefault(system, [])])
         counts[-1][1] += r[6:60].split()
-    if any(not c.isdigit() or int(c) != len(t) for c, t in counts) or "" in given and info["version"] >= 3:
+    if any(not c.isdigit() or int(c) != len(t) or not t for c, t in counts) or "" in given and info["version"] >= 3:
         problems.append(f"{path}:{lineno}: the event here redefines the observation types ({label.strip()}) in "
-                        f"lines that cannot be read (a count that is not the number of types listed, or a "
+                        f"lines that cannot be read (a count that is not the number of types listed, none, or a "
                         f"continuation line first): the epochs from here on are left out")
         return [] if info["version"] < 3 else {}
     if info["version"] < 3:

@@ -292,7 +292,8 @@ def test_latitude_longitude_for_an_ecef_truth_or_reference_is_refused_by_the_sol
     ("status", np.full(5, 7), r"unknown status code\(s\) \[7\]"),
     # review: float32 times wrote every line of a .pos at one minute; a NaN n_used as -9223372036854775808 satellites
     ("time_gps_s", (1.2e9 + np.arange(5.0)).astype(np.float32), "time_gps_s must be float64 GPS seconds, got float32"),
-    ("n_used", np.array([4.0, np.nan, 5.0, 6.0, 0.5]), r"n_used must be whole numbers .*, got nan \(of 2 such values\)"),
+    ("n_used", np.array([4.0, np.nan, 5.0, 6.0, 0.5]),
+     r"n_used must be whole numbers .*, got nan \(of 2 such values\)"),
 ])
 def test_a_solution_of_the_wrong_shape_is_refused_when_made(field, value, message):
     parts = dict(backend="mine", time_gps_s=np.arange(5.0), pos_ecef_m=np.zeros((5, 3)), cov_ecef_m2=np.zeros((5, 3, 3)),

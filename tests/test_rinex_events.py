@@ -151,8 +151,10 @@ def test_rinex3_types_redefined_by_an_event_are_read_from_there(tmp_path):
     assert any("without C1C of G: read as missing" in n for n in notes), notes
 
 
-def test_types_an_event_gives_unreadably_end_the_reading_there(tmp_path):
-    obs, notes = _v3_redefined(tmp_path / "u.rnx", "C1C S1C D1C", count=4)
+@pytest.mark.parametrize("types, count", [("C1C S1C D1C", 4), ("", 0)], ids=["miscounted", "none"])
+def test_types_an_event_gives_unreadably_end_the_reading_there(tmp_path, types, count):
+    """A count that is not the number of types listed, or no type at all (review: that ended the reading silently)."""
+    obs, notes = _v3_redefined(tmp_path / "u.rnx", types, count=count)
     assert len(obs.time_gps_s) == 1
     assert any(f"{tmp_path / 'u.rnx'}:9: the event here redefines the observation types (SYS / # / OBS TYPES) in "
                f"lines that cannot be read" in n and "left out" in n for n in notes), notes
@@ -250,7 +252,8 @@ def test_the_georinex_engine_refuses_redefined_types_and_reads_a_satellite_witho
         "  2020     6     3     3     2    9.0000000     GPS".ljust(60) + "TIME OF FIRST OBS",
         " " * 60 + "END OF HEADER",
         "> 2020 06 03 03 02  9.0000000  0  2", "G01  20008600.000          20.860", "G02                        20.870",
-        "> 2020 06 03 03 02 10.0000000  0  2", "G01  20008601.000          20.861", "G02                        20.871"]) + "\n")
+        "> 2020 06 03 03 02 10.0000000  0  2", "G01  20008601.000          20.861",
+        "G02                        20.871"]) + "\n")
     obs = load_obs(blank, cache=False, engine="georinex")
     ours = load_obs(blank, cache=False)
     assert list(obs.sv) == list(ours.sv) == ["G01"]
@@ -278,7 +281,8 @@ def test_a_rinex3_event_may_add_a_constellation_the_header_lacks(tmp_path):
             "G    2 C1C S1C".ljust(60) + "SYS / # / OBS TYPES",
             "  2020     6     3     3     2    9.0000000     GPS".ljust(60) + "TIME OF FIRST OBS",
             " " * 60 + "END OF HEADER"]
-    body = ["> 2020 06 03 03 02  9.0000000  0  2", "G01  20001000.000          45.000", "R01  21001000.000          41.000",
+    body = ["> 2020 06 03 03 02  9.0000000  0  2", "G01  20001000.000          45.000",
+            "R01  21001000.000          41.000",
             "> 2020 06 03 03 02  9.5000000  4  1", "R    2 S1C C1C".ljust(60) + "SYS / # / OBS TYPES"]
     for e in (1, 2):
         body += [f"> 2020 06 03 03 02 {9 + e:2d}.0000000  0  2", f"G01  {20001000 + e:12d}.000          45.000",
