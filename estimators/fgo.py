@@ -360,7 +360,8 @@ class LfgnssFgo:
 
     The Solution's ``info`` holds ``n_velocity_priors`` (epochs with a Doppler velocity prior), ``stationary`` ((T,)
     bool: epochs given the zero-velocity prior), ``residual_factor`` and ``cov_inflation`` (see ``inflate_cov``)
-    and, in batch mode, ``iterations`` (all stages) and ``converged``, in fixed-lag mode ``coasted_outside_graph``.
+    and, in batch mode, ``iterations`` (all stages) and ``converged``, in fixed-lag mode ``coasted_outside_graph`` and
+    ``factorization`` (``"CHOLESKY"``, or ``"QR"`` where Cholesky found the graph indeterminate).
     An epoch whose state gtsam returns non-finite is left STATUS_NONE with one warning. Unlike the EKFs,
     a position-blind epoch held only by the zero-velocity prior (batch) stays STATUS_COASTED: its satellites
     place no position.
@@ -638,16 +639,20 @@ class LfgnssFgo:
                     raise
                 where = (f"fixed-lag update at epoch {found[1]} of {seq.name!r}" if self.mode == "fixed-lag"
                          else f"batch graph of {seq.name!r} at epoch {found[1]}")
-                failure = self._failure(seq, r_m2, found[1], f"the {where} is numerically singular (gtsam: an "
-                                                             f"indeterminate linear system near variable {found[0]})",
-                                        always=factorization == tries[-1])
+                what = (f"the {where} is numerically singular (gtsam: an indeterminate linear system near variable "
+                        f"{found[0]})")
+                failure = self._failure(seq, r_m2, found[1], what, always=factorization == tries[-1])
+                cause = likely_cause(r_m2[seq.mask], self.accel_psd_enu_m2_s3)  # anywhere: not solved around (review)
+                if failure is None and cause is not None:
+                    failure = ValueError(f"{owner}: {what}; {cause}")
                 if failure is not None:
                     raise failure from None
                 warnings.warn(f"{owner}: gtsam's Cholesky factorisation found the fixed-lag graph of {seq.name!r} "
                               f"indeterminate at epoch {found[1]} ({int(ranges[found[1]])} pseudorange(s) on "
-                              f"position after the clocks); solved again with QR factorisation (numerically stabler, "
-                              f"slower)", UserWarning, stacklevel=caller_stacklevel())
-        info["factorization"] = factorization or None
+                              f"position after the clocks); solving it again with QR factorisation (numerically "
+                              f"stabler, slower)", UserWarning, stacklevel=caller_stacklevel())
+        if factorization:
+            info["factorization"] = factorization
         info["solve_time_s"] = time.perf_counter() - start
         pos[k0:], vel[k0:], clock[k0:], n_used[k0:], cov_m = est
         gap = np.zeros(n_t, bool)                   # fixed-lag epochs left without a position after a long gap
@@ -810,7 +815,8 @@ class LfgnssFgo:
                       f"(gtsam: {why}); the positions are kept, with the stand-in covariance of covariances=False",
                       UserWarning, stacklevel=caller_stacklevel())
 
-    def _solve_fixed_lag(self, seq, k0, z_m, sigma_m, psd_ecef, dv, still, info, ranges, factorization="CHOLESKY"):
+    def _solve_fixed_lag(self, seq, k0, z_m, sigma_m, psd_ecef, dv, still, info, ranges,
+                         factorization: str = "CHOLESKY"):
         """Epoch by epoch in iSAM2 over a ``lag_s`` window (causal): ``_solve_batch``'s tuple, each epoch's state as
         estimated when it arrived; iSAM2 factorises by ``factorization`` (``"CHOLESKY"`` or ``"QR"``)."""
         n_t, n_sys = len(seq), len(seq.systems)

@@ -369,10 +369,11 @@ def _parse(text: str, path: Path, engine: str, notes: list[str] | None = None) -
     ends = [p[3] for p in pieces[1:]] + [len(cuts[3])]
     layouts: dict[str, list] = {}               # records of each set of types an event gave, read in one go
     for (where, lineno, fields, first), end in reversed(list(zip(pieces, ends))):
-        layouts.setdefault(repr(fields), [fields, []])[1].extend(range(first, end))
+        rows = [k for k in range(first, end) if k not in dropped]   # not those of a constellation without types yet
+        layouts.setdefault(repr(fields), [fields, []])[1].extend(rows)
         # only constellations with records in the piece: RINEX 2 types name none, and lfgnss's BeiDou ones (C2)
         # would be missed in a GPS and GLONASS file
-        present = {(sv[:1].strip() or "G") for sv in cuts[3][first:end]}
+        present = {(cuts[3][k][:1].strip() or "G") for k in rows}
         lacking = _lacking_types({k: v for k, v in codes.items() if k in present}, info["fields"], fields,
                                  info["version"])
         if lacking:
@@ -793,7 +794,7 @@ def _drop_repeated_satellites(path, use, epoch, sv, pr, line, problems) -> None:
 
 
 def _first_redefinition(body: list[str], n_header: int, info: dict, path: Path) -> int | None:
-    """Line number of the first event record that gives observation types other than the header's, or None."""
+    """Line number of the first event that gives observation types other than the header's, or None."""
     label_lines = [i for i, ln in enumerate(body) if ln[60:].strip().startswith(_TYPES_LABELS)]
     runs: list[list[int]] = []                  # one event's lines together
     for i in label_lines:
@@ -803,7 +804,9 @@ def _first_redefinition(body: list[str], n_header: int, info: dict, path: Path) 
             runs.append([i])
     for run in runs:
         if _types_redefined([body[i] for i in run], info, path, n_header + run[0] + 1, []) is not None:
-            return n_header + run[0] + 1
+            event = next((j for j in range(run[0] - 1, -1, -1) if body[j].startswith(">")
+                          or _V2_EVENT_RE.match(body[j]) or _V2_EPOCH_RE.match(body[j])), run[0])
+            return n_header + event + 1            # the event's line, as the lfgnss engine's notes name it
     return None
 
 
@@ -812,7 +815,8 @@ def _parse_georinex(text, path, info, codes, problems, redefined: int | None) ->
 
     if redefined is not None:   # georinex reads the header's columns throughout: the later values would be others
         raise RinexError(path, "an event redefines the observation types here, which engine='georinex' cannot read "
-                               "(it would read other columns as pseudoranges); engine='lfgnss' reads it",
+                               "(it would read other columns as pseudoranges); engine='lfgnss' reads them (or says "
+                               "why not)",
                          line=redefined)
     meas = sorted({info["fields"][i] if info["version"] < 3 else info["fields"][s][i]
                    for s, idx in codes.items() for i in (*idx[:3], idx[4]) if i >= 0})

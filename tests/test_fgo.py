@@ -631,12 +631,18 @@ def test_a_fixed_lag_start_on_weak_epochs_is_solved_again_by_qr_instead_of_faili
     seq = replace(clean, mask=mask, prr_mask=clean.prr_mask & mask)
     with pytest.warns(UserWarning, match=r"LfgnssFgo: gtsam's Cholesky factorisation found the fixed-lag graph of "
                                          r"'synthetic' indeterminate at epoch 1 \(1 pseudorange\(s\) on position after "
-                                         r"the clocks\); solved again with QR factorisation"):
+                                         r"the clocks\); solving it again with QR factorisation"):
         sol = LfgnssFgo(mode="fixed-lag", covariances=True).solve(seq)
     assert np.all(sol.status == STATUS_UPDATED) and np.isfinite(sol.pos_ecef_m).all()
     assert sol.info["factorization"] == "QR" and np.isfinite(sol.cov_ecef_m2).all()
     assert _rmse_3d(sol, seq, slice(10, None)) < 2 * _rmse_3d(LfgnssFgo().solve(seq), seq, slice(10, None)) + 1.0
-    # a singular graph with a bad input still names it: test_library_inputs.test_a_singular_fixed_lag_graph_...
+    # an implausible R elsewhere in the run is named, not solved around by QR (review: R = 1e-8 m^2 at epoch 2 gave
+    # errors 15 times the sds)
+    r = np.where(seq.mask, 25.0, 1.0)
+    r[2] = 1e-8
+    with pytest.raises(ValueError, match=r"fixed-lag update at epoch 1 of 'synthetic' is numerically singular .*; its "
+                                         r"smallest R is 1e-08 m\^2"):
+        LfgnssFgo(mode="fixed-lag", noise=FixedNoise(r, np.zeros_like(r))).solve(seq)
 
 
 @pytest.mark.parametrize("mode", ["fixed-lag", "batch"])

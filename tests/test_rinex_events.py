@@ -242,7 +242,7 @@ def test_the_georinex_engine_refuses_redefined_types_and_reads_a_satellite_witho
     event = ["                            4  1", "     4    C1    L1    D1    S1".ljust(60) + "# / TYPES OF OBSERV"]
     path = tmp_path / "t.obs"
     path.write_text("\n".join(header + epochs[0] + event + _v2_in_types(epochs[1], types)) + "\n")
-    with pytest.raises(RinexError, match=rf"^{path}:{len(header) + len(epochs[0]) + 2}: an event redefines the "
+    with pytest.raises(RinexError, match=rf"^{path}:{len(header) + len(epochs[0]) + 1}: an event redefines the "
                                          r"observation types here, which engine='georinex' cannot read"):
         load_obs(path, cache=False, engine="georinex")
     blank = tmp_path / "blank.rnx"
@@ -296,3 +296,26 @@ def test_a_rinex3_event_may_add_a_constellation_the_header_lacks(tmp_path):
     np.testing.assert_array_equal(obs.pr_m[:, 0], [20001000.0, 20001001.0, 20001002.0])
     assert any(f"{path}:7: 1 record(s) of R before the event on line 8 gives their observation types" in n
                for n in notes), notes
+
+
+def test_a_constellation_added_after_another_redefinition_is_read(tmp_path):
+    """Review: GPS's types redefined, then GLONASS added by a later event: a KeyError (its early records sat in a piece
+    whose types had no R)."""
+    text = "\n".join([
+        "     3.04           OBSERVATION DATA    M                   RINEX VERSION / TYPE",
+        "G    3 C1C D1C S1C".ljust(60) + "SYS / # / OBS TYPES",
+        "  2020     6     3     3     2    9.0000000     GPS".ljust(60) + "TIME OF FIRST OBS", " " * 60 + "END OF HEADER",
+        "> 2020 06 03 03 02  9.0000000  0  2", "G01  20008600.000       -2914.000          20.860",
+        "R05  20009000.100       -2910.000          20.900",
+        "> 2020 06 03 03 02  9.5000000  4  1", "G    3 S1C C1C D1C".ljust(60) + "SYS / # / OBS TYPES",
+        "> 2020 06 03 03 02 10.0000000  0  2", "G01        20.861    20008601.000       -2913.990",
+        "R05  20009001.100       -2909.990          20.901",
+        "> 2020 06 03 03 02 10.5000000  4  1", "R    3 C1C D1C S1C".ljust(60) + "SYS / # / OBS TYPES",
+        "> 2020 06 03 03 02 11.0000000  0  2", "G01        20.862    20008602.000       -2913.980",
+        "R05  20009002.100       -2909.980          20.902"]) + "\n"
+    path = tmp_path / "later.rnx"
+    path.write_text(text)
+    obs, notes = _load(path)
+    np.testing.assert_array_equal(obs.pr_m, [[20008600.0, np.nan], [20008601.0, np.nan], [20008602.0, 20009002.1]])
+    np.testing.assert_array_equal(obs.cn0_dbhz[:, 0], [20.86, 20.861, 20.862])
+    assert any(f"{path}:7: 2 record(s) of R before the event on line 13" in n for n in notes), notes
