@@ -892,8 +892,9 @@ def _numbers(value: object, n: int) -> list[float] | None:
 
 
 def _used_as(split: object, select: object) -> str:
-    """How a model used a piece of the split named ``split``: validation selects the model (``train.select = "val"``,
-    the default) or, with ``"last"``, is only scored (its schedule was chosen by cross-validation); the rest trains it."""
+    """How a model used a piece of the split named ``split``: validation selects the model (``train.select =
+    "val"``, the default) or, with ``"last"``, is only scored (its schedule was chosen by cross-validation); the rest
+    trains it."""
     if split not in ("val", "validation"):
         return "trained on"
     return "validated on" if select == "last" else "selected on"
@@ -927,6 +928,7 @@ def seen_test_epochs(metadata: dict, dataset_id: str, test_time_gps_s: np.ndarra
     lines, record, via = [], metadata, ""
     while isinstance(record, dict):
         found: list[str] = []                   # this record's pieces: its own lines, one line for a starting model's
+        select = _select(record)
         spans = [s for s in record.get("data_spans") or [] if isinstance(s, dict)]
         for span in spans:
             t, where = _numbers(span.get("gps_s"), 2), _numbers(span.get("place_ecef_m"), 3)
@@ -934,9 +936,9 @@ def seen_test_epochs(metadata: dict, dataset_id: str, test_time_gps_s: np.ndarra
             reach = SAME_PLACE_M + (radius or 0.0) + (span["radius_m"] if _is_number(span.get("radius_m")) else 0.0)
             near = where is None or radius is None or np.linalg.norm(np.asarray(where) - centre) <= reach
             if n and near:
-                found.append(f"{_used_as(span.get('split'), _select(record))} {span.get('sequence')} ({span.get('dataset')} "
-                             f"{span.get('split')}, GPS {t[0]:.1f}-{t[1]:.1f} s): {n} of {dataset_id}'s {times.size} "
-                             f"{epochs_word}")
+                found.append(f"{_used_as(span.get('split'), select)} {span.get('sequence')} "
+                             f"({span.get('dataset')} {span.get('split')}, GPS {t[0]:.1f}-{t[1]:.1f} s): {n} of "
+                             f"{dataset_id}'s {times.size} {epochs_word}")
         files = record.get("source_files") or {}
         pieces = [] if spans else [p for p in record.get("data_fingerprints") or [] if isinstance(p, dict)]
         for ds in sorted({str(p.get("dataset", "")) for p in pieces}):
@@ -948,8 +950,8 @@ def seen_test_epochs(metadata: dict, dataset_id: str, test_time_gps_s: np.ndarra
                 found.append(f"trained on dataset {ds}, which reads {dataset_id}'s observation file(s); the model "
                              "does not record which epochs (it predates data_spans), so its training may hold "
                              f"{epochs_word}")
-            found += [f"{_used_as(split, _select(record))} {ds} {split} (its split as registered now): {n} of {dataset_id}'s "
-                      f"{times.size} {epochs_word}" for split, n in zip(splits, hits) if n]
+            found += [f"{_used_as(split, select)} {ds} {split} (its split as registered now): {n} of "
+                      f"{dataset_id}'s {times.size} {epochs_word}" for split, n in zip(splits, hits) if n]
         lines += ([f"{via}{', and '.join(found)}"] if via and found else found)
         record, bundled = _completed_init(record.get("init_model"))
         via = (f"{via}fine-tuned from {f'the bundled model {bundled!r}' if bundled else (record or {}).get('path')}, "
