@@ -57,6 +57,7 @@ import argparse
 import copy
 import csv
 import math
+import re
 import shlex
 import sys
 import warnings
@@ -387,9 +388,11 @@ def crossval(config: dict, folds: int, out_dir: str | Path, *, progress: bool = 
     return rows
 
 
-def _init_saw_blocks(init, whole: dict[str, list[Sequence]]) -> list[str]:
-    """Where the model fine-tuning starts from was trained on epochs of the blocks (the same drive under another
-    dataset id or file; ``learning.export.seen_test_epochs``): the first such line per dataset."""
+def _init_saw_blocks(init, whole: dict[str, list[Sequence]], epochs_word: str = "epochs to cross-validate on"
+                     ) -> list[str]:
+    """Where the model fine-tuning starts from was trained on epochs of ``whole``'s sequences (per dataset id; the
+    same drive under another dataset id or file: ``learning.export.seen_test_epochs``): the first such line per
+    dataset, the epochs called ``epochs_word``."""
     from lfgnss.datasets import obs_hashes
 
     from .export import seen_test_epochs
@@ -401,7 +404,7 @@ def _init_saw_blocks(init, whole: dict[str, list[Sequence]]) -> list[str]:
         times = np.concatenate([s.time_gps_s[s.labelled] for s in sequences])
         truth = np.concatenate([s.truth_ecef_m[s.labelled] for s in sequences])
         seen = seen_test_epochs(init.metadata, dataset_id, times, truth, obs_hashes(dataset_id),
-                                epochs_word="epochs to cross-validate on")
+                                epochs_word=epochs_word)
         lines += seen[:1]
     return lines
 
@@ -607,6 +610,24 @@ def _kept(exc: BaseException) -> str:
     return note
 
 
+def _go_on(exc: BaseException, args: argparse.Namespace, command: str) -> str:
+    """How a run stopped after some of its folds is finished (review: its --out refuses a second run, and nothing
+    said so): the folds left as a --fold run of their own, then both pooled (``--pool``)."""
+    stopped = getattr(exc, "crossval_stopped", None)
+    if stopped is None or not stopped[2] or args.pool or args.reuse:
+        return ""
+    out, _, done = stopped
+    left = [j for j in (sorted(set(args.only)) if args.only else range(args.folds)) if j not in done]
+    if not left:
+        return ""
+    rest = Path(f"{out}-rest")
+    again = re.sub(r"(^|\s)--(out|fold)(=|\s+)\S+", "", command).strip()
+    return (f"; to finish, run the fold(s) left into a folder of their own ({again} "
+            + " ".join(f"--fold {j}" for j in left) + f" --out {shlex.quote(str(rest))}), then pool the two "
+            f"(python -m learning.crossval --folds {args.folds} --pool {shlex.quote(str(out))} --pool "
+            f"{shlex.quote(str(rest))} --out {shlex.quote(str(out))}-all)")
+
+
 def next_step(config_file: str | None, overrides: list[str]) -> str:
     """The line after a finished cross-validation: the command that trains the recipe it scored (its ``--set``s
     included) on the train split, selected on the validation split, as ``learning.train`` does."""
@@ -671,7 +692,7 @@ def main(argv: list[str] | None = None) -> int:
         p.exit(3, f"{p.prog}: error: {one_line(exc)}: cross-validation stopped (exit status 3){_kept(exc)}; "
                   "check [loss], or try a lower train.lr or a train.grad_clip > 0\n")
     except KeyboardInterrupt as exc:
-        p.exit(130, f"{p.prog}: interrupted{_kept(exc)}\n")
+        p.exit(130, f"{p.prog}: interrupted{_kept(exc)}{_go_on(exc, args, command)}\n")
     except Exception as exc:  # a bug, not bad input: still one line, no traceback, a distinct exit code
         p.exit(3, f"{p.prog}: error: internal error ({type(exc).__name__}: {one_line(exc)}){_kept(exc)}; "
                   "please report it\n")

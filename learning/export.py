@@ -788,13 +788,18 @@ def trained_smoothed(metadata: dict) -> bool:
 
 def trained_systems(metadata: dict) -> str | None:
     """The constellations (letters, GCERJ order) of the data a model file was trained and selected on, from its
-    ``data_spans``; None for a file that does not record them (trained before session 50)."""
+    ``data_spans`` and those of the model it was fine-tuned from (``init_model``, and its own); None where one of them
+    does not record them (trained before session 50, as the bundled models)."""
     from lfgnss.constants import SYSTEMS
 
-    spans = [s for s in metadata.get("data_spans") or [] if isinstance(s, dict)]
-    if not spans or not all(isinstance(s.get("systems"), str) for s in spans):
-        return None
-    letters = set("".join(s["systems"] for s in spans))
+    letters: set[str] = set()
+    record = metadata
+    while isinstance(record, dict):     # a fine-tuned network keeps what its start learnt of other constellations
+        spans = [s for s in record.get("data_spans") or [] if isinstance(s, dict)]
+        if not spans or not all(isinstance(s.get("systems"), str) for s in spans):
+            return None
+        letters |= set("".join(s["systems"] for s in spans))
+        record = record.get("init_model")
     return "".join(c for c in SYSTEMS if c in letters)
 
 

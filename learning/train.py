@@ -186,10 +186,12 @@ def shipped_configs() -> list[str]:
 
 
 def shipped_config(name: str) -> Path | None:
-    """The shipped configuration called ``name`` (``finetune``: learning/configs/finetune.toml), or None where
-    ``name`` has a folder or suffix or no shipped file has that name."""
-    shipped = CONFIG_DIR / f"{name}.toml"
-    return shipped if may_name_a_bundled_model(name) and shipped.is_file() else None
+    """The shipped configuration called ``name`` (``finetune`` or ``finetune.toml``: learning/configs/finetune.toml;
+    a shipped file copied elsewhere keeps its ``base = "default.toml"``), or None where ``name`` has a folder or
+    another suffix or no shipped file has that name."""
+    stem = name.removesuffix(".toml")
+    shipped = CONFIG_DIR / f"{stem}.toml"
+    return shipped if may_name_a_bundled_model(stem) and shipped.is_file() else None
 
 
 def config_path(config: str) -> str:
@@ -410,9 +412,10 @@ def _read_toml(path: Path, depth: int = 0) -> dict:
         with open(path, "rb") as fh:
             data = tomllib.load(fh)
     except FileNotFoundError:
-        if not may_name_a_bundled_model(path):
+        stem = str(path).removesuffix(".toml")
+        if not may_name_a_bundled_model(stem):
             raise ValueError(f"{path}: cannot read configuration: no such file") from None
-        hint = did_you_mean(str(path), shipped_configs()) or f" (shipped: {', '.join(shipped_configs())})"
+        hint = did_you_mean(stem, shipped_configs()) or f" (shipped: {', '.join(shipped_configs())})"
         raise ValueError(f"{path}: cannot read configuration: no such file, nor a shipped configuration of that name"
                          f"{hint}") from None
     except (OSError, ValueError, RecursionError) as exc:   # ValueError: TOMLDecodeError, or bytes that are not UTF-8
@@ -465,6 +468,27 @@ def ekf_config(config: dict):
         return EkfConfig(**config["ekf"])
     except ValueError as err:                # "estimators/models.py: EkfConfig.KEY ...": name the setting instead
         raise ValueError(str(err).replace("estimators/models.py: EkfConfig.", "ekf.")) from None
+
+
+def init_saw_validation(init, config: dict) -> list[str]:
+    """Where the model fine-tuning starts from (``init``) was trained or selected on epochs of the run's validation
+    split: its own pieces of a split of that name of the same dataset, or the same drive under another dataset id
+    or file (``learning.crossval._init_saw_blocks``); the first line per dataset."""
+    from .crossval import _init_saw_blocks
+    from .export import _select, _used_as
+
+    data = config["data"]
+    wanted = set(split_parts(data["val_split"]))
+    lines, others = [], {}
+    for ds in data["datasets"]:
+        pieces = sorted({str(p.get("split")) for p in init.metadata.get("data_fingerprints") or []
+                         if isinstance(p, dict) and p.get("dataset") == ds and set(split_parts(str(p.get("split"))))
+                         & wanted})
+        if pieces:
+            lines.append(f"{_used_as(pieces[0], _select(init.metadata))} {ds} {pieces[0]}")
+        elif ds != "synthetic":
+            others[ds] = load_sequences(ds, data["val_split"], config)
+    return lines + _init_saw_blocks(init, others, "validation epochs")
 
 
 def init_model(config: dict):
@@ -1186,6 +1210,10 @@ def _train(config: dict, out: Path, checkpoint: dict | None, *, progress: bool, 
     prep = prepared or prepare(config)
     if checkpoint is not None:
         _check_source_files(checkpoint, prep.source_files, last_path)
+    elif prepared is None and prep.init is not None:       # learning.crossval says so of its blocks itself
+        for line in init_saw_validation(prep.init, config):
+            print(f"warning: train.init {prep.init.path} {line}: the validation split is not unseen data, so its "
+                  "RMSE, the starting model's at epoch 0 included, is optimistic", file=sys.stderr)
     device = resolve_device(config.get("device", "cpu"))      # runs from before the setting resume on the CPU
     train_batch, val_batches = prep.train_batch.to(device), [b.to(device) for b in prep.val_batches]
     ekf_cfg = ekf_config(config)

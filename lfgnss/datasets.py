@@ -520,7 +520,7 @@ def _readable_as(path: Path, truth_format: str) -> str | None:
     week of -1) reads as static too, and static truth would label every epoch with its first row.
     """
     for other, layout in _ROW_LAYOUTS.items():
-        if other != truth_format and _ROW_LAYOUTS[truth_format] != layout:
+        if other != truth_format and _ROW_LAYOUTS.get(truth_format) != layout:      # "pos" has no row layout
             try:
                 rows, _ = _numeric_rows(path, *layout)
             except InputError:
@@ -600,7 +600,7 @@ def read_pos_truth(path: Path, spec: DatasetSpec) -> tuple[np.ndarray, np.ndarra
         raise InputError(path, f"cannot read truth file ({err.strerror})") from None
     except ValueError as err:
         where = re.match(r"read_pos .*?:(\d+): (.*)", str(err))
-        raise InputError(path, where.group(2) if where else str(err),
+        raise InputError(path, where.group(2) if where else f"not readable as an RTKLIB .pos solution ({err})",
                          line=int(where.group(1)) if where else None) from None
     if not sol.time_gps_s.size:
         raise InputError(path, "no readable ground-truth line (no solution line in this .pos file)")
@@ -857,7 +857,7 @@ def align_truth(time_gps_s: np.ndarray, spec: DatasetSpec) -> tuple[np.ndarray, 
     try:
         t_truth, xyz, bad = _sorted_truth_rows(spec, spec.time_origin_gps_s)
     except InputError as err:
-        other = _readable_as(spec.truth, spec.truth_format) if spec.truth_format in _ROW_LAYOUTS else None
+        other = _readable_as(spec.truth, spec.truth_format)
         if other is None:
             columns = TRUTH_COLUMNS.get(spec.truth_format)
             if columns is None or not err.reason.startswith("no readable ground-truth line"):
@@ -1257,6 +1257,9 @@ def main(argv: list[str] | None = None) -> int:
     except INPUT_ERRORS as err:
         print(f"error: {one_line(err)}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:   # a cache entry is written whole or not at all: the next run builds what is missing
+        print("interrupted", file=sys.stderr)
+        return 130
     except Exception as err:  # a bug, not bad input: still one line, no traceback, a distinct exit code
         print(f"error: internal error while building datasets ({type(err).__name__}: {one_line(err)}); "
               f"please report it", file=sys.stderr)

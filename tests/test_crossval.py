@@ -538,3 +538,22 @@ def test_reuse_of_several_runs_scores_their_fold_models_as_one_ensemble(trained_
             main(RECIPE + extra + ["--out", str(tmp_path / "x"), *[a for r in reuse for a in ("--reuse", str(r))]])
         err = capsys.readouterr().err
         assert exit_info.value.code == 2 and message in err and "Traceback" not in err
+
+
+def test_an_interrupted_run_says_how_to_finish_its_folds(tmp_path):
+    """Review: Ctrl-C after fold 0 kept its rows, but the same command again was refused (the --out holds a
+    cross-validation) and nothing said that a --fold run of the rest and --pool finish it."""
+    import argparse
+
+    from learning.crossval import _go_on
+
+    out = tmp_path / "cv"
+    exc = KeyboardInterrupt()
+    exc.crossval_stopped = (out, out / "crossval.csv", [0])
+    args = argparse.Namespace(only=None, folds=3, pool=None, reuse=None)
+    said = _go_on(exc, args, f"python -m learning.crossval --config berlin --fold 0 --out {out} --set seed=1")
+    assert said == (f"; to finish, run the fold(s) left into a folder of their own (python -m learning.crossval "
+                    f"--config berlin --set seed=1 --fold 1 --fold 2 --out {out}-rest), then pool the two (python -m "
+                    f"learning.crossval --folds 3 --pool {out} --pool {out}-rest --out {out}-all)")
+    exc.crossval_stopped = (out, None, [])                     # stopped in fold 0: nothing to pool
+    assert _go_on(exc, args, "python -m learning.crossval") == ""

@@ -475,3 +475,29 @@ def test_the_builtin_test_splits_run_to_the_end_and_say_so():
     assert datasets.split_bounds_words(datasets.get("berlin-pp"), "test") == "test = [180, inf)"
     assert (datasets.split_bounds_words(datasets.get("hk-tst-static-2020"), "val+test")
             == "val = [500, 600), test = [600, inf)")
+
+
+def test_a_truth_read_as_pos_in_error_names_the_format_it_reads_as(tmp_path):
+    """Review: truth files given as "pos" gave the .pos reader's own errors ("invalid literal for int() with base 10:
+    'point3'"), where the other formats say which format the file reads as."""
+    truth = SAMPLE_DIR / "Berlin_Potsdamer_Platz_GT.txt"
+    spec = datasets.DatasetSpec("x", (SAMPLE_DIR / "Berlin_Potsdamer_Platz.obs.gz",), (), truth, "pos", {}, "tow",
+                                ("G", "R"), 0.05)
+    with pytest.raises(InputError, match=r"Berlin_Potsdamer_Platz_GT.txt:1: .*\(read as truth format 'pos'; the file "
+                                         r"reads as 'smartloc': give --truth-format smartloc\)"):
+        datasets.align_truth(np.array([1.149e9]), spec)
+    csv = tmp_path / "truth.csv"
+    csv.write_text("2016,126641.7,52.5,13.37,70.0\n2016,126641.9,52.5,13.37,70.0\n")
+    with pytest.raises(InputError, match=r"truth.csv:1: expected at least 13 fields .*\(read as truth format 'pos'; "
+                                         r"the file reads as 'urbannav'"):
+        datasets.align_truth(np.array([1.149e9]), dataclasses.replace(spec, truth=csv))
+
+
+def test_ctrl_c_while_building_is_one_line(capsys, monkeypatch):
+    """Review: Ctrl-C during a first build printed a traceback through numpy's savez."""
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(datasets, "alignment_report", interrupted)
+    assert datasets.main([]) == 130
+    assert capsys.readouterr().err.endswith("interrupted\n")

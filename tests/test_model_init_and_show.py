@@ -186,3 +186,21 @@ def test_a_model_trained_on_smoothed_positions_is_said_to_want_the_smoother(tmp_
     for extra in (["--smooth"], ["--backend", "fgo"]):
         assert solve_main(["--out", str(tmp_path / "out"), "--no-plots", "--quiet", "--model", str(path), *extra]) == 0
         assert "RTS-smoothed" not in capsys.readouterr().err
+
+
+def test_fine_tuning_says_when_its_start_saw_the_validation_epochs(my_drive):
+    """Review: learning.crossval warned that a train.init model had seen the epochs it scores, learning.train did not
+    (its epoch-0 line, 'the line to beat', was the start's own validation epochs)."""
+    from types import SimpleNamespace
+
+    from learning.train import init_saw_validation
+
+    start = SimpleNamespace(path="start.npz", metadata={"config": {"train": {"select": "last"}}, "data_fingerprints": [
+        {"dataset": "berlin-pp", "split": "train"}, {"dataset": "berlin-pp", "split": "val"}]})
+    config = {"data": {"datasets": ["berlin-pp"], "val_split": "val"}}
+    assert init_saw_validation(start, config) == ["validated on berlin-pp val"]
+    # the bundled default model on one's own copy of its Berlin drive: by the drive's files
+    config = load_config(None, [f"data.datasets=['{my_drive}']"])
+    lines = init_saw_validation(init_model({"train": {"init": "default"}}), config)
+    assert lines == ["validated on berlin-pp val (its split as registered now): 148 of my-drive's 148 validation "
+                     "epochs"]

@@ -266,8 +266,21 @@ def test_base_and_load_config_take_a_shipped_configurations_name(tmp_path, monke
         load_config(tmp_path / "bad.toml")
 
 
+def test_a_copied_shipped_configuration_keeps_its_base(tmp_path, monkeypatch):
+    """Review: a shipped file copied to edit (its base = "default.toml") was refused, 'no such configuration file
+    beside it, nor a shipped one of that name (..., default, ...)'; --config finetune.toml from another folder too."""
+    from learning.train import CONFIG_DIR, config_path
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "cfg").mkdir()
+    (tmp_path / "cfg" / "my-ft.toml").write_text((CONFIG_DIR / "finetune.toml").read_text())
+    assert load_config(tmp_path / "cfg" / "my-ft.toml") == load_config(CONFIG_DIR / "finetune.toml")
+    assert config_path("finetune.toml") == str(CONFIG_DIR / "finetune.toml")
+
+
 @pytest.mark.parametrize("given, said", [
     ("finetun", "no such file, nor a shipped configuration of that name (did you mean 'finetune'?)"),
+    ("finetun.toml", "no such file, nor a shipped configuration of that name (did you mean 'finetune'?)"),
     ("qqqqqq", "no such file, nor a shipped configuration of that name (shipped: berlin, "),
     ("nothere/x.toml", "no such file"),
 ])

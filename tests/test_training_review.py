@@ -248,6 +248,11 @@ def test_a_model_records_its_constellations_and_solve_names_those_it_never_saw()
     for older in ({"data_spans": [{"dataset": "x"}]}, {}):              # files of before session 50 say nothing
         assert trained_systems(older) is None and unseen_systems_note(SimpleNamespace(metadata=older), ("C",)) is None
     assert unseen_systems_note(None, ("G",)) is None                     # hand-set noise
+    # a fine-tuned network keeps what its start learnt (review: fine-tuned on GR from a model of GC data, it was said
+    # to have never seen BeiDou); a start that does not record its constellations (a bundled model) says nothing
+    tuned = {"data_spans": [{"systems": "GR"}], "init_model": {"data_spans": [{"systems": "GC"}], "init_model": None}}
+    assert trained_systems(tuned) == "GCR"                               # lfgnss order
+    assert trained_systems({"data_spans": [{"systems": "GR"}], "init_model": {"data_spans": []}}) is None
 
 
 def test_show_names_the_constellations_a_model_was_trained_on(runs, capsys):
