@@ -6,6 +6,7 @@ import importlib
 import math
 import os
 import re
+import shlex
 import subprocess
 import sys
 
@@ -274,7 +275,10 @@ def test_crossval_stopped_run_keeps_the_finished_folds_rows(monkeypatch, tmp_pat
     _fake_training(monkeypatch, _raise(exc))
     out = tmp_path / "cv"
     code_seen, seen = _cv_exit([*SYNTHETIC, "--folds", "2", "--out", str(out)], capsys)
-    assert code_seen == code and seen == line.format(prog=CV_PROG, out=out)
+    finish = (f"; to finish, run the fold(s) left into a folder of their own ({CV_PROG} {shlex.join(SYNTHETIC)} "
+              f"--folds 2 --fold 1 --out {out}-rest), then pool the two ({CV_PROG} --folds 2 --pool {out} --pool "
+              f"{out}-rest --out {out}-all)") if code == 130 else ""
+    assert code_seen == code and seen == line.format(prog=CV_PROG, out=out) + finish
     with open(out / "crossval.csv") as fh:
         assert [r["fold"] for r in csv.DictReader(fh)] == ["0"]
 
