@@ -872,10 +872,12 @@ class LfgnssFgo:
                         self._warn_no_marginals(seq, err)
                         cov = None
                 continue
-            prior = k == k0 or restart
-            if prior:
+            graph = gtsam.NonlinearFactorGraph()
+            values = gtsam.Values()
+            if k == k0 or restart:
                 x_guess = seq.coarse_ecef_m[k]
                 v_guess = self._first_velocity(k, dv)
+                self._priors(k, x_guess, v_guess, graph)
                 restart = False
             else:
                 dt = float(t[k] - t[last])
@@ -886,8 +888,17 @@ class LfgnssFgo:
                     # the epoch: start from the coarse fix, not from a prediction maybe 100+ m off, which
                     # would put every satellite deep in the robust kernel's tail.
                     x_guess = seq.coarse_ecef_m[k]
-            est, n_used[i] = self._fixed_lag_update(smoother, seq, k, k0, last, t, x_guess, v_guess, z_m, sigma_m,
-                                                    motion, dv, still, ranges, prior)
+                graph.add(motion.factor(last, k, dt))
+            values.insertPoint3(X(k), x_guess)
+            values.insertPoint3(V(k), v_guess)
+            n_used[i] = self._epoch(k, seq, z_m, sigma_m, x_guess, graph, values,
+                                    loose_sigma_m=self.prior_pos_sigma_m if k > k0 and ranges[k] < 3 else None)
+            self._velocity_prior(k, dv, still, graph)
+            stamps = {key: float(t[k]) for key in values.keys()}
+            smoother.update(graph, values, stamps)
+            for _ in range(self.fixed_lag_iterations - 1):
+                smoother.update()
+            est = smoother.calculateEstimate()
             pos[i] = est.atPoint3(X(k))
             vel[i] = est.atPoint3(V(k))
             if est.exists(clock_key(k, 0, n_sys)):
@@ -902,30 +913,6 @@ class LfgnssFgo:
         info["coasted_outside_graph"] = int(np.count_nonzero(blind[k0 + 1:] & ~after_gap[1:]))
         info["after_gap"] = after_gap
         return pos, vel, clk, n_used, cov
-
-    def _fixed_lag_update(self, smoother: gtsam.IncrementalFixedLagSmoother, seq: Sequence, k: int, k0: int,
-                          last: int, t: np.ndarray, x_guess: np.ndarray, v_guess: np.ndarray, z_m: np.ndarray,
-                          sigma_m: np.ndarray, motion: _MotionModel, dv: DopplerVelocity | None,
-                          still: np.ndarray | None, ranges: np.ndarray, prior: bool) -> tuple[gtsam.Values, int]:
-        """Put epoch k in the fixed-lag ``smoother``: its pseudoranges, Doppler velocity and, with ``prior``,
-        priors at ``x_guess`` [m], ``v_guess`` [m/s] (else a CV factor from epoch ``last``); (estimate, satellites
-        used)."""
-        graph = gtsam.NonlinearFactorGraph()
-        values = gtsam.Values()
-        if prior:
-            self._priors(k, x_guess, v_guess, graph)
-        else:
-            graph.add(motion.factor(last, k, float(t[k] - t[last])))
-        values.insertPoint3(X(k), x_guess)
-        values.insertPoint3(V(k), v_guess)
-        n_used = self._epoch(k, seq, z_m, sigma_m, x_guess, graph, values,
-                             loose_sigma_m=self.prior_pos_sigma_m if k > k0 and ranges[k] < 3 else None)
-        self._velocity_prior(k, dv, still, graph)
-        stamps = {key: float(t[k]) for key in values.keys()}
-        smoother.update(graph, values, stamps)
-        for _ in range(self.fixed_lag_iterations - 1):
-            smoother.update()
-        return smoother.calculateEstimate(), n_used
 
     @staticmethod
     def _clock_only(k: int, seq: Sequence, z_m: np.ndarray, pos: np.ndarray) -> float:

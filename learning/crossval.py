@@ -67,7 +67,7 @@ import numpy as np
 
 from lfgnss.datasets import contiguous_runs, split_parts
 from lfgnss.errors import (INPUT_ERRORS, InputError, cannot_write, input_line, one_line, path_option, shortened,
-                           stdout_gone, warnings_on_one_line)
+                           print_stdout, warnings_on_one_line)
 from lfgnss.help_text import PlainHelp
 from lfgnss.metrics import accuracy_table, markdown_table
 from lfgnss.paths import check_output_folder, make_output_folder, model_path
@@ -696,13 +696,9 @@ def main(argv: list[str] | None = None) -> int:
     except Exception as exc:  # a bug, not bad input: still one line, no traceback, a distinct exit code
         p.exit(3, f"{p.prog}: error: internal error ({type(exc).__name__}: {one_line(exc)}){_kept(exc)}; "
                   "please report it\n")
-    try:
-        print((out / "crossval.md").read_text(), end="")
-        if not (args.pool or args.reuse or args.only):
-            print(next_step(args.config, args.overrides))
-        sys.stdout.flush()
-    except BrokenPipeError:                   # the reader went away (| head): the results are written
-        stdout_gone()
+    print_stdout((out / "crossval.md").read_text(), end="")   # a reader gone (| head): the results are written
+    if not (args.pool or args.reuse or args.only):
+        print_stdout(next_step(args.config, args.overrides))
     return 0
 
 
